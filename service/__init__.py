@@ -1,0 +1,1 @@
+"""Inference service and the shared domain code (``service.core``) that training imports too."""

@@ -1,0 +1,101 @@
+"""BVH reader: hierarchy, channels and motion frames, exactly as written in the file.
+
+No unit or axis conversion happens here (see ``service.core.kinematics``). Every joint's CHANNELS
+line is honoured: channel order differs between sources (``../shared/data/README.md``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+class BvhFormatError(ValueError):
+    """The file is not valid BVH; the message says what was expected and what was found."""
+
+
+@dataclass(frozen=True)
+class BvhJoint:
+    name: str
+    parent: int  # -1 for the root
+    offset: np.ndarray  # (3,) in file units
+    channels: tuple[str, ...]  # e.g. ("Xposition", ..., "Zrotation", "Xrotation", "Yrotation")
+    channel_start: int  # column of the first channel in the motion table
+
+
+@dataclass(frozen=True)
+class Bvh:
+    joints: tuple[BvhJoint, ...]  # depth-first order: parents precede children
+    end_sites: dict[int, np.ndarray]  # joint index -> end-site offset (3,)
+    frame_time_s: float
+    motion: np.ndarray  # (T, n_channels) in file units (degrees for rotations)
+
+    @property
+    def sample_rate_hz(self) -> float:
+        return 1.0 / self.frame_time_s
+
+    def joint_index(self, name: str) -> int:
+        for i, joint in enumerate(self.joints):
+            if joint.name == name:
+                return i
+        raise KeyError(f"joint {name!r} not in BVH; joints are {[j.name for j in self.joints]}")
+
+
+def read_bvh(path: str | Path) -> Bvh:
+    """Parse a BVH file."""
+    tokens = Path(path).read_text().split()
+    return _parse(tokens, str(path))
+
+
+def _expect(tokens: list[str], i: int, word: str, where: str) -> int:
+    if i >= len(tokens) or tokens[i] != word:
+        found = tokens[i] if i < len(tokens) else "end of file"
+        raise BvhFormatError(f"{where}: expected {word!r} at token {i}, found {found!r}")
+    return i + 1
+
+
+def _parse(tokens: list[str], where: str) -> Bvh:
+    i = _expect(tokens, 0, "HIERARCHY", where)
+    joints: list[BvhJoint] = []
+    end_sites: dict[int, np.ndarray] = {}
+    stack: list[int] = []
+    n_channels = 0
+    while tokens[i] != "MOTION":
+        word = tokens[i]
+        if word in ("ROOT", "JOINT"):
+            name = tokens[i + 1]
+            i = _expect(tokens, i + 2, "{", where)
+            i = _expect(tokens, i, "OFFSET", where)
+            offset = np.array([float(t) for t in tokens[i : i + 3]])
+            i = _expect(tokens, i + 3, "CHANNELS", where)
+            count = int(tokens[i])
+            channels = tuple(tokens[i + 1 : i + 1 + count])
+            i += 1 + count
+            parent = stack[-1] if stack else -1
+            joints.append(BvhJoint(name, parent, offset, channels, n_channels))
+            n_channels += count
+            stack.append(len(joints) - 1)
+        elif word == "End":
+            i = _expect(tokens, i + 2, "{", where)
+            i = _expect(tokens, i, "OFFSET", where)
+            end_sites[stack[-1]] = np.array([float(t) for t in tokens[i : i + 3]])
+            i = _expect(tokens, i + 3, "}", where)
+        elif word == "}":
+            stack.pop()
+            i += 1
+        else:
+            raise BvhFormatError(f"{where}: unexpected token {word!r} in HIERARCHY at token {i}")
+    i = _expect(tokens, i + 1, "Frames:", where)
+    n_frames = int(tokens[i])
+    i = _expect(tokens, i + 1, "Frame", where)
+    i = _expect(tokens, i, "Time:", where)
+    frame_time_s = float(tokens[i])
+    values = np.array(tokens[i + 1 :], dtype=np.float64)
+    if values.size != n_frames * n_channels:
+        raise BvhFormatError(
+            f"{where}: expected {n_frames} frames x {n_channels} channels = {n_frames * n_channels} values, "
+            f"found {values.size}"
+        )
+    return Bvh(tuple(joints), end_sites, frame_time_s, values.reshape(n_frames, n_channels))

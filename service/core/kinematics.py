@@ -1,0 +1,77 @@
+"""Forward kinematics of a BVH skeleton into the project world frame (Z up, metres).
+
+BVH worlds are Y up; the proper rotation (x, y, z)_project = (z, x, y)_bvh maps forward to +x,
+left to +y and up to +z (``../shared/data/README.md``: a y/z swap would mirror left and right).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from service.core.bvh import Bvh
+
+# Columns are the BVH axes expressed in the project frame: project = C @ bvh.
+C_PROJECT_BVH = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class GlobalPoses:
+    """Global joint poses of one clip in the project world frame.
+
+    positions_m: (T, J, 3); R_world_joint: (T, J, 3, 3); names: J joint names.
+    """
+
+    names: tuple[str, ...]
+    positions_m: np.ndarray
+    R_world_joint: np.ndarray
+    sample_rate_hz: float
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+
+def _local_rotations(bvh: Bvh, joint_index: int) -> np.ndarray:
+    """Local rotation matrices ``(T, 3, 3)``: intrinsic Euler angles in the CHANNELS order."""
+    joint = bvh.joints[joint_index]
+    axes, cols = [], []
+    for k, channel in enumerate(joint.channels):
+        if channel.endswith("rotation"):
+            axes.append(channel[0].upper())
+            cols.append(joint.channel_start + k)
+    if not axes:
+        return np.broadcast_to(np.eye(3), (bvh.motion.shape[0], 3, 3))
+    angles = bvh.motion[:, cols]
+    return Rotation.from_euler("".join(axes), angles, degrees=True).as_matrix()
+
+
+def _local_translation(bvh: Bvh, joint_index: int) -> np.ndarray:
+    """OFFSET plus any position channels, ``(T, 3)`` in file units."""
+    joint = bvh.joints[joint_index]
+    t = np.broadcast_to(joint.offset, (bvh.motion.shape[0], 3)).copy()
+    for k, channel in enumerate(joint.channels):
+        if channel.endswith("position"):
+            t[:, "XYZ".index(channel[0].upper())] += bvh.motion[:, joint.channel_start + k]
+    return t
+
+
+def forward_kinematics(bvh: Bvh, metres_per_unit: float) -> GlobalPoses:
+    """Global positions and orientations of every joint, in the project world frame."""
+    n_frames, n_joints = bvh.motion.shape[0], len(bvh.joints)
+    R = np.empty((n_frames, n_joints, 3, 3))
+    p = np.empty((n_frames, n_joints, 3))
+    for j, joint in enumerate(bvh.joints):
+        R_local = _local_rotations(bvh, j)
+        t_local = _local_translation(bvh, j)
+        if joint.parent < 0:
+            R[:, j] = R_local
+            p[:, j] = t_local
+        else:
+            R[:, j] = R[:, joint.parent] @ R_local
+            p[:, j] = p[:, joint.parent] + np.einsum("tij,tj->ti", R[:, joint.parent], t_local)
+    positions_m = np.einsum("ij,tkj->tki", C_PROJECT_BVH, p) * metres_per_unit
+    R_world_joint = np.einsum("ij,tkjl->tkil", C_PROJECT_BVH, R)
+    names = tuple(joint.name for joint in bvh.joints)
+    return GlobalPoses(names, positions_m, R_world_joint, bvh.sample_rate_hz)

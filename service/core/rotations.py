@@ -1,0 +1,66 @@
+"""Quaternion conventions of the project (DESIGN.md §2): Hamilton, scalar first, unit, w >= 0.
+
+All heavy lifting is scipy's ``Rotation`` with ``scalar_first=True`` said explicitly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def canonical_quat(q_wxyz: np.ndarray) -> np.ndarray:
+    """Normalise quaternions ``(..., 4)`` (w, x, y, z) and flip the sign so that w >= 0."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0.0, -q, q)
+
+
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` to canonical quaternions ``(..., 4)``."""
+    R = np.asarray(R, dtype=np.float64)
+    flat = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat(scalar_first=True)
+    return canonical_quat(flat.reshape(R.shape[:-2] + (4,)))
+
+
+def matrix_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
+    """Quaternions ``(..., 4)`` (w, x, y, z) to rotation matrices ``(..., 3, 3)``."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    flat = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix()
+    return flat.reshape(q.shape[:-1] + (3, 3))
+
+
+def stereographic_to_quat(p: np.ndarray) -> np.ndarray:
+    """Inverse stereographic projection ``(..., 3)`` -> unit quaternion ``(..., 4)``.
+
+    Paper 000 §2.2.5 (ref. 56, Terzakis et al.): the projection from the pole (-1, 0, 0, 0) maps
+    q = (w, v) to p = v / (1 + w); its inverse is q = ((1 - |p|^2), 2 p) / (1 + |p|^2).
+    """
+    p = np.asarray(p, dtype=np.float64)
+    n2 = np.sum(p * p, axis=-1, keepdims=True)
+    q = np.concatenate([1.0 - n2, 2.0 * p], axis=-1) / (1.0 + n2)
+    return canonical_quat(q)
+
+
+def quat_to_stereographic(q_wxyz: np.ndarray) -> np.ndarray:
+    """Stereographic projection of canonical (w >= 0) quaternions: ``(..., 4)`` -> ``(..., 3)``."""
+    q = canonical_quat(q_wxyz)
+    return q[..., 1:] / (1.0 + q[..., :1])
+
+
+def error_angles_xyz_deg(q_true: np.ndarray, q_pred: np.ndarray) -> np.ndarray:
+    """Absolute error angles about the segment axes, paper 000 §3.3.
+
+    The deviation q_true ⊗ q_pred⁻¹ is decomposed into Euler angles of order XYZ (intrinsic, about
+    the segment frame's axes); returns ``(N, 3)`` absolute angles in degrees, each in [0, 180].
+    """
+    r_true = Rotation.from_quat(np.asarray(q_true).reshape(-1, 4), scalar_first=True)
+    r_pred = Rotation.from_quat(np.asarray(q_pred).reshape(-1, 4), scalar_first=True)
+    return np.abs((r_true * r_pred.inv()).as_euler("XYZ", degrees=True))
+
+
+def geodesic_angle_deg(q_true: np.ndarray, q_pred: np.ndarray) -> np.ndarray:
+    """Total rotation angle of q_true ⊗ q_pred⁻¹ in degrees, ``(N,)``."""
+    r_true = Rotation.from_quat(np.asarray(q_true).reshape(-1, 4), scalar_first=True)
+    r_pred = Rotation.from_quat(np.asarray(q_pred).reshape(-1, 4), scalar_first=True)
+    return np.degrees((r_true * r_pred.inv()).magnitude())

@@ -1,0 +1,27 @@
+"""The seven lower-body segment classes of paper 000 (§2.1), in its order (DESIGN.md §2)."""
+
+from __future__ import annotations
+
+SEGMENTS: tuple[str, ...] = (
+    "LeftFoot",
+    "LeftLowerLeg",
+    "LeftUpperLeg",
+    "Pelvis",
+    "RightUpperLeg",
+    "RightLowerLeg",
+    "RightFoot",
+)
+
+# Left/right mirror of each class index, for "accuracy ignoring left/right" (paper 000 §4.3.1).
+MIRROR: tuple[int, ...] = (6, 5, 4, 3, 2, 1, 0)
+
+# Side-free body part of each class: foot, lower leg, upper leg, pelvis.
+BODY_PART: tuple[str, ...] = ("foot", "lower_leg", "upper_leg", "pelvis", "upper_leg", "lower_leg", "foot")
+
+
+def segment_index(name: str) -> int:
+    """Class index of a segment name; raises ``KeyError`` naming the valid names."""
+    try:
+        return SEGMENTS.index(name)
+    except ValueError:
+        raise KeyError(f"unknown segment {name!r}; expected one of {', '.join(SEGMENTS)}") from None

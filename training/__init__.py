@@ -1,0 +1,1 @@
+"""Training side: data, simulation, models, MLflow tracking, evaluation and ONNX export."""

@@ -1,0 +1,1 @@
+"""Readers of the shared data, IMU simulation and datasets."""

@@ -1,0 +1,171 @@
+"""IMU simulation from segment trajectories, paper 000 §2.3–2.4.
+
+Pipeline per clip (``segment_kinematics``): zero-lag Butterworth (order 8, 10 Hz) on the segment
+trajectories, resampling to 60 Hz, numerical differentiation to linear and angular velocity and
+acceleration, all expressed in the segment frame. These per-segment quantities are what the cache
+stores; the readings of a sensor with alignment R_SI (eq. 8) and position offset r follow cheaply:
+
+    acc_I = R_SIᵀ (a_S + α_S × r + ω_S × (ω_S × r) + up_S),   gyr_I = R_SIᵀ ω_S,
+
+where up_S = R_WSᵀ (0, 0, 9.81) is the specific force of gravity (a resting sensor reads +9.81 along
+world up). Quantisation mimics the Xsens MTw Awinda of paper 000 [57] (``SensorSpec``); the
+accelerometer gets zero-mean Gaussian noise of variance 1 m²/s⁴ (§2.4.2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import butter, sosfiltfilt
+from scipy.spatial.transform import Rotation
+
+from service.core.skeleton import FOOT_AXIS_IN_SEGMENT, SegmentTrajectories, resample_segments
+
+GRAVITY_MPS2 = 9.81
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """Range and resolution of the mimicked sensor: Xsens MTw Awinda (±16 g, ±2000 °/s, 16 bit)."""
+
+    acc_range_mps2: float = 160.0
+    gyr_range_rads: float = float(np.radians(2000.0))
+    bits: int = 16
+
+
+@dataclass(frozen=True)
+class SegmentKinematics:
+    """Segment-frame kinematics of one clip at ``sample_rate_hz``; arrays ``(T, 7, 3)``.
+
+    lin_acc_mps2: acceleration of the segment midpoint; up_mps2: gravity's specific force;
+    gyr_rads: angular velocity; ang_acc_rads2: angular acceleration; all in the segment frame.
+    R_world_segment: (T, 7, 3, 3), the filtered orientations.
+    """
+
+    lin_acc_mps2: np.ndarray
+    up_mps2: np.ndarray
+    gyr_rads: np.ndarray
+    ang_acc_rads2: np.ndarray
+    R_world_segment: np.ndarray
+    sample_rate_hz: float
+
+
+def _continuous_quats(R: np.ndarray) -> np.ndarray:
+    """Quaternions ``(T, 4)`` of ``(T, 3, 3)`` with signs chosen continuous in time."""
+    q = Rotation.from_matrix(R).as_quat(scalar_first=True)
+    flips = np.cumsum(np.r_[0, np.sum(q[1:] * q[:-1], axis=1) < 0]) % 2
+    return np.where(flips[:, None] == 1, -q, q)
+
+
+def lowpass_segments(traj: SegmentTrajectories, cutoff_hz: float = 10.0, order: int = 8) -> SegmentTrajectories:
+    """Zero-lag Butterworth on positions and (sign-continuous) quaternions, paper 000 §2.4.2."""
+    sos = butter(order, cutoff_hz, fs=traj.sample_rate_hz, output="sos")
+    R = np.empty_like(traj.R_world_segment)
+    for s in range(traj.R_world_segment.shape[1]):
+        q = sosfiltfilt(sos, _continuous_quats(traj.R_world_segment[:, s]), axis=0)
+        R[:, s] = Rotation.from_quat(q, scalar_first=True).as_matrix()
+    return SegmentTrajectories(R, sosfiltfilt(sos, traj.origin_m, axis=0), sosfiltfilt(sos, traj.midpoint_m, axis=0),
+                               traj.sample_rate_hz)
+
+
+def body_angular_velocity(R_world_body: np.ndarray, sample_rate_hz: float) -> np.ndarray:
+    """Angular velocity in the body frame ``(T, 3)`` from orientations ``(T, 3, 3)``.
+
+    Central estimate: the mean of the backward and forward body-frame increments
+    log(R_{t-1}ᵀ R_t) and log(R_tᵀ R_{t+1}), divided by the sample interval.
+    """
+    rot = Rotation.from_matrix(R_world_body)
+    step = (rot[:-1].inv() * rot[1:]).as_rotvec() * sample_rate_hz  # (T-1, 3) in the frame of t
+    # Express the backward increment (in frame t-1) in frame t: the rotation vector of R_{t-1}ᵀR_t is
+    # invariant under that rotation, so the same vector holds in both frames.
+    return np.concatenate([step[:1], (step[:-1] + step[1:]) / 2.0, step[-1:]], axis=0)
+
+
+def segment_kinematics(traj: SegmentTrajectories, sample_rate_hz: float = 60.0, cutoff_hz: float = 10.0,
+                       order: int = 8) -> SegmentKinematics:
+    """Filtered, resampled, differentiated segment kinematics of one clip."""
+    filtered = resample_segments(lowpass_segments(traj, cutoff_hz, order), sample_rate_hz)
+    R = filtered.R_world_segment
+    dt = 1.0 / sample_rate_hz
+    acc_world = np.gradient(np.gradient(filtered.midpoint_m, dt, axis=0), dt, axis=0)
+    up_world = np.array([0.0, 0.0, GRAVITY_MPS2])
+    gyr = np.stack([body_angular_velocity(R[:, s], sample_rate_hz) for s in range(R.shape[1])], axis=1)
+    return SegmentKinematics(
+        lin_acc_mps2=np.einsum("tsji,tsj->tsi", R, acc_world),
+        up_mps2=np.einsum("tsji,j->tsi", R, up_world),
+        gyr_rads=gyr,
+        ang_acc_rads2=np.gradient(gyr, dt, axis=0),
+        R_world_segment=R,
+        sample_rate_hz=sample_rate_hz,
+    )
+
+
+# ---- alignments, eq. 8 ------------------------------------------------------------------------------
+
+def _axis(v: np.ndarray | list[float]) -> np.ndarray:
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)
+
+
+# Rotation axis a of eq. 8 per class: z for the legs, y for the pelvis, (0.9, 0, -0.4) for the feet.
+ALIGNMENT_AXES = np.stack([
+    FOOT_AXIS_IN_SEGMENT, _axis([0, 0, 1]), _axis([0, 0, 1]), _axis([0, 1, 0]),
+    _axis([0, 0, 1]), _axis([0, 0, 1]), FOOT_AXIS_IN_SEGMENT,
+])
+
+
+def _base_alignment(segment: int) -> np.ndarray:
+    """Initial R_SI of eq. 8: sensor z on the outward surface normal, sensor x along the axis a.
+
+    Legs: on the front (z_I = x_S), x_I = z_S. Pelvis: on the back (z_I = -x_S), x_I = z_S.
+    Feet: on the dorsum, z_I ⊥ a in the sagittal plane, x_I = a.
+    """
+    if segment == 3:
+        x_i, z_i = np.array([0.0, 0.0, 1.0]), np.array([-1.0, 0.0, 0.0])
+    elif segment in (0, 6):
+        a = FOOT_AXIS_IN_SEGMENT
+        x_i, z_i = a, np.array([-a[2], 0.0, a[0]])
+    else:
+        x_i, z_i = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    return np.stack([x_i, np.cross(z_i, x_i), z_i], axis=1)
+
+
+def alignment(segment: int, theta1_rad: np.ndarray, theta2_rad: np.ndarray) -> np.ndarray:
+    """Eq. 8: R̂_SI = R_a(θ₂) · R_SI · R_z(θ₁), vectorised over angles; returns ``(N, 3, 3)``."""
+    theta1_rad, theta2_rad = np.atleast_1d(theta1_rad), np.atleast_1d(theta2_rad)
+    R_a = Rotation.from_rotvec(theta2_rad[:, None] * ALIGNMENT_AXES[segment]).as_matrix()
+    R_z = Rotation.from_rotvec(theta1_rad[:, None] * np.array([0.0, 0.0, 1.0])).as_matrix()
+    return R_a @ _base_alignment(segment) @ R_z
+
+
+def alignment_grid(segment: int, n_angles: int = 8) -> np.ndarray:
+    """The N = n_angles² alignment variations of eq. 8 (paper: {0°, 45°, …, 315°}, N = 64)."""
+    angles = np.arange(n_angles) * 2.0 * np.pi / n_angles
+    t1, t2 = np.meshgrid(angles, angles, indexing="ij")
+    return alignment(segment, t1.ravel(), t2.ravel())
+
+
+# ---- readings ---------------------------------------------------------------------------------------
+
+def imu_readings(lin_acc: np.ndarray, up: np.ndarray, gyr: np.ndarray, ang_acc: np.ndarray,
+                 R_segment_imu: np.ndarray, offset_m: np.ndarray | None = None) -> np.ndarray:
+    """Ideal readings ``(B, T, 6)`` of sensors with alignments ``(B, 3, 3)`` on segment windows ``(B, T, 3)``.
+
+    ``offset_m`` ``(B, 3)`` moves the sensor from the segment midpoint (segment frame), adding the
+    tangential and centripetal terms α × r + ω × (ω × r).
+    """
+    acc_s = lin_acc + up
+    if offset_m is not None:
+        r = np.broadcast_to(offset_m[:, None, :], lin_acc.shape)
+        acc_s = acc_s + np.cross(ang_acc, r) + np.cross(gyr, np.cross(gyr, r))
+    acc_i = np.einsum("bji,btj->bti", R_segment_imu, acc_s)
+    gyr_i = np.einsum("bji,btj->bti", R_segment_imu, gyr)
+    return np.concatenate([acc_i, gyr_i], axis=-1)
+
+
+def quantise(imu: np.ndarray, spec: SensorSpec) -> np.ndarray:
+    """Clip to the sensor's range and round to its resolution; ``(..., 6)``."""
+    ranges = np.array([spec.acc_range_mps2] * 3 + [spec.gyr_range_rads] * 3)
+    lsb = 2.0 * ranges / (2**spec.bits)
+    return np.round(np.clip(imu, -ranges, ranges) / lsb) * lsb

@@ -1,0 +1,95 @@
+"""Mocap clips → segment kinematics, cached on disk by a content digest.
+
+The digest covers the BVH bytes, the simulation parameters and ``KINEMATICS_VERSION``; changing any
+of them recomputes. ``build_kinematics`` shows a progress bar and uses a process pool.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from service.core.bvh import read_bvh
+from service.core.kinematics import forward_kinematics
+from service.core.skeleton import segment_trajectories, skeleton_map_for
+from training.data.catalog import METRES_PER_UNIT, CatalogEntry
+from training.data.imu_sim import SegmentKinematics, segment_kinematics
+
+log = logging.getLogger(__name__)
+
+KINEMATICS_VERSION = "1"
+
+
+@dataclass(frozen=True)
+class KinematicsParams:
+    sample_rate_hz: float = 60.0
+    cutoff_hz: float = 10.0
+    filter_order: int = 8
+
+
+@dataclass(frozen=True)
+class Clip:
+    """One mocap clip's segment kinematics with its catalogue entry and content digest."""
+
+    entry: CatalogEntry
+    kin: SegmentKinematics
+    digest: str
+
+    @property
+    def n_samples(self) -> int:
+        return self.kin.gyr_rads.shape[0]
+
+
+def clip_digest(bvh_path: Path, params: KinematicsParams) -> str:
+    h = hashlib.sha256(bvh_path.read_bytes())
+    h.update(f"{params}|v{KINEMATICS_VERSION}".encode())
+    return h.hexdigest()[:20]
+
+
+def compute_kinematics(bvh_path: Path, entry: CatalogEntry, params: KinematicsParams) -> SegmentKinematics:
+    bvh = read_bvh(bvh_path)
+    poses = forward_kinematics(bvh, METRES_PER_UNIT[entry.source])
+    traj = segment_trajectories(poses, skeleton_map_for(entry.source, poses.names))
+    skip = entry.tpose_frames
+    traj = type(traj)(traj.R_world_segment[skip:], traj.origin_m[skip:], traj.midpoint_m[skip:], traj.sample_rate_hz)
+    return segment_kinematics(traj, params.sample_rate_hz, params.cutoff_hz, params.filter_order)
+
+
+def _load_or_compute(args: tuple[Path, CatalogEntry, KinematicsParams, Path]) -> Clip:
+    data_dir, entry, params, cache_dir = args
+    bvh_path = data_dir / entry.path
+    digest = clip_digest(bvh_path, params)
+    cached = cache_dir / f"{digest}.npz"
+    if cached.exists():
+        with np.load(cached) as z:
+            kin = SegmentKinematics(**{k: z[k] for k in z.files if k != "sample_rate_hz"},
+                                    sample_rate_hz=float(z["sample_rate_hz"]))
+    else:
+        kin = compute_kinematics(bvh_path, entry, params)
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        tmp = cached.with_suffix(".tmp.npz")
+        np.savez(tmp, **{k: v for k, v in kin.__dict__.items()})
+        tmp.rename(cached)
+    return Clip(entry, kin, digest)
+
+
+def build_kinematics(data_dir: Path, entries: list[CatalogEntry], cache_dir: Path,
+                     params: KinematicsParams = KinematicsParams(), workers: int = 2) -> list[Clip]:
+    """Segment kinematics of every entry, from the cache where possible, with a progress bar."""
+    jobs = [(data_dir, e, params, cache_dir) for e in entries]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        clips = list(tqdm(pool.map(_load_or_compute, jobs, chunksize=2), total=len(jobs), desc="kinematics",
+                          unit="clip"))
+    log.info("kinematics of %d clips (cache %s)", len(clips), cache_dir)
+    return clips
+
+
+def dataset_digest(clips: list[Clip]) -> str:
+    """Digest of a set of clips (order-independent)."""
+    return hashlib.sha256("|".join(sorted(c.digest for c in clips)).encode()).hexdigest()[:20]
