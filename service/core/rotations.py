@@ -10,10 +10,17 @@ from scipy.spatial.transform import Rotation
 
 
 def canonical_quat(q_wxyz: np.ndarray) -> np.ndarray:
-    """Normalise quaternions ``(..., 4)`` (w, x, y, z) and flip the sign so that w >= 0."""
+    """Normalise quaternions ``(..., 4)`` (w, x, y, z) and fix the sign so that w >= 0.
+
+    At w = 0 (180° rotations) q and -q both qualify; the first non-zero component decides, so the
+    canonical form is unique.
+    """
     q = np.asarray(q_wxyz, dtype=np.float64)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0.0, -q, q)
+    nonzero = np.abs(q) > 1e-12
+    first = np.argmax(nonzero, axis=-1)[..., None]
+    lead = np.take_along_axis(q, first, axis=-1)
+    return np.where(lead < 0.0, -q, q)
 
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:

@@ -1,0 +1,55 @@
+"""Joint sensor-to-segment assignment from per-window class probabilities, and motion detection.
+
+Evidence of a sensor is the sum of log-probabilities over its windows; the one-to-one assignment
+maximising the total is ``scipy.optimize.linear_sum_assignment`` (DESIGN.md §5: per-trial joint
+assignment is right more often than single windows).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+# A window whose gyroscope norm stays under this mean carries no gait information (DESIGN.md §5).
+STILL_GYR_MEAN_RADS = 0.35
+
+
+def is_moving(windows: np.ndarray) -> np.ndarray:
+    """``(N, T, 6)`` → ``(N,)`` bool: mean gyroscope norm above ``STILL_GYR_MEAN_RADS``."""
+    return np.linalg.norm(windows[..., 3:6], axis=-1).mean(axis=-1) > STILL_GYR_MEAN_RADS
+
+
+@dataclass(frozen=True)
+class JointAssignment:
+    segment: np.ndarray  # (S,) class index per sensor, -1 if unassigned (more sensors than segments)
+    evidence: np.ndarray  # (S, K) summed log-probabilities
+    confidence: np.ndarray  # (S,) softmax of the evidence at the chosen class
+    margin: np.ndarray  # (S,) total-evidence loss if this sensor took its best alternative
+
+
+def joint_assignment(log_probs: list[np.ndarray], allow_shared: bool = False) -> JointAssignment:
+    """Assign S sensors (each ``(N_s, K)`` window log-probabilities) to K segments.
+
+    One-to-one by default: with more sensors than segments the weakest are left unassigned (-1);
+    with fewer, segments stay empty. ``allow_shared`` lets sensors share a segment (per-sensor argmax).
+    """
+    evidence = np.stack([lp.sum(axis=0) for lp in log_probs])
+    n_sensors, n_classes = evidence.shape
+    if allow_shared:
+        segment = evidence.argmax(axis=1)
+    else:
+        rows, cols = linear_sum_assignment(evidence, maximize=True)
+        segment = np.full(n_sensors, -1)
+        segment[rows] = cols
+    shifted = evidence - evidence.max(axis=1, keepdims=True)
+    post = np.exp(shifted) / np.exp(shifted).sum(axis=1, keepdims=True)
+    confidence = np.where(segment >= 0, post[np.arange(n_sensors), np.maximum(segment, 0)], 0.0)
+    margin = np.zeros(n_sensors)
+    for s in range(n_sensors):
+        if segment[s] < 0:
+            continue
+        others = np.delete(evidence[s], segment[s])
+        margin[s] = evidence[s, segment[s]] - others.max() if n_classes > 1 else np.inf
+    return JointAssignment(segment, evidence, confidence, margin)

@@ -1,0 +1,67 @@
+"""``manifest.json``: the train/serve contract beside each ``model.onnx`` (DESIGN.md §1)."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+MANIFEST_SCHEMA_VERSION = 1
+
+
+class TensorSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str
+    shape: list[int | str]  # "batch" for the dynamic dimension
+    dtype: Literal["float32", "int64"]
+    description: str = ""
+
+
+class Evaluation(BaseModel):
+    """One evaluation of the shipped ONNX file: what data, which metrics, and the command that made them."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str
+    command: str
+    data: str
+    metrics: dict[str, float]
+
+
+class Manifest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    schema_version: int = MANIFEST_SCHEMA_VERSION
+    name: str
+    task: Literal["i2s_assignment", "i2s_alignment"]
+    version: str
+    created_utc: str
+    inputs: list[TensorSpec]
+    outputs: list[TensorSpec]
+    output_kind: Literal["probabilities", "logits", "quaternion_per_segment"]
+    sample_rate_hz: float
+    window_samples: int
+    hop_samples: int
+    channels: list[str]
+    units: dict[str, str]
+    classes: list[str]
+    quaternion_convention: str | None = None
+    sha256: str
+    training_data: dict[str, object] = Field(default_factory=dict)
+    evaluations: list[Evaluation] = Field(default_factory=list)
+    mlflow: dict[str, str] = Field(default_factory=dict)
+    exporter: dict[str, str | int] = Field(default_factory=dict)
+    golden: str = "golden.npz"
+    parity_atol: float = 1e-4
+
+
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def read_manifest(path: Path) -> Manifest:
+    return Manifest.model_validate_json(Path(path).read_text())
+
+
+def write_manifest(manifest: Manifest, path: Path) -> None:
+    Path(path).write_text(manifest.model_dump_json(indent=2) + "\n")

@@ -1,0 +1,1 @@
+"""Model loading (manifest-checked) and onnxruntime inference."""

@@ -1,0 +1,54 @@
+"""From validated windows to model inputs and results (numpy; no HTTP here)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from service.core.resample import resample_uniform
+from service.core.rotations import canonical_quat, matrix_from_quat
+from service.core.units import to_contract_units
+from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES
+
+MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 2000.0
+
+
+class InputError(ValueError):
+    """A client's input cannot be turned into a model window; the message says why."""
+
+
+def window_to_model_input(samples: list[list[float]], rate_hz: float, acc_unit: str, gyr_unit: str,
+                          where: str) -> np.ndarray:
+    """Rows ``(N, 6)`` in any supported unit and rate → ``(128, 6)`` float32 at 60 Hz, contract units."""
+    x = np.asarray(samples, dtype=np.float64) if samples and all(len(r) == 6 for r in samples) else None
+    if x is None:
+        bad = next(len(r) for r in samples if len(r) != 6)
+        raise InputError(f"{where}: every sample needs 6 values (acc xyz, gyr xyz), got a row of {bad}")
+    if not np.all(np.isfinite(x)):
+        raise InputError(f"{where}: samples must be finite numbers, got NaN or Inf")
+    if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
+        raise InputError(f"{where}: sample_rate_hz must be in [{MIN_RATE_HZ}, {MAX_RATE_HZ}], got {rate_hz}")
+    x = to_contract_units(x, acc_unit, gyr_unit)
+    if np.isclose(rate_hz, MODEL_RATE_HZ):
+        if len(x) != WINDOW_SAMPLES:
+            raise InputError(f"{where}: at 60 Hz a window has {WINDOW_SAMPLES} samples, got {len(x)}")
+    else:
+        x = resample_uniform(x, rate_hz, MODEL_RATE_HZ)
+        if len(x) < WINDOW_SAMPLES:
+            need = int(np.ceil(WINDOW_SAMPLES * rate_hz / MODEL_RATE_HZ))
+            raise InputError(f"{where}: at {rate_hz} Hz a window needs at least {need} samples "
+                             f"({WINDOW_SAMPLES} after resampling to 60 Hz), got {len(samples)}")
+        x = x[-WINDOW_SAMPLES:]
+    return x.astype(np.float32)
+
+
+def alignment_payload(q_per_segment: np.ndarray, segment: int) -> tuple[list[float], list[list[float]]]:
+    """The quaternion row of ``segment`` from ``(7, 4)`` and its rotation matrix."""
+    q = canonical_quat(q_per_segment[segment])
+    return [float(v) for v in q], matrix_from_quat(q).round(7).tolist()
+
+
+def mean_alignment(q_rows: np.ndarray) -> np.ndarray:
+    """Rotation mean of window quaternions ``(N, 4)`` → ``(4,)`` canonical."""
+    mean = Rotation.from_quat(q_rows, scalar_first=True).mean().as_quat(scalar_first=True)
+    return canonical_quat(mean)

@@ -1,0 +1,77 @@
+"""Loads every model under the models directory through its manifest and refuses mismatches.
+
+A model is served only if its sha256 and its input/output names and shapes match ``manifest.json``;
+a mismatching model is logged and skipped while the others are served. Per name, the highest
+version (lexicographic; versions are UTC timestamps) wins.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from service.core.manifest import Manifest, read_manifest, sha256_file
+
+log = logging.getLogger(__name__)
+
+
+class ModelMismatch(ValueError):
+    """The ONNX file does not match its manifest."""
+
+
+@dataclass
+class LoadedModel:
+    manifest: Manifest
+    session: ort.InferenceSession
+    path: Path
+
+    def run(self, imu: np.ndarray) -> np.ndarray:
+        """``(B, 128, 6)`` float32 → the manifest's single output."""
+        return self.session.run(None, {self.manifest.inputs[0].name: imu})[0]
+
+
+def _check_shapes(manifest: Manifest, session: ort.InferenceSession) -> None:
+    for kind, declared, actual in (("input", manifest.inputs, session.get_inputs()),
+                                   ("output", manifest.outputs, session.get_outputs())):
+        names = [t.name for t in declared]
+        if names != [a.name for a in actual]:
+            raise ModelMismatch(f"{kind} names: manifest says {names}, model has {[a.name for a in actual]}")
+        for spec, arg in zip(declared, actual, strict=True):
+            fixed_declared = [d for d in spec.shape if isinstance(d, int)]
+            fixed_actual = [d for d in arg.shape if isinstance(d, int)]
+            if fixed_declared != fixed_actual:
+                raise ModelMismatch(f"{kind} {spec.name}: manifest shape {spec.shape}, model shape {arg.shape}")
+
+
+def load_model(model_dir: Path, threads: int) -> LoadedModel:
+    manifest = read_manifest(model_dir / "manifest.json")
+    onnx_path = model_dir / "model.onnx"
+    digest = sha256_file(onnx_path)
+    if digest != manifest.sha256:
+        raise ModelMismatch(f"sha256 of {onnx_path} is {digest}, manifest says {manifest.sha256}")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    session = ort.InferenceSession(str(onnx_path), options, providers=["CPUExecutionProvider"])
+    _check_shapes(manifest, session)
+    return LoadedModel(manifest, session, model_dir)
+
+
+def load_models(root: Path, threads: int) -> dict[str, LoadedModel]:
+    """Newest valid version of every model below ``root``, keyed by task."""
+    models: dict[str, LoadedModel] = {}
+    for manifest_path in sorted(root.glob("*/*/manifest.json")):
+        try:
+            model = load_model(manifest_path.parent, threads)
+        except Exception as exc:  # any broken model is refused; the others are still served
+            log.error("refusing model %s: %s", manifest_path.parent, exc)
+            continue
+        task = model.manifest.task
+        if task not in models or model.manifest.version > models[task].manifest.version:
+            models[task] = model
+        log.info("loaded %s %s (%s)", model.manifest.name, model.manifest.version, task)
+    return models

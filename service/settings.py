@@ -1,0 +1,24 @@
+"""Service settings from the environment (prefix ``WEARMOCAP_``), validated at start-up."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="WEARMOCAP_")
+
+    models_dir: Path = Field(Path("onnx_models"), description="root of <name>/<version>/model.onnx + manifest.json")
+    ort_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads per session")
+    max_windows_per_request: int = Field(4096, ge=1)
+    max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024)
+    api_key: str | None = Field(None, description="if set, requests must send it in the X-API-Key header")
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

@@ -1,0 +1,42 @@
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from service.core.rotations import (
+    canonical_quat,
+    error_angles_xyz_deg,
+    geodesic_angle_deg,
+    matrix_from_quat,
+    quat_from_matrix,
+    quat_to_stereographic,
+    stereographic_to_quat,
+)
+
+unit = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda v: np.linalg.norm(v) > 0.1)
+
+
+@given(unit)
+@settings(max_examples=200)
+def test_stereographic_round_trip(v: list[float]) -> None:
+    q = canonical_quat(np.array(v))
+    np.testing.assert_allclose(stereographic_to_quat(quat_to_stereographic(q)), q, atol=1e-9)
+
+
+@given(unit)
+def test_matrix_round_trip_keeps_w_nonnegative(v: list[float]) -> None:
+    q = canonical_quat(np.array(v))
+    back = quat_from_matrix(matrix_from_quat(q))
+    assert back[0] >= -1e-12  # w = 0 (180°) ties are broken by the next component
+    np.testing.assert_allclose(back, q, atol=1e-9)
+
+
+def test_stereographic_of_identity_is_zero() -> None:
+    np.testing.assert_allclose(quat_to_stereographic(np.array([1.0, 0, 0, 0])), 0.0)
+
+
+def test_error_angles_about_single_axis() -> None:
+    q_true = Rotation.from_euler("z", 30, degrees=True).as_quat(scalar_first=True)
+    q_pred = np.array([1.0, 0, 0, 0])
+    np.testing.assert_allclose(error_angles_xyz_deg(q_true, q_pred), [[0, 0, 30]], atol=1e-9)
+    np.testing.assert_allclose(geodesic_angle_deg(q_true, -q_true), [0.0], atol=1e-6)

@@ -1,0 +1,54 @@
+import numpy as np
+import pytest
+
+from service.core.assignment import is_moving, joint_assignment
+from service.core.resample import resample_uniform, resampled_length
+from service.core.units import UnitError, to_contract_units
+from service.core.windowing import sliding_windows, window_starts
+
+
+def test_sliding_windows_equal_a_loop() -> None:
+    x = np.arange(300 * 6, dtype=np.float32).reshape(300, 6)
+    w = sliding_windows(x)
+    starts = window_starts(300)
+    assert w.shape == (len(starts), 128, 6)
+    for k, s in enumerate(starts):
+        np.testing.assert_array_equal(w[k], x[s : s + 128])
+    assert sliding_windows(x[:100]).shape == (0, 128, 6)
+
+
+def test_units_and_unknown_unit() -> None:
+    out = to_contract_units(np.array([[1.0, 0, 0, 180.0, 0, 0]]), "g", "deg/s")
+    np.testing.assert_allclose(out, [[9.80665, 0, 0, np.pi, 0, 0]])
+    with pytest.raises(UnitError, match="accelerometer unit"):
+        to_contract_units(np.zeros((1, 6)), "ft/s^2", "rad/s")
+
+
+def test_resampling_keeps_a_slow_sine_and_length() -> None:
+    t = np.arange(0, 4, 1 / 100.0)
+    x = np.sin(2 * np.pi * 1.0 * t)[:, None]
+    y = resample_uniform(x, 100.0, 60.0)
+    assert len(y) == resampled_length(len(x), 100.0, 60.0)
+    t60 = np.arange(len(y)) / 60.0
+    np.testing.assert_allclose(y[20:-20, 0], np.sin(2 * np.pi * t60[20:-20]), atol=0.02)
+
+
+def test_joint_assignment_resolves_a_conflict() -> None:
+    # Both sensors prefer class 0 per window; the second prefers it less, so it takes class 1.
+    a = np.log(np.array([[0.9, 0.1], [0.8, 0.2]]))
+    b = np.log(np.array([[0.6, 0.4], [0.6, 0.4]]))
+    joint = joint_assignment([a, b])
+    assert joint.segment.tolist() == [0, 1]
+    assert joint_assignment([a, b], allow_shared=True).segment.tolist() == [0, 0]
+
+
+def test_more_sensors_than_segments_leaves_the_weakest_unassigned() -> None:
+    lp = [np.log(np.array([[p, 1 - p]])) for p in (0.9, 0.2, 0.6)]
+    assert joint_assignment(lp).segment.tolist() == [0, 1, -1]
+
+
+def test_is_moving() -> None:
+    still = np.zeros((1, 128, 6))
+    spinning = still.copy()
+    spinning[..., 3] = 2.0
+    assert is_moving(np.concatenate([still, spinning])).tolist() == [False, True]

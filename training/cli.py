@@ -1,0 +1,108 @@
+"""``wearmocap-train``: thin typer commands over the training library (simulate, train, register,
+export, evaluate, ui). Run ``python -m training.cli --help``.
+"""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import sys
+from pathlib import Path
+
+import typer
+
+from training.config import load_config
+from training.data.catalog import resolve_data_dir
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+DEFAULT_CACHE = Path(".cache/kinematics")
+
+DataDir = typer.Option(None, "--data-dir", help="folder with index.csv (default: $WEARMOCAP_DATA_DIR)")
+Override = typer.Option([], "--set", "-s", help="config override, e.g. -s train.max_epochs=2")
+
+
+@app.callback()
+def _logging(verbose: bool = typer.Option(False, "--verbose", "-v")) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+@app.command()
+def simulate(config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE,
+             overrides: list[str] = Override) -> None:
+    """Compute (or reuse from the digest cache) the segment kinematics the simulation draws from."""
+    from training.pipeline import load_clips
+
+    cfg = load_config(config, overrides)
+    clips = load_clips(cfg, resolve_data_dir(data_dir), cache_dir)
+    typer.echo(f"{len(clips)} clips, {sum(c.n_samples for c in clips)} samples at {cfg.data.sample_rate_hz} Hz")
+
+
+@app.command()
+def train(config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE,
+          overrides: list[str] = Override, register: bool = typer.Option(True, help="register the model"),
+          eval_max_windows: int | None = typer.Option(None, help="cap the test evaluation (quick runs)")) -> None:
+    """Train, export ONNX, evaluate on the held-out subjects and log it all to MLflow."""
+    from training.pipeline import run_training
+
+    cfg = load_config(config, overrides)
+    run_id = run_training(cfg, resolve_data_dir(data_dir), cache_dir, register, eval_max_windows)
+    typer.echo(f"run_id={run_id}")
+
+
+@app.command()
+def register(run_id: str, name: str, task: str = typer.Option(..., help="assignment or alignment")) -> None:
+    """Register a run's model; the champion alias moves only if it wins on the same evaluation."""
+    from training.pipeline import register_run
+    from training.tracking import default_tracking_uri
+
+    import mlflow
+
+    mlflow.set_tracking_uri(default_tracking_uri())
+    version, promoted = register_run(run_id, name, task)
+    typer.echo(f"version={version} champion={promoted}")
+
+
+@app.command()
+def export(run_id: str, out_root: Path = typer.Option(Path("onnx_models")), version: str | None = None) -> None:
+    """Copy a run's ONNX model into onnx_models/<name>/<version>/ with manifest.json and golden.npz."""
+    from training.ship import export_run
+    from training.tracking import default_tracking_uri
+
+    import mlflow
+
+    mlflow.set_tracking_uri(default_tracking_uri())
+    typer.echo(str(export_run(run_id, out_root, version)))
+
+
+@app.command()
+def evaluate(model_dir: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE,
+             max_windows: int | None = typer.Option(None, help="cap the simulated evaluation (quick checks)")) -> None:
+    """Evaluate a shipped model (LOSO fold on simulated data, real recordings) and record it in its manifest."""
+    from training.ship import evaluate_shipped
+    from training.tracking import default_tracking_uri
+
+    import mlflow
+
+    mlflow.set_tracking_uri(default_tracking_uri())
+    command = f"python -m training.cli evaluate {model_dir}" + (f" --max-windows {max_windows}" if max_windows else "")
+    manifest = evaluate_shipped(model_dir, resolve_data_dir(data_dir), cache_dir, command, max_windows)
+    for ev in manifest.evaluations:
+        headline = {k: v for k, v in ev.metrics.items() if "/" not in k and not k.startswith(("precision", "recall", "f1_"))
+                    and "_ax" not in k}
+        typer.echo(f"{ev.name}: {headline}")
+
+
+@app.command()
+def ui(port: int = 5000, host: str = "127.0.0.1") -> None:
+    """Start the MLflow UI on the project's tracking store."""
+    from training.tracking import default_tracking_uri
+
+    uri = default_tracking_uri()
+    cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", host, "--port", str(port)]
+    typer.echo(f"MLflow UI on http://{host}:{port} (store {uri})")
+    raise typer.Exit(subprocess.call(cmd))
+
+
+if __name__ == "__main__":
+    app()

@@ -1,0 +1,115 @@
+"""Readers of the real IMU recordings in ``imu_real/`` (``../shared/data/README.md``), converted to the
+model contract: 60 Hz, acc in m/s² (specific force), gyr in rad/s, sensor frame, with the known segment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from service.core.resample import resample_timestamps, resample_uniform
+from service.core.segments import segment_index
+from service.core.units import to_contract_units
+from service.core.windowing import MODEL_RATE_HZ
+
+
+@dataclass(frozen=True)
+class RealSensor:
+    sensor_id: str
+    imu: np.ndarray  # (T, 6) at 60 Hz, contract units
+    segment: int | None  # class index, None for sensors off the seven segments (e.g. torso)
+
+
+@dataclass(frozen=True)
+class RealRecording:
+    name: str  # unique, e.g. "capacitive_sub01/CSBaseline"
+    source: str
+    subject: str
+    activity: str
+    sensors: list[RealSensor] = field(default_factory=list)
+
+
+XIMU3_SEGMENTS = {"Left Foot": "LeftFoot", "Left Lower Leg": "LeftLowerLeg", "Left Upper Leg": "LeftUpperLeg",
+                  "pelvis": "Pelvis", "Right Upper Leg": "RightUpperLeg", "Right Lower Leg": "RightLowerLeg",
+                  "Right Foot": "RightFoot"}
+CAPACITIVE_SENSORS = ("torso", "pelvis", "tibia_r", "femur_r", "tibia_l", "femur_l", "toes_r", "toes_l")
+CAPACITIVE_SEGMENTS = {"pelvis": "Pelvis", "tibia_r": "RightLowerLeg", "femur_r": "RightUpperLeg",
+                       "tibia_l": "LeftLowerLeg", "femur_l": "LeftUpperLeg", "toes_r": "RightFoot",
+                       "toes_l": "LeftFoot"}
+CAPACITIVE_TRIALS = ("CSBaseline", "CSStiffKnee", "EMGBaseline", "EMGStiffKnee")
+GAITMAP_FILES = {  # file: (rate Hz, subject, activity)
+    "imu_sample_not_rotated.csv": (204.8, "spc2019_5047", "walk"),
+    "imu_sample_healthy_stair_up.csv": (204.8, "madstair_11", "stairs_up"),
+    "imu_sample_healthy_stair_down.csv": (204.8, "madstair_11", "stairs_down"),
+}
+# Not read: imu_sample_ms_left/right.csv. Their accelerometer norm has a median of about 19 m/s² over a
+# long walk (2 g, against 9.7–11.5 in every other recording), so their units are not the documented ones.
+
+
+def read_ximu3(data_dir: Path) -> RealRecording:
+    """Seven x-IMU3 devices (about 50 Hz, irregular), resampled by timestamp onto one 60 Hz grid."""
+    root = data_dir / "imu_real" / "ximu3_lowerbody"
+    streams = {}
+    for folder in sorted(p for p in root.iterdir() if p.is_dir()):
+        label = folder.name.rsplit(" ", 2)[0]
+        table = pd.read_csv(folder / "Inertial.csv").to_numpy()
+        t_s = table[:, 0] * 1e-6
+        imu = to_contract_units(table[:, [4, 5, 6, 1, 2, 3]], "g", "deg/s")
+        streams[XIMU3_SEGMENTS[label]] = (t_s, imu, folder.name)
+    t0 = max(s[0][0] for s in streams.values())
+    t1 = min(s[0][-1] for s in streams.values())
+    sensors = []
+    for seg, (t_s, imu, name) in streams.items():
+        keep = (t_s >= t0 - 0.05) & (t_s <= t1 + 0.05)
+        grid, resampled = resample_timestamps(t_s[keep], imu[keep], MODEL_RATE_HZ)
+        n = int(np.floor((t1 - t0) * MODEL_RATE_HZ))
+        start = int(np.searchsorted(grid, t0))
+        sensors.append(RealSensor(name, resampled[start : start + n], segment_index(seg)))
+    return RealRecording("ximu3_lowerbody", "ximu3_lowerbody", "ximu3_unknown", "mixed_lower_body", sensors)
+
+
+def _read_trc(path: Path) -> np.ndarray:
+    """Numeric rows of an OpenSim TRC file: ``(T, 2 + 3 * n_markers)`` (frame, time, xyz...)."""
+    rows = [line.split() for line in path.read_text().splitlines()[5:] if line.strip()]
+    return np.array(rows, dtype=np.float64)
+
+
+def read_capacitive(data_dir: Path, trial: str) -> RealRecording:
+    """Eight Xsens IMUs at 100 Hz (m/s², rad/s), treadmill walking of Sub01."""
+    folder = data_dir / "imu_real" / "capacitive_sub01" / trial
+    acc = _read_trc(folder / f"OpenSim_Sub01_{trial}_Accel.trc")[:, 2:]
+    gyr = _read_trc(folder / f"OpenSim_Sub01_{trial}_Gyro.trc")[:, 2:]
+    n = min(len(acc), len(gyr))
+    sensors = []
+    for k, name in enumerate(CAPACITIVE_SENSORS):
+        imu = np.concatenate([acc[:n, 3 * k : 3 * k + 3], gyr[:n, 3 * k : 3 * k + 3]], axis=1)
+        seg = CAPACITIVE_SEGMENTS.get(name)
+        sensors.append(RealSensor(f"{name}_imu", resample_uniform(imu, 100.0, MODEL_RATE_HZ),
+                                  segment_index(seg) if seg else None))
+    activity = "walk_stiffknee" if "StiffKnee" in trial else "walk"
+    return RealRecording(f"capacitive_sub01/{trial}", "capacitive_sub01", "capacitive_Sub01", activity, sensors)
+
+
+def read_gaitmap(data_dir: Path, file: str) -> RealRecording:
+    """Left and right foot IMUs (m/s², deg/s, raw sensor frame) of the gaitmap example data."""
+    rate, subject, activity = GAITMAP_FILES[file]
+    table = pd.read_csv(data_dir / "imu_real" / "gaitmap_foot" / file, header=[0, 1], index_col=0)
+    columns = ["acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z"]
+    sensors = []
+    for side, seg in (("left_sensor", "LeftFoot"), ("right_sensor", "RightFoot")):
+        raw = table[side][columns].to_numpy(dtype=np.float64)
+        sensors.append(RealSensor(side, _gaitmap_convert(raw, rate), segment_index(seg)))
+    return RealRecording(f"gaitmap_foot/{file.removesuffix('.csv')}", "gaitmap_foot", subject, activity, sensors)
+
+
+def _gaitmap_convert(raw: np.ndarray, rate_hz: float) -> np.ndarray:
+    return resample_uniform(to_contract_units(raw, "m/s^2", "deg/s"), rate_hz, MODEL_RATE_HZ)
+
+
+def read_all_real(data_dir: Path) -> list[RealRecording]:
+    """Every real recording with known placement."""
+    recs = [read_ximu3(data_dir)] + [read_capacitive(data_dir, t) for t in CAPACITIVE_TRIALS]
+    return recs + [read_gaitmap(data_dir, f) for f in GAITMAP_FILES]

@@ -1,0 +1,150 @@
+"""Windows of simulated IMU data drawn from cached segment kinematics.
+
+Training draws fresh windows every step (``WindowSampler``): a random clip, start, segment and
+eq. 8 alignment, plus the augmentations of ``Augmentation`` (playback speed, sensor offset, gain,
+bias, noise). Evaluation enumerates every window (hop 16) × segment × eq. 8 grid alignment
+(``grid_batches``), deterministically, with the paper's noise and quantisation only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+from scipy.spatial.transform import Rotation
+
+from service.core.rotations import quat_from_matrix
+from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES
+from training.data.imu_sim import SensorSpec, alignment, alignment_grid, imu_readings, quantise
+from training.data.mocap import Clip
+
+N_SEGMENTS = 7
+
+
+class Augmentation(BaseModel):
+    """Per-window randomisation of the simulation; zeros and ones reproduce paper 000 exactly."""
+
+    model_config = ConfigDict(extra="forbid")
+    alignment: str = "continuous"  # "grid": eq. 8's 64 variations; "continuous": θ₁, θ₂ uniform
+    tilt_deg: float = 0.0  # extra random tilt of the sensor off the surface tangent
+    speed_min: float = 1.0  # playback-speed scaling range (DESIGN.md §5)
+    speed_max: float = 1.0
+    offset_std_m: float = 0.0  # sensor position offset from the segment midpoint
+    gain_std: float = 0.0  # per-axis scale-factor error
+    acc_bias_std_mps2: float = 0.0
+    gyr_bias_std_rads: float = 0.0
+    acc_noise_std_mps2: float = 1.0  # paper 000 §2.4.2: variance 1 m²/s⁴
+    gyr_noise_std_rads: float = 0.0
+
+
+@dataclass(frozen=True)
+class Batch:
+    imu: np.ndarray  # (B, 128, 6) float32
+    segment: np.ndarray  # (B,) int64
+    q_segment_imu: np.ndarray  # (B, 4) float32, w >= 0
+
+
+class _Stacked:
+    """All clips' kinematics concatenated along time, ``(N, 7, 3)`` each, with clip offsets."""
+
+    def __init__(self, clips: list[Clip]) -> None:
+        if not clips:
+            raise ValueError("no clips to draw windows from")
+        self.lin_acc = np.concatenate([c.kin.lin_acc_mps2 for c in clips])
+        self.up = np.concatenate([c.kin.up_mps2 for c in clips])
+        self.gyr = np.concatenate([c.kin.gyr_rads for c in clips])
+        self.ang_acc = np.concatenate([c.kin.ang_acc_rads2 for c in clips])
+        self.lengths = np.array([c.n_samples for c in clips])
+        self.offsets = np.r_[0, np.cumsum(self.lengths)[:-1]]
+
+    def gather(self, t: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Linear interpolation at fractional global sample times ``t`` (B, T) for segments ``seg`` (B,)."""
+        i0 = np.floor(t).astype(np.int64)
+        i1 = np.minimum(i0 + 1, self.lin_acc.shape[0] - 1)
+        w = (t - i0)[..., None]
+        s = seg[:, None]
+        return tuple((1 - w) * a[i0, s] + w * a[i1, s] for a in (self.lin_acc, self.up, self.gyr, self.ang_acc))
+
+
+def _random_tilt(rng: np.random.Generator, n: int, tilt_deg: float) -> np.ndarray:
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.radians(rng.normal(0.0, tilt_deg, size=(n, 1)))
+    return Rotation.from_rotvec(axis * angle).as_matrix()
+
+
+class WindowSampler:
+    """Random simulated windows from a set of clips (training and validation)."""
+
+    def __init__(self, clips: list[Clip], aug: Augmentation, spec: SensorSpec = SensorSpec()) -> None:
+        self.clips = [c for c in clips if c.n_samples >= WINDOW_SAMPLES + 1]
+        self.stack = _Stacked(self.clips)
+        self.aug, self.spec = aug, spec
+
+    def _alignments(self, rng: np.random.Generator, seg: np.ndarray) -> np.ndarray:
+        n = len(seg)
+        if self.aug.alignment == "grid":
+            t1, t2 = (rng.integers(0, 8, n) * np.pi / 4 for _ in range(2))
+        elif self.aug.alignment == "continuous":
+            t1, t2 = (rng.uniform(0, 2 * np.pi, n) for _ in range(2))
+        else:
+            raise ValueError(f"alignment must be 'grid' or 'continuous', got {self.aug.alignment!r}")
+        R = np.stack([alignment(int(s), a, b)[0] for s, a, b in zip(seg, t1, t2, strict=True)])
+        return R @ _random_tilt(rng, n, self.aug.tilt_deg) if self.aug.tilt_deg > 0 else R
+
+    def sample(self, rng: np.random.Generator, batch_size: int) -> Batch:
+        aug, st = self.aug, self.stack
+        clip = rng.choice(len(st.lengths), size=batch_size, p=st.lengths / st.lengths.sum())
+        speed = rng.uniform(aug.speed_min, aug.speed_max, batch_size)
+        speed = np.minimum(speed, (st.lengths[clip] - 1) / (WINDOW_SAMPLES - 1))  # short clips: slower only
+        span = (WINDOW_SAMPLES - 1) * speed
+        room = np.maximum(st.lengths[clip] - 1 - span, 0.0)
+        start = st.offsets[clip] + rng.uniform(0.0, 1.0, batch_size) * room
+        t = start[:, None] + speed[:, None] * np.arange(WINDOW_SAMPLES)[None, :]
+        seg = rng.integers(0, N_SEGMENTS, batch_size)
+        lin_acc, up, gyr, ang_acc = st.gather(t, seg)
+        s = speed[:, None, None]  # time scaling: velocities × s, accelerations × s²
+        R = self._alignments(rng, seg)
+        offset = rng.normal(0.0, aug.offset_std_m, (batch_size, 3)) if aug.offset_std_m > 0 else None
+        imu = imu_readings(lin_acc * s**2, up, gyr * s, ang_acc * s**2, R, offset)
+        imu = self._sensor_errors(rng, imu)
+        return Batch(imu.astype(np.float32), seg.astype(np.int64), quat_from_matrix(R).astype(np.float32))
+
+    def _sensor_errors(self, rng: np.random.Generator, imu: np.ndarray) -> np.ndarray:
+        aug, b = self.aug, imu.shape[0]
+        if aug.gain_std > 0:
+            imu = imu * rng.normal(1.0, aug.gain_std, (b, 1, 6))
+        bias_std = np.array([aug.acc_bias_std_mps2] * 3 + [aug.gyr_bias_std_rads] * 3)
+        noise_std = np.array([aug.acc_noise_std_mps2] * 3 + [aug.gyr_noise_std_rads] * 3)
+        imu = imu + rng.normal(size=(b, 1, 6)) * bias_std + rng.normal(size=imu.shape) * noise_std
+        return quantise(imu, self.spec)
+
+
+def grid_batches(clips: list[Clip], aug: Augmentation, seed: int, batch_size: int = 2048,
+                 n_angles: int = 8, spec: SensorSpec = SensorSpec()) -> Iterator[tuple[Batch, np.ndarray]]:
+    """Every window (hop 16) × segment × eq. 8 alignment of ``clips``; yields (batch, clip index per row).
+
+    Only the paper's accelerometer noise (``aug.acc_noise_std_mps2``) and quantisation are applied.
+    """
+    rng = np.random.default_rng(seed)
+    grids = [alignment_grid(s, n_angles) for s in range(N_SEGMENTS)]
+    quats = [quat_from_matrix(g).astype(np.float32) for g in grids]
+    rows: list[tuple[int, int, int, int]] = []  # (clip, start, segment, alignment)
+    for ci, clip in enumerate(clips):
+        for start in range(0, clip.n_samples - WINDOW_SAMPLES + 1, HOP_SAMPLES):
+            rows += [(ci, start, s, a) for s in range(N_SEGMENTS) for a in range(n_angles**2)]
+    table = np.array(rows, dtype=np.int64).reshape(-1, 4)
+    for lo in range(0, len(table), batch_size):
+        part = table[lo : lo + batch_size]
+        idx = part[:, 1:2] + np.arange(WINDOW_SAMPLES)
+        seg = part[:, 2]
+        arrays = [np.stack([getattr(clips[c].kin, name)[i, s] for c, i, s in zip(part[:, 0], idx, seg, strict=True)])
+                  for name in ("lin_acc_mps2", "up_mps2", "gyr_rads", "ang_acc_rads2")]
+        R = np.stack([grids[s][a] for s, a in zip(seg, part[:, 3], strict=True)])
+        imu = imu_readings(*arrays, R_segment_imu=R)
+        imu = imu + rng.normal(size=imu.shape) * np.array([aug.acc_noise_std_mps2] * 3 + [0.0] * 3)
+        imu = quantise(imu, spec)
+        q = np.stack([quats[s][a] for s, a in zip(seg, part[:, 3], strict=True)])
+        yield Batch(imu.astype(np.float32), seg, q), part[:, 0]

@@ -1,0 +1,109 @@
+"""Evaluation of an exported model the way paper 000 §3.3 does: on every window × segment × eq. 8
+alignment of held-out subjects (LOSO), through onnxruntime, i.e. on the artefact that ships.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+from tqdm import tqdm
+
+from service.core.assignment import is_moving, joint_assignment
+from service.core.windowing import sliding_windows
+from training.data.mocap import Clip
+from training.data.real_imu import RealRecording
+from training.data.windows import Augmentation, grid_batches
+from training.metrics import alignment_metrics, assignment_metrics, confusion_matrix
+
+Predict = Callable[[np.ndarray], np.ndarray]
+
+
+def onnx_predictor(path: Path, threads: int = 2, batch: int = 1024) -> Predict:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+    def predict(imu: np.ndarray) -> np.ndarray:
+        return np.concatenate([session.run(None, {"imu": imu[i : i + batch]})[0] for i in range(0, len(imu), batch)])
+
+    return predict
+
+
+@dataclass
+class SimEvaluation:
+    metrics: dict[str, float]
+    segment: np.ndarray  # (N,)
+    predicted: np.ndarray  # (N,) class, or (N, 3) error angles in degrees
+    confusion: np.ndarray | None
+    digest: str  # identifies the evaluation data (clips, seed, simulation)
+
+
+def evaluation_digest(clips: list[Clip], aug: Augmentation, seed: int) -> str:
+    key = "|".join(sorted(c.digest for c in clips)) + f"|{aug.acc_noise_std_mps2}|{seed}"
+    return hashlib.sha256(key.encode()).hexdigest()[:20]
+
+
+def evaluate_simulated(predict: Predict, task: str, clips: list[Clip], aug: Augmentation, seed: int,
+                       max_windows: int | None = None) -> SimEvaluation:
+    """All grid windows of ``clips`` (optionally the first ``max_windows``, for quick tests)."""
+    segs, preds, quats = [], [], []
+    total = 0
+    for batch, _ in tqdm(grid_batches(clips, aug, seed), desc=f"evaluate {task}", unit="batch", leave=False):
+        out = predict(batch.imu)
+        segs.append(batch.segment)
+        if task == "assignment":
+            preds.append(out.argmax(-1))
+        else:
+            preds.append(out[np.arange(len(batch.segment)), batch.segment])
+            quats.append(batch.q_segment_imu)
+        total += len(batch.segment)
+        if max_windows is not None and total >= max_windows:
+            break
+    seg = np.concatenate(segs)
+    digest = evaluation_digest(clips, aug, seed) + (f"-first{max_windows}" if max_windows else "")
+    if task == "assignment":
+        pred = np.concatenate(preds)
+        return SimEvaluation(assignment_metrics(seg, pred), seg, pred, confusion_matrix(seg, pred), digest)
+    metrics, err = alignment_metrics(seg, np.concatenate(quats), np.concatenate(preds))
+    return SimEvaluation(metrics, seg, err, None, digest)
+
+
+def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[dict[str, float], np.ndarray]:
+    """Assignment on real recordings: per moving window, and per recording jointly (one-to-one).
+
+    Windows whose gyroscope is still (``is_moving``) are counted, not scored: they carry no gait
+    information (DESIGN.md §5). Returns metrics and the confusion matrix of moving windows.
+    """
+    y_true, y_pred, metrics = [], [], {}
+    joint_correct = joint_total = still = 0
+    for rec in recordings:
+        sensors = [s for s in rec.sensors if s.segment is not None]
+        log_probs = []
+        for s in sensors:
+            windows = sliding_windows(s.imu.astype(np.float32))
+            moving = is_moving(windows)
+            still += int((~moving).sum())
+            probs = predict(np.ascontiguousarray(windows[moving]))
+            y_true.append(np.full(len(probs), s.segment))
+            y_pred.append(probs.argmax(-1))
+            log_probs.append(np.log(np.clip(probs, 1e-12, 1.0)))
+        if not all(len(lp) for lp in log_probs):
+            continue
+        joint = joint_assignment(log_probs)
+        truth = np.array([s.segment for s in sensors])
+        joint_correct += int((joint.segment == truth).sum())
+        joint_total += len(sensors)
+        metrics[f"joint_correct_fraction/{rec.name}"] = float(np.mean(joint.segment == truth))
+        rec_true, rec_pred = np.concatenate(y_true[-len(sensors):]), np.concatenate(y_pred[-len(sensors):])
+        metrics[f"accuracy/{rec.name}"] = float(np.mean(rec_true == rec_pred))
+    yt, yp = np.concatenate(y_true), np.concatenate(y_pred)
+    overall = assignment_metrics(yt, yp)
+    metrics.update({f"real_{k}": v for k, v in overall.items()})
+    metrics["real_joint_assignment_correct_fraction"] = joint_correct / max(joint_total, 1)
+    metrics["real_still_windows_skipped"] = float(still)
+    return metrics, confusion_matrix(yt, yp)

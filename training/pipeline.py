@@ -1,0 +1,127 @@
+"""The training job, step by step: clips → split → train → export ONNX → evaluate → MLflow → registry."""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from pathlib import Path
+
+import mlflow
+import onnx
+import numpy as np
+import pandas as pd
+import yaml
+from mlflow.models import infer_signature
+from mlflow.tracking import MlflowClient
+
+from training.config import ExperimentConfig
+from training.data.catalog import mocap_entries
+from training.data.mocap import Clip, KinematicsParams, build_kinematics, dataset_digest
+from training.data.windows import Augmentation, WindowSampler
+from training.evaluate import evaluate_simulated, onnx_predictor
+from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
+from training.plots import confusion_matrix_png, error_boxplot_png, learning_curves_png
+from training.tracking import flatten, maybe_promote, setup_tracking
+from training.train import train
+
+log = logging.getLogger(__name__)
+
+PRIMARY_METRIC = {"assignment": ("accuracy", True), "alignment": ("mean_angle_error_deg", False)}
+
+
+def load_clips(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path) -> list[Clip]:
+    params = KinematicsParams(cfg.data.sample_rate_hz, cfg.data.cutoff_hz, cfg.data.filter_order)
+    return build_kinematics(data_dir, mocap_entries(data_dir, cfg.data.activities), cache_dir, params)
+
+
+def split_clips(clips: list[Clip], test_subjects: list[str], val_fraction: float,
+                seed: int) -> tuple[list[Clip], list[Clip], list[Clip]]:
+    """LOSO split by subject group; the validation clips are a seeded fraction of the rest."""
+    test = [c for c in clips if c.entry.group in test_subjects]
+    rest = [c for c in clips if c.entry.group not in test_subjects]
+    missing = set(test_subjects) - {c.entry.group for c in test}
+    if missing:
+        raise ValueError(f"test subjects {sorted(missing)} have no clips; groups are "
+                         f"{sorted({c.entry.group for c in clips})}")
+    order = np.random.default_rng(seed).permutation(len(rest))
+    n_val = max(1, int(round(val_fraction * len(rest))))
+    val = [rest[i] for i in order[:n_val]]
+    return [rest[i] for i in order[n_val:]], val, test
+
+
+def clip_table(clips: list[Clip]) -> pd.DataFrame:
+    return pd.DataFrame([{"path": c.entry.path, "source": c.entry.source, "subject": c.entry.group,
+                          "activity": c.entry.activity, "samples_60hz": c.n_samples, "digest": c.digest}
+                         for c in clips])
+
+
+def _log_dataset(clips: list[Clip], data_dir: Path, context: str) -> None:
+    ds = mlflow.data.from_pandas(clip_table(clips), source=str(data_dir), name=f"{context}-{dataset_digest(clips)}")
+    mlflow.log_input(ds, context=context)
+
+
+def run_training(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, register: bool = True,
+                 eval_max_windows: int | None = None) -> str:
+    """One tracked training run; returns the MLflow run id."""
+    setup_tracking(cfg.tracking.experiment)
+    clips = load_clips(cfg, data_dir, cache_dir)
+    train_clips, val_clips, test_clips = split_clips(clips, cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
+    with mlflow.start_run(run_name=cfg.name) as run, tempfile.TemporaryDirectory() as tmp_dir:
+        tmp = Path(tmp_dir)
+        mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
+        mlflow.log_text(yaml.safe_dump(cfg.model_dump(), sort_keys=False), "config.yaml")
+        mlflow.set_tags({"task": cfg.task, "test_subjects": ",".join(cfg.data.test_subjects)})
+        for context, part in (("training", train_clips), ("validation", val_clips), ("test", test_clips)):
+            if part:
+                _log_dataset(part, data_dir, context)
+        result = train(cfg, train_clips, val_clips, log_metrics=lambda m, step: mlflow.log_metrics(m, step=step))
+        mlflow.log_metrics({"best_epoch": result.best_epoch, "train_wall_time_s": result.wall_time_s})
+        mlflow.log_artifact(str(learning_curves_png(result.history, tmp / "learning_curves.png", cfg.name)), "plots")
+        onnx_path = export_onnx(result.model, cfg.task, tmp / "model.onnx")
+        golden_imu = WindowSampler(val_clips, Augmentation()).sample(np.random.default_rng(123), 8).imu
+        golden = golden_pair(result.model, golden_imu)
+        np.savez(tmp / "golden.npz", **golden)
+        parity = onnx_parity(onnx_path, golden)
+        if parity > PARITY_ATOL:
+            raise RuntimeError(f"onnxruntime differs from torch by {parity:.2e} > {PARITY_ATOL:.0e}")
+        mlflow.log_metric("onnx_parity_max_abs", parity)
+        mlflow.log_artifact(str(tmp / "golden.npz"), "export")
+        if test_clips:
+            _log_simulated_evaluation(cfg, onnx_path, test_clips, tmp, eval_max_windows)
+        signature = infer_signature(golden["imu"], golden["expected"])
+        info = mlflow.onnx.log_model(onnx_model=onnx.load(str(onnx_path)), name="model", signature=signature,
+                                     input_example=golden["imu"][:1])
+        mlflow.set_tag("model_uri", info.model_uri)
+        run_id = run.info.run_id
+    if register:
+        register_run(run_id, cfg.registered_model, cfg.task)
+    return run_id
+
+
+def _log_simulated_evaluation(cfg: ExperimentConfig, onnx_path: Path, test_clips: list[Clip], tmp: Path,
+                              max_windows: int | None) -> None:
+    ev = evaluate_simulated(onnx_predictor(onnx_path), cfg.task, test_clips, cfg.augmentation, cfg.seed,
+                            max_windows)
+    mlflow.log_metrics({f"test_{k}": v for k, v in ev.metrics.items()})
+    mlflow.set_tag("eval_digest", ev.digest)
+    title = f"{cfg.name}: LOSO test {','.join(cfg.data.test_subjects)} (simulated)"
+    if ev.confusion is not None:
+        mlflow.log_artifact(str(confusion_matrix_png(ev.confusion, tmp / "confusion_test.png", title)), "plots")
+    else:
+        mlflow.log_artifact(str(error_boxplot_png(ev.segment, ev.predicted, tmp / "angle_errors_test.png", title)),
+                            "plots")
+    mlflow.log_dict(ev.metrics, "evaluation/test_simulated.json")
+
+
+def register_run(run_id: str, name: str, task: str) -> tuple[str, bool]:
+    """Register a run's model; move ``champion`` if it beats the champion on the same evaluation."""
+    client = MlflowClient()
+    run = client.get_run(run_id)
+    version = mlflow.register_model(run.data.tags.get("model_uri", f"runs:/{run_id}/model"), name).version
+    metric, higher = PRIMARY_METRIC[task]
+    value = run.data.metrics.get(f"test_{metric}")
+    promoted = False
+    if value is not None:
+        promoted = maybe_promote(name, str(version), metric, value, higher, run.data.tags.get("eval_digest", ""))
+    log.info("registered %s version %s (%s)", name, version, "champion" if promoted else "not promoted")
+    return str(version), promoted

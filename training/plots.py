@@ -1,0 +1,66 @@
+"""Figures logged to MLflow: confusion matrix, error box plots (paper 000 §3.3 style), learning curves."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from service.core.segments import SEGMENTS  # noqa: E402
+
+
+def confusion_matrix_png(cm: np.ndarray, path: Path, title: str) -> Path:
+    fig, ax = plt.subplots(figsize=(7, 6))
+    frac = cm / np.maximum(cm.sum(axis=1, keepdims=True), 1)
+    ax.imshow(frac, cmap="Blues", vmin=0, vmax=1)
+    for i in range(cm.shape[0]):
+        for j in range(cm.shape[1]):
+            ax.text(j, i, f"{100 * frac[i, j]:.1f}", ha="center", va="center",
+                    color="white" if frac[i, j] > 0.5 else "black", fontsize=8)
+    ax.set_xticks(range(len(SEGMENTS)), SEGMENTS, rotation=45, ha="right")
+    ax.set_yticks(range(len(SEGMENTS)), SEGMENTS)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("true")
+    ax.set_title(f"{title} (row %, n={int(cm.sum())})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def error_boxplot_png(segment: np.ndarray, err_deg: np.ndarray, path: Path, title: str) -> Path:
+    """Box plots of |error| about the segment x, y, z axes per segment; white circle = mean."""
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5), sharey=True)
+    for ax_i, ax in enumerate(axes):
+        data = [err_deg[segment == k, ax_i] for k in range(len(SEGMENTS))]
+        ax.boxplot(data, showmeans=True, meanprops={"marker": "o", "markerfacecolor": "white"},
+                   showfliers=False, whis=1.5)
+        ax.set_xticks(range(1, len(SEGMENTS) + 1), SEGMENTS, rotation=45, ha="right")
+        ax.set_title(f"axis {'xyz'[ax_i]} (ax{ax_i})")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("absolute error angle [deg]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def learning_curves_png(history: list[dict[str, float]], path: Path, title: str) -> Path:
+    fig, ax = plt.subplots(figsize=(7, 4))
+    epochs = np.arange(1, len(history) + 1)
+    for key in ("train_loss", "val_loss"):
+        ax.plot(epochs, [h[key] for h in history], label=key)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("loss")
+    ax.set_yscale("log")
+    ax.legend()
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

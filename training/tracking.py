@@ -1,0 +1,61 @@
+"""MLflow set-up: an embedded sqlite store in the working directory unless a tracking URI is set."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import mlflow
+from mlflow.tracking import MlflowClient
+
+CHAMPION = "champion"
+
+
+def default_tracking_uri() -> str:
+    return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{Path.cwd() / 'mlflow.db'}"
+
+
+def setup_tracking(experiment: str) -> str:
+    """Point MLflow at the store and create the experiment with artifacts under ./mlartifacts."""
+    uri = default_tracking_uri()
+    mlflow.set_tracking_uri(uri)
+    if mlflow.get_experiment_by_name(experiment) is None:
+        location = None if "MLFLOW_TRACKING_URI" in os.environ else (Path.cwd() / "mlartifacts").as_uri()
+        mlflow.create_experiment(experiment, artifact_location=location)
+    mlflow.set_experiment(experiment)
+    return uri
+
+
+def flatten(d: dict, prefix: str = "") -> dict[str, object]:
+    out: dict[str, object] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def maybe_promote(name: str, version: str, metric: str, value: float, higher_is_better: bool,
+                  evaluation_digest: str) -> bool:
+    """Move the ``champion`` alias to ``version`` only if it beats the champion on the same evaluation.
+
+    Versions carry their evaluation's digest and score as tags; a champion evaluated on other data
+    is not comparable, so the alias stays where it is (and the caller logs why).
+    """
+    client = MlflowClient()
+    client.set_model_version_tag(name, version, "eval_digest", evaluation_digest)
+    client.set_model_version_tag(name, version, f"eval_{metric}", f"{value:.6f}")
+    try:
+        champion = client.get_model_version_by_alias(name, CHAMPION)
+    except mlflow.exceptions.MlflowException:
+        champion = None
+    if champion is not None:
+        if champion.tags.get("eval_digest") != evaluation_digest:
+            return False
+        best = float(champion.tags[f"eval_{metric}"])
+        if (value <= best) if higher_is_better else (value >= best):
+            return False
+    client.set_registered_model_alias(name, CHAMPION, version)
+    return True
