@@ -31,7 +31,7 @@ def export_module(model: nn.Module) -> nn.Module:
 def export_onnx(model: nn.Module, task: str, path: Path) -> Path:
     """Export with the TorchScript exporter, which emits native ONNX GRU/LSTM ops (fast in onnxruntime)."""
     wrapped = export_module(model)
-    example = torch.zeros(2, 128, 6)
+    example = torch.zeros(1, 128, 6)  # batch 1: the RNN exporter warns about other sizes
     path.parent.mkdir(parents=True, exist_ok=True)
     out = OUTPUT_NAMES[task]
     torch.onnx.export(

@@ -90,7 +90,7 @@ def run_training(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, registe
             _log_simulated_evaluation(cfg, onnx_path, test_clips, tmp, eval_max_windows)
         signature = infer_signature(golden["imu"], golden["expected"])
         info = mlflow.onnx.log_model(onnx_model=onnx.load(str(onnx_path)), name="model", signature=signature,
-                                     input_example=golden["imu"][:1])
+                                     input_example=golden["imu"][:1], save_as_external_data=False)
         mlflow.set_tag("model_uri", info.model_uri)
         run_id = run.info.run_id
     if register:
@@ -100,8 +100,7 @@ def run_training(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, registe
 
 def _log_simulated_evaluation(cfg: ExperimentConfig, onnx_path: Path, test_clips: list[Clip], tmp: Path,
                               max_windows: int | None) -> None:
-    ev = evaluate_simulated(onnx_predictor(onnx_path), cfg.task, test_clips, cfg.augmentation, cfg.seed,
-                            max_windows)
+    ev = evaluate_simulated(onnx_predictor(onnx_path), cfg.task, test_clips, cfg.augmentation, max_windows)
     mlflow.log_metrics({f"test_{k}": v for k, v in ev.metrics.items()})
     mlflow.set_tag("eval_digest", ev.digest)
     title = f"{cfg.name}: LOSO test {','.join(cfg.data.test_subjects)} (simulated)"

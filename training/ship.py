@@ -69,8 +69,8 @@ def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
         if cfg.task == "alignment" else None,
         sha256=sha256_file(target / "model.onnx"),
         training_data={"activities": cfg.data.activities, "test_subjects": cfg.data.test_subjects,
-                       "datasets": [{"context": i.context, "name": i.dataset.name, "digest": i.dataset.digest}
-                                    for i in _inputs(run)],
+                       "datasets": [{"context": _context(i), "name": i.dataset.name, "digest": i.dataset.digest,
+                                     "source": i.dataset.source} for i in _inputs(run)],
                        "train_wall_time_s": run.data.metrics.get("train_wall_time_s"),
                        "best_epoch": run.data.metrics.get("best_epoch")},
         mlflow={"run_id": run_id, "model_uri": run.data.tags["model_uri"], "experiment_id": run.info.experiment_id},
@@ -84,6 +84,10 @@ def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
 
 def _inputs(run: mlflow.entities.Run) -> list:
     return list(run.inputs.dataset_inputs) if run.inputs else []
+
+
+def _context(dataset_input: mlflow.entities.DatasetInput) -> str:
+    return next((t.value for t in dataset_input.tags if t.key == "mlflow.data.context"), "")
 
 
 def _load_config(run_id: str) -> dict:
@@ -103,7 +107,7 @@ def evaluate_shipped(model_dir: Path, data_dir: Path, cache_dir: Path, command: 
     evaluations = []
     clips = load_clips(cfg, data_dir, cache_dir)
     _, _, test = split_clips(clips, cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
-    sim = evaluate_simulated(predict, cfg.task, test, cfg.augmentation, cfg.seed, max_windows)
+    sim = evaluate_simulated(predict, cfg.task, test, cfg.augmentation, max_windows)
     evaluations.append(Evaluation(name="loso_simulated", command=command,
                                   data=f"simulated, eq. 8 grid (64 alignments) x 7 segments, every window of "
                                        f"held-out subjects {cfg.data.test_subjects}; digest {sim.digest}",

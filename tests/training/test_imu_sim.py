@@ -1,0 +1,90 @@
+"""Property tests of the paper 000 simulation that can fail: rest, known spin, gyro integration."""
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from service.core.skeleton import SegmentTrajectories
+from training.data.imu_sim import (
+    ALIGNMENT_AXES,
+    SensorSpec,
+    alignment_grid,
+    body_angular_velocity,
+    imu_readings,
+    quantise,
+    segment_kinematics,
+)
+
+RATE = 60.0
+
+
+def _trajectory(R: np.ndarray, pos: np.ndarray) -> SegmentTrajectories:
+    """All seven segments share the same pose: (T, 3, 3) and (T, 3)."""
+    Rs = np.repeat(R[:, None], 7, axis=1)
+    p = np.repeat(pos[:, None], 7, axis=1)
+    return SegmentTrajectories(Rs, p, p, RATE)
+
+
+def _readings(kin, segment: int, R_si: np.ndarray) -> np.ndarray:
+    take = lambda a: a[None, :, segment]  # noqa: E731
+    return imu_readings(take(kin.lin_acc_mps2), take(kin.up_mps2), take(kin.gyr_rads), take(kin.ang_acc_rads2),
+                        R_si[None])[0]
+
+
+@given(st.lists(st.floats(-np.pi, np.pi), min_size=3, max_size=3))
+@settings(max_examples=25, deadline=None)
+def test_resting_sensor_reads_g_along_world_up(euler: list[float]) -> None:
+    T = 200
+    R_ws = np.repeat(Rotation.from_euler("xyz", euler).as_matrix()[None], T, 0)
+    kin = segment_kinematics(_trajectory(R_ws, np.zeros((T, 3))), RATE)
+    R_si = alignment_grid(2)[5]
+    imu = _readings(kin, 2, R_si)
+    up_in_sensor = (R_ws[0] @ R_si).T @ np.array([0, 0, 1.0])
+    np.testing.assert_allclose(imu[:, :3], np.tile(9.81 * up_in_sensor, (T, 1)), atol=1e-6)
+    np.testing.assert_allclose(imu[:, 3:], 0.0, atol=1e-9)
+
+
+def test_sensor_spun_at_known_rate_reads_it() -> None:
+    T, rate_rads = 300, 2.0
+    t = np.arange(T) / RATE
+    R_ws = Rotation.from_rotvec(np.outer(rate_rads * t, [0, 0, 1.0])).as_matrix()
+    kin = segment_kinematics(_trajectory(R_ws, np.zeros((T, 3))), RATE)
+    R_si = alignment_grid(1)[9]
+    imu = _readings(kin, 1, R_si)
+    expected = R_si.T @ np.array([0, 0, rate_rads])
+    mid = slice(40, -40)  # away from the filter's edges
+    np.testing.assert_allclose(imu[mid, 3:], np.tile(expected, (T - 80, 1)), atol=1e-3)
+
+
+def test_integrating_the_gyroscope_reproduces_the_orientation() -> None:
+    T = 240
+    t = np.arange(T) / RATE
+    rotvec = np.stack([0.6 * np.sin(2 * np.pi * 0.8 * t), 0.3 * np.sin(2 * np.pi * 1.3 * t), 0.5 * t], axis=1)
+    R = Rotation.from_rotvec(rotvec).as_matrix()
+    gyr = body_angular_velocity(R, RATE)
+    est = Rotation.from_matrix(R[0])
+    for k in range(T - 1):  # midpoint rule: the mean of the rates at both ends of the step
+        est = est * Rotation.from_rotvec((gyr[k] + gyr[k + 1]) / 2 / RATE)
+    err = np.degrees((est.inv() * Rotation.from_matrix(R[-1])).magnitude())
+    assert err < 0.5, f"integrated orientation off by {err:.3f} deg after 4 s"
+
+
+def test_alignment_grid_follows_eq8() -> None:
+    for seg in range(7):
+        grid = alignment_grid(seg)
+        assert grid.shape == (64, 3, 3)
+        np.testing.assert_allclose(np.linalg.det(grid), 1.0, atol=1e-9)
+        quats = Rotation.from_matrix(grid).as_quat()
+        distinct = {tuple(np.round(q * np.sign(q[np.argmax(np.abs(q))]), 6)) for q in quats}
+        assert len(distinct) == 64
+        # the sensor's z axis (surface normal) stays perpendicular to the rotation axis a
+        np.testing.assert_allclose(grid[:, :, 2] @ ALIGNMENT_AXES[seg], 0.0, atol=1e-9)
+
+
+def test_quantisation_clips_and_rounds() -> None:
+    spec = SensorSpec()
+    out = quantise(np.array([[500.0, 0.00001, -3.0, 100.0, 0.0, 0.1]]), spec)
+    assert abs(out[0, 0] - spec.acc_range_mps2) < 0.01
+    assert out[0, 1] == 0.0
+    assert abs(out[0, 3] - spec.gyr_range_rads) < 1e-3

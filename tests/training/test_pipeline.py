@@ -1,0 +1,110 @@
+"""The training job against a real MLflow tracking server: tiny configurations, a few steps each."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import mlflow
+import numpy as np
+import pytest
+from mlflow.tracking import MlflowClient
+
+from service.core.manifest import read_manifest, write_manifest
+from service.inference.registry import load_models
+from training.config import load_config
+from training.pipeline import run_training
+from training.ship import export_run
+
+REPO = Path(__file__).resolve().parents[2]
+TINY = ["data.activities=[walk]", "data.test_subjects=[cmu_07]", "train.steps_per_epoch=3", "train.max_epochs=2",
+        "train.val_windows=256", "train.batch_size=64", "train.threads=2"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def mlflow_server(tmp_path_factory: pytest.TempPathFactory):
+    root = tmp_path_factory.mktemp("mlflow")
+    port = _free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", f"sqlite:///{root / 'mlflow.db'}",
+         "--artifacts-destination", str(root / "artifacts"), "--host", "127.0.0.1", "--port", str(port),
+         "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    uri = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"{uri}/health", timeout=1).status_code == 200:
+                break
+        except httpx.HTTPError:
+            time.sleep(0.5)
+    else:
+        proc.kill()
+        raise RuntimeError("mlflow server did not start within 90 s")
+    mp = pytest.MonkeyPatch()
+    mp.setenv("MLFLOW_TRACKING_URI", uri)
+    mlflow.set_tracking_uri(uri)
+    yield uri
+    mp.undo()
+    proc.terminate()
+    proc.wait(timeout=20)
+
+
+def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
+        mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path) -> None:
+    cfg = load_config(REPO / "training/configs/i2s_assignment.yaml", TINY + ["tracking.experiment=test-i2s"])
+    run_id = run_training(cfg, data_dir, kinematics_cache, register=True, eval_max_windows=1500)
+    client = MlflowClient()
+    run = client.get_run(run_id)
+    assert len(client.get_metric_history(run_id, "val_loss")) == 2
+    assert 0.0 <= run.data.metrics["test_accuracy"] <= 1.0
+    assert run.data.metrics["onnx_parity_max_abs"] < 1e-4
+    artifacts = {a.path for a in client.list_artifacts(run_id, "plots")}
+    assert {"plots/confusion_test.png", "plots/learning_curves.png"} <= artifacts
+    assert {i.tags[0].value for i in run.inputs.dataset_inputs} == {"training", "validation", "test"}
+    champion = client.get_model_version_by_alias(cfg.registered_model, "champion")
+    assert champion.run_id == run_id
+
+    # A second run on the same evaluation: champion moves iff its accuracy is strictly higher.
+    cfg2 = cfg.model_copy(update={"seed": 1})
+    run2 = run_training(cfg2, data_dir, kinematics_cache, register=True, eval_max_windows=1500)
+    acc1 = run.data.metrics["test_accuracy"]
+    acc2 = client.get_run(run2).data.metrics["test_accuracy"]
+    now = client.get_model_version_by_alias(cfg.registered_model, "champion").run_id
+    assert now == (run2 if acc2 > acc1 else run_id)
+
+    # Export to an onnx_models tree; the service loads it and refuses a tampered copy.
+    shipped = export_run(run_id, tmp_path / "onnx_models", version="0.0.1")
+    manifest = read_manifest(shipped / "manifest.json")
+    assert manifest.mlflow["run_id"] == run_id and manifest.task == "i2s_assignment"
+    with np.load(shipped / "golden.npz") as z:
+        got = load_models(tmp_path / "onnx_models", 1)["i2s_assignment"].run(z["imu"])
+        np.testing.assert_allclose(got, z["expected"], atol=manifest.parity_atol)
+    manifest.sha256 = "0" * 64
+    write_manifest(manifest, shipped / "manifest.json")
+    assert load_models(tmp_path / "onnx_models", 1) == {}
+
+
+def test_alignment_job_runs_and_exports_unit_quaternions(mlflow_server: str, data_dir: Path,
+                                                         kinematics_cache: Path, tmp_path: Path) -> None:
+    cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", TINY + ["tracking.experiment=test-i2s"])
+    run_id = run_training(cfg, data_dir, kinematics_cache, register=False, eval_max_windows=1500)
+    run = MlflowClient().get_run(run_id)
+    assert run.data.metrics["test_mean_angle_error_deg"] > 0.0
+    assert "plots/angle_errors_test.png" in {a.path for a in MlflowClient().list_artifacts(run_id, "plots")}
+    shipped = export_run(run_id, tmp_path / "onnx_models", version="0.0.1")
+    model = load_models(tmp_path / "onnx_models", 1)["i2s_alignment"]
+    q = model.run(np.random.default_rng(0).normal(size=(5, 128, 6)).astype(np.float32))
+    assert q.shape == (5, 7, 4)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-5)
+    assert np.all(q[..., 0] >= 0)
+    assert read_manifest(shipped / "manifest.json").output_kind == "quaternion_per_segment"
