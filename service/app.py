@@ -12,12 +12,25 @@ from fastapi.responses import JSONResponse
 
 from service.api.metrics import ServiceMetrics
 from service.api.routes import router
+from service.api.stream import router as stream_router
 from service.core.units import UnitError
+from service.inference.batcher import MicroBatcher
 from service.inference.predict import InputError
-from service.inference.registry import load_models
+from service.inference.registry import LoadedModel, load_models
 from service.settings import Settings, get_settings
 
 log = logging.getLogger(__name__)
+
+
+def _model_runner(models: dict[str, LoadedModel]):  # type: ignore[no-untyped-def]
+    """Both I2S models on one batch: ``(B, 128, 6)`` → probabilities ``(B, 7)``, quaternions ``(B, 7, 4)``."""
+
+    def run(imu):  # type: ignore[no-untyped-def]
+        probs = models["i2s_assignment"].run(imu)
+        quats = models["i2s_alignment"].run(imu) if "i2s_alignment" in models else None
+        return probs, quats
+
+    return run
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -28,13 +41,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.models = load_models(settings.models_dir, settings.ort_threads)
         if not app.state.models:
             log.error("no valid model under %s", settings.models_dir.resolve())
+        app.state.batcher = MicroBatcher(_model_runner(app.state.models), settings.batch_max_windows,
+                                         settings.batch_max_wait_ms, app.state.metrics.observe_batch)
+        app.state.batcher.start()
         yield
+        await app.state.batcher.stop()
 
     app = FastAPI(title="wearmocap", version="0.1.0", lifespan=lifespan,
                   description="IMU-to-segment assignment and alignment (paper 000) served with onnxruntime.")
     app.state.metrics = ServiceMetrics()
+    app.state.settings = settings
     app.state.models = {}
     app.include_router(router)
+    app.include_router(stream_router)
 
     @app.exception_handler(InputError)
     @app.exception_handler(UnitError)

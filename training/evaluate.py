@@ -16,7 +16,7 @@ from tqdm import tqdm
 from service.core.assignment import is_moving, joint_assignment
 from service.core.windowing import sliding_windows
 from training.data.mocap import Clip
-from training.data.real_imu import RealRecording
+from service.core.recordings import RealRecording
 from training.data.windows import Augmentation, grid_batches
 from training.metrics import alignment_metrics, assignment_metrics, confusion_matrix
 

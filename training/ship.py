@@ -20,7 +20,7 @@ from service.core.manifest import Evaluation, Manifest, TensorSpec, read_manifes
 from service.core.segments import SEGMENTS
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
 from training.config import ExperimentConfig
-from training.data.real_imu import read_all_real
+from service.core.recordings import read_all_real
 from training.evaluate import evaluate_real, evaluate_simulated, onnx_predictor
 from training.export import OPSET, OUTPUT_NAMES, PARITY_ATOL, onnx_parity
 from training.plots import confusion_matrix_png

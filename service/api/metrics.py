@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from prometheus_client import CollectorRegistry, Counter, Histogram
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 
 class ServiceMetrics:
@@ -15,5 +15,16 @@ class ServiceMetrics:
         self.batch = Histogram("wearmocap_inference_batch_windows", "windows per inference call",
                                buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 4096), registry=self.registry)
 
-    def observe_batch(self, n: int) -> None:
+        self.inference = Histogram("wearmocap_inference_seconds", "onnxruntime time per micro-batch",
+                                   registry=self.registry)
+        self.open_streams = Gauge("wearmocap_open_streams", "open WebSocket sessions", registry=self.registry)
+        self.samples = Counter("wearmocap_stream_samples_total", "sensor samples received on streams",
+                               registry=self.registry)
+        self.gaps = Counter("wearmocap_stream_sequence_problems_total", "sequence gaps and late packets",
+                            registry=self.registry)
+        self.dropped = Counter("wearmocap_stream_results_dropped_total", "results dropped for slow consumers",
+                               registry=self.registry)
+
+    def observe_batch(self, n: int, seconds: float) -> None:
         self.batch.observe(n)
+        self.inference.observe(seconds)

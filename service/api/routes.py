@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request, Response
+from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from starlette.concurrency import run_in_threadpool
 
 from service.api.schemas import (
     Alignment,
@@ -48,15 +48,9 @@ def _inputs(windows: list[ImuWindow], prefix: str) -> np.ndarray:
 
 async def _infer(request: Request, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, dict[str, str]]:
     models = _models(request)
-    assign = _require(models, "i2s_assignment")
-    probs = await run_in_threadpool(assign.run, imu)
-    request.app.state.metrics.observe_batch(len(imu))
-    versions = {assign.manifest.name: assign.manifest.version}
-    quats = None
-    if "i2s_alignment" in models:
-        align = models["i2s_alignment"]
-        quats = await run_in_threadpool(align.run, imu)
-        versions[align.manifest.name] = align.manifest.version
+    _require(models, "i2s_assignment")
+    probs, quats = await request.app.state.batcher.infer(imu)
+    versions = {m.manifest.name: m.manifest.version for m in models.values()}
     return probs, quats, versions
 
 
@@ -126,13 +120,11 @@ async def health() -> dict[str, str]:
 
 
 @router.get("/ready", tags=["ops"], summary="Readiness: at least the assignment model is loaded")
-async def ready(request: Request) -> Response:
+async def ready(request: Request) -> JSONResponse:
     models = _models(request)
     ok = "i2s_assignment" in models
     body = {"ready": ok, "models": {t: m.manifest.version for t, m in models.items()}}
-    import json
-
-    return Response(json.dumps(body), status_code=200 if ok else 503, media_type="application/json")
+    return JSONResponse(body, status_code=200 if ok else 503)
 
 
 @router.get("/metrics", tags=["ops"], summary="Prometheus metrics")

@@ -1,4 +1,4 @@
-"""Readers of the real IMU recordings in ``imu_real/`` (``../shared/data/README.md``), converted to the
+"""Readers of the real IMU recordings (numpy only: the streaming client uses them too) in ``imu_real/`` (``../shared/data/README.md``), converted to the
 model contract: 60 Hz, acc in m/s² (specific force), gyr in rad/s, sensor frame, with the known segment.
 """
 
@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from service.core.resample import resample_timestamps, resample_uniform
 from service.core.segments import segment_index
@@ -55,7 +54,7 @@ def read_ximu3(data_dir: Path) -> RealRecording:
     streams = {}
     for folder in sorted(p for p in root.iterdir() if p.is_dir()):
         label = folder.name.rsplit(" ", 2)[0]
-        table = pd.read_csv(folder / "Inertial.csv").to_numpy()
+        table = np.loadtxt(folder / "Inertial.csv", delimiter=",", skiprows=1)
         t_s = table[:, 0] * 1e-6
         imu = to_contract_units(table[:, [4, 5, 6, 1, 2, 3]], "g", "deg/s")
         streams[XIMU3_SEGMENTS[label]] = (t_s, imu, folder.name)
@@ -96,17 +95,34 @@ def read_capacitive(data_dir: Path, trial: str) -> RealRecording:
 def read_gaitmap(data_dir: Path, file: str) -> RealRecording:
     """Left and right foot IMUs (m/s², deg/s, raw sensor frame) of the gaitmap example data."""
     rate, subject, activity = GAITMAP_FILES[file]
-    table = pd.read_csv(data_dir / "imu_real" / "gaitmap_foot" / file, header=[0, 1], index_col=0)
+    path = data_dir / "imu_real" / "gaitmap_foot" / file
+    with open(path) as fh:
+        sensor_row, axis_row = fh.readline().strip().split(","), fh.readline().strip().split(",")
+    table = np.loadtxt(path, delimiter=",", skiprows=2)
     columns = ["acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z"]
     sensors = []
     for side, seg in (("left_sensor", "LeftFoot"), ("right_sensor", "RightFoot")):
-        raw = table[side][columns].to_numpy(dtype=np.float64)
+        cols = [next(i for i, (s_, a) in enumerate(zip(sensor_row, axis_row, strict=True)) if s_ == side and a == c)
+                for c in columns]
+        raw = table[:, cols]
         sensors.append(RealSensor(side, _gaitmap_convert(raw, rate), segment_index(seg)))
     return RealRecording(f"gaitmap_foot/{file.removesuffix('.csv')}", "gaitmap_foot", subject, activity, sensors)
 
 
 def _gaitmap_convert(raw: np.ndarray, rate_hz: float) -> np.ndarray:
     return resample_uniform(to_contract_units(raw, "m/s^2", "deg/s"), rate_hz, MODEL_RATE_HZ)
+
+
+def read_recording(data_dir: Path, name: str) -> RealRecording:
+    """One recording by its name (``ximu3_lowerbody``, ``capacitive_sub01/<trial>``, ``gaitmap_foot/<file>``)."""
+    for recording in read_all_real(data_dir):
+        if recording.name == name:
+            return recording
+    raise KeyError(f"no recording {name!r}; known: {RECORDING_NAMES}")
+
+
+RECORDING_NAMES = (["ximu3_lowerbody"] + [f"capacitive_sub01/{t}" for t in CAPACITIVE_TRIALS]
+                   + [f"gaitmap_foot/{f.removesuffix('.csv')}" for f in GAITMAP_FILES])
 
 
 def read_all_real(data_dir: Path) -> list[RealRecording]:

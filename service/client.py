@@ -1,0 +1,139 @@
+"""Streaming client: send a recording to ``/v1/stream`` at real time (or faster) and collect results.
+
+    python -m service.client --recording ximu3_lowerbody --data-dir ../shared/data
+    python -m service.client --csv thigh.csv --csv shank.csv --rate 100 --acc-unit g --gyr-unit deg/s
+
+A CSV holds one sensor: a header row, then rows of acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z (extra
+leading columns such as time are allowed with ``--skip-columns``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import websockets
+
+from service.api.protocol import encode_binary
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ClientSensor:
+    sensor_id: str
+    samples: np.ndarray  # (T, 6) in the declared units
+    sample_rate_hz: float = 60.0
+    acc_unit: str = "m/s^2"
+    gyr_unit: str = "rad/s"
+
+
+@dataclass
+class StreamOutcome:
+    results: list[dict] = field(default_factory=list)
+    assignment: dict | None = None
+    events: list[dict] = field(default_factory=list)  # started, gap, late, error
+    close_code: int | None = None
+
+
+def _schedule(sensors: list[ClientSensor], packet_samples: int) -> list[tuple[float, int, int]]:
+    """(send time s, sensor index, first sample) of every packet, in time order."""
+    plan = [((start + packet_samples) / s.sample_rate_hz, k, start)
+            for k, s in enumerate(sensors) for start in range(0, len(s.samples), packet_samples)]
+    return sorted(plan)
+
+
+async def stream_sensors(url: str, sensors: list[ClientSensor], speed: float = 1.0, packet_samples: int = 16,
+                         binary: bool = True, api_key: str | None = None) -> StreamOutcome:
+    """Stream all sensors concurrently; ``speed`` 1 is real time, 0 as fast as possible."""
+    outcome = StreamOutcome()
+    headers = {"X-API-Key": api_key} if api_key else None
+    async with websockets.connect(url, additional_headers=headers, max_size=2**24) as ws:
+        start = {"type": "start", "sensors": [{"sensor_id": s.sensor_id, "sample_rate_hz": s.sample_rate_hz,
+                                               "acc_unit": s.acc_unit, "gyr_unit": s.gyr_unit} for s in sensors]}
+        await ws.send(json.dumps(start))
+        receiver = asyncio.create_task(_receive(ws, outcome))
+        t0 = time.monotonic()
+        for due_s, k, first in _schedule(sensors, packet_samples):
+            if speed > 0:
+                delay = due_s / speed - (time.monotonic() - t0)
+                if delay > 0:
+                    await asyncio.sleep(delay)
+            chunk = sensors[k].samples[first : first + packet_samples]
+            if binary:
+                await ws.send(encode_binary(k, first, chunk))
+            else:
+                await ws.send(json.dumps({"type": "samples", "sensor_id": sensors[k].sensor_id, "seq": first,
+                                          "samples": np.asarray(chunk).tolist()}))
+        await ws.send(json.dumps({"type": "stop"}))
+        await receiver
+        outcome.close_code = ws.close_code
+    return outcome
+
+
+async def _receive(ws: websockets.ClientConnection, outcome: StreamOutcome) -> None:
+    try:
+        async for raw in ws:
+            message = json.loads(raw)
+            if message["type"] == "result":
+                outcome.results.append(message)
+            elif message["type"] == "assignment":
+                outcome.assignment = message
+            else:
+                outcome.events.append(message)
+    except websockets.ConnectionClosed:
+        pass
+
+
+def _csv_sensor(path: Path, rate: float, acc_unit: str, gyr_unit: str, skip: int) -> ClientSensor:
+    data = np.loadtxt(path, delimiter=",", skiprows=1)[:, skip : skip + 6]
+    return ClientSensor(path.stem, data, rate, acc_unit, gyr_unit)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--url", default="ws://127.0.0.1:8000/v1/stream")
+    parser.add_argument("--recording", help="a recording of the data directory, e.g. ximu3_lowerbody")
+    parser.add_argument("--data-dir", default=os.environ.get("WEARMOCAP_DATA_DIR"))
+    parser.add_argument("--csv", action="append", type=Path, default=[], help="one sensor per CSV file")
+    parser.add_argument("--rate", type=float, default=60.0, help="CSV sample rate in Hz")
+    parser.add_argument("--acc-unit", default="m/s^2", choices=["m/s^2", "g"])
+    parser.add_argument("--gyr-unit", default="rad/s", choices=["rad/s", "deg/s"])
+    parser.add_argument("--skip-columns", type=int, default=0)
+    parser.add_argument("--speed", type=float, default=1.0, help="1 = real time, 0 = as fast as possible")
+    parser.add_argument("--json", action="store_true", help="send JSON packets instead of binary")
+    parser.add_argument("--out", type=Path, help="write every result message to this JSON-lines file")
+    parser.add_argument("--api-key", default=os.environ.get("WEARMOCAP_API_KEY"))
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.recording:
+        from service.core.recordings import read_recording
+
+        if not args.data_dir:
+            parser.error("--recording needs --data-dir or WEARMOCAP_DATA_DIR")
+        rec = read_recording(Path(args.data_dir), args.recording)
+        sensors = [ClientSensor(s.sensor_id, s.imu) for s in rec.sensors]
+    elif args.csv:
+        sensors = [_csv_sensor(p, args.rate, args.acc_unit, args.gyr_unit, args.skip_columns) for p in args.csv]
+    else:
+        parser.error("give --recording or at least one --csv")
+    outcome = asyncio.run(stream_sensors(args.url, sensors, args.speed, binary=not args.json, api_key=args.api_key))
+    if args.out:
+        args.out.write_text("".join(json.dumps(r) + "\n" for r in outcome.results))
+    for event in outcome.events:
+        log.info("%s", event)
+    log.info("%d window results", len(outcome.results))
+    for s in (outcome.assignment or {}).get("sensors", []):
+        log.info("%-32s -> %-14s confidence %.3f  margin %.1f  (%d moving windows)", s["sensor_id"], s["segment"],
+                 s["confidence"], s["margin"], s["windows"])
+
+
+if __name__ == "__main__":
+    main()

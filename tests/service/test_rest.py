@@ -1,0 +1,121 @@
+"""REST API with the FastAPI TestClient: results, unit handling and the bad-input catalogue."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.settings import Settings
+from tests.service.conftest import write_tiny_model
+
+
+def _window(n: int = 128, rate: float = 60.0, **extra) -> dict:
+    t = np.arange(n) / rate
+    rows = np.stack([np.sin(t), np.cos(t), 9.81 + 0 * t, 2 * np.sin(3 * t), 0 * t, np.cos(2 * t)], axis=1)
+    return {"samples": rows.tolist(), "sample_rate_hz": rate, **extra}
+
+
+def test_health_ready_models_metrics(client: TestClient) -> None:
+    assert client.get("/health").json() == {"status": "alive"}
+    assert client.get("/ready").json()["ready"] is True
+    models = client.get("/v1/models").json()
+    assert set(models) == {"i2s_assignment", "i2s_alignment"}
+    client.post("/v1/imu/windows", json={"windows": [_window()]})
+    text = client.get("/metrics").text
+    assert "wearmocap_requests_total" in text and "wearmocap_inference_batch_windows_count" in text
+
+
+def test_window_result_shape(client: TestClient) -> None:
+    r = client.post("/v1/imu/windows", json={"windows": [_window(), _window(segment="Pelvis")]})
+    assert r.status_code == 200, r.text
+    res = r.json()["results"]
+    assert len(res) == 2
+    assert abs(sum(res[0]["probabilities"].values()) - 1) < 1e-5
+    q = np.array(res[1]["alignment"]["q_segment_imu"])
+    assert res[1]["alignment"]["segment"] == "Pelvis"
+    assert abs(np.linalg.norm(q) - 1) < 1e-5 and q[0] >= 0
+    R = np.array(res[1]["alignment"]["R_segment_imu"])
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-5)
+
+
+def test_units_are_converted(client: TestClient) -> None:
+    w = _window()
+    x = np.array(w["samples"])
+    scaled = np.concatenate([x[:, :3] / 9.80665, np.degrees(x[:, 3:])], axis=1)
+    a = client.post("/v1/imu/windows", json={"windows": [w]}).json()["results"][0]["probabilities"]
+    b = client.post("/v1/imu/windows", json={"windows": [{"samples": scaled.tolist(), "acc_unit": "g",
+                                                          "gyr_unit": "deg/s"}]}).json()["results"][0]
+    np.testing.assert_allclose(list(a.values()), list(b["probabilities"].values()), atol=1e-5)
+
+
+def test_other_rates_are_resampled(client: TestClient) -> None:
+    assert client.post("/v1/imu/windows", json={"windows": [_window(214, 100.0)]}).status_code == 200
+    r = client.post("/v1/imu/windows", json={"windows": [_window(200, 100.0)]})
+    assert r.status_code == 422 and "at least 214 samples" in r.json()["detail"]
+
+
+@pytest.mark.parametrize("window, fragment", [
+    (_window(127), "128 samples, got 127"),
+    ({"samples": [[0.0] * 5] * 128}, "6 values"),
+    (_window(rate=5.0), "sample_rate_hz must be in"),
+    (_window(acc_unit="ft/s^2"), "acc_unit"),
+    (_window(gyr_unit="rpm"), "gyr_unit"),
+    (_window(segment="Head"), "segment"),
+])
+def test_bad_windows_are_422_with_a_message(client: TestClient, window: dict, fragment: str) -> None:
+    r = client.post("/v1/imu/windows", json={"windows": [window]})
+    assert r.status_code == 422
+    assert fragment in r.text
+
+
+def test_nan_and_inf_are_rejected(client: TestClient) -> None:
+    for bad in ("NaN", "Infinity"):
+        body = '{"windows": [{"samples": [' + ",".join([f"[{bad}, 0, 9.8, 0, 0, 0]"] * 128) + "]}]}"
+        r = client.post("/v1/imu/windows", content=body, headers={"content-type": "application/json"})
+        assert r.status_code == 422 and "finite" in r.text
+
+
+def test_malformed_json_and_oversized_bodies(client: TestClient) -> None:
+    r = client.post("/v1/imu/windows", content="{not json", headers={"content-type": "application/json"})
+    assert r.status_code == 422
+    big = {"windows": [_window()] * 200}
+    assert client.post("/v1/imu/windows", json=big).status_code == 413
+
+
+def test_joint_assignment_endpoint(client: TestClient) -> None:
+    sensors = [{"sensor_id": f"s{k}", "windows": [_window()]} for k in range(3)]
+    r = client.post("/v1/imu/assign", json={"sensors": sensors})
+    assert r.status_code == 200, r.text
+    segs = [s["segment"] for s in r.json()["sensors"]]
+    assert len(set(segs)) == 3  # one-to-one
+    shared = client.post("/v1/imu/assign", json={"sensors": sensors, "allow_shared": True}).json()
+    assert len({s["segment"] for s in shared["sensors"]}) == 1  # identical data, shared allowed
+    dup = client.post("/v1/imu/assign", json={"sensors": sensors[:1] * 2})
+    assert dup.status_code == 422 and "unique" in dup.text
+    nine = [{"sensor_id": f"s{k}", "windows": [_window()]} for k in range(9)]
+    out = client.post("/v1/imu/assign", json={"sensors": nine}).json()["sensors"]
+    assert sum(s["segment"] is None for s in out) == 2  # more sensors than segments
+
+
+def test_no_model_is_503_and_api_key_is_enforced(tmp_path: Path) -> None:
+    with TestClient(create_app(Settings(models_dir=tmp_path))) as c:
+        r = c.post("/v1/imu/windows", json={"windows": [_window()]})
+        assert r.status_code == 503 and "no i2s_assignment model" in r.text
+        assert c.get("/ready").status_code == 503
+    root = tmp_path / "m"
+    write_tiny_model(root, "i2s_assignment")
+    with TestClient(create_app(Settings(models_dir=root, api_key="secret"))) as c:
+        assert c.post("/v1/imu/windows", json={"windows": [_window()]}).status_code == 401
+        ok = c.post("/v1/imu/windows", json={"windows": [_window()]}, headers={"X-API-Key": "secret"})
+        assert ok.status_code == 200
+        assert ok.json()["results"][0]["alignment"] is None  # no alignment model loaded
+
+
+def test_a_tampered_model_is_refused_and_the_others_served(tiny_models: Path) -> None:
+    (tiny_models / "i2s_alignment" / "0.0.1" / "model.onnx").write_bytes(b"corrupt")
+    with TestClient(create_app(Settings(models_dir=tiny_models))) as c:
+        assert set(c.get("/v1/models").json()) == {"i2s_assignment"}

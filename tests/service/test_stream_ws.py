@@ -1,0 +1,95 @@
+"""WebSocket protocol with the TestClient: results, gaps, binary packets and the close codes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+
+from service.api.protocol import encode_binary
+
+START = {"type": "start", "sensors": [{"sensor_id": "a"}, {"sensor_id": "b", "sample_rate_hz": 120.0}]}
+
+
+def _signal(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, 6))
+    x[:, 2] += 9.81
+    x[:, 3:] *= 2.0
+    return x
+
+
+def _collect(ws, until: str = "close") -> list[dict]:
+    out = []
+    try:
+        while True:
+            out.append(json.loads(ws.receive_text()))
+    except WebSocketDisconnect as exc:
+        out.append({"type": "close", "code": exc.code, "reason": exc.reason})
+    return out
+
+
+def test_stream_results_assignment_and_stop(client: TestClient) -> None:
+    x = _signal(160)
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps(START))
+        assert json.loads(ws.receive_text())["type"] == "started"
+        for seq in range(0, 160, 16):
+            ws.send_text(json.dumps({"type": "samples", "sensor_id": "a", "seq": seq,
+                                     "samples": x[seq : seq + 16].tolist()}))
+        ws.send_bytes(encode_binary(1, 0, _signal(300, 1)))
+        ws.send_text(json.dumps({"type": "stop"}))
+        messages = _collect(ws)
+    results = [m for m in messages if m["type"] == "result"]
+    assert [r["sensor_id"] for r in results].count("a") == 3  # windows at 0, 16, 32 (160 samples)
+    assert [r["sensor_id"] for r in results].count("b") == 2  # 300 samples at 120 Hz -> 150 at 60 Hz
+    final = [m for m in messages if m["type"] == "assignment"][-1]
+    assert {s["sensor_id"] for s in final["sensors"]} == {"a", "b"}
+    assert messages[-1] == {"type": "close", "code": 1000, "reason": "stop"}
+
+
+def test_gaps_and_late_packets_are_reported(client: TestClient) -> None:
+    x = _signal(64)
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps(START))
+        ws.receive_text()
+        ws.send_bytes(encode_binary(0, 0, x[:32]))
+        ws.send_bytes(encode_binary(0, 40, x[:16]))
+        ws.send_bytes(encode_binary(0, 10, x[:4]))
+        ws.send_text(json.dumps({"type": "stop"}))
+        messages = _collect(ws)
+    gap = next(m for m in messages if m["type"] == "gap")
+    assert (gap["expected_seq"], gap["received_seq"], gap["missing"]) == (32, 40, 8)
+    late = next(m for m in messages if m["type"] == "late")
+    assert late["received_seq"] == 10 and late["action"] == "packet dropped"
+
+
+@pytest.mark.parametrize("first, then, code, fragment", [
+    ("not json", None, 1003, "JSON"),
+    (json.dumps({"type": "start", "sensors": []}), None, 1008, "sensors"),
+    (json.dumps({"type": "start", "sensors": [{"sensor_id": "a", "acc_unit": "furlong"}]}), None, 1008, "acc_unit"),
+    (json.dumps(START), json.dumps({"type": "samples", "sensor_id": "zz", "seq": 0, "samples": [[0] * 6]}), 1008,
+     "unknown sensor_id"),
+    (json.dumps(START), json.dumps({"type": "samples", "sensor_id": "a", "seq": 0, "samples": [[0] * 5]}), 1008,
+     "6 values"),
+    (json.dumps(START), '{"type": "samples", "sensor_id": "a", "seq": 0, "samples": [[NaN, 0, 0, 0, 0, 0]]}', 1008,
+     "finite"),
+    (json.dumps(START), b"\x00\x00", 1003, "header"),
+    (json.dumps(START), encode_binary(7, 0, np.zeros((1, 6))), 1008, "sensor index 7"),
+    (json.dumps(START), encode_binary(0, 0, np.zeros((5000, 6))), 1009, "at most"),
+])
+def test_protocol_violations_close_with_code_and_message(client: TestClient, first, then, code, fragment) -> None:
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(first)
+        if then is not None:
+            ws.receive_text()  # started
+            ws.send_bytes(then) if isinstance(then, bytes) else ws.send_text(then)
+        messages = _collect(ws)
+    error = next(m for m in messages if m["type"] == "error")
+    assert fragment in error["detail"] and error["close_code"] == code
+    assert messages[-1]["code"] == code
+    # the server keeps serving others
+    assert client.get("/health").status_code == 200
