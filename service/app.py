@@ -41,14 +41,22 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.models = load_models(settings.models_dir, settings.ort_threads)
         if not app.state.models:
             log.error("no valid model under %s", settings.models_dir.resolve())
-        app.state.batcher = MicroBatcher(_model_runner(app.state.models), settings.batch_max_windows,
-                                         settings.batch_max_wait_ms, app.state.metrics.observe_batch)
+        app.state.batcher = MicroBatcher(
+            _model_runner(app.state.models),
+            settings.batch_max_windows,
+            settings.batch_max_wait_ms,
+            app.state.metrics.observe_batch,
+        )
         app.state.batcher.start()
         yield
         await app.state.batcher.stop()
 
-    app = FastAPI(title="wearmocap", version="0.1.0", lifespan=lifespan,
-                  description="IMU-to-segment assignment and alignment (paper 000) served with onnxruntime.")
+    app = FastAPI(
+        title="wearmocap",
+        version="0.1.0",
+        lifespan=lifespan,
+        description="IMU-to-segment assignment and alignment (paper 000) served with onnxruntime.",
+    )
     app.state.metrics = ServiceMetrics()
     app.state.settings = settings
     app.state.models = {}
@@ -65,10 +73,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         start = time.perf_counter()
         length = request.headers.get("content-length")
         if length is not None and length.isdigit() and int(length) > settings.max_body_bytes:
-            response = JSONResponse({"detail": f"body of {length} bytes exceeds the limit of "
-                                               f"{settings.max_body_bytes} bytes"}, status_code=413)
-        elif settings.api_key and request.url.path.startswith("/v1/") and \
-                request.headers.get("x-api-key") != settings.api_key:
+            response = JSONResponse(
+                {"detail": f"body of {length} bytes exceeds the limit of {settings.max_body_bytes} bytes"},
+                status_code=413,
+            )
+        elif (
+            settings.api_key
+            and request.url.path.startswith("/v1/")
+            and request.headers.get("x-api-key") != settings.api_key
+        ):
             response = JSONResponse({"detail": "missing or wrong X-API-Key header"}, status_code=401)
         else:
             response = await call_next(request)

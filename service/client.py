@@ -45,19 +45,38 @@ class StreamOutcome:
 
 def _schedule(sensors: list[ClientSensor], packet_samples: int) -> list[tuple[float, int, int]]:
     """(send time s, sensor index, first sample) of every packet, in time order."""
-    plan = [((start + packet_samples) / s.sample_rate_hz, k, start)
-            for k, s in enumerate(sensors) for start in range(0, len(s.samples), packet_samples)]
+    plan = [
+        ((start + packet_samples) / s.sample_rate_hz, k, start)
+        for k, s in enumerate(sensors)
+        for start in range(0, len(s.samples), packet_samples)
+    ]
     return sorted(plan)
 
 
-async def stream_sensors(url: str, sensors: list[ClientSensor], speed: float = 1.0, packet_samples: int = 16,
-                         binary: bool = True, api_key: str | None = None) -> StreamOutcome:
+async def stream_sensors(
+    url: str,
+    sensors: list[ClientSensor],
+    speed: float = 1.0,
+    packet_samples: int = 16,
+    binary: bool = True,
+    api_key: str | None = None,
+) -> StreamOutcome:
     """Stream all sensors concurrently; ``speed`` 1 is real time, 0 as fast as possible."""
     outcome = StreamOutcome()
     headers = {"X-API-Key": api_key} if api_key else None
     async with websockets.connect(url, additional_headers=headers, max_size=2**24) as ws:
-        start = {"type": "start", "sensors": [{"sensor_id": s.sensor_id, "sample_rate_hz": s.sample_rate_hz,
-                                               "acc_unit": s.acc_unit, "gyr_unit": s.gyr_unit} for s in sensors]}
+        start = {
+            "type": "start",
+            "sensors": [
+                {
+                    "sensor_id": s.sensor_id,
+                    "sample_rate_hz": s.sample_rate_hz,
+                    "acc_unit": s.acc_unit,
+                    "gyr_unit": s.gyr_unit,
+                }
+                for s in sensors
+            ],
+        }
         await ws.send(json.dumps(start))
         receiver = asyncio.create_task(_receive(ws, outcome))
         t0 = time.monotonic()
@@ -70,8 +89,16 @@ async def stream_sensors(url: str, sensors: list[ClientSensor], speed: float = 1
             if binary:
                 await ws.send(encode_binary(k, first, chunk))
             else:
-                await ws.send(json.dumps({"type": "samples", "sensor_id": sensors[k].sensor_id, "seq": first,
-                                          "samples": np.asarray(chunk).tolist()}))
+                await ws.send(
+                    json.dumps(
+                        {
+                            "type": "samples",
+                            "sensor_id": sensors[k].sensor_id,
+                            "seq": first,
+                            "samples": np.asarray(chunk).tolist(),
+                        }
+                    )
+                )
         await ws.send(json.dumps({"type": "stop"}))
         await receiver
         outcome.close_code = ws.close_code
@@ -131,8 +158,14 @@ def main() -> None:
         log.info("%s", event)
     log.info("%d window results", len(outcome.results))
     for s in (outcome.assignment or {}).get("sensors", []):
-        log.info("%-32s -> %-14s confidence %.3f  margin %.1f  (%d moving windows)", s["sensor_id"], s["segment"],
-                 s["confidence"], s["margin"], s["windows"])
+        log.info(
+            "%-32s -> %-14s confidence %.3f  margin %.1f  (%d moving windows)",
+            s["sensor_id"],
+            s["segment"],
+            s["confidence"],
+            s["margin"],
+            s["windows"],
+        )
 
 
 if __name__ == "__main__":

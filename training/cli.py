@@ -23,13 +23,15 @@ Override = typer.Option([], "--set", "-s", help="config override, e.g. -s train.
 
 @app.callback()
 def _logging(verbose: bool = typer.Option(False, "--verbose", "-v")) -> None:
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
 
 
 @app.command()
-def simulate(config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE,
-             overrides: list[str] = Override) -> None:
+def simulate(
+    config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE, overrides: list[str] = Override
+) -> None:
     """Compute (or reuse from the digest cache) the segment kinematics the simulation draws from."""
     from training.pipeline import load_clips
 
@@ -39,9 +41,14 @@ def simulate(config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DE
 
 
 @app.command()
-def train(config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE,
-          overrides: list[str] = Override, register: bool = typer.Option(True, help="register the model"),
-          eval_max_windows: int | None = typer.Option(None, help="cap the test evaluation (quick runs)")) -> None:
+def train(
+    config: Path,
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = DEFAULT_CACHE,
+    overrides: list[str] = Override,
+    register: bool = typer.Option(True, help="register the model"),
+    eval_max_windows: int | None = typer.Option(None, help="cap the test evaluation (quick runs)"),
+) -> None:
     """Train, export ONNX, evaluate on the held-out subjects and log it all to MLflow."""
     from training.pipeline import run_training
 
@@ -53,10 +60,10 @@ def train(config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAU
 @app.command()
 def register(run_id: str, name: str, task: str = typer.Option(..., help="assignment or alignment")) -> None:
     """Register a run's model; the champion alias moves only if it wins on the same evaluation."""
+    import mlflow
+
     from training.pipeline import register_run
     from training.tracking import default_tracking_uri
-
-    import mlflow
 
     mlflow.set_tracking_uri(default_tracking_uri())
     version, promoted = register_run(run_id, name, task)
@@ -66,30 +73,37 @@ def register(run_id: str, name: str, task: str = typer.Option(..., help="assignm
 @app.command()
 def export(run_id: str, out_root: Path = typer.Option(Path("onnx_models")), version: str | None = None) -> None:
     """Copy a run's ONNX model into onnx_models/<name>/<version>/ with manifest.json and golden.npz."""
+    import mlflow
+
     from training.ship import export_run
     from training.tracking import default_tracking_uri
-
-    import mlflow
 
     mlflow.set_tracking_uri(default_tracking_uri())
     typer.echo(str(export_run(run_id, out_root, version)))
 
 
 @app.command()
-def evaluate(model_dir: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE,
-             max_windows: int | None = typer.Option(None, help="cap the simulated evaluation (quick checks)")) -> None:
+def evaluate(
+    model_dir: Path,
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = DEFAULT_CACHE,
+    max_windows: int | None = typer.Option(None, help="cap the simulated evaluation (quick checks)"),
+) -> None:
     """Evaluate a shipped model (LOSO fold on simulated data, real recordings) and record it in its manifest."""
+    import mlflow
+
     from training.ship import evaluate_shipped
     from training.tracking import default_tracking_uri
-
-    import mlflow
 
     mlflow.set_tracking_uri(default_tracking_uri())
     command = f"python -m training.cli evaluate {model_dir}" + (f" --max-windows {max_windows}" if max_windows else "")
     manifest = evaluate_shipped(model_dir, resolve_data_dir(data_dir), cache_dir, command, max_windows)
     for ev in manifest.evaluations:
-        headline = {k: v for k, v in ev.metrics.items() if "/" not in k and not k.startswith(("precision", "recall", "f1_"))
-                    and "_ax" not in k}
+        headline = {
+            k: v
+            for k, v in ev.metrics.items()
+            if "/" not in k and not k.startswith(("precision", "recall", "f1_")) and "_ax" not in k
+        }
         typer.echo(f"{ev.name}: {headline}")
 
 

@@ -19,6 +19,9 @@ class DataConfig(_Strict):
     activities: list[str] = Field(default_factory=lambda: ["walk"])
     test_subjects: list[str] = Field(default_factory=list)  # LOSO: subject groups held out for testing
     val_fraction: float = 0.05  # paper 000 §3.3: 95 % / 5 % training / validation split (by clip)
+    # Real recordings mixed into training (paper 000 §4.3, assignment only); never evaluated on.
+    real_train_recordings: list[str] = Field(default_factory=list)
+    real_fraction: float = Field(0.0, ge=0.0, lt=1.0)  # share of each batch drawn from them
     sample_rate_hz: float = 60.0
     cutoff_hz: float = 10.0
     filter_order: int = 8
@@ -37,6 +40,7 @@ class TrainConfig(_Strict):
     patience: int = 5  # early stopping on validation loss
     val_windows: int = 4096
     threads: int = 2
+    init_from_run: str | None = None  # MLflow run id whose checkpoint warm-starts training (pre-training)
     max_minutes: float | None = None  # wall-time budget; stops after the epoch that crosses it
 
 

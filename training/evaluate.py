@@ -14,9 +14,9 @@ import onnxruntime as ort
 from tqdm import tqdm
 
 from service.core.assignment import is_moving, joint_assignment
+from service.core.recordings import RealRecording
 from service.core.windowing import sliding_windows
 from training.data.mocap import Clip
-from service.core.recordings import RealRecording
 from training.data.windows import Augmentation, grid_batches
 from training.metrics import alignment_metrics, assignment_metrics, confusion_matrix
 
@@ -51,8 +51,9 @@ def evaluation_digest(clips: list[Clip], aug: Augmentation) -> str:
     return hashlib.sha256(key.encode()).hexdigest()[:20]
 
 
-def evaluate_simulated(predict: Predict, task: str, clips: list[Clip], aug: Augmentation,
-                       max_windows: int | None = None) -> SimEvaluation:
+def evaluate_simulated(
+    predict: Predict, task: str, clips: list[Clip], aug: Augmentation, max_windows: int | None = None
+) -> SimEvaluation:
     """All grid windows of ``clips`` (optionally the first ``max_windows``, for quick tests)."""
     segs, preds, quats = [], [], []
     total = 0
@@ -102,7 +103,7 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
         joint_correct += int((joint.segment == truth).sum())
         joint_total += len(sensors)
         metrics[f"joint_correct_fraction/{rec.name}"] = float(np.mean(joint.segment == truth))
-        rec_true, rec_pred = np.concatenate(y_true[-len(sensors):]), np.concatenate(y_pred[-len(sensors):])
+        rec_true, rec_pred = np.concatenate(y_true[-len(sensors) :]), np.concatenate(y_pred[-len(sensors) :])
         metrics[f"accuracy/{rec.name}"] = float(np.mean(rec_true == rec_pred))
     yt, yp = np.concatenate(y_true), np.concatenate(y_pred)
     overall = assignment_metrics(yt, yp)

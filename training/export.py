@@ -35,8 +35,14 @@ def export_onnx(model: nn.Module, task: str, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     out = OUTPUT_NAMES[task]
     torch.onnx.export(
-        wrapped, (example,), str(path), input_names=["imu"], output_names=[out],
-        dynamic_axes={"imu": {0: "batch"}, out: {0: "batch"}}, opset_version=OPSET, dynamo=False,
+        wrapped,
+        (example,),
+        str(path),
+        input_names=["imu"],
+        output_names=[out],
+        dynamic_axes={"imu": {0: "batch"}, out: {0: "batch"}},
+        opset_version=OPSET,
+        dynamo=False,
     )
     return path
 

@@ -38,7 +38,9 @@ def assignment_metrics(y_true: np.ndarray, y_pred: np.ndarray) -> dict[str, floa
     return {k: float(v) for k, v in out.items()}
 
 
-def alignment_metrics(segment: np.ndarray, q_true: np.ndarray, q_pred: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
+def alignment_metrics(
+    segment: np.ndarray, q_true: np.ndarray, q_pred: np.ndarray
+) -> tuple[dict[str, float], np.ndarray]:
     """Table A10 layout: median / mean / max absolute XYZ error angle per segment and axis.
 
     Returns the metrics and the per-window error angles ``(N, 3)`` in degrees.

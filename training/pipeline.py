@@ -7,17 +7,19 @@ import tempfile
 from pathlib import Path
 
 import mlflow
-import onnx
 import numpy as np
+import onnx
 import pandas as pd
+import torch
 import yaml
 from mlflow.models import infer_signature
 from mlflow.tracking import MlflowClient
 
+from service.core.recordings import read_recording
 from training.config import ExperimentConfig
 from training.data.catalog import mocap_entries
 from training.data.mocap import Clip, KinematicsParams, build_kinematics, dataset_digest
-from training.data.windows import Augmentation, WindowSampler
+from training.data.windows import Augmentation, RealWindowSampler, WindowSampler
 from training.evaluate import evaluate_simulated, onnx_predictor
 from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
 from training.plots import confusion_matrix_png, error_boxplot_png, learning_curves_png
@@ -34,15 +36,17 @@ def load_clips(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path) -> list[C
     return build_kinematics(data_dir, mocap_entries(data_dir, cfg.data.activities), cache_dir, params)
 
 
-def split_clips(clips: list[Clip], test_subjects: list[str], val_fraction: float,
-                seed: int) -> tuple[list[Clip], list[Clip], list[Clip]]:
+def split_clips(
+    clips: list[Clip], test_subjects: list[str], val_fraction: float, seed: int
+) -> tuple[list[Clip], list[Clip], list[Clip]]:
     """LOSO split by subject group; the validation clips are a seeded fraction of the rest."""
     test = [c for c in clips if c.entry.group in test_subjects]
     rest = [c for c in clips if c.entry.group not in test_subjects]
     missing = set(test_subjects) - {c.entry.group for c in test}
     if missing:
-        raise ValueError(f"test subjects {sorted(missing)} have no clips; groups are "
-                         f"{sorted({c.entry.group for c in clips})}")
+        raise ValueError(
+            f"test subjects {sorted(missing)} have no clips; groups are {sorted({c.entry.group for c in clips})}"
+        )
     order = np.random.default_rng(seed).permutation(len(rest))
     n_val = max(1, int(round(val_fraction * len(rest))))
     val = [rest[i] for i in order[:n_val]]
@@ -50,9 +54,19 @@ def split_clips(clips: list[Clip], test_subjects: list[str], val_fraction: float
 
 
 def clip_table(clips: list[Clip]) -> pd.DataFrame:
-    return pd.DataFrame([{"path": c.entry.path, "source": c.entry.source, "subject": c.entry.group,
-                          "activity": c.entry.activity, "samples_60hz": c.n_samples, "digest": c.digest}
-                         for c in clips])
+    return pd.DataFrame(
+        [
+            {
+                "path": c.entry.path,
+                "source": c.entry.source,
+                "subject": c.entry.group,
+                "activity": c.entry.activity,
+                "samples_60hz": c.n_samples,
+                "digest": c.digest,
+            }
+            for c in clips
+        ]
+    )
 
 
 def _log_dataset(clips: list[Clip], data_dir: Path, context: str) -> None:
@@ -60,8 +74,9 @@ def _log_dataset(clips: list[Clip], data_dir: Path, context: str) -> None:
     mlflow.log_input(ds, context=context)
 
 
-def run_training(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, register: bool = True,
-                 eval_max_windows: int | None = None) -> str:
+def run_training(
+    cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, register: bool = True, eval_max_windows: int | None = None
+) -> str:
     """One tracked training run; returns the MLflow run id."""
     setup_tracking(cfg.tracking.experiment)
     clips = load_clips(cfg, data_dir, cache_dir)
@@ -74,7 +89,18 @@ def run_training(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, registe
         for context, part in (("training", train_clips), ("validation", val_clips), ("test", test_clips)):
             if part:
                 _log_dataset(part, data_dir, context)
-        result = train(cfg, train_clips, val_clips, log_metrics=lambda m, step: mlflow.log_metrics(m, step=step))
+        init_state = _checkpoint(cfg.train.init_from_run, tmp) if cfg.train.init_from_run else None
+        real = _real_sampler(cfg, data_dir)
+        result = train(
+            cfg,
+            train_clips,
+            val_clips,
+            log_metrics=lambda m, step: mlflow.log_metrics(m, step=step),
+            init_state=init_state,
+            real=real,
+        )
+        torch.save(result.model.state_dict(), tmp / "model_state.pt")
+        mlflow.log_artifact(str(tmp / "model_state.pt"), "checkpoint")
         mlflow.log_metrics({"best_epoch": result.best_epoch, "train_wall_time_s": result.wall_time_s})
         mlflow.log_artifact(str(learning_curves_png(result.history, tmp / "learning_curves.png", cfg.name)), "plots")
         onnx_path = export_onnx(result.model, cfg.task, tmp / "model.onnx")
@@ -89,8 +115,13 @@ def run_training(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, registe
         if test_clips:
             _log_simulated_evaluation(cfg, onnx_path, test_clips, tmp, eval_max_windows)
         signature = infer_signature(golden["imu"], golden["expected"])
-        info = mlflow.onnx.log_model(onnx_model=onnx.load(str(onnx_path)), name="model", signature=signature,
-                                     input_example=golden["imu"][:1], save_as_external_data=False)
+        info = mlflow.onnx.log_model(
+            onnx_model=onnx.load(str(onnx_path)),
+            name="model",
+            signature=signature,
+            input_example=golden["imu"][:1],
+            save_as_external_data=False,
+        )
         mlflow.set_tag("model_uri", info.model_uri)
         run_id = run.info.run_id
     if register:
@@ -98,8 +129,24 @@ def run_training(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, registe
     return run_id
 
 
-def _log_simulated_evaluation(cfg: ExperimentConfig, onnx_path: Path, test_clips: list[Clip], tmp: Path,
-                              max_windows: int | None) -> None:
+def _checkpoint(run_id: str, tmp: Path) -> dict:
+    """The torch state dict logged by an earlier run (pre-training)."""
+    path = mlflow.artifacts.download_artifacts(f"runs:/{run_id}/checkpoint/model_state.pt", dst_path=str(tmp))
+    mlflow.set_tag("init_from_run", run_id)
+    return torch.load(path, weights_only=True)
+
+
+def _real_sampler(cfg: ExperimentConfig, data_dir: Path) -> RealWindowSampler | None:
+    if not cfg.data.real_train_recordings or cfg.data.real_fraction == 0:
+        return None
+    recordings = [read_recording(data_dir, name) for name in cfg.data.real_train_recordings]
+    mlflow.log_param("real_train_windows", len(RealWindowSampler(recordings).segment))
+    return RealWindowSampler(recordings)
+
+
+def _log_simulated_evaluation(
+    cfg: ExperimentConfig, onnx_path: Path, test_clips: list[Clip], tmp: Path, max_windows: int | None
+) -> None:
     ev = evaluate_simulated(onnx_predictor(onnx_path), cfg.task, test_clips, cfg.augmentation, max_windows)
     mlflow.log_metrics({f"test_{k}": v for k, v in ev.metrics.items()})
     mlflow.set_tag("eval_digest", ev.digest)
@@ -107,8 +154,9 @@ def _log_simulated_evaluation(cfg: ExperimentConfig, onnx_path: Path, test_clips
     if ev.confusion is not None:
         mlflow.log_artifact(str(confusion_matrix_png(ev.confusion, tmp / "confusion_test.png", title)), "plots")
     else:
-        mlflow.log_artifact(str(error_boxplot_png(ev.segment, ev.predicted, tmp / "angle_errors_test.png", title)),
-                            "plots")
+        mlflow.log_artifact(
+            str(error_boxplot_png(ev.segment, ev.predicted, tmp / "angle_errors_test.png", title)), "plots"
+        )
     mlflow.log_dict(ev.metrics, "evaluation/test_simulated.json")
 
 

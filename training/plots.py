@@ -19,8 +19,15 @@ def confusion_matrix_png(cm: np.ndarray, path: Path, title: str) -> Path:
     ax.imshow(frac, cmap="Blues", vmin=0, vmax=1)
     for i in range(cm.shape[0]):
         for j in range(cm.shape[1]):
-            ax.text(j, i, f"{100 * frac[i, j]:.1f}", ha="center", va="center",
-                    color="white" if frac[i, j] > 0.5 else "black", fontsize=8)
+            ax.text(
+                j,
+                i,
+                f"{100 * frac[i, j]:.1f}",
+                ha="center",
+                va="center",
+                color="white" if frac[i, j] > 0.5 else "black",
+                fontsize=8,
+            )
     ax.set_xticks(range(len(SEGMENTS)), SEGMENTS, rotation=45, ha="right")
     ax.set_yticks(range(len(SEGMENTS)), SEGMENTS)
     ax.set_xlabel("predicted")
@@ -37,8 +44,9 @@ def error_boxplot_png(segment: np.ndarray, err_deg: np.ndarray, path: Path, titl
     fig, axes = plt.subplots(1, 3, figsize=(15, 5), sharey=True)
     for ax_i, ax in enumerate(axes):
         data = [err_deg[segment == k, ax_i] for k in range(len(SEGMENTS))]
-        ax.boxplot(data, showmeans=True, meanprops={"marker": "o", "markerfacecolor": "white"},
-                   showfliers=False, whis=1.5)
+        ax.boxplot(
+            data, showmeans=True, meanprops={"marker": "o", "markerfacecolor": "white"}, showfliers=False, whis=1.5
+        )
         ax.set_xticks(range(1, len(SEGMENTS) + 1), SEGMENTS, rotation=45, ha="right")
         ax.set_title(f"axis {'xyz'[ax_i]} (ax{ax_i})")
         ax.grid(alpha=0.3)

@@ -17,10 +17,10 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from service.core.manifest import Evaluation, Manifest, TensorSpec, read_manifest, sha256_file, write_manifest
+from service.core.recordings import read_all_real
 from service.core.segments import SEGMENTS
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
 from training.config import ExperimentConfig
-from service.core.recordings import read_all_real
 from training.evaluate import evaluate_real, evaluate_simulated, onnx_predictor
 from training.export import OPSET, OUTPUT_NAMES, PARITY_ATOL, onnx_parity
 from training.plots import confusion_matrix_png
@@ -32,11 +32,19 @@ TASKS = {"assignment": "i2s_assignment", "alignment": "i2s_alignment"}
 
 def _output_spec(task: str) -> tuple[TensorSpec, str]:
     if task == "assignment":
-        return TensorSpec(name=OUTPUT_NAMES[task], shape=["batch", len(SEGMENTS)], dtype="float32",
-                          description="class probabilities (softmax inside the graph), classes order"), "probabilities"
-    return TensorSpec(name=OUTPUT_NAMES[task], shape=["batch", len(SEGMENTS), 4], dtype="float32",
-                      description="unit q_segment_imu (w, x, y, z), w >= 0, for each segment hypothesis "
-                                  "in classes order: v_segment = R(q) v_imu"), "quaternion_per_segment"
+        return TensorSpec(
+            name=OUTPUT_NAMES[task],
+            shape=["batch", len(SEGMENTS)],
+            dtype="float32",
+            description="class probabilities (softmax inside the graph), classes order",
+        ), "probabilities"
+    return TensorSpec(
+        name=OUTPUT_NAMES[task],
+        shape=["batch", len(SEGMENTS), 4],
+        dtype="float32",
+        description="unit q_segment_imu (w, x, y, z), w >= 0, for each segment hypothesis "
+        "in classes order: v_segment = R(q) v_imu",
+    ), "quaternion_per_segment"
 
 
 def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
@@ -56,23 +64,41 @@ def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
         parity = onnx_parity(target / "model.onnx", dict(z))
     output, kind = _output_spec(cfg.task)
     manifest = Manifest(
-        name=cfg.name, task=TASKS[cfg.task], version=version,  # type: ignore[arg-type]
+        name=cfg.name,
+        task=TASKS[cfg.task],
+        version=version,  # type: ignore[arg-type]
         created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        inputs=[TensorSpec(name="imu", shape=["batch", WINDOW_SAMPLES, 6], dtype="float32",
-                           description="acc_x, acc_y, acc_z (m/s^2, specific force), gyr_x, gyr_y, gyr_z "
-                                       "(rad/s), sensor frame, 60 Hz")],
-        outputs=[output], output_kind=kind,  # type: ignore[arg-type]
-        sample_rate_hz=MODEL_RATE_HZ, window_samples=WINDOW_SAMPLES, hop_samples=HOP_SAMPLES,
+        inputs=[
+            TensorSpec(
+                name="imu",
+                shape=["batch", WINDOW_SAMPLES, 6],
+                dtype="float32",
+                description="acc_x, acc_y, acc_z (m/s^2, specific force), gyr_x, gyr_y, gyr_z "
+                "(rad/s), sensor frame, 60 Hz",
+            )
+        ],
+        outputs=[output],
+        output_kind=kind,  # type: ignore[arg-type]
+        sample_rate_hz=MODEL_RATE_HZ,
+        window_samples=WINDOW_SAMPLES,
+        hop_samples=HOP_SAMPLES,
         channels=["acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z"],
-        units={"acc": "m/s^2", "gyr": "rad/s"}, classes=list(SEGMENTS),
+        units={"acc": "m/s^2", "gyr": "rad/s"},
+        classes=list(SEGMENTS),
         quaternion_convention="Hamilton, scalar first (w, x, y, z), unit, w >= 0; v_segment = R(q) v_imu"
-        if cfg.task == "alignment" else None,
+        if cfg.task == "alignment"
+        else None,
         sha256=sha256_file(target / "model.onnx"),
-        training_data={"activities": cfg.data.activities, "test_subjects": cfg.data.test_subjects,
-                       "datasets": [{"context": _context(i), "name": i.dataset.name, "digest": i.dataset.digest,
-                                     "source": i.dataset.source} for i in _inputs(run)],
-                       "train_wall_time_s": run.data.metrics.get("train_wall_time_s"),
-                       "best_epoch": run.data.metrics.get("best_epoch")},
+        training_data={
+            "activities": cfg.data.activities,
+            "test_subjects": cfg.data.test_subjects,
+            "datasets": [
+                {"context": _context(i), "name": i.dataset.name, "digest": i.dataset.digest, "source": i.dataset.source}
+                for i in _inputs(run)
+            ],
+            "train_wall_time_s": run.data.metrics.get("train_wall_time_s"),
+            "best_epoch": run.data.metrics.get("best_epoch"),
+        },
         mlflow={"run_id": run_id, "model_uri": run.data.tags["model_uri"], "experiment_id": run.info.experiment_id},
         exporter={"torch": torch.__version__, "onnx": onnx.__version__, "opset": OPSET, "exporter": "torchscript"},
         parity_atol=PARITY_ATOL,
@@ -96,8 +122,9 @@ def _load_config(run_id: str) -> dict:
     return yaml.safe_load(mlflow.artifacts.load_text(f"runs:/{run_id}/config.yaml"))
 
 
-def evaluate_shipped(model_dir: Path, data_dir: Path, cache_dir: Path, command: str,
-                     max_windows: int | None = None) -> Manifest:
+def evaluate_shipped(
+    model_dir: Path, data_dir: Path, cache_dir: Path, command: str, max_windows: int | None = None
+) -> Manifest:
     """Evaluate the shipped ONNX file (LOSO simulated fold and, for assignment, real recordings)."""
     from training.pipeline import load_clips, split_clips
 
@@ -108,17 +135,28 @@ def evaluate_shipped(model_dir: Path, data_dir: Path, cache_dir: Path, command: 
     clips = load_clips(cfg, data_dir, cache_dir)
     _, _, test = split_clips(clips, cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
     sim = evaluate_simulated(predict, cfg.task, test, cfg.augmentation, max_windows)
-    evaluations.append(Evaluation(name="loso_simulated", command=command,
-                                  data=f"simulated, eq. 8 grid (64 alignments) x 7 segments, every window of "
-                                       f"held-out subjects {cfg.data.test_subjects}; digest {sim.digest}",
-                                  metrics=_headline(sim.metrics)))
+    evaluations.append(
+        Evaluation(
+            name="loso_simulated",
+            command=command,
+            data=f"simulated, eq. 8 grid (64 alignments) x 7 segments, every window of "
+            f"held-out subjects {cfg.data.test_subjects}; digest {sim.digest}",
+            metrics=_headline(sim.metrics),
+        )
+    )
     metrics_to_log = {f"shipped_sim_{k}": v for k, v in sim.metrics.items()}
     if cfg.task == "assignment":
-        real_metrics, cm = evaluate_real(predict, read_all_real(data_dir))
-        evaluations.append(Evaluation(name="real_recordings", command=command,
-                                      data="imu_real: ximu3_lowerbody, capacitive_sub01 (4 trials), gaitmap_foot "
-                                           "(3 files); none used for training; still windows skipped",
-                                      metrics=real_metrics))
+        held_out = [r for r in read_all_real(data_dir) if r.name not in cfg.data.real_train_recordings]
+        real_metrics, cm = evaluate_real(predict, held_out)
+        evaluations.append(
+            Evaluation(
+                name="real_recordings",
+                command=command,
+                data=f"imu_real recordings not used for training: "
+                f"{', '.join(r.name for r in held_out)}; still windows skipped",
+                metrics=real_metrics,
+            )
+        )
         metrics_to_log.update({f"shipped_{k.replace('/', '.')}": v for k, v in real_metrics.items()})
         with tempfile.TemporaryDirectory() as tmp:
             png = confusion_matrix_png(cm, Path(tmp) / "confusion_real.png", f"{cfg.name}: real recordings")

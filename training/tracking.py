@@ -37,8 +37,9 @@ def flatten(d: dict, prefix: str = "") -> dict[str, object]:
     return out
 
 
-def maybe_promote(name: str, version: str, metric: str, value: float, higher_is_better: bool,
-                  evaluation_digest: str) -> bool:
+def maybe_promote(
+    name: str, version: str, metric: str, value: float, higher_is_better: bool, evaluation_digest: str
+) -> bool:
     """Move the ``champion`` alias to ``version`` only if it beats the champion on the same evaluation.
 
     Versions carry their evaluation's digest and score as tags; a champion evaluated on other data

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from training.config import ExperimentConfig
 from training.data.mocap import Clip
-from training.data.windows import Augmentation, Batch, WindowSampler
+from training.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, concat_batches
 from training.models import AlignmentNet, AssignmentNet, stereographic_to_quat
 
 log = logging.getLogger(__name__)
@@ -53,6 +53,18 @@ def to_tensors(batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return torch.from_numpy(batch.imu), torch.from_numpy(batch.segment), torch.from_numpy(batch.q_segment_imu)
 
 
+def _draw(
+    sampler: WindowSampler,
+    real: RealWindowSampler | None,
+    real_fraction: float,
+    rng: np.random.Generator,
+    batch_size: int,
+) -> Batch:
+    n_real = int(round(real_fraction * batch_size)) if real is not None else 0
+    batch = sampler.sample(rng, batch_size - n_real)
+    return concat_batches(batch, real.sample(rng, n_real)) if n_real else batch
+
+
 @dataclass
 class TrainResult:
     model: nn.Module
@@ -83,9 +95,18 @@ def _validate(model: nn.Module, task: str, batches: list[Batch]) -> dict[str, fl
     return metrics
 
 
-def train(cfg: ExperimentConfig, train_clips: list[Clip], val_clips: list[Clip],
-          log_metrics: MetricLogger | None = None, init_state: dict | None = None) -> TrainResult:
-    """Train one model; ``init_state`` warm-starts it (pre-training then fine-tuning, paper 000 §4.3)."""
+def train(
+    cfg: ExperimentConfig,
+    train_clips: list[Clip],
+    val_clips: list[Clip],
+    log_metrics: MetricLogger | None = None,
+    init_state: dict | None = None,
+    real: RealWindowSampler | None = None,
+) -> TrainResult:
+    """Train one model; ``init_state`` warm-starts it and ``real`` mixes real windows into every batch
+    (``cfg.data.real_fraction`` of it): pre-training then fine-tuning as in paper 000 §4.3."""
+    if real is not None and cfg.task != "assignment":
+        raise ValueError("real recordings carry no alignment labels; mix them into assignment training only")
     t = cfg.train
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(t.threads)
@@ -104,10 +125,9 @@ def train(cfg: ExperimentConfig, train_clips: list[Clip], val_clips: list[Clip],
     for epoch in range(1, t.max_epochs + 1):
         model.train()
         running = 0.0
-        bar = tqdm(range(t.steps_per_epoch), desc=f"{cfg.name} epoch {epoch}/{t.max_epochs}", unit="step",
-                   leave=False)
+        bar = tqdm(range(t.steps_per_epoch), desc=f"{cfg.name} epoch {epoch}/{t.max_epochs}", unit="step", leave=False)
         for _ in bar:
-            imu, seg, q = to_tensors(sampler.sample(rng, t.batch_size))
+            imu, seg, q = to_tensors(_draw(sampler, real, cfg.data.real_fraction, rng, t.batch_size))
             loss = task_loss(cfg.task, model(imu), seg, q)
             optimiser.zero_grad()
             loss.backward()

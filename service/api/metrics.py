@@ -8,22 +8,28 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 class ServiceMetrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
-        self.requests = Counter("wearmocap_requests_total", "HTTP requests", ["path", "status"],
-                                registry=self.registry)
-        self.latency = Histogram("wearmocap_request_seconds", "HTTP request latency", ["path"],
-                                 registry=self.registry)
-        self.batch = Histogram("wearmocap_inference_batch_windows", "windows per inference call",
-                               buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 4096), registry=self.registry)
+        self.requests = Counter("wearmocap_requests_total", "HTTP requests", ["path", "status"], registry=self.registry)
+        self.latency = Histogram("wearmocap_request_seconds", "HTTP request latency", ["path"], registry=self.registry)
+        self.batch = Histogram(
+            "wearmocap_inference_batch_windows",
+            "windows per inference call",
+            buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 4096),
+            registry=self.registry,
+        )
 
-        self.inference = Histogram("wearmocap_inference_seconds", "onnxruntime time per micro-batch",
-                                   registry=self.registry)
+        self.inference = Histogram(
+            "wearmocap_inference_seconds", "onnxruntime time per micro-batch", registry=self.registry
+        )
         self.open_streams = Gauge("wearmocap_open_streams", "open WebSocket sessions", registry=self.registry)
-        self.samples = Counter("wearmocap_stream_samples_total", "sensor samples received on streams",
-                               registry=self.registry)
-        self.gaps = Counter("wearmocap_stream_sequence_problems_total", "sequence gaps and late packets",
-                            registry=self.registry)
-        self.dropped = Counter("wearmocap_stream_results_dropped_total", "results dropped for slow consumers",
-                               registry=self.registry)
+        self.samples = Counter(
+            "wearmocap_stream_samples_total", "sensor samples received on streams", registry=self.registry
+        )
+        self.gaps = Counter(
+            "wearmocap_stream_sequence_problems_total", "sequence gaps and late packets", registry=self.registry
+        )
+        self.dropped = Counter(
+            "wearmocap_stream_results_dropped_total", "results dropped for slow consumers", registry=self.registry
+        )
 
     def observe_batch(self, n: int, seconds: float) -> None:
         self.batch.observe(n)

@@ -42,8 +42,12 @@ def _check_count(n: int, settings: Settings) -> None:
 
 
 def _inputs(windows: list[ImuWindow], prefix: str) -> np.ndarray:
-    return np.stack([window_to_model_input(w.samples, w.sample_rate_hz, w.acc_unit, w.gyr_unit, f"{prefix}[{i}]")
-                     for i, w in enumerate(windows)])
+    return np.stack(
+        [
+            window_to_model_input(w.samples, w.sample_rate_hz, w.acc_unit, w.gyr_unit, f"{prefix}[{i}]")
+            for i, w in enumerate(windows)
+        ]
+    )
 
 
 async def _infer(request: Request, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, dict[str, str]]:
@@ -54,10 +58,15 @@ async def _infer(request: Request, imu: np.ndarray) -> tuple[np.ndarray, np.ndar
     return probs, quats, versions
 
 
-@router.post("/v1/imu/windows", response_model=WindowsResponse, tags=["imu"],
-             summary="Segment class and alignment per 128-sample IMU window")
-async def classify_windows(body: WindowsRequest, request: Request,
-                           settings: Settings = Depends(get_settings)) -> WindowsResponse:
+@router.post(
+    "/v1/imu/windows",
+    response_model=WindowsResponse,
+    tags=["imu"],
+    summary="Segment class and alignment per 128-sample IMU window",
+)
+async def classify_windows(
+    body: WindowsRequest, request: Request, settings: Settings = Depends(get_settings)
+) -> WindowsResponse:
     _check_count(len(body.windows), settings)
     imu = _inputs(body.windows, "windows")
     probs, quats, versions = await _infer(request, imu)
@@ -70,16 +79,27 @@ async def classify_windows(body: WindowsRequest, request: Request,
         if quats is not None:
             q, R = alignment_payload(quats[i], seg)
             alignment = Alignment(segment=SEGMENTS[seg], q_segment_imu=q, R_segment_imu=R)
-        results.append(WindowResult(segment=SEGMENTS[cls], confidence=float(probs[i, cls]),
-                                    probabilities={s: float(p) for s, p in zip(SEGMENTS, probs[i], strict=True)},
-                                    moving=bool(moving[i]), alignment=alignment))
+        results.append(
+            WindowResult(
+                segment=SEGMENTS[cls],
+                confidence=float(probs[i, cls]),
+                probabilities={s: float(p) for s, p in zip(SEGMENTS, probs[i], strict=True)},
+                moving=bool(moving[i]),
+                alignment=alignment,
+            )
+        )
     return WindowsResponse(results=results, model_versions=versions)
 
 
-@router.post("/v1/imu/assign", response_model=AssignResponse, tags=["imu"],
-             summary="Joint one-to-one assignment of simultaneously worn sensors to segments")
-async def assign_sensors(body: AssignRequest, request: Request,
-                         settings: Settings = Depends(get_settings)) -> AssignResponse:
+@router.post(
+    "/v1/imu/assign",
+    response_model=AssignResponse,
+    tags=["imu"],
+    summary="Joint one-to-one assignment of simultaneously worn sensors to segments",
+)
+async def assign_sensors(
+    body: AssignRequest, request: Request, settings: Settings = Depends(get_settings)
+) -> AssignResponse:
     ids = [s.sensor_id for s in body.sensors]
     if len(set(ids)) != len(ids):
         raise HTTPException(422, f"sensor_id values must be unique, got {ids}")
@@ -102,10 +122,17 @@ async def assign_sensors(body: AssignRequest, request: Request,
             q = mean_alignment(quats[bounds[k] : bounds[k + 1], seg])
             a_q, a_R = alignment_payload(q[None].repeat(len(SEGMENTS), 0), seg)
             alignment = Alignment(segment=SEGMENTS[seg], q_segment_imu=a_q, R_segment_imu=a_R)
-        out.append(SensorAssignment(sensor_id=sensor.sensor_id, segment=SEGMENTS[seg] if seg >= 0 else None,
-                                    confidence=float(joint.confidence[k]), margin=float(joint.margin[k]),
-                                    windows=len(per_sensor[k]), moving_windows=int(moving[k].sum()),
-                                    alignment=alignment))
+        out.append(
+            SensorAssignment(
+                sensor_id=sensor.sensor_id,
+                segment=SEGMENTS[seg] if seg >= 0 else None,
+                confidence=float(joint.confidence[k]),
+                margin=float(joint.margin[k]),
+                windows=len(per_sensor[k]),
+                moving_windows=int(moving[k].sum()),
+                alignment=alignment,
+            )
+        )
     return AssignResponse(sensors=out, model_versions=versions)
 
 

@@ -77,27 +77,50 @@ class Session:
 
     def assignment_message(self, dropped: int) -> dict:
         joint = joint_assignment([e[None] for e in self.evidence], allow_shared=self.allow_shared)
-        sensors = [{"sensor_id": s.sensor_id, "segment": SEGMENTS[g] if g >= 0 and n else None,
-                    "confidence": float(c) if n else 0.0, "margin": float(m) if n else 0.0, "windows": int(n)}
-                   for s, g, c, m, n in zip(self.streams, joint.segment, joint.confidence, joint.margin,
-                                            self.windows, strict=True)]
+        sensors = [
+            {
+                "sensor_id": s.sensor_id,
+                "segment": SEGMENTS[g] if g >= 0 and n else None,
+                "confidence": float(c) if n else 0.0,
+                "margin": float(m) if n else 0.0,
+                "windows": int(n),
+            }
+            for s, g, c, m, n in zip(
+                self.streams, joint.segment, joint.confidence, joint.margin, self.windows, strict=True
+            )
+        ]
         return {"type": "assignment", "sensors": sensors, "results_dropped": dropped}
 
 
-async def _handle_packet(ws: WebSocket, session: Session, k: int, seq: int, samples: np.ndarray,
-                         outbox: Outbox) -> None:
+async def _handle_packet(
+    ws: WebSocket, session: Session, k: int, seq: int, samples: np.ndarray, outbox: Outbox
+) -> None:
     app = ws.app
     stream = session.streams[k]
     pushed = stream.push(seq, samples)
     app.state.metrics.samples.inc(len(samples))
     if pushed.gap:
         app.state.metrics.gaps.inc()
-        outbox.put({"type": "gap", "sensor_id": stream.sensor_id, "expected_seq": pushed.gap[0],
-                    "received_seq": pushed.gap[1], "missing": pushed.gap[1] - pushed.gap[0]})
+        outbox.put(
+            {
+                "type": "gap",
+                "sensor_id": stream.sensor_id,
+                "expected_seq": pushed.gap[0],
+                "received_seq": pushed.gap[1],
+                "missing": pushed.gap[1] - pushed.gap[0],
+            }
+        )
     if pushed.late:
         app.state.metrics.gaps.inc()
-        outbox.put({"type": "late", "sensor_id": stream.sensor_id, "expected_seq": pushed.late[0],
-                    "received_seq": pushed.late[1], "action": "packet dropped"})
+        outbox.put(
+            {
+                "type": "late",
+                "sensor_id": stream.sensor_id,
+                "expected_seq": pushed.late[0],
+                "received_seq": pushed.late[1],
+                "action": "packet dropped",
+            }
+        )
     if not pushed.windows:
         return
     imu = np.stack(pushed.windows)
@@ -105,10 +128,15 @@ async def _handle_packet(ws: WebSocket, session: Session, k: int, seq: int, samp
     moving = is_moving(imu)
     for i in range(len(imu)):
         cls = int(probs[i].argmax())
-        message = {"type": "result", "sensor_id": stream.sensor_id, "window_end_s": round(pushed.window_end_s[i], 6),
-                   "segment": SEGMENTS[cls], "confidence": float(probs[i, cls]),
-                   "probabilities": {s: float(p) for s, p in zip(SEGMENTS, probs[i], strict=True)},
-                   "moving": bool(moving[i])}
+        message = {
+            "type": "result",
+            "sensor_id": stream.sensor_id,
+            "window_end_s": round(pushed.window_end_s[i], 6),
+            "segment": SEGMENTS[cls],
+            "confidence": float(probs[i, cls]),
+            "probabilities": {s: float(p) for s, p in zip(SEGMENTS, probs[i], strict=True)},
+            "moving": bool(moving[i]),
+        }
         if quats is not None:
             q, R = alignment_payload(quats[i], cls)
             message["alignment"] = {"segment": SEGMENTS[cls], "q_segment_imu": q, "R_segment_imu": R}
@@ -191,8 +219,15 @@ async def stream(ws: WebSocket) -> None:
     code, reason = 1000, "stop"
     try:
         session = await _receive_start(ws)
-        outbox.put({"type": "started", "sensors": [s.sensor_id for s in session.streams], "window_samples": 128,
-                    "hop_samples": 16, "model_rate_hz": 60.0})
+        outbox.put(
+            {
+                "type": "started",
+                "sensors": [s.sensor_id for s in session.streams],
+                "window_samples": 128,
+                "hop_samples": 16,
+                "model_rate_hz": 60.0,
+            }
+        )
         await _serve(ws, session, outbox)
     except ProtocolError as exc:
         code, reason = exc.code, str(exc)

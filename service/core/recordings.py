@@ -1,4 +1,4 @@
-"""Readers of the real IMU recordings (numpy only: the streaming client uses them too) in ``imu_real/`` (``../shared/data/README.md``), converted to the
+"""Readers of the real IMU recordings in ``imu_real/`` (``../shared/data/README.md``), converted to the
 model contract: 60 Hz, acc in m/s² (specific force), gyr in rad/s, sensor frame, with the known segment.
 """
 
@@ -31,13 +31,25 @@ class RealRecording:
     sensors: list[RealSensor] = field(default_factory=list)
 
 
-XIMU3_SEGMENTS = {"Left Foot": "LeftFoot", "Left Lower Leg": "LeftLowerLeg", "Left Upper Leg": "LeftUpperLeg",
-                  "pelvis": "Pelvis", "Right Upper Leg": "RightUpperLeg", "Right Lower Leg": "RightLowerLeg",
-                  "Right Foot": "RightFoot"}
+XIMU3_SEGMENTS = {
+    "Left Foot": "LeftFoot",
+    "Left Lower Leg": "LeftLowerLeg",
+    "Left Upper Leg": "LeftUpperLeg",
+    "pelvis": "Pelvis",
+    "Right Upper Leg": "RightUpperLeg",
+    "Right Lower Leg": "RightLowerLeg",
+    "Right Foot": "RightFoot",
+}
 CAPACITIVE_SENSORS = ("torso", "pelvis", "tibia_r", "femur_r", "tibia_l", "femur_l", "toes_r", "toes_l")
-CAPACITIVE_SEGMENTS = {"pelvis": "Pelvis", "tibia_r": "RightLowerLeg", "femur_r": "RightUpperLeg",
-                       "tibia_l": "LeftLowerLeg", "femur_l": "LeftUpperLeg", "toes_r": "RightFoot",
-                       "toes_l": "LeftFoot"}
+CAPACITIVE_SEGMENTS = {
+    "pelvis": "Pelvis",
+    "tibia_r": "RightLowerLeg",
+    "femur_r": "RightUpperLeg",
+    "tibia_l": "LeftLowerLeg",
+    "femur_l": "LeftUpperLeg",
+    "toes_r": "RightFoot",
+    "toes_l": "LeftFoot",
+}
 CAPACITIVE_TRIALS = ("CSBaseline", "CSStiffKnee", "EMGBaseline", "EMGStiffKnee")
 GAITMAP_FILES = {  # file: (rate Hz, subject, activity)
     "imu_sample_not_rotated.csv": (204.8, "spc2019_5047", "walk"),
@@ -86,8 +98,9 @@ def read_capacitive(data_dir: Path, trial: str) -> RealRecording:
     for k, name in enumerate(CAPACITIVE_SENSORS):
         imu = np.concatenate([acc[:n, 3 * k : 3 * k + 3], gyr[:n, 3 * k : 3 * k + 3]], axis=1)
         seg = CAPACITIVE_SEGMENTS.get(name)
-        sensors.append(RealSensor(f"{name}_imu", resample_uniform(imu, 100.0, MODEL_RATE_HZ),
-                                  segment_index(seg) if seg else None))
+        sensors.append(
+            RealSensor(f"{name}_imu", resample_uniform(imu, 100.0, MODEL_RATE_HZ), segment_index(seg) if seg else None)
+        )
     activity = "walk_stiffknee" if "StiffKnee" in trial else "walk"
     return RealRecording(f"capacitive_sub01/{trial}", "capacitive_sub01", "capacitive_Sub01", activity, sensors)
 
@@ -102,8 +115,10 @@ def read_gaitmap(data_dir: Path, file: str) -> RealRecording:
     columns = ["acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z"]
     sensors = []
     for side, seg in (("left_sensor", "LeftFoot"), ("right_sensor", "RightFoot")):
-        cols = [next(i for i, (s_, a) in enumerate(zip(sensor_row, axis_row, strict=True)) if s_ == side and a == c)
-                for c in columns]
+        cols = [
+            next(i for i, (s_, a) in enumerate(zip(sensor_row, axis_row, strict=True)) if s_ == side and a == c)
+            for c in columns
+        ]
         raw = table[:, cols]
         sensors.append(RealSensor(side, _gaitmap_convert(raw, rate), segment_index(seg)))
     return RealRecording(f"gaitmap_foot/{file.removesuffix('.csv')}", "gaitmap_foot", subject, activity, sensors)
@@ -121,8 +136,11 @@ def read_recording(data_dir: Path, name: str) -> RealRecording:
     raise KeyError(f"no recording {name!r}; known: {RECORDING_NAMES}")
 
 
-RECORDING_NAMES = (["ximu3_lowerbody"] + [f"capacitive_sub01/{t}" for t in CAPACITIVE_TRIALS]
-                   + [f"gaitmap_foot/{f.removesuffix('.csv')}" for f in GAITMAP_FILES])
+RECORDING_NAMES = (
+    ["ximu3_lowerbody"]
+    + [f"capacitive_sub01/{t}" for t in CAPACITIVE_TRIALS]
+    + [f"gaitmap_foot/{f.removesuffix('.csv')}" for f in GAITMAP_FILES]
+)
 
 
 def read_all_real(data_dir: Path) -> list[RealRecording]:

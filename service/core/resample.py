@@ -13,8 +13,7 @@ def resample_uniform(x: np.ndarray, from_hz: float, to_hz: float, max_denominato
     if np.isclose(from_hz, to_hz):
         return np.asarray(x, dtype=np.float64)
     ratio = Fraction(to_hz / from_hz).limit_denominator(max_denominator)
-    return resample_poly(np.asarray(x, dtype=np.float64), ratio.numerator, ratio.denominator, axis=0,
-                         padtype="line")
+    return resample_poly(np.asarray(x, dtype=np.float64), ratio.numerator, ratio.denominator, axis=0, padtype="line")
 
 
 def resample_timestamps(t_s: np.ndarray, x: np.ndarray, to_hz: float) -> tuple[np.ndarray, np.ndarray]:

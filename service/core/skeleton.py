@@ -44,7 +44,9 @@ SKELETON_MAPS: dict[str, SkeletonMap] = {
         ("CC_Base_R_Thigh", "CC_Base_R_Calf", "CC_Base_R_Foot", "CC_Base_R_ToeBase"),
     ),
     "cmu_raw_mb": SkeletonMap(
-        "Hips", ("LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase"), ("RightUpLeg", "RightLeg", "RightFoot", "RightToeBase")
+        "Hips",
+        ("LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase"),
+        ("RightUpLeg", "RightLeg", "RightFoot", "RightToeBase"),
     ),
     "cmu_raw_3dsmax": SkeletonMap(
         "Hips", ("LeftHip", "LeftKnee", "LeftAnkle", "LeftToe"), ("RightHip", "RightKnee", "RightAnkle", "RightToe")
@@ -114,8 +116,12 @@ def segment_trajectories(poses: GlobalPoses, skeleton: SkeletonMap) -> SegmentTr
     y_pelvis = _unit(l_hip - r_hip)
     x_heading = _unit(np.cross(y_pelvis, up))
     targets: dict[str, tuple[np.ndarray, str, np.ndarray, np.ndarray]] = {
-        "Pelvis": (_frame_from_z_and_x(np.cross(x_heading, y_pelvis), x_heading), skeleton.pelvis,
-                   pos[skeleton.pelvis], (l_hip + r_hip) / 2.0),
+        "Pelvis": (
+            _frame_from_z_and_x(np.cross(x_heading, y_pelvis), x_heading),
+            skeleton.pelvis,
+            pos[skeleton.pelvis],
+            (l_hip + r_hip) / 2.0,
+        ),
     }
     for side, joints in (("Left", skeleton.left), ("Right", skeleton.right)):
         hip, knee, ankle, toe = (pos[j] for j in joints)
@@ -145,13 +151,15 @@ def resample_segments(traj: SegmentTrajectories, sample_rate_hz: float) -> Segme
     ratio = traj.sample_rate_hz / sample_rate_hz
     if np.isclose(ratio, round(ratio)):  # integer decimation: exact samples, no interpolation
         step = int(round(ratio))
-        return SegmentTrajectories(traj.R_world_segment[::step], traj.origin_m[::step], traj.midpoint_m[::step],
-                                   sample_rate_hz)
+        return SegmentTrajectories(
+            traj.R_world_segment[::step], traj.origin_m[::step], traj.midpoint_m[::step], sample_rate_hz
+        )
     R_new = np.stack(
         [Slerp(t_old, Rotation.from_matrix(traj.R_world_segment[:, s]))(t_new).as_matrix() for s in range(7)], 1
     )
-    return SegmentTrajectories(R_new, _interp(t_new, t_old, traj.origin_m), _interp(t_new, t_old, traj.midpoint_m),
-                               sample_rate_hz)
+    return SegmentTrajectories(
+        R_new, _interp(t_new, t_old, traj.origin_m), _interp(t_new, t_old, traj.midpoint_m), sample_rate_hz
+    )
 
 
 def _interp(t_new: np.ndarray, t_old: np.ndarray, a: np.ndarray) -> np.ndarray:

@@ -24,8 +24,9 @@ class _Pending:
 
 
 class MicroBatcher:
-    def __init__(self, run: RunModels, max_batch: int, max_wait_ms: float,
-                 on_batch: Callable[[int, float], None] | None = None) -> None:
+    def __init__(
+        self, run: RunModels, max_batch: int, max_wait_ms: float, on_batch: Callable[[int, float], None] | None = None
+    ) -> None:
         self.run, self.max_batch, self.max_wait_s = run, max_batch, max_wait_ms / 1000.0
         self.on_batch = on_batch
         self.queue: asyncio.Queue[_Pending] = asyncio.Queue()

@@ -17,8 +17,9 @@ class InputError(ValueError):
     """A client's input cannot be turned into a model window; the message says why."""
 
 
-def window_to_model_input(samples: list[list[float]], rate_hz: float, acc_unit: str, gyr_unit: str,
-                          where: str) -> np.ndarray:
+def window_to_model_input(
+    samples: list[list[float]], rate_hz: float, acc_unit: str, gyr_unit: str, where: str
+) -> np.ndarray:
     """Rows ``(N, 6)`` in any supported unit and rate → ``(128, 6)`` float32 at 60 Hz, contract units."""
     x = np.asarray(samples, dtype=np.float64) if samples and all(len(r) == 6 for r in samples) else None
     if x is None:
@@ -36,8 +37,10 @@ def window_to_model_input(samples: list[list[float]], rate_hz: float, acc_unit: 
         x = resample_uniform(x, rate_hz, MODEL_RATE_HZ)
         if len(x) < WINDOW_SAMPLES:
             need = int(np.ceil(WINDOW_SAMPLES * rate_hz / MODEL_RATE_HZ))
-            raise InputError(f"{where}: at {rate_hz} Hz a window needs at least {need} samples "
-                             f"({WINDOW_SAMPLES} after resampling to 60 Hz), got {len(samples)}")
+            raise InputError(
+                f"{where}: at {rate_hz} Hz a window needs at least {need} samples "
+                f"({WINDOW_SAMPLES} after resampling to 60 Hz), got {len(samples)}"
+            )
         x = x[-WINDOW_SAMPLES:]
     return x.astype(np.float32)
 

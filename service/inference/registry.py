@@ -35,8 +35,10 @@ class LoadedModel:
 
 
 def _check_shapes(manifest: Manifest, session: ort.InferenceSession) -> None:
-    for kind, declared, actual in (("input", manifest.inputs, session.get_inputs()),
-                                   ("output", manifest.outputs, session.get_outputs())):
+    for kind, declared, actual in (
+        ("input", manifest.inputs, session.get_inputs()),
+        ("output", manifest.outputs, session.get_outputs()),
+    ):
         names = [t.name for t in declared]
         if names != [a.name for a in actual]:
             raise ModelMismatch(f"{kind} names: manifest says {names}, model has {[a.name for a in actual]}")

@@ -25,15 +25,22 @@ def test_every_bvh_file_parses_and_keeps_bone_lengths(data_dir: Path) -> None:
         sk = skeleton_map_for(e.source, poses.names)
         for joints in (sk.left, sk.right):
             for parent, child in zip(joints[:-1], joints[1:], strict=True):
-                length = np.linalg.norm(poses.positions_m[:, poses.index(child)] - poses.positions_m[:, poses.index(parent)], axis=1)
+                length = np.linalg.norm(
+                    poses.positions_m[:, poses.index(child)] - poses.positions_m[:, poses.index(parent)], axis=1
+                )
                 assert np.ptp(length) < 1e-6, f"{e.path}: {parent}->{child} length varies by {np.ptp(length)}"
                 assert 0.03 < length.mean() < 0.6, f"{e.path}: {parent}->{child} is {length.mean():.3f} m"
 
 
-@pytest.mark.parametrize("path", [
-    "mocap/cmu_li2018/walking/train_walking_1.bvh", "mocap/cmu_iclone/05_01.bvh", "mocap/cmu_iclone/07_05.bvh",
-    "mocap/cmu_raw/01_01.bvh",
-])
+@pytest.mark.parametrize(
+    "path",
+    [
+        "mocap/cmu_li2018/walking/train_walking_1.bvh",
+        "mocap/cmu_iclone/05_01.bvh",
+        "mocap/cmu_iclone/07_05.bvh",
+        "mocap/cmu_raw/01_01.bvh",
+    ],
+)
 def test_walking_is_plausible_in_the_project_frame(data_dir: Path, path: str) -> None:
     entry = next(e for e in read_catalog(data_dir) if e.path == path)
     poses = forward_kinematics(read_bvh(data_dir / path), METRES_PER_UNIT[entry.source])

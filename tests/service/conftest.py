@@ -23,13 +23,19 @@ def _assignment_graph() -> onnx.ModelProto:
     W = numpy_helper.from_array(rng.normal(size=(6, 7)).astype(np.float32), "W")
     b = numpy_helper.from_array(np.zeros(7, dtype=np.float32), "b")
     axes = numpy_helper.from_array(np.array([1], dtype=np.int64), "axes")
-    nodes = [helper.make_node("ReduceMean", ["imu", "axes"], ["m"], keepdims=0),
-             helper.make_node("MatMul", ["m", "W"], ["z0"]), helper.make_node("Add", ["z0", "b"], ["z"]),
-             helper.make_node("Softmax", ["z"], ["probabilities"], axis=-1)]
-    graph = helper.make_graph(nodes, "tiny_assignment",
-                              [helper.make_tensor_value_info("imu", TensorProto.FLOAT, ["batch", 128, 6])],
-                              [helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, ["batch", 7])],
-                              [W, b, axes])
+    nodes = [
+        helper.make_node("ReduceMean", ["imu", "axes"], ["m"], keepdims=0),
+        helper.make_node("MatMul", ["m", "W"], ["z0"]),
+        helper.make_node("Add", ["z0", "b"], ["z"]),
+        helper.make_node("Softmax", ["z"], ["probabilities"], axis=-1),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "tiny_assignment",
+        [helper.make_tensor_value_info("imu", TensorProto.FLOAT, ["batch", 128, 6])],
+        [helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, ["batch", 7])],
+        [W, b, axes],
+    )
     return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=9)
 
 
@@ -40,15 +46,21 @@ def _alignment_graph() -> onnx.ModelProto:
     axes = numpy_helper.from_array(np.array([1], dtype=np.int64), "axes")
     last = numpy_helper.from_array(np.array([-1], dtype=np.int64), "last")
     shape = numpy_helper.from_array(np.array([-1, 7, 4], dtype=np.int64), "shape")
-    nodes = [helper.make_node("ReduceMean", ["imu", "axes"], ["m"], keepdims=0),
-             helper.make_node("MatMul", ["m", "W"], ["z0"]), helper.make_node("Add", ["z0", "b"], ["z"]),
-             helper.make_node("Reshape", ["z", "shape"], ["q0"]),
-             helper.make_node("ReduceL2", ["q0", "last"], ["n"], keepdims=1),
-             helper.make_node("Div", ["q0", "n"], ["q_segment_imu"])]
-    graph = helper.make_graph(nodes, "tiny_alignment",
-                              [helper.make_tensor_value_info("imu", TensorProto.FLOAT, ["batch", 128, 6])],
-                              [helper.make_tensor_value_info("q_segment_imu", TensorProto.FLOAT, ["batch", 7, 4])],
-                              [W, b, axes, last, shape])
+    nodes = [
+        helper.make_node("ReduceMean", ["imu", "axes"], ["m"], keepdims=0),
+        helper.make_node("MatMul", ["m", "W"], ["z0"]),
+        helper.make_node("Add", ["z0", "b"], ["z"]),
+        helper.make_node("Reshape", ["z", "shape"], ["q0"]),
+        helper.make_node("ReduceL2", ["q0", "last"], ["n"], keepdims=1),
+        helper.make_node("Div", ["q0", "n"], ["q_segment_imu"]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "tiny_alignment",
+        [helper.make_tensor_value_info("imu", TensorProto.FLOAT, ["batch", 128, 6])],
+        [helper.make_tensor_value_info("q_segment_imu", TensorProto.FLOAT, ["batch", 7, 4])],
+        [W, b, axes, last, shape],
+    )
     return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=9)
 
 
@@ -58,15 +70,27 @@ def write_tiny_model(root: Path, task: str) -> Path:
     target.mkdir(parents=True)
     graph = _assignment_graph() if task == "i2s_assignment" else _alignment_graph()
     onnx.save(graph, target / "model.onnx")
-    out = (TensorSpec(name="probabilities", shape=["batch", 7], dtype="float32") if task == "i2s_assignment"
-           else TensorSpec(name="q_segment_imu", shape=["batch", 7, 4], dtype="float32"))
-    manifest = Manifest(name=name, task=task, version="0.0.1", created_utc=dt.datetime.now(dt.UTC).isoformat(),
-                        inputs=[TensorSpec(name="imu", shape=["batch", 128, 6], dtype="float32")], outputs=[out],
-                        output_kind="probabilities" if task == "i2s_assignment" else "quaternion_per_segment",
-                        sample_rate_hz=60.0, window_samples=128, hop_samples=16,
-                        channels=["acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z"],
-                        units={"acc": "m/s^2", "gyr": "rad/s"}, classes=list(SEGMENTS),
-                        sha256=sha256_file(target / "model.onnx"))
+    out = (
+        TensorSpec(name="probabilities", shape=["batch", 7], dtype="float32")
+        if task == "i2s_assignment"
+        else TensorSpec(name="q_segment_imu", shape=["batch", 7, 4], dtype="float32")
+    )
+    manifest = Manifest(
+        name=name,
+        task=task,
+        version="0.0.1",
+        created_utc=dt.datetime.now(dt.UTC).isoformat(),
+        inputs=[TensorSpec(name="imu", shape=["batch", 128, 6], dtype="float32")],
+        outputs=[out],
+        output_kind="probabilities" if task == "i2s_assignment" else "quaternion_per_segment",
+        sample_rate_hz=60.0,
+        window_samples=128,
+        hop_samples=16,
+        channels=["acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z"],
+        units={"acc": "m/s^2", "gyr": "rad/s"},
+        classes=list(SEGMENTS),
+        sha256=sha256_file(target / "model.onnx"),
+    )
     write_manifest(manifest, target / "manifest.json")
     return target
 

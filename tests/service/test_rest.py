@@ -47,8 +47,9 @@ def test_units_are_converted(client: TestClient) -> None:
     x = np.array(w["samples"])
     scaled = np.concatenate([x[:, :3] / 9.80665, np.degrees(x[:, 3:])], axis=1)
     a = client.post("/v1/imu/windows", json={"windows": [w]}).json()["results"][0]["probabilities"]
-    b = client.post("/v1/imu/windows", json={"windows": [{"samples": scaled.tolist(), "acc_unit": "g",
-                                                          "gyr_unit": "deg/s"}]}).json()["results"][0]
+    b = client.post(
+        "/v1/imu/windows", json={"windows": [{"samples": scaled.tolist(), "acc_unit": "g", "gyr_unit": "deg/s"}]}
+    ).json()["results"][0]
     np.testing.assert_allclose(list(a.values()), list(b["probabilities"].values()), atol=1e-5)
 
 
@@ -58,14 +59,17 @@ def test_other_rates_are_resampled(client: TestClient) -> None:
     assert r.status_code == 422 and "at least 214 samples" in r.json()["detail"]
 
 
-@pytest.mark.parametrize("window, fragment", [
-    (_window(127), "128 samples, got 127"),
-    ({"samples": [[0.0] * 5] * 128}, "6 values"),
-    (_window(rate=5.0), "sample_rate_hz must be in"),
-    (_window(acc_unit="ft/s^2"), "acc_unit"),
-    (_window(gyr_unit="rpm"), "gyr_unit"),
-    (_window(segment="Head"), "segment"),
-])
+@pytest.mark.parametrize(
+    "window, fragment",
+    [
+        (_window(127), "128 samples, got 127"),
+        ({"samples": [[0.0] * 5] * 128}, "6 values"),
+        (_window(rate=5.0), "sample_rate_hz must be in"),
+        (_window(acc_unit="ft/s^2"), "acc_unit"),
+        (_window(gyr_unit="rpm"), "gyr_unit"),
+        (_window(segment="Head"), "segment"),
+    ],
+)
 def test_bad_windows_are_422_with_a_message(client: TestClient, window: dict, fragment: str) -> None:
     r = client.post("/v1/imu/windows", json={"windows": [window]})
     assert r.status_code == 422

@@ -38,8 +38,9 @@ def test_stream_results_assignment_and_stop(client: TestClient) -> None:
         ws.send_text(json.dumps(START))
         assert json.loads(ws.receive_text())["type"] == "started"
         for seq in range(0, 160, 16):
-            ws.send_text(json.dumps({"type": "samples", "sensor_id": "a", "seq": seq,
-                                     "samples": x[seq : seq + 16].tolist()}))
+            ws.send_text(
+                json.dumps({"type": "samples", "sensor_id": "a", "seq": seq, "samples": x[seq : seq + 16].tolist()})
+            )
         ws.send_bytes(encode_binary(1, 0, _signal(300, 1)))
         ws.send_text(json.dumps({"type": "stop"}))
         messages = _collect(ws)
@@ -67,20 +68,35 @@ def test_gaps_and_late_packets_are_reported(client: TestClient) -> None:
     assert late["received_seq"] == 10 and late["action"] == "packet dropped"
 
 
-@pytest.mark.parametrize("first, then, code, fragment", [
-    ("not json", None, 1003, "JSON"),
-    (json.dumps({"type": "start", "sensors": []}), None, 1008, "sensors"),
-    (json.dumps({"type": "start", "sensors": [{"sensor_id": "a", "acc_unit": "furlong"}]}), None, 1008, "acc_unit"),
-    (json.dumps(START), json.dumps({"type": "samples", "sensor_id": "zz", "seq": 0, "samples": [[0] * 6]}), 1008,
-     "unknown sensor_id"),
-    (json.dumps(START), json.dumps({"type": "samples", "sensor_id": "a", "seq": 0, "samples": [[0] * 5]}), 1008,
-     "6 values"),
-    (json.dumps(START), '{"type": "samples", "sensor_id": "a", "seq": 0, "samples": [[NaN, 0, 0, 0, 0, 0]]}', 1008,
-     "finite"),
-    (json.dumps(START), b"\x00\x00", 1003, "header"),
-    (json.dumps(START), encode_binary(7, 0, np.zeros((1, 6))), 1008, "sensor index 7"),
-    (json.dumps(START), encode_binary(0, 0, np.zeros((5000, 6))), 1009, "at most"),
-])
+@pytest.mark.parametrize(
+    "first, then, code, fragment",
+    [
+        ("not json", None, 1003, "JSON"),
+        (json.dumps({"type": "start", "sensors": []}), None, 1008, "sensors"),
+        (json.dumps({"type": "start", "sensors": [{"sensor_id": "a", "acc_unit": "furlong"}]}), None, 1008, "acc_unit"),
+        (
+            json.dumps(START),
+            json.dumps({"type": "samples", "sensor_id": "zz", "seq": 0, "samples": [[0] * 6]}),
+            1008,
+            "unknown sensor_id",
+        ),
+        (
+            json.dumps(START),
+            json.dumps({"type": "samples", "sensor_id": "a", "seq": 0, "samples": [[0] * 5]}),
+            1008,
+            "6 values",
+        ),
+        (
+            json.dumps(START),
+            '{"type": "samples", "sensor_id": "a", "seq": 0, "samples": [[NaN, 0, 0, 0, 0, 0]]}',
+            1008,
+            "finite",
+        ),
+        (json.dumps(START), b"\x00\x00", 1003, "header"),
+        (json.dumps(START), encode_binary(7, 0, np.zeros((1, 6))), 1008, "sensor index 7"),
+        (json.dumps(START), encode_binary(0, 0, np.zeros((5000, 6))), 1009, "at most"),
+    ],
+)
 def test_protocol_violations_close_with_code_and_message(client: TestClient, first, then, code, fragment) -> None:
     with client.websocket_connect("/v1/stream") as ws:
         ws.send_text(first)

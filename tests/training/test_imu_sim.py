@@ -28,8 +28,9 @@ def _trajectory(R: np.ndarray, pos: np.ndarray) -> SegmentTrajectories:
 
 def _readings(kin, segment: int, R_si: np.ndarray) -> np.ndarray:
     take = lambda a: a[None, :, segment]  # noqa: E731
-    return imu_readings(take(kin.lin_acc_mps2), take(kin.up_mps2), take(kin.gyr_rads), take(kin.ang_acc_rads2),
-                        R_si[None])[0]
+    return imu_readings(
+        take(kin.lin_acc_mps2), take(kin.up_mps2), take(kin.gyr_rads), take(kin.ang_acc_rads2), R_si[None]
+    )[0]
 
 
 @given(st.lists(st.floats(-np.pi, np.pi), min_size=3, max_size=3))

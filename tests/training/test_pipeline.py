@@ -21,8 +21,15 @@ from training.pipeline import run_training
 from training.ship import export_run
 
 REPO = Path(__file__).resolve().parents[2]
-TINY = ["data.activities=[walk]", "data.test_subjects=[cmu_07]", "train.steps_per_epoch=3", "train.max_epochs=2",
-        "train.val_windows=256", "train.batch_size=64", "train.threads=2"]
+TINY = [
+    "data.activities=[walk]",
+    "data.test_subjects=[cmu_07]",
+    "train.steps_per_epoch=3",
+    "train.max_epochs=2",
+    "train.val_windows=256",
+    "train.batch_size=64",
+    "train.threads=2",
+]
 
 
 def _free_port() -> int:
@@ -36,9 +43,25 @@ def mlflow_server(tmp_path_factory: pytest.TempPathFactory):
     root = tmp_path_factory.mktemp("mlflow")
     port = _free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", f"sqlite:///{root / 'mlflow.db'}",
-         "--artifacts-destination", str(root / "artifacts"), "--host", "127.0.0.1", "--port", str(port),
-         "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        [
+            sys.executable,
+            "-m",
+            "mlflow",
+            "server",
+            "--backend-store-uri",
+            f"sqlite:///{root / 'mlflow.db'}",
+            "--artifacts-destination",
+            str(root / "artifacts"),
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--workers",
+            "1",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     uri = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 90
     while time.monotonic() < deadline:
@@ -60,7 +83,8 @@ def mlflow_server(tmp_path_factory: pytest.TempPathFactory):
 
 
 def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
-        mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path) -> None:
+    mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path
+) -> None:
     cfg = load_config(REPO / "training/configs/i2s_assignment.yaml", TINY + ["tracking.experiment=test-i2s"])
     run_id = run_training(cfg, data_dir, kinematics_cache, register=True, eval_max_windows=1500)
     client = MlflowClient()
@@ -94,8 +118,9 @@ def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
     assert load_models(tmp_path / "onnx_models", 1) == {}
 
 
-def test_alignment_job_runs_and_exports_unit_quaternions(mlflow_server: str, data_dir: Path,
-                                                         kinematics_cache: Path, tmp_path: Path) -> None:
+def test_alignment_job_runs_and_exports_unit_quaternions(
+    mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path
+) -> None:
     cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", TINY + ["tracking.experiment=test-i2s"])
     run_id = run_training(cfg, data_dir, kinematics_cache, register=False, eval_max_windows=1500)
     run = MlflowClient().get_run(run_id)

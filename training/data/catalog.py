@@ -59,8 +59,9 @@ class CatalogEntry:
 def read_catalog(data_dir: Path) -> list[CatalogEntry]:
     with open(data_dir / "index.csv", newline="") as fh:
         return [
-            CatalogEntry(r["path"], r["source"], r["subject"], r["activity"], float(r["fps"] or 0), r["notes"],
-                         r["exclude"])
+            CatalogEntry(
+                r["path"], r["source"], r["subject"], r["activity"], float(r["fps"] or 0), r["notes"], r["exclude"]
+            )
             for r in csv.DictReader(fh)
         ]
 
@@ -68,6 +69,7 @@ def read_catalog(data_dir: Path) -> list[CatalogEntry]:
 def mocap_entries(data_dir: Path, activities: list[str] | None = None) -> list[CatalogEntry]:
     """Usable BVH clips (``exclude`` empty), optionally restricted to activities."""
     return [
-        e for e in read_catalog(data_dir)
+        e
+        for e in read_catalog(data_dir)
         if e.path.endswith(".bvh") and not e.exclude and (activities is None or e.activity in activities)
     ]

@@ -65,8 +65,9 @@ def lowpass_segments(traj: SegmentTrajectories, cutoff_hz: float = 10.0, order: 
     for s in range(traj.R_world_segment.shape[1]):
         q = sosfiltfilt(sos, _continuous_quats(traj.R_world_segment[:, s]), axis=0)
         R[:, s] = Rotation.from_quat(q, scalar_first=True).as_matrix()
-    return SegmentTrajectories(R, sosfiltfilt(sos, traj.origin_m, axis=0), sosfiltfilt(sos, traj.midpoint_m, axis=0),
-                               traj.sample_rate_hz)
+    return SegmentTrajectories(
+        R, sosfiltfilt(sos, traj.origin_m, axis=0), sosfiltfilt(sos, traj.midpoint_m, axis=0), traj.sample_rate_hz
+    )
 
 
 def body_angular_velocity(R_world_body: np.ndarray, sample_rate_hz: float) -> np.ndarray:
@@ -82,8 +83,9 @@ def body_angular_velocity(R_world_body: np.ndarray, sample_rate_hz: float) -> np
     return np.concatenate([step[:1], (step[:-1] + step[1:]) / 2.0, step[-1:]], axis=0)
 
 
-def segment_kinematics(traj: SegmentTrajectories, sample_rate_hz: float = 60.0, cutoff_hz: float = 10.0,
-                       order: int = 8) -> SegmentKinematics:
+def segment_kinematics(
+    traj: SegmentTrajectories, sample_rate_hz: float = 60.0, cutoff_hz: float = 10.0, order: int = 8
+) -> SegmentKinematics:
     """Filtered, resampled, differentiated segment kinematics of one clip."""
     filtered = resample_segments(lowpass_segments(traj, cutoff_hz, order), sample_rate_hz)
     R = filtered.R_world_segment
@@ -103,16 +105,24 @@ def segment_kinematics(traj: SegmentTrajectories, sample_rate_hz: float = 60.0, 
 
 # ---- alignments, eq. 8 ------------------------------------------------------------------------------
 
+
 def _axis(v: np.ndarray | list[float]) -> np.ndarray:
     v = np.asarray(v, dtype=np.float64)
     return v / np.linalg.norm(v)
 
 
 # Rotation axis a of eq. 8 per class: z for the legs, y for the pelvis, (0.9, 0, -0.4) for the feet.
-ALIGNMENT_AXES = np.stack([
-    FOOT_AXIS_IN_SEGMENT, _axis([0, 0, 1]), _axis([0, 0, 1]), _axis([0, 1, 0]),
-    _axis([0, 0, 1]), _axis([0, 0, 1]), FOOT_AXIS_IN_SEGMENT,
-])
+ALIGNMENT_AXES = np.stack(
+    [
+        FOOT_AXIS_IN_SEGMENT,
+        _axis([0, 0, 1]),
+        _axis([0, 0, 1]),
+        _axis([0, 1, 0]),
+        _axis([0, 0, 1]),
+        _axis([0, 0, 1]),
+        FOOT_AXIS_IN_SEGMENT,
+    ]
+)
 
 
 def _base_alignment(segment: int) -> np.ndarray:
@@ -148,8 +158,15 @@ def alignment_grid(segment: int, n_angles: int = 8) -> np.ndarray:
 
 # ---- readings ---------------------------------------------------------------------------------------
 
-def imu_readings(lin_acc: np.ndarray, up: np.ndarray, gyr: np.ndarray, ang_acc: np.ndarray,
-                 R_segment_imu: np.ndarray, offset_m: np.ndarray | None = None) -> np.ndarray:
+
+def imu_readings(
+    lin_acc: np.ndarray,
+    up: np.ndarray,
+    gyr: np.ndarray,
+    ang_acc: np.ndarray,
+    R_segment_imu: np.ndarray,
+    offset_m: np.ndarray | None = None,
+) -> np.ndarray:
     """Ideal readings ``(B, T, 6)`` of sensors with alignments ``(B, 3, 3)`` on segment windows ``(B, T, 3)``.
 
     ``offset_m`` ``(B, 3)`` moves the sensor from the segment midpoint (segment frame), adding the

@@ -68,8 +68,9 @@ def _load_or_compute(args: tuple[Path, CatalogEntry, KinematicsParams, Path]) ->
     cached = cache_dir / f"{digest}.npz"
     if cached.exists():
         with np.load(cached) as z:
-            kin = SegmentKinematics(**{k: z[k] for k in z.files if k != "sample_rate_hz"},
-                                    sample_rate_hz=float(z["sample_rate_hz"]))
+            kin = SegmentKinematics(
+                **{k: z[k] for k in z.files if k != "sample_rate_hz"}, sample_rate_hz=float(z["sample_rate_hz"])
+            )
     else:
         kin = compute_kinematics(bvh_path, entry, params)
         cache_dir.mkdir(parents=True, exist_ok=True)
@@ -79,13 +80,19 @@ def _load_or_compute(args: tuple[Path, CatalogEntry, KinematicsParams, Path]) ->
     return Clip(entry, kin, digest)
 
 
-def build_kinematics(data_dir: Path, entries: list[CatalogEntry], cache_dir: Path,
-                     params: KinematicsParams = KinematicsParams(), workers: int = 2) -> list[Clip]:
+def build_kinematics(
+    data_dir: Path,
+    entries: list[CatalogEntry],
+    cache_dir: Path,
+    params: KinematicsParams = KinematicsParams(),
+    workers: int = 2,
+) -> list[Clip]:
     """Segment kinematics of every entry, from the cache where possible, with a progress bar."""
     jobs = [(data_dir, e, params, cache_dir) for e in entries]
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        clips = list(tqdm(pool.map(_load_or_compute, jobs, chunksize=2), total=len(jobs), desc="kinematics",
-                          unit="clip"))
+        clips = list(
+            tqdm(pool.map(_load_or_compute, jobs, chunksize=2), total=len(jobs), desc="kinematics", unit="clip")
+        )
     log.info("kinematics of %d clips (cache %s)", len(clips), cache_dir)
     return clips
 

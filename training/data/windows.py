@@ -15,8 +15,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 from scipy.spatial.transform import Rotation
 
+from service.core.assignment import is_moving
+from service.core.recordings import RealRecording
 from service.core.rotations import quat_from_matrix
-from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES
+from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES, sliding_windows
 from training.data.imu_sim import SensorSpec, alignment, alignment_grid, imu_readings, quantise
 from training.data.mocap import Clip
 
@@ -122,8 +124,14 @@ class WindowSampler:
         return quantise(imu, self.spec)
 
 
-def grid_batches(clips: list[Clip], aug: Augmentation, seed: int, batch_size: int = 2048,
-                 n_angles: int = 8, spec: SensorSpec = SensorSpec()) -> Iterator[tuple[Batch, np.ndarray]]:
+def grid_batches(
+    clips: list[Clip],
+    aug: Augmentation,
+    seed: int,
+    batch_size: int = 2048,
+    n_angles: int = 8,
+    spec: SensorSpec = SensorSpec(),
+) -> Iterator[tuple[Batch, np.ndarray]]:
     """Every window (hop 16) × segment × eq. 8 alignment of ``clips``; yields (batch, clip index per row).
 
     Only the paper's accelerometer noise (``aug.acc_noise_std_mps2``) and quantisation are applied.
@@ -140,11 +148,44 @@ def grid_batches(clips: list[Clip], aug: Augmentation, seed: int, batch_size: in
         part = table[lo : lo + batch_size]
         idx = part[:, 1:2] + np.arange(WINDOW_SAMPLES)
         seg = part[:, 2]
-        arrays = [np.stack([getattr(clips[c].kin, name)[i, s] for c, i, s in zip(part[:, 0], idx, seg, strict=True)])
-                  for name in ("lin_acc_mps2", "up_mps2", "gyr_rads", "ang_acc_rads2")]
+        arrays = [
+            np.stack([getattr(clips[c].kin, name)[i, s] for c, i, s in zip(part[:, 0], idx, seg, strict=True)])
+            for name in ("lin_acc_mps2", "up_mps2", "gyr_rads", "ang_acc_rads2")
+        ]
         R = np.stack([grids[s][a] for s, a in zip(seg, part[:, 3], strict=True)])
         imu = imu_readings(*arrays, R_segment_imu=R)
         imu = imu + rng.normal(size=imu.shape) * np.array([aug.acc_noise_std_mps2] * 3 + [0.0] * 3)
         imu = quantise(imu, spec)
         q = np.stack([quats[s][a] for s, a in zip(seg, part[:, 3], strict=True)])
         yield Batch(imu.astype(np.float32), seg, q), part[:, 0]
+
+
+class RealWindowSampler:
+    """Moving windows (hop 1) of labelled real recordings, for mixing into assignment training."""
+
+    def __init__(self, recordings: list[RealRecording]) -> None:
+        imu, seg = [], []
+        for rec in recordings:
+            for sensor in rec.sensors:
+                if sensor.segment is None:
+                    continue
+                w = sliding_windows(sensor.imu.astype(np.float32), hop=4)
+                w = w[is_moving(w)]
+                imu.append(w)
+                seg.append(np.full(len(w), sensor.segment))
+        if not imu:
+            raise ValueError("no labelled moving windows in the real training recordings")
+        self.imu, self.segment = np.concatenate(imu), np.concatenate(seg)
+
+    def sample(self, rng: np.random.Generator, batch_size: int) -> Batch:
+        idx = rng.integers(0, len(self.imu), batch_size)
+        nan_q = np.full((batch_size, 4), np.nan, dtype=np.float32)  # alignment unknown on real data
+        return Batch(np.ascontiguousarray(self.imu[idx]), self.segment[idx].astype(np.int64), nan_q)
+
+
+def concat_batches(a: Batch, b: Batch) -> Batch:
+    return Batch(
+        np.concatenate([a.imu, b.imu]),
+        np.concatenate([a.segment, b.segment]),
+        np.concatenate([a.q_segment_imu, b.q_segment_imu]),
+    )

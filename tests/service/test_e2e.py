@@ -1,0 +1,89 @@
+"""End to end: a real uvicorn server with the shipped models, a real WebSocket client streaming a real
+recording (seven x-IMU3 sensors), and the same windows over REST: the results must agree."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from service.client import ClientSensor, stream_sensors
+from service.core.recordings import read_recording
+from service.core.segments import SEGMENTS
+from service.core.windowing import sliding_windows
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server():
+    port = _free_port()
+    env = {**os.environ, "WEARMOCAP_MODELS_DIR": str(REPO / "onnx_models"), "WEARMOCAP_ORT_THREADS": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service", "--port", str(port)],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"{base}/ready", timeout=1).status_code == 200:
+                break
+        except httpx.HTTPError:
+            pass
+        if proc.poll() is not None:
+            raise RuntimeError(proc.stdout.read().decode())
+        time.sleep(0.3)
+    else:
+        proc.kill()
+        raise RuntimeError("server not ready in 60 s (are the shipped models in onnx_models/?)")
+    yield base
+    proc.terminate()
+    proc.wait(timeout=20)
+
+
+def test_shipped_models_are_served(server: str) -> None:
+    models = httpx.get(f"{server}/v1/models").json()
+    assert {"i2s_assignment", "i2s_alignment"} <= set(models)
+
+
+def test_stream_equals_rest_and_reports_joint_assignment(server: str, data_dir: Path) -> None:
+    rec = read_recording(data_dir, "ximu3_lowerbody")
+    sensors = [ClientSensor(s.sensor_id, s.imu[:400]) for s in rec.sensors]
+    outcome = asyncio.run(stream_sensors(server.replace("http", "ws") + "/v1/stream", sensors, speed=0))
+    assert outcome.close_code == 1000
+    per_sensor = {s.sensor_id: [r for r in outcome.results if r["sensor_id"] == s.sensor_id] for s in sensors}
+    for s in sensors:
+        windows = sliding_windows(s.samples.astype(np.float32))
+        streamed = per_sensor[s.sensor_id]
+        assert len(streamed) == len(windows)
+        body = {"windows": [{"samples": w.tolist()} for w in windows]}
+        rest = httpx.post(f"{server}/v1/imu/windows", json=body, timeout=30).json()["results"]
+        for a, b in zip(streamed, rest, strict=True):
+            assert a["segment"] == b["segment"]
+            np.testing.assert_allclose(
+                [a["probabilities"][k] for k in SEGMENTS], [b["probabilities"][k] for k in SEGMENTS], atol=1e-4
+            )
+            np.testing.assert_allclose(a["alignment"]["q_segment_imu"], b["alignment"]["q_segment_imu"], atol=1e-4)
+    final = outcome.assignment["sensors"]
+    assert len(final) == 7 and all(s["segment"] in SEGMENTS for s in final)
+    assert len({s["segment"] for s in final}) == 7  # one-to-one
+    metrics = httpx.get(f"{server}/metrics").text
+    assert "wearmocap_stream_samples_total 2800.0" in metrics
