@@ -1,0 +1,78 @@
+"""Schema fuzzing of the OpenAPI document: generated requests (valid and invalid) never get a 5xx.
+
+Driven through schemathesis' Hypothesis strategies (its pytest plugin does not support this pytest)
+against a real uvicorn server with tiny ONNX models.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import schemathesis
+from hypothesis import HealthCheck, given, settings
+
+from tests.service.conftest import write_tiny_model
+from tests.service.test_e2e import REPO, _free_port
+
+CASES_PER_OPERATION = 260  # per operation and mode: > 1000 cases over the two POST operations
+
+
+def test_generated_requests_never_get_a_server_error(tmp_path: Path) -> None:
+    root = tmp_path / "onnx_models"
+    write_tiny_model(root, "i2s_assignment")
+    write_tiny_model(root, "i2s_alignment")
+    port = _free_port()
+    env = {**os.environ, "WEARMOCAP_MODELS_DIR": str(root), "WEARMOCAP_MAX_BODY_BYTES": "1000000"}
+    server = subprocess.Popen(
+        [sys.executable, "-m", "service", "--port", str(port)],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    base = f"http://127.0.0.1:{port}"
+    counts: dict[str, int] = {}
+    try:
+        _wait(f"{base}/ready")
+        schema = schemathesis.openapi.from_url(f"{base}/openapi.json")
+        for result in schema.get_all_operations():
+            operation = result.ok()
+            modes = list(schemathesis.GenerationMode) if operation.method.lower() == "post" else []
+            for mode in modes or [schemathesis.GenerationMode.POSITIVE]:  # GETs take no input to violate
+                _fuzz(operation, mode, counts)
+        assert httpx.get(f"{base}/health").status_code == 200  # still up after all of it
+    finally:
+        server.terminate()
+        server.wait(timeout=20)
+    assert {"POST /v1/imu/windows negative", "POST /v1/imu/assign negative"} <= set(counts)
+    assert sum(counts.values()) >= 1000, counts
+
+
+def _fuzz(operation, mode, counts: dict[str, int]) -> None:  # type: ignore[no-untyped-def]
+    """Valid (positive) or schema-violating (negative) requests for one operation."""
+    label = f"{operation.method.upper()} {operation.path} {mode.value}"
+
+    @settings(max_examples=CASES_PER_OPERATION, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+    @given(case=operation.as_strategy(generation_mode=mode))
+    def check(case) -> None:  # type: ignore[no-untyped-def]
+        response = case.call()
+        counts[label] = counts.get(label, 0) + 1
+        assert response.status_code < 500, f"{label} -> {response.status_code}: {response.text[:300]}"
+
+    check()
+
+
+def _wait(url: str) -> None:
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(url, timeout=1).status_code == 200:
+                return
+        except httpx.HTTPError:
+            time.sleep(0.2)
+    raise RuntimeError(f"{url} not ready")
