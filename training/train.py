@@ -116,7 +116,9 @@ def train(
         model.load_state_dict(init_state)
     optimiser = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     sampler = WindowSampler(train_clips, cfg.augmentation)
-    val_sampler = WindowSampler(val_clips, Augmentation(acc_noise_std_mps2=cfg.augmentation.acc_noise_std_mps2))
+    # Validation: the training distribution of alignments, with only the paper's noise (no other augmentation).
+    val_aug = Augmentation(alignment=cfg.augmentation.alignment, acc_noise_std_mps2=cfg.augmentation.acc_noise_std_mps2)
+    val_sampler = WindowSampler(val_clips, val_aug)
     val_rng = np.random.default_rng(cfg.seed + 1)
     val_batches = [val_sampler.sample(val_rng, t.batch_size) for _ in range(max(1, t.val_windows // t.batch_size))]
     best, best_state, best_epoch, stale = float("inf"), copy.deepcopy(model.state_dict()), 0, 0
