@@ -35,34 +35,58 @@ def wait_ready(url: str, proc: subprocess.Popen, timeout_s: float = 120) -> None
     raise RuntimeError(f"{url} not ready in {timeout_s} s")
 
 
-def start_service(models_dir: Path, threads: int = 2) -> tuple[subprocess.Popen, str]:
-    port = free_port()
-    env = {**os.environ, "WEARMOCAP_MODELS_DIR": str(models_dir), "WEARMOCAP_ORT_THREADS": str(threads)}
+def start_process(
+    cmd: list[str], ready_path: str, port: int, env: dict[str, str] | None = None, timeout_s: float = 120
+) -> tuple[subprocess.Popen, str]:
+    """Start a server on ``port`` and wait until ``ready_path`` answers 200; returns (process, base URL)."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "service", "--port", str(port)],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        cmd, cwd=REPO, env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
     base = f"http://127.0.0.1:{port}"
-    wait_ready(f"{base}/ready", proc)
+    try:
+        wait_ready(f"{base}{ready_path}", proc, timeout_s)
+    except RuntimeError:
+        stop(proc)
+        raise
     return proc, base
+
+
+def start_service(models_dir: Path, threads: int = 2, **env: str) -> tuple[subprocess.Popen, str]:
+    """``python -m service`` on the models under ``models_dir``; extra settings as WEARMOCAP_* values."""
+    port = free_port()
+    settings = {"WEARMOCAP_MODELS_DIR": str(models_dir), "WEARMOCAP_ORT_THREADS": str(threads)}
+    settings.update({f"WEARMOCAP_{k.upper()}": v for k, v in env.items()})
+    return start_process([sys.executable, "-m", "service", "--port", str(port)], "/ready", port, settings)
 
 
 def start_mlflow_serve(model_dir: Path) -> tuple[subprocess.Popen, str]:
     """``mlflow models serve`` on an MLflow model directory, with the current environment."""
     port = free_port()
     mlflow_bin = shutil.which("mlflow") or str(Path(sys.executable).parent / "mlflow")
-    proc = subprocess.Popen(
-        [mlflow_bin, "models", "serve", "-m", str(model_dir), "-p", str(port), "--env-manager", "local", "-w", "1"],
-        cwd=REPO,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    base = f"http://127.0.0.1:{port}"
-    wait_ready(f"{base}/ping", proc)
-    return proc, base
+    cmd = [mlflow_bin, "models", "serve", "-m", str(model_dir), "-p", str(port), "--env-manager", "local", "-w", "1"]
+    return start_process(cmd, "/ping", port)
+
+
+def start_mlflow_server(root: Path) -> tuple[subprocess.Popen, str]:
+    """A real MLflow tracking server with a sqlite store and an artifact root under ``root``."""
+    port = free_port()
+    cmd = [
+        sys.executable,
+        "-m",
+        "mlflow",
+        "server",
+        "--backend-store-uri",
+        f"sqlite:///{root / 'mlflow.db'}",
+        "--artifacts-destination",
+        str(root / "artifacts"),
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(port),
+        "--workers",
+        "1",
+    ]
+    return start_process(cmd, "/health", port)
 
 
 def stop(proc: subprocess.Popen) -> None:

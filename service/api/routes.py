@@ -19,7 +19,7 @@ from service.api.schemas import (
 )
 from service.core.assignment import is_moving, joint_assignment
 from service.core.segments import SEGMENTS, segment_index
-from service.inference.predict import alignment_payload, mean_alignment, window_to_model_input
+from service.inference.predict import alignment_payload, mean_alignment, window_result, window_to_model_input
 from service.inference.registry import LoadedModel
 from service.settings import Settings, get_settings
 
@@ -71,23 +71,17 @@ async def classify_windows(
     imu = _inputs(body.windows, "windows")
     probs, quats, versions = await _infer(request, imu)
     moving = is_moving(imu)
-    results = []
-    for i, w in enumerate(body.windows):
-        cls = int(probs[i].argmax())
-        seg = segment_index(w.segment) if w.segment else cls
-        alignment = None
-        if quats is not None:
-            q, R = alignment_payload(quats[i], seg)
-            alignment = Alignment(segment=SEGMENTS[seg], q_segment_imu=q, R_segment_imu=R)
-        results.append(
-            WindowResult(
-                segment=SEGMENTS[cls],
-                confidence=float(probs[i, cls]),
-                probabilities={s: float(p) for s, p in zip(SEGMENTS, probs[i], strict=True)},
-                moving=bool(moving[i]),
-                alignment=alignment,
+    results = [
+        WindowResult(
+            **window_result(
+                probs[i],
+                None if quats is None else quats[i],
+                moving[i],
+                segment_index(w.segment) if w.segment else None,
             )
         )
+        for i, w in enumerate(body.windows)
+    ]
     return WindowsResponse(results=results, model_versions=versions)
 
 

@@ -27,7 +27,7 @@ from service.api.protocol import (
 from service.core.assignment import is_moving, joint_assignment
 from service.core.segments import SEGMENTS
 from service.core.stream import SensorStream
-from service.inference.predict import alignment_payload
+from service.inference.predict import window_result
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -127,19 +127,8 @@ async def _handle_packet(
     probs, quats = await app.state.batcher.infer(imu)
     moving = is_moving(imu)
     for i in range(len(imu)):
-        cls = int(probs[i].argmax())
-        message = {
-            "type": "result",
-            "sensor_id": stream.sensor_id,
-            "window_end_s": round(pushed.window_end_s[i], 6),
-            "segment": SEGMENTS[cls],
-            "confidence": float(probs[i, cls]),
-            "probabilities": {s: float(p) for s, p in zip(SEGMENTS, probs[i], strict=True)},
-            "moving": bool(moving[i]),
-        }
-        if quats is not None:
-            q, R = alignment_payload(quats[i], cls)
-            message["alignment"] = {"segment": SEGMENTS[cls], "q_segment_imu": q, "R_segment_imu": R}
+        message = {"type": "result", "sensor_id": stream.sensor_id, "window_end_s": round(pushed.window_end_s[i], 6)}
+        message.update(window_result(probs[i], None if quats is None else quats[i], moving[i]))
         if moving[i]:
             session.evidence[k] += np.log(np.clip(probs[i], 1e-12, 1.0))
             session.windows[k] += 1

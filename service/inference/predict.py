@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from service.core.resample import resample_uniform
 from service.core.rotations import canonical_quat, matrix_from_quat
+from service.core.segments import SEGMENTS
 from service.core.units import to_contract_units
 from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES
 
@@ -49,6 +50,24 @@ def alignment_payload(q_per_segment: np.ndarray, segment: int) -> tuple[list[flo
     """The quaternion row of ``segment`` from ``(7, 4)`` and its rotation matrix."""
     q = canonical_quat(q_per_segment[segment])
     return [float(v) for v in q], matrix_from_quat(q).round(7).tolist()
+
+
+def window_result(probs: np.ndarray, quats: np.ndarray | None, moving: bool, segment: int | None = None) -> dict:
+    """The per-window answer shared by REST and streaming: class, confidence, probabilities, ``moving``
+    and the alignment for ``segment`` (the declared one) or else the predicted class."""
+    cls = int(probs.argmax())
+    result = {
+        "segment": SEGMENTS[cls],
+        "confidence": float(probs[cls]),
+        "probabilities": {s: float(p) for s, p in zip(SEGMENTS, probs, strict=True)},
+        "moving": bool(moving),
+        "alignment": None,
+    }
+    if quats is not None:
+        seg = cls if segment is None else segment
+        q, R = alignment_payload(quats, seg)
+        result["alignment"] = {"segment": SEGMENTS[seg], "q_segment_imu": q, "R_segment_imu": R}
+    return result
 
 
 def mean_alignment(q_rows: np.ndarray) -> np.ndarray:

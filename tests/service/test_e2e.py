@@ -4,59 +4,24 @@ recording (seven x-IMU3 sensors), and the same windows over REST: the results mu
 from __future__ import annotations
 
 import asyncio
-import os
-import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 
+from benchmarks.servers import REPO, start_service, stop
 from service.client import ClientSensor, stream_sensors
 from service.core.recordings import read_recording
 from service.core.segments import SEGMENTS
 from service.core.windowing import sliding_windows
 
-REPO = Path(__file__).resolve().parents[2]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 @pytest.fixture(scope="module")
 def server():
-    port = _free_port()
-    env = {**os.environ, "WEARMOCAP_MODELS_DIR": str(REPO / "onnx_models"), "WEARMOCAP_ORT_THREADS": "1"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "service", "--port", str(port)],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
-    base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(f"{base}/ready", timeout=1).status_code == 200:
-                break
-        except httpx.HTTPError:
-            pass
-        if proc.poll() is not None:
-            raise RuntimeError(proc.stdout.read().decode())
-        time.sleep(0.3)
-    else:
-        proc.kill()
-        raise RuntimeError("server not ready in 60 s (are the shipped models in onnx_models/?)")
+    proc, base = start_service(REPO / "onnx_models", threads=1)
     yield base
-    proc.terminate()
-    proc.wait(timeout=20)
+    stop(proc)
 
 
 def test_shipped_models_are_served(server: str) -> None:

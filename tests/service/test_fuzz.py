@@ -6,18 +6,14 @@ against a real uvicorn server with tiny ONNX models.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import httpx
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 
+from benchmarks.servers import start_service, stop
 from tests.service.conftest import write_tiny_model
-from tests.service.test_e2e import REPO, _free_port
 
 CASES_PER_OPERATION = 260  # per operation and mode: > 1000 cases over the two POST operations
 
@@ -26,19 +22,9 @@ def test_generated_requests_never_get_a_server_error(tmp_path: Path) -> None:
     root = tmp_path / "onnx_models"
     write_tiny_model(root, "i2s_assignment")
     write_tiny_model(root, "i2s_alignment")
-    port = _free_port()
-    env = {**os.environ, "WEARMOCAP_MODELS_DIR": str(root), "WEARMOCAP_MAX_BODY_BYTES": "1000000"}
-    server = subprocess.Popen(
-        [sys.executable, "-m", "service", "--port", str(port)],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    base = f"http://127.0.0.1:{port}"
+    server, base = start_service(root, max_body_bytes="1000000")
     counts: dict[str, int] = {}
     try:
-        _wait(f"{base}/ready")
         schema = schemathesis.openapi.from_url(f"{base}/openapi.json")
         for result in schema.get_all_operations():
             operation = result.ok()
@@ -47,8 +33,7 @@ def test_generated_requests_never_get_a_server_error(tmp_path: Path) -> None:
                 _fuzz(operation, mode, counts)
         assert httpx.get(f"{base}/health").status_code == 200  # still up after all of it
     finally:
-        server.terminate()
-        server.wait(timeout=20)
+        stop(server)
     assert {"POST /v1/imu/windows negative", "POST /v1/imu/assign negative"} <= set(counts)
     assert sum(counts.values()) >= 1000, counts
 
@@ -65,14 +50,3 @@ def _fuzz(operation, mode, counts: dict[str, int]) -> None:  # type: ignore[no-u
         assert response.status_code < 500, f"{label} -> {response.status_code}: {response.text[:300]}"
 
     check()
-
-
-def _wait(url: str) -> None:
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(url, timeout=1).status_code == 200:
-                return
-        except httpx.HTTPError:
-            time.sleep(0.2)
-    raise RuntimeError(f"{url} not ready")
