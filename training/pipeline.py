@@ -15,12 +15,12 @@ import yaml
 from mlflow.models import infer_signature
 from mlflow.tracking import MlflowClient
 
-from service.core.recordings import read_recording
+from service.core.recordings import RealRecording, read_all_real, read_recording
 from training.config import ExperimentConfig
 from training.data.catalog import mocap_entries
 from training.data.mocap import Clip, KinematicsParams, build_kinematics, dataset_digest
 from training.data.windows import Augmentation, RealWindowSampler, WindowSampler
-from training.evaluate import evaluate_simulated, onnx_predictor
+from training.evaluate import evaluate_real, evaluate_simulated, onnx_predictor
 from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
 from training.plots import confusion_matrix_png, error_boxplot_png, learning_curves_png
 from training.tracking import flatten, maybe_promote, setup_tracking
@@ -114,6 +114,8 @@ def run_training(
         mlflow.log_artifact(str(tmp / "golden.npz"), "export")
         if test_clips:
             _log_simulated_evaluation(cfg, onnx_path, test_clips, tmp, eval_max_windows)
+        if cfg.task == "assignment" and eval_max_windows is None:
+            _log_real_evaluation(cfg, onnx_path, data_dir, tmp)
         signature = infer_signature(golden["imu"], golden["expected"])
         info = mlflow.onnx.log_model(
             onnx_model=onnx.load(str(onnx_path)),
@@ -158,6 +160,19 @@ def _log_simulated_evaluation(
             str(error_boxplot_png(ev.segment, ev.predicted, tmp / "angle_errors_test.png", title)), "plots"
         )
     mlflow.log_dict(ev.metrics, "evaluation/test_simulated.json")
+
+
+def held_out_recordings(cfg: ExperimentConfig, data_dir: Path) -> list[RealRecording]:
+    """Real recordings with known placement that this configuration did not train on."""
+    return [r for r in read_all_real(data_dir) if r.name not in cfg.data.real_train_recordings]
+
+
+def _log_real_evaluation(cfg: ExperimentConfig, onnx_path: Path, data_dir: Path, tmp: Path) -> None:
+    metrics, cm = evaluate_real(onnx_predictor(onnx_path), held_out_recordings(cfg, data_dir))
+    mlflow.log_metrics({k.replace("/", "."): v for k, v in metrics.items()})
+    png = confusion_matrix_png(cm, tmp / "confusion_real.png", f"{cfg.name}: real recordings (moving windows)")
+    mlflow.log_artifact(str(png), "plots")
+    mlflow.log_dict(metrics, "evaluation/real_recordings.json")
 
 
 def register_run(run_id: str, name: str, task: str) -> tuple[str, bool]:

@@ -17,7 +17,6 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from service.core.manifest import Evaluation, Manifest, TensorSpec, read_manifest, sha256_file, write_manifest
-from service.core.recordings import read_all_real
 from service.core.segments import SEGMENTS
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
 from training.config import ExperimentConfig
@@ -126,7 +125,7 @@ def evaluate_shipped(
     model_dir: Path, data_dir: Path, cache_dir: Path, command: str, max_windows: int | None = None
 ) -> Manifest:
     """Evaluate the shipped ONNX file (LOSO simulated fold and, for assignment, real recordings)."""
-    from training.pipeline import load_clips, split_clips
+    from training.pipeline import held_out_recordings, load_clips, split_clips
 
     manifest = read_manifest(model_dir / "manifest.json")
     cfg = ExperimentConfig.model_validate(_load_config(manifest.mlflow["run_id"]))
@@ -146,7 +145,7 @@ def evaluate_shipped(
     )
     metrics_to_log = {f"shipped_sim_{k}": v for k, v in sim.metrics.items()}
     if cfg.task == "assignment":
-        held_out = [r for r in read_all_real(data_dir) if r.name not in cfg.data.real_train_recordings]
+        held_out = held_out_recordings(cfg, data_dir)
         real_metrics, cm = evaluate_real(predict, held_out)
         evaluations.append(
             Evaluation(
