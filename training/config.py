@@ -35,6 +35,7 @@ class TrainConfig(_Strict):
     hidden: int = 128
     channels: int = 64
     kernel: int = 16
+    grad_clip_norm: float | None = None  # clip the global gradient norm (stabilises the LSTM)
     steps_per_epoch: int = 100  # windows are drawn fresh; an "epoch" is this many batches
     max_epochs: int = 20
     patience: int = 5  # early stopping on validation loss

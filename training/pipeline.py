@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import tempfile
+import time
 from pathlib import Path
 
 import mlflow
@@ -71,7 +72,13 @@ def clip_table(clips: list[Clip]) -> pd.DataFrame:
 
 def _log_dataset(clips: list[Clip], data_dir: Path, context: str) -> None:
     ds = mlflow.data.from_pandas(clip_table(clips), source=str(data_dir), name=f"{context}-{dataset_digest(clips)}")
-    mlflow.log_input(ds, context=context)
+    try:
+        mlflow.log_input(ds, context=context)
+    except mlflow.exceptions.MlflowException:
+        # Two runs inserting the same new dataset at once race on the sqlite UNIQUE constraint;
+        # the second attempt finds the dataset the other run stored.
+        time.sleep(1.0)
+        mlflow.log_input(ds, context=context)
 
 
 def run_training(

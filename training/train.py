@@ -133,6 +133,8 @@ def train(
             loss = task_loss(cfg.task, model(imu), seg, q)
             optimiser.zero_grad()
             loss.backward()
+            if t.grad_clip_norm is not None:
+                nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip_norm)
             optimiser.step()
             running += float(loss)
             bar.set_postfix(loss=f"{float(loss):.4f}")
