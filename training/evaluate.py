@@ -105,6 +105,7 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
         metrics[f"joint_correct_fraction/{rec.name}"] = float(np.mean(joint.segment == truth))
         rec_true, rec_pred = np.concatenate(y_true[-len(sensors) :]), np.concatenate(y_pred[-len(sensors) :])
         metrics[f"accuracy/{rec.name}"] = float(np.mean(rec_true == rec_pred))
+        metrics[f"n_windows/{rec.name}"] = float(len(rec_true))
     yt, yp = np.concatenate(y_true), np.concatenate(y_pred)
     overall = assignment_metrics(yt, yp)
     metrics.update({f"real_{k}": v for k, v in overall.items()})
