@@ -42,6 +42,7 @@ class TrainConfig(_Strict):
     val_windows: int = 4096
     threads: int = 2
     init_from_run: str | None = None  # MLflow run id whose checkpoint warm-starts training (pre-training)
+    init_from_onnx: str | None = None  # or a shipped assignment model dir (onnx_models/<name>/<version>)
     max_minutes: float | None = None  # wall-time budget; stops after the epoch that crosses it
 
 

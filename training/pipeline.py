@@ -25,7 +25,8 @@ from training.evaluate import evaluate_real, evaluate_simulated, onnx_predictor
 from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
 from training.plots import confusion_matrix_png, error_boxplot_png, learning_curves_png
 from training.tracking import flatten, maybe_promote, setup_tracking
-from training.train import train
+from training.train import build_model, train
+from training.warmstart import warm_start_from_shipped
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +97,7 @@ def run_training(
         for context, part in (("training", train_clips), ("validation", val_clips), ("test", test_clips)):
             if part:
                 _log_dataset(part, data_dir, context)
-        init_state = _checkpoint(cfg.train.init_from_run, tmp) if cfg.train.init_from_run else None
+        init_state = _initial_state(cfg, tmp)
         real = _real_sampler(cfg, data_dir)
         result = train(
             cfg,
@@ -136,6 +137,17 @@ def run_training(
     if register:
         register_run(run_id, cfg.registered_model, cfg.task)
     return run_id
+
+
+def _initial_state(cfg: ExperimentConfig, tmp: Path) -> dict | None:
+    if cfg.train.init_from_run:
+        return _checkpoint(cfg.train.init_from_run, tmp)
+    if cfg.train.init_from_onnx:
+        if cfg.task != "assignment":
+            raise ValueError("init_from_onnx supports assignment models; use init_from_run for alignment")
+        mlflow.set_tag("init_from_onnx", cfg.train.init_from_onnx)
+        return warm_start_from_shipped(Path(cfg.train.init_from_onnx), build_model(cfg))  # type: ignore[arg-type]
+    return None
 
 
 def _checkpoint(run_id: str, tmp: Path) -> dict:

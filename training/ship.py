@@ -57,8 +57,9 @@ def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
     with tempfile.TemporaryDirectory() as tmp:
         model_dir = Path(mlflow.artifacts.download_artifacts(run.data.tags["model_uri"], dst_path=tmp))
         # One self-contained file, also for models MLflow stored with external weight data.
-        onnx.save_model(onnx.load(str(next(model_dir.rglob("*.onnx")))), str(target / "model.onnx"),
-                        save_as_external_data=False)
+        onnx.save_model(
+            onnx.load(str(next(model_dir.rglob("*.onnx")))), str(target / "model.onnx"), save_as_external_data=False
+        )
         golden = Path(mlflow.artifacts.download_artifacts(f"runs:/{run_id}/export/golden.npz", dst_path=tmp))
         shutil.copy(golden, target / "golden.npz")
     with np.load(target / "golden.npz") as z:

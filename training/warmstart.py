@@ -1,0 +1,68 @@
+"""Warm-start an ``AssignmentNet`` from a shipped ONNX model (paper 000 §4.3 fine-tuning from any release).
+
+The TorchScript exporter folds each BatchNorm into its Conv and stores the GRU in ONNX gate order
+(z, r, h) where torch uses (r, z, n). The state dict is rebuilt accordingly (BatchNorm set to the
+identity, so the fused convolutions carry the whole affine map), and the result must reproduce the
+model's ``golden.npz`` before it is used.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+from onnx import numpy_helper
+
+from training.models import AssignmentNet
+
+
+def _reorder_gates(w: np.ndarray, hidden: int) -> np.ndarray:
+    """ONNX (z, r, h) blocks along axis 0 → torch (r, z, n)."""
+    z, r, h = w[:hidden], w[hidden : 2 * hidden], w[2 * hidden :]
+    return np.concatenate([r, z, h])
+
+
+def assignment_state_from_onnx(onnx_path: Path, net: AssignmentNet) -> dict[str, torch.Tensor]:
+    model = onnx.load(str(onnx_path))
+    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    convs = [n for n in model.graph.node if n.op_type == "Conv"]
+    gru = next(n for n in model.graph.node if n.op_type == "GRU")
+    state = {k: v.clone() for k, v in net.state_dict().items()}
+    conv_layers = [k for k in state if k.startswith("cnn.net.") and k.endswith(".weight") and state[k].dim() == 3]
+    if len(conv_layers) != len(convs):
+        raise ValueError(f"expected {len(conv_layers)} Conv nodes, the ONNX graph has {len(convs)}")
+    for key, node in zip(conv_layers, convs, strict=True):
+        index = int(key.split(".")[2])
+        state[key] = torch.from_numpy(inits[node.input[1]].copy())
+        state[f"cnn.net.{index}.bias"] = torch.from_numpy(inits[node.input[2]].copy())
+        bn = f"cnn.net.{index + 1}"
+        eps = net.cnn.net[index + 1].eps
+        state[f"{bn}.weight"] = torch.ones_like(state[f"{bn}.weight"])
+        state[f"{bn}.bias"] = torch.zeros_like(state[f"{bn}.bias"])
+        state[f"{bn}.running_mean"] = torch.zeros_like(state[f"{bn}.running_mean"])
+        state[f"{bn}.running_var"] = torch.full_like(state[f"{bn}.running_var"], 1.0 - eps)
+    hidden = net.rnn.hidden_size
+    W, R, B = (inits[name][0] for name in gru.input[1:4])
+    state["rnn.weight_ih_l0"] = torch.from_numpy(_reorder_gates(W, hidden))
+    state["rnn.weight_hh_l0"] = torch.from_numpy(_reorder_gates(R, hidden))
+    state["rnn.bias_ih_l0"] = torch.from_numpy(_reorder_gates(B[: 3 * hidden], hidden))
+    state["rnn.bias_hh_l0"] = torch.from_numpy(_reorder_gates(B[3 * hidden :], hidden))
+    state["head.weight"] = torch.from_numpy(inits["net.head.weight"].copy())
+    state["head.bias"] = torch.from_numpy(inits["net.head.bias"].copy())
+    return state
+
+
+def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1e-4) -> dict[str, torch.Tensor]:
+    """State dict rebuilt from ``model_dir/model.onnx``, verified against ``model_dir/golden.npz``."""
+    state = assignment_state_from_onnx(model_dir / "model.onnx", net)
+    probe = AssignmentNet(net.rnn.hidden_size, net.cnn.net[0].out_channels, net.cnn.net[0].kernel_size[0])
+    probe.load_state_dict(state)
+    probe.eval()
+    with np.load(model_dir / "golden.npz") as golden, torch.no_grad():
+        got = torch.softmax(probe(torch.from_numpy(golden["imu"])), -1).numpy()
+        err = float(np.max(np.abs(got - golden["expected"])))
+    if err > atol:
+        raise ValueError(f"weights rebuilt from {model_dir} differ from its golden output by {err:.2e} > {atol}")
+    return state
