@@ -35,6 +35,8 @@ class TrainConfig(_Strict):
     hidden: int = 128
     channels: int = 64
     kernel: int = 16
+    # alignment loss: sign-invariant quaternion distance, or the paper's L2 on the stereographic projection
+    alignment_loss: Literal["quaternion", "stereographic_l2"] = "quaternion"
     grad_clip_norm: float | None = None  # clip the global gradient norm (stabilises the LSTM)
     steps_per_epoch: int = 100  # windows are drawn fresh; an "epoch" is this many batches
     max_epochs: int = 20

@@ -36,7 +36,8 @@ def quat_distance(q_pred: torch.Tensor, q_true: torch.Tensor) -> torch.Tensor:
     return 2.0 - 2.0 * (q_pred * q_true).sum(-1).abs()
 
 
-def task_loss(task: str, output: torch.Tensor, segment: torch.Tensor, q_true: torch.Tensor) -> torch.Tensor:
+def task_loss(task: str, output: torch.Tensor, segment: torch.Tensor, q_true: torch.Tensor,
+              alignment_loss: str = "quaternion") -> torch.Tensor:
     """Cross entropy (assignment, §2.2.5) or the quaternion distance of the true segment's row (alignment).
 
     The paper regresses the stereographic projection with an L2 loss; with w ≥ 0 canonical targets
@@ -46,6 +47,9 @@ def task_loss(task: str, output: torch.Tensor, segment: torch.Tensor, q_true: to
     if task == "assignment":
         return nn.functional.cross_entropy(output, segment)
     p = output[torch.arange(len(segment)), segment]
+    if alignment_loss == "stereographic_l2":  # paper 000 §2.2.5: L2 on p, target from the w >= 0 quaternion
+        p_true = q_true[:, 1:] / (1.0 + q_true[:, :1])
+        return ((p - p_true) ** 2).sum(-1).mean()
     return quat_distance(stereographic_to_quat(p), q_true).mean()
 
 
@@ -130,7 +134,7 @@ def train(
         bar = tqdm(range(t.steps_per_epoch), desc=f"{cfg.name} epoch {epoch}/{t.max_epochs}", unit="step", leave=False)
         for _ in bar:
             imu, seg, q = to_tensors(_draw(sampler, real, cfg.data.real_fraction, rng, t.batch_size))
-            loss = task_loss(cfg.task, model(imu), seg, q)
+            loss = task_loss(cfg.task, model(imu), seg, q, t.alignment_loss)
             optimiser.zero_grad()
             loss.backward()
             if t.grad_clip_norm is not None:
