@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
+from pathlib import Path
 
 import mlflow
 import numpy as np
@@ -20,6 +21,7 @@ from training.config import ExperimentConfig
 from training.export import export_module
 from training.ship import _load_config
 from training.train import build_model
+from training.warmstart import warm_start_from_shipped
 
 
 def _time(fn, x: np.ndarray, repeats: int) -> float:
@@ -28,6 +30,16 @@ def _time(fn, x: np.ndarray, repeats: int) -> float:
     for _ in range(repeats):
         fn(x)
     return (time.perf_counter() - t) / repeats
+
+
+def _torch_weights(run_id: str, model_dir: Path, net: torch.nn.Module) -> dict:
+    """The run's checkpoint; runs logged before checkpoints existed: rebuilt from the ONNX file (verified)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            path = mlflow.artifacts.download_artifacts(f"runs:/{run_id}/checkpoint/model_state.pt", dst_path=tmp)
+            return torch.load(path, weights_only=True)
+        except mlflow.exceptions.MlflowException:
+            return warm_start_from_shipped(model_dir, net)
 
 
 def main() -> None:
@@ -39,11 +51,7 @@ def main() -> None:
         manifest = read_manifest(model_dir / "manifest.json")
         cfg = ExperimentConfig.model_validate(_load_config(manifest.mlflow["run_id"]))
         net = build_model(cfg)
-        with tempfile.TemporaryDirectory() as tmp:
-            state = mlflow.artifacts.download_artifacts(
-                f"runs:/{manifest.mlflow['run_id']}/checkpoint/model_state.pt", dst_path=tmp
-            )
-            net.load_state_dict(torch.load(state, weights_only=True))
+        net.load_state_dict(_torch_weights(manifest.mlflow["run_id"], model_dir, net))
         module = export_module(net)
         options = ort.SessionOptions()
         options.intra_op_num_threads = 2

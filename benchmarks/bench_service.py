@@ -4,7 +4,7 @@
 (b) N concurrent WebSocket streams at 60 Hz: samples/s sustained, result latency p50/p99, samples lost;
 (c) the assignment ONNX model behind our service vs behind ``mlflow models serve``, same batches, as a ratio.
 
-    python -m benchmarks.bench_service --streams 200 --stream-seconds 20
+    python -m benchmarks.bench_service --streams 50 100 200 --stream-seconds 15
 """
 
 from __future__ import annotations
@@ -72,11 +72,20 @@ def bench_rest(base: str, n_single: int, batch: int, n_batches: int) -> dict:
     }
 
 
-async def _one_stream(url: str, seconds: float, lat_ms: list[float], sent: list[int], start_at: float) -> None:
+async def _one_stream(
+    url: str, seconds: float, lat_ms: list[float], sent: list[int], start_at: float, failures: list[str]
+) -> None:
+    try:
+        await _stream_body(url, seconds, lat_ms, sent, start_at)
+    except (websockets.ConnectionClosed, OSError) as exc:
+        failures.append(type(exc).__name__ + ": " + str(exc)[:120])
+
+
+async def _stream_body(url: str, seconds: float, lat_ms: list[float], sent: list[int], start_at: float) -> None:
     x = _windows(1, seed=len(sent))[0]
     samples = np.tile(x, (int(seconds * 60 / 128) + 2, 1))[: int(seconds * 60)]
     pending: dict[float, float] = {}
-    async with websockets.connect(url, max_size=2**24) as ws:
+    async with websockets.connect(url, max_size=2**24, ping_interval=None) as ws:
         await ws.send(json.dumps({"type": "start", "sensors": [{"sensor_id": "s"}]}))
         await ws.recv()
 
@@ -98,8 +107,8 @@ async def _one_stream(url: str, seconds: float, lat_ms: list[float], sent: list[
             if end >= 127 and (end - 127) % 16 == 0:
                 pending[round(end / 60.0, 4)] = time.perf_counter()
             await ws.send(encode_binary(0, first, samples[first : first + 16]))
-        sent.append(len(samples))
         await ws.send(json.dumps({"type": "stop"}))
+        sent.append(len(samples))
         await rx
 
 
@@ -107,18 +116,21 @@ async def bench_streams(base: str, n: int, seconds: float) -> dict:
     url = base.replace("http", "ws") + "/v1/stream"
     lat: list[float] = []
     sent: list[int] = []
+    failures: list[str] = []
     before = _samples_metric(base)
     start_at = time.perf_counter() + 2.0 + n * 0.005
     t = time.perf_counter()
-    await asyncio.gather(*[_one_stream(url, seconds, lat, sent, start_at + k * 0.001) for k in range(n)])
+    await asyncio.gather(*[_one_stream(url, seconds, lat, sent, start_at + k * 0.001, failures) for k in range(n)])
     wall = time.perf_counter() - t
     received = _samples_metric(base) - before
     return {
         "streams": n,
+        "streams_failed": len(failures),
+        "failures": sorted(set(failures))[:5],
         "stream_seconds": seconds,
         "samples_sent": int(sum(sent)),
         "samples_received_by_server": int(received),
-        "samples_lost": int(sum(sent) - received),
+        "samples_lost_in_completed_streams": int(sum(sent) - received) if not failures else None,
         "samples_per_s_sustained": received / seconds,
         "result_latency_ms_p50": _pct(lat, 50),
         "result_latency_ms_p99": _pct(lat, 99),
@@ -167,7 +179,7 @@ def bench_vs_mlflow(assignment_dir: Path, batch: int, n_batches: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--streams", type=int, default=200)
+    parser.add_argument("--streams", type=int, nargs="+", default=[50, 100, 200])
     parser.add_argument("--stream-seconds", type=float, default=20.0)
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--batches", type=int, default=20)
@@ -176,7 +188,7 @@ def main() -> None:
     models = REPO / "onnx_models"
     result: dict = {
         "command": "python -m benchmarks.bench_service "
-        f"--streams {args.streams} --stream-seconds {args.stream_seconds} --batch {args.batch}",
+        f"--streams {' '.join(map(str, args.streams))} --stream-seconds {args.stream_seconds} --batch {args.batch}",
         "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
         "models": {
             p.parent.name: p.name for p in (_latest(models / "i2s_assignment"), _latest(models / "i2s_alignment"))
@@ -186,8 +198,10 @@ def main() -> None:
     try:
         result["rest"] = bench_rest(base, args.single, args.batch, args.batches)
         print(json.dumps(result["rest"], indent=2))
-        result["streams"] = asyncio.run(bench_streams(base, args.streams, args.stream_seconds))
-        print(json.dumps(result["streams"], indent=2))
+        result["streams"] = []
+        for n in args.streams:
+            result["streams"].append(asyncio.run(bench_streams(base, n, args.stream_seconds)))
+            print(json.dumps(result["streams"][-1], indent=2))
     finally:
         stop(proc)
     result["vs_mlflow"] = bench_vs_mlflow(_latest(models / "i2s_assignment"), args.batch, args.batches)
