@@ -107,6 +107,35 @@ def evaluate(
         typer.echo(f"{ev.name}: {headline}")
 
 
+@app.command("evaluate-real")
+def evaluate_real_command(
+    source: str = typer.Argument(..., help="a shipped model dir, or runs:/<run_id> of a tracked run"),
+    config: Path = typer.Option(..., help="the config whose held-out real recordings to use"),
+    data_dir: Path | None = DataDir,
+) -> None:
+    """Assignment accuracy on the real recordings a config did not train on (compare models on one set)."""
+    import tempfile
+
+    import mlflow
+
+    from training.evaluate import evaluate_real, onnx_predictor
+    from training.pipeline import held_out_recordings
+    from training.tracking import default_tracking_uri
+
+    cfg = load_config(config)
+    with tempfile.TemporaryDirectory() as tmp:
+        if source.startswith("runs:/"):
+            mlflow.set_tracking_uri(default_tracking_uri())
+            uri = mlflow.get_run(source.removeprefix("runs:/")).data.tags["model_uri"]
+            onnx_path = next(Path(mlflow.artifacts.download_artifacts(uri, dst_path=tmp)).rglob("*.onnx"))
+        else:
+            onnx_path = Path(source) / "model.onnx"
+        metrics, _ = evaluate_real(onnx_predictor(onnx_path), held_out_recordings(cfg, resolve_data_dir(data_dir)))
+    for key, value in metrics.items():
+        if key.startswith(("accuracy/", "joint", "real_accuracy", "real_joint", "real_n_windows")):
+            typer.echo(f"{key}: {value:.4f}")
+
+
 @app.command()
 def ui(port: int = 5000, host: str = "127.0.0.1") -> None:
     """Start the MLflow UI on the project's tracking store."""

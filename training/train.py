@@ -36,8 +36,9 @@ def quat_distance(q_pred: torch.Tensor, q_true: torch.Tensor) -> torch.Tensor:
     return 2.0 - 2.0 * (q_pred * q_true).sum(-1).abs()
 
 
-def task_loss(task: str, output: torch.Tensor, segment: torch.Tensor, q_true: torch.Tensor,
-              alignment_loss: str = "quaternion") -> torch.Tensor:
+def task_loss(
+    task: str, output: torch.Tensor, segment: torch.Tensor, q_true: torch.Tensor, alignment_loss: str = "quaternion"
+) -> torch.Tensor:
     """Cross entropy (assignment, §2.2.5) or the quaternion distance of the true segment's row (alignment).
 
     The paper regresses the stereographic projection with an L2 loss; with w ≥ 0 canonical targets
