@@ -79,7 +79,10 @@ class SensorAssignment(BaseModel):
     sensor_id: str
     segment: SegmentName | None
     confidence: float
-    margin: float = Field(description="summed log-probability lead over the sensor's best alternative")
+    margin: float = Field(
+        description="summed log-probability lead of the assigned segment over the sensor's best other segment; "
+        "negative when the one-to-one constraint overrode the sensor's own preference"
+    )
     windows: int
     moving_windows: int
     alignment: Alignment | None = None

@@ -26,7 +26,7 @@ class JointAssignment:
     segment: np.ndarray  # (S,) class index per sensor, -1 if unassigned (more sensors than segments)
     evidence: np.ndarray  # (S, K) summed log-probabilities
     confidence: np.ndarray  # (S,) softmax of the evidence at the chosen class
-    margin: np.ndarray  # (S,) total-evidence loss if this sensor took its best alternative
+    margin: np.ndarray  # (S,) evidence of the assigned class minus the best other class (< 0: constraint overrode it)
 
 
 def joint_assignment(log_probs: list[np.ndarray], allow_shared: bool = False) -> JointAssignment:
