@@ -20,9 +20,3 @@ def resample_timestamps(t_s: np.ndarray, x: np.ndarray, to_hz: float) -> tuple[n
     """Linear interpolation of an irregularly sampled stream onto a uniform grid; ``(T',)``, ``(T', C)``."""
     grid = np.arange(t_s[0], t_s[-1] + 1e-12, 1.0 / to_hz)
     return grid, np.stack([np.interp(grid, t_s, x[:, k]) for k in range(x.shape[1])], axis=1)
-
-
-def resampled_length(n_samples: int, from_hz: float, to_hz: float, max_denominator: int = 1000) -> int:
-    """Number of samples ``resample_uniform`` returns for ``n_samples`` input samples."""
-    ratio = Fraction(to_hz / from_hz).limit_denominator(max_denominator)
-    return -(-n_samples * ratio.numerator // ratio.denominator)
