@@ -8,8 +8,8 @@ import torch
 from torch import nn
 
 from service.core.segments import SEGMENTS
+from service.core.units import GRAVITY_MPS2
 
-GRAVITY_MPS2 = 9.81
 GYRO_SCALE_RADS = 3.14159
 
 

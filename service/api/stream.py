@@ -99,28 +99,14 @@ async def _handle_packet(
     stream = session.streams[k]
     pushed = stream.push(seq, samples)
     app.state.metrics.samples.inc(len(samples))
-    if pushed.gap:
+    for kind, problem, extra in (("gap", pushed.gap, "missing"), ("late", pushed.late, "action")):
+        if problem is None:
+            continue
         app.state.metrics.gaps.inc()
-        outbox.put(
-            {
-                "type": "gap",
-                "sensor_id": stream.sensor_id,
-                "expected_seq": pushed.gap[0],
-                "received_seq": pushed.gap[1],
-                "missing": pushed.gap[1] - pushed.gap[0],
-            }
-        )
-    if pushed.late:
-        app.state.metrics.gaps.inc()
-        outbox.put(
-            {
-                "type": "late",
-                "sensor_id": stream.sensor_id,
-                "expected_seq": pushed.late[0],
-                "received_seq": pushed.late[1],
-                "action": "packet dropped",
-            }
-        )
+        expected, received = problem
+        message = {"type": kind, "sensor_id": stream.sensor_id, "expected_seq": expected, "received_seq": received}
+        message[extra] = received - expected if kind == "gap" else "packet dropped"
+        outbox.put(message)
     if not pushed.windows:
         return
     imu = np.stack(pushed.windows)

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from service.core.kinematics import GlobalPoses
+from service.core.resample import interp_along_time
 from service.core.segments import SEGMENTS
 
 FOOT_AXIS_IN_SEGMENT = np.array([0.9, 0.0, -0.4]) / np.linalg.norm([0.9, 0.0, -0.4])
@@ -158,12 +159,8 @@ def resample_segments(traj: SegmentTrajectories, sample_rate_hz: float) -> Segme
         [Slerp(t_old, Rotation.from_matrix(traj.R_world_segment[:, s]))(t_new).as_matrix() for s in range(7)], 1
     )
     return SegmentTrajectories(
-        R_new, _interp(t_new, t_old, traj.origin_m), _interp(t_new, t_old, traj.midpoint_m), sample_rate_hz
+        R_new,
+        interp_along_time(t_new, t_old, traj.origin_m),
+        interp_along_time(t_new, t_old, traj.midpoint_m),
+        sample_rate_hz,
     )
-
-
-def _interp(t_new: np.ndarray, t_old: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """Linear interpolation of ``(T, ...)`` along time."""
-    flat = a.reshape(a.shape[0], -1)
-    out = np.stack([np.interp(t_new, t_old, flat[:, k]) for k in range(flat.shape[1])], axis=1)
-    return out.reshape((len(t_new),) + a.shape[1:])

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.core.resample import resample_timestamps
 from service.core.units import to_contract_units
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
 
@@ -51,9 +52,7 @@ def resample_linear(x: np.ndarray, from_hz: float, to_hz: float = MODEL_RATE_HZ)
     """Batch form of ``LinearResampler``: samples at t = k / to_hz for all k within the stream."""
     if from_hz == to_hz:
         return x
-    t_in = np.arange(len(x)) / from_hz
-    t_out = np.arange(0.0, t_in[-1] + 1e-9 / from_hz, 1.0 / to_hz)
-    return np.stack([np.interp(t_out, t_in, x[:, c]) for c in range(x.shape[1])], axis=1)
+    return resample_timestamps(np.arange(len(x)) / from_hz, x, to_hz)[1]
 
 
 @dataclass

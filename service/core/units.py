@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-STANDARD_GRAVITY_MPS2 = 9.80665
+STANDARD_GRAVITY_MPS2 = 9.80665  # for converting readings given in g
+GRAVITY_MPS2 = 9.81  # world gravity of the simulation and the model's input scale (DESIGN.md §2)
 ACC_UNITS = {"m/s^2": 1.0, "g": STANDARD_GRAVITY_MPS2}
 GYR_UNITS = {"rad/s": 1.0, "deg/s": float(np.pi / 180.0)}
 

@@ -21,8 +21,7 @@ from scipy.signal import butter, sosfiltfilt
 from scipy.spatial.transform import Rotation
 
 from service.core.skeleton import FOOT_AXIS_IN_SEGMENT, SegmentTrajectories, resample_segments
-
-GRAVITY_MPS2 = 9.81
+from service.core.units import GRAVITY_MPS2
 
 
 @dataclass(frozen=True)
