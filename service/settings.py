@@ -17,7 +17,12 @@ class Settings(BaseSettings):
     max_windows_per_request: int = Field(4096, ge=1)
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024)
     batch_max_windows: int = Field(512, ge=1, description="micro-batch size limit")
-    batch_max_wait_ms: float = Field(2.0, ge=0, description="how long a micro-batch waits for company")
+    batch_max_wait_ms: float = Field(
+        0.0,
+        ge=0,
+        description="extra wait for company after a batch's first window; 0: windows queued while a "
+        "batch runs form the next one",
+    )
     stream_queue_limit: int = Field(1024, ge=8, description="outgoing messages queued per WebSocket")
     stream_max_samples_per_packet: int = Field(4096, ge=1)
     api_key: str | None = Field(None, description="if set, requests must send it in the X-API-Key header")

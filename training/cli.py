@@ -83,6 +83,26 @@ def export(run_id: str, out_root: Path = typer.Option(Path("onnx_models")), vers
 
 
 @app.command()
+def quantize(
+    model_dir: Path,
+    version: str = typer.Option(..., help="the version directory to write beside model_dir"),
+    rnn: bool = typer.Option(False, help="also int8 LSTM weights (dynamic)"),
+    calibration_windows: int = typer.Option(1024, help="simulated training windows for the static calibration"),
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = DEFAULT_CACHE,
+) -> None:
+    """Write an int8 variant of a shipped model (static QDQ Conv, optionally int8 LSTM); evaluate it next."""
+    import mlflow
+
+    from training.quantize import ship_int8
+    from training.tracking import default_tracking_uri
+
+    mlflow.set_tracking_uri(default_tracking_uri())
+    target = ship_int8(model_dir, version, resolve_data_dir(data_dir), cache_dir, calibration_windows, rnn)
+    typer.echo(f"{target}  (next: python -m training.cli evaluate {target})")
+
+
+@app.command()
 def evaluate(
     model_dir: Path,
     data_dir: Path | None = DataDir,

@@ -50,7 +50,7 @@ def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
     """Write ``out_root/<name>/<version>/{model.onnx, manifest.json, golden.npz}`` from an MLflow run."""
     client = MlflowClient()
     run = client.get_run(run_id)
-    cfg = ExperimentConfig.model_validate(_load_config(run_id))
+    cfg = ExperimentConfig.model_validate(load_run_config(run_id))
     version = version or dt.datetime.fromtimestamp(run.info.start_time / 1000, dt.UTC).strftime("%Y.%m.%d-%H%M%S")
     target = out_root / cfg.name / version
     target.mkdir(parents=True, exist_ok=True)
@@ -118,7 +118,7 @@ def _context(dataset_input: mlflow.entities.DatasetInput) -> str:
     return next((t.value for t in dataset_input.tags if t.key == "mlflow.data.context"), "")
 
 
-def _load_config(run_id: str) -> dict:
+def load_run_config(run_id: str) -> dict:
     import yaml
 
     return yaml.safe_load(mlflow.artifacts.load_text(f"runs:/{run_id}/config.yaml"))
@@ -131,7 +131,7 @@ def evaluate_shipped(
     from training.pipeline import held_out_recordings, load_clips, split_clips
 
     manifest = read_manifest(model_dir / "manifest.json")
-    cfg = ExperimentConfig.model_validate(_load_config(manifest.mlflow["run_id"]))
+    cfg = ExperimentConfig.model_validate(load_run_config(manifest.mlflow["run_id"]))
     predict = onnx_predictor(model_dir / "model.onnx")
     evaluations = []
     clips = load_clips(cfg, data_dir, cache_dir)
@@ -146,7 +146,9 @@ def evaluate_shipped(
             metrics=_headline(sim.metrics),
         )
     )
-    metrics_to_log = {f"shipped_sim_{k}": v for k, v in sim.metrics.items()}
+    # Each shipped file of a run (float32, int8) logs under its own prefix.
+    prefix = "shipped_int8_" if "quantization" in manifest.exporter else "shipped_"
+    metrics_to_log = {f"{prefix}sim_{k}": v for k, v in sim.metrics.items()}
     if cfg.task == "assignment":
         held_out = held_out_recordings(cfg, data_dir)
         real_metrics, cm = evaluate_real(predict, held_out)
@@ -159,9 +161,11 @@ def evaluate_shipped(
                 metrics=real_metrics,
             )
         )
-        metrics_to_log.update({f"shipped_{k.replace('/', '.')}": v for k, v in real_metrics.items()})
+        metrics_to_log.update({f"{prefix}{k.replace('/', '.')}": v for k, v in real_metrics.items()})
         with tempfile.TemporaryDirectory() as tmp:
-            png = confusion_matrix_png(cm, Path(tmp) / "confusion_real.png", f"{cfg.name}: real recordings")
+            png = confusion_matrix_png(
+                cm, Path(tmp) / f"confusion_real_{manifest.version}.png", f"{cfg.name}: real recordings"
+            )
             _log_to_run(manifest.mlflow["run_id"], metrics_to_log, png)
     else:
         _log_to_run(manifest.mlflow["run_id"], metrics_to_log, None)

@@ -23,6 +23,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from service.api.schemas import AccUnit, GyrUnit
+
 HEADER = struct.Struct("<HHI")
 
 
@@ -38,8 +40,8 @@ class StreamSensor(BaseModel):
     model_config = ConfigDict(extra="forbid")
     sensor_id: str = Field(min_length=1, max_length=128)
     sample_rate_hz: float = Field(60.0, ge=10.0, le=2000.0)
-    acc_unit: Literal["m/s^2", "g"] = "m/s^2"
-    gyr_unit: Literal["rad/s", "deg/s"] = "rad/s"
+    acc_unit: AccUnit = "m/s^2"
+    gyr_unit: GyrUnit = "rad/s"
 
 
 class StartMessage(BaseModel):

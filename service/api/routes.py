@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from service.api.schemas import (
+    AccUnit,
     Alignment,
     AssignRequest,
     AssignResponse,
+    GyrUnit,
     ImuWindow,
+    SegmentName,
     SensorAssignment,
     WindowResult,
     WindowsRequest,
@@ -19,7 +22,13 @@ from service.api.schemas import (
 )
 from service.core.assignment import is_moving, joint_assignment
 from service.core.segments import SEGMENTS, segment_index
-from service.inference.predict import alignment_payload, mean_alignment, window_result, window_to_model_input
+from service.inference.predict import (
+    alignment_payload,
+    mean_alignment,
+    window_result,
+    window_to_model_input,
+    windows_to_model_input,
+)
 from service.inference.registry import LoadedModel
 from service.settings import Settings, get_settings
 
@@ -58,6 +67,16 @@ async def _infer(request: Request, imu: np.ndarray) -> tuple[np.ndarray, np.ndar
     return probs, quats, versions
 
 
+def _window_results(
+    imu: np.ndarray, probs: np.ndarray, quats: np.ndarray | None, segments: list[int | None]
+) -> list[WindowResult]:
+    moving = is_moving(imu)
+    return [
+        WindowResult(**window_result(probs[i], None if quats is None else quats[i], moving[i], seg))
+        for i, seg in enumerate(segments)
+    ]
+
+
 @router.post(
     "/v1/imu/windows",
     response_model=WindowsResponse,
@@ -70,19 +89,53 @@ async def classify_windows(
     _check_count(len(body.windows), settings)
     imu = _inputs(body.windows, "windows")
     probs, quats, versions = await _infer(request, imu)
-    moving = is_moving(imu)
-    results = [
-        WindowResult(
-            **window_result(
-                probs[i],
-                None if quats is None else quats[i],
-                moving[i],
-                segment_index(w.segment) if w.segment else None,
-            )
+    segments = [segment_index(w.segment) if w.segment else None for w in body.windows]
+    return WindowsResponse(results=_window_results(imu, probs, quats, segments), model_versions=versions)
+
+
+BINARY_BODY = (
+    "little-endian float32, windows × samples_per_window × 6 values, row-major: for each window its samples "
+    "in time order, each sample acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z in the units given by the query"
+)
+
+
+@router.post(
+    "/v1/imu/windows/binary",
+    response_model=WindowsResponse,
+    tags=["imu"],
+    summary="The same as /v1/imu/windows with the samples as a raw float32 body (no JSON parsing)",
+    description="Body: " + BINARY_BODY + ". All windows of one request share rate, units and length; the "
+    "number of windows is the body length / (samples_per_window × 24 bytes).",
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
+        }
+    },
+)
+async def classify_windows_binary(
+    request: Request,
+    sample_rate_hz: float = Query(60.0, gt=0, description="between 10 and 2000 Hz"),
+    acc_unit: AccUnit = "m/s^2",
+    gyr_unit: GyrUnit = "rad/s",
+    samples_per_window: int = Query(128, ge=1, le=65536, description="128 at 60 Hz; more at higher rates"),
+    segment: SegmentName | None = Query(None, description="known segment of every window: alignment given for it"),
+    settings: Settings = Depends(get_settings),
+) -> WindowsResponse:
+    body = await request.body()
+    per_window = samples_per_window * 6 * 4
+    if not body or len(body) % per_window:
+        raise HTTPException(
+            422,
+            f"body must be a whole number of windows of {samples_per_window} samples × 6 float32 "
+            f"({per_window} bytes each), got {len(body)} bytes",
         )
-        for i, w in enumerate(body.windows)
-    ]
-    return WindowsResponse(results=results, model_versions=versions)
+    raw = np.frombuffer(body, dtype="<f4").reshape(-1, samples_per_window, 6)
+    _check_count(len(raw), settings)
+    imu = windows_to_model_input(raw.astype(np.float64), sample_rate_hz, acc_unit, gyr_unit, "window {i}")
+    probs, quats, versions = await _infer(request, imu)
+    segments = [segment_index(segment) if segment else None] * len(imu)
+    return WindowsResponse(results=_window_results(imu, probs, quats, segments), model_versions=versions)
 
 
 @router.post(

@@ -9,6 +9,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.core.segments import SEGMENTS
 
 SegmentName = Literal[SEGMENTS]  # type: ignore[valid-type]
+AccUnit = Literal["m/s^2", "g"]
+GyrUnit = Literal["rad/s", "deg/s"]
 
 EXAMPLE_WINDOW = {
     "samples": [[0.0, 0.0, 9.81, 0.0, 0.0, 0.0]] * 128,
@@ -28,8 +30,8 @@ class ImuWindow(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_WINDOW]})
     samples: list[list[float]] = Field(min_length=1)
     sample_rate_hz: float = Field(60.0, gt=0, description="between 10 and 2000 Hz")
-    acc_unit: Literal["m/s^2", "g"] = "m/s^2"
-    gyr_unit: Literal["rad/s", "deg/s"] = "rad/s"
+    acc_unit: AccUnit = "m/s^2"
+    gyr_unit: GyrUnit = "rad/s"
     segment: SegmentName | None = Field(None, description="known segment: the alignment is given for it")
 
 

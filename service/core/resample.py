@@ -9,7 +9,7 @@ from scipy.signal import resample_poly
 
 
 def resample_uniform(x: np.ndarray, from_hz: float, to_hz: float, max_denominator: int = 1000) -> np.ndarray:
-    """Polyphase resampling of a uniformly sampled stream ``(T, C)`` (anti-aliased)."""
+    """Polyphase resampling along the first axis of a uniformly sampled stream ``(T, ...)`` (anti-aliased)."""
     if np.isclose(from_hz, to_hz):
         return np.asarray(x, dtype=np.float64)
     ratio = Fraction(to_hz / from_hz).limit_denominator(max_denominator)

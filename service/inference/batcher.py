@@ -1,8 +1,10 @@
 """Micro-batching: concurrent requests and streams share onnxruntime calls.
 
-Callers ``await batcher.infer(windows)``; a single worker task gathers pending windows until the
-batch holds ``max_batch`` windows or ``max_wait_ms`` has passed since the first, runs the models in
-a worker thread (never on the event loop) and hands each caller its rows.
+Callers ``await batcher.infer(windows)``; a single worker task takes every window already queued (up
+to ``max_batch``), runs the models in a worker thread (never on the event loop) and hands each caller
+its rows. It does not wait for company by default (``max_wait_ms`` = 0): a lone request runs at once,
+and whatever arrives while a batch runs forms the next batch, so batches grow with load by themselves.
+A positive ``max_wait_ms`` additionally waits that long after the first window for more.
 """
 
 from __future__ import annotations
@@ -52,8 +54,11 @@ class MicroBatcher:
         while True:
             batch = [await self.queue.get()]
             size = len(batch[0].imu)
+            while size < self.max_batch and not self.queue.empty():
+                batch.append(self.queue.get_nowait())
+                size += len(batch[-1].imu)
             deadline = time.monotonic() + self.max_wait_s
-            while size < self.max_batch:
+            while size < self.max_batch and self.max_wait_s > 0:
                 timeout = deadline - time.monotonic()
                 if timeout <= 0:
                     break

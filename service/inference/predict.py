@@ -22,28 +22,38 @@ def window_to_model_input(
     samples: list[list[float]], rate_hz: float, acc_unit: str, gyr_unit: str, where: str
 ) -> np.ndarray:
     """Rows ``(N, 6)`` in any supported unit and rate → ``(128, 6)`` float32 at 60 Hz, contract units."""
-    x = np.asarray(samples, dtype=np.float64) if samples and all(len(r) == 6 for r in samples) else None
-    if x is None:
-        bad = next(len(r) for r in samples if len(r) != 6)
+    bad = next((len(r) for r in samples if len(r) != 6), None)
+    if bad is not None:
         raise InputError(f"{where}: every sample needs 6 values (acc xyz, gyr xyz), got a row of {bad}")
-    if not np.all(np.isfinite(x)):
-        raise InputError(f"{where}: samples must be finite numbers, got NaN or Inf")
+    return windows_to_model_input(np.asarray(samples, dtype=np.float64)[None], rate_hz, acc_unit, gyr_unit, where)[0]
+
+
+def windows_to_model_input(x: np.ndarray, rate_hz: float, acc_unit: str, gyr_unit: str, where: str) -> np.ndarray:
+    """A stack ``(n, N, 6)`` of windows sharing rate and units → ``(n, 128, 6)`` float32 at 60 Hz.
+
+    ``where`` names the stack in error messages; a ``{i}`` in it is replaced by the offending window's index.
+    """
+    finite = np.isfinite(x).reshape(len(x), -1).all(axis=1)
+    if not finite.all():
+        raise InputError(f"{where.format(i=int(np.argmin(finite)))}: samples must be finite numbers, got NaN or Inf")
     if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
-        raise InputError(f"{where}: sample_rate_hz must be in [{MIN_RATE_HZ}, {MAX_RATE_HZ}], got {rate_hz}")
+        raise InputError(
+            f"{where.format(i=0)}: sample_rate_hz must be in [{MIN_RATE_HZ}, {MAX_RATE_HZ}], got {rate_hz}"
+        )
     x = to_contract_units(x, acc_unit, gyr_unit)
+    n_samples = x.shape[1]
     if np.isclose(rate_hz, MODEL_RATE_HZ):
-        if len(x) != WINDOW_SAMPLES:
-            raise InputError(f"{where}: at 60 Hz a window has {WINDOW_SAMPLES} samples, got {len(x)}")
-    else:
-        x = resample_uniform(x, rate_hz, MODEL_RATE_HZ)
-        if len(x) < WINDOW_SAMPLES:
-            need = int(np.ceil(WINDOW_SAMPLES * rate_hz / MODEL_RATE_HZ))
-            raise InputError(
-                f"{where}: at {rate_hz} Hz a window needs at least {need} samples "
-                f"({WINDOW_SAMPLES} after resampling to 60 Hz), got {len(samples)}"
-            )
-        x = x[-WINDOW_SAMPLES:]
-    return x.astype(np.float32)
+        if n_samples != WINDOW_SAMPLES:
+            raise InputError(f"{where.format(i=0)}: at 60 Hz a window has {WINDOW_SAMPLES} samples, got {n_samples}")
+        return x.astype(np.float32)
+    x = resample_uniform(x.transpose(1, 0, 2), rate_hz, MODEL_RATE_HZ).transpose(1, 0, 2)
+    if x.shape[1] < WINDOW_SAMPLES:
+        need = int(np.ceil(WINDOW_SAMPLES * rate_hz / MODEL_RATE_HZ))
+        raise InputError(
+            f"{where.format(i=0)}: at {rate_hz} Hz a window needs at least {need} samples "
+            f"({WINDOW_SAMPLES} after resampling to 60 Hz), got {n_samples}"
+        )
+    return x[:, -WINDOW_SAMPLES:].astype(np.float32)
 
 
 def alignment_payload(q_per_segment: np.ndarray, segment: int) -> tuple[list[float], list[list[float]]]:

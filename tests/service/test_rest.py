@@ -123,3 +123,54 @@ def test_a_tampered_model_is_refused_and_the_others_served(tiny_models: Path) ->
     (tiny_models / "i2s_alignment" / "0.0.1" / "model.onnx").write_bytes(b"corrupt")
     with TestClient(create_app(Settings(models_dir=tiny_models))) as c:
         assert set(c.get("/v1/models").json()) == {"i2s_assignment"}
+
+
+def _binary(windows: list[dict]) -> bytes:
+    return np.stack([np.array(w["samples"]) for w in windows]).astype("<f4").tobytes()
+
+
+def test_binary_windows_equal_json_windows(client: TestClient) -> None:
+    windows = [_window(), _window(rate=60.0)]
+    windows[1]["samples"] = (np.array(windows[1]["samples"]) * 1.5).tolist()
+    as_json = client.post("/v1/imu/windows", json={"windows": windows}).json()["results"]
+    r = client.post(
+        "/v1/imu/windows/binary",
+        content=_binary(windows),
+        headers={"content-type": "application/octet-stream"},
+    )
+    assert r.status_code == 200, r.text
+    as_binary = r.json()["results"]
+    for a, b in zip(as_json, as_binary, strict=True):
+        assert a["segment"] == b["segment"]
+        np.testing.assert_allclose(list(a["probabilities"].values()), list(b["probabilities"].values()), atol=1e-5)
+        np.testing.assert_allclose(a["alignment"]["q_segment_imu"], b["alignment"]["q_segment_imu"], atol=1e-5)
+    slow = _window(214, 100.0)
+    scaled = np.array(slow["samples"]) * np.array([1 / 9.80665] * 3 + [np.degrees(1.0)] * 3)
+    r = client.post(
+        "/v1/imu/windows/binary?sample_rate_hz=100&samples_per_window=214&acc_unit=g&gyr_unit=deg/s&segment=Pelvis",
+        content=scaled.astype("<f4").tobytes(),
+    )
+    assert r.status_code == 200, r.text
+    ref = client.post("/v1/imu/windows", json={"windows": [{**slow, "segment": "Pelvis"}]}).json()["results"][0]
+    np.testing.assert_allclose(
+        list(ref["probabilities"].values()), list(r.json()["results"][0]["probabilities"].values()), atol=1e-4
+    )
+    assert r.json()["results"][0]["alignment"]["segment"] == "Pelvis"
+
+
+@pytest.mark.parametrize(
+    "query, body, fragment",
+    [
+        ("", b"", "got 0 bytes"),
+        ("", b"\0" * (128 * 24 + 4), "3076 bytes"),
+        ("?samples_per_window=100", b"\0" * (100 * 24), "128 samples, got 100"),
+        ("?sample_rate_hz=5", b"\0" * (128 * 24), "sample_rate_hz must be in"),
+        ("?acc_unit=ft", b"\0" * (128 * 24), "acc_unit"),
+        ("?segment=Head", b"\0" * (128 * 24), "segment"),
+        ("", np.full((2, 128, 6), np.nan, "<f4").tobytes(), "window 0: samples must be finite"),
+    ],
+)
+def test_bad_binary_bodies_are_422_with_a_message(client: TestClient, query: str, body: bytes, fragment: str) -> None:
+    r = client.post("/v1/imu/windows/binary" + query, content=body)
+    assert r.status_code == 422
+    assert fragment in r.text
