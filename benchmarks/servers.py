@@ -54,7 +54,7 @@ def start_process(
 def start_service(models_dir: Path, threads: int = 2, **env: str) -> tuple[subprocess.Popen, str]:
     """``python -m service`` on the models under ``models_dir``; extra settings as WEARMOCAP_* values."""
     port = free_port()
-    settings = {"WEARMOCAP_MODELS_DIR": str(models_dir), "WEARMOCAP_ORT_THREADS": str(threads)}
+    settings = {"WEARMOCAP_MODELS_DIR": str(models_dir), "WEARMOCAP_INFERENCE_THREADS": str(threads)}
     settings.update({f"WEARMOCAP_{k.upper()}": v for k, v in env.items()})
     return start_process([sys.executable, "-m", "service", "--port", str(port)], "/ready", port, settings)
 

@@ -13,7 +13,10 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="WEARMOCAP_")
 
     models_dir: Path = Field(Path("onnx_models"), description="root of <name>/<version>/model.onnx + manifest.json")
-    ort_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads per session")
+    inference_threads: int = Field(
+        2, ge=1, description="parallel onnxruntime calls (each single-threaded); about the number of cores"
+    )
+    inference_chunk_windows: int = Field(8, ge=1, description="windows per onnxruntime call within a batch")
     max_windows_per_request: int = Field(4096, ge=1)
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024)
     batch_max_windows: int = Field(512, ge=1, description="micro-batch size limit")

@@ -21,11 +21,11 @@ from service.api.schemas import (
     WindowsResponse,
 )
 from service.core.assignment import is_moving, joint_assignment
+from service.core.rotations import matrix_from_quat
 from service.core.segments import SEGMENTS, segment_index
 from service.inference.predict import (
-    alignment_payload,
     mean_alignment,
-    window_result,
+    window_results,
     window_to_model_input,
     windows_to_model_input,
 )
@@ -71,10 +71,7 @@ def _window_results(
     imu: np.ndarray, probs: np.ndarray, quats: np.ndarray | None, segments: list[int | None]
 ) -> list[WindowResult]:
     moving = is_moving(imu)
-    return [
-        WindowResult(**window_result(probs[i], None if quats is None else quats[i], moving[i], seg))
-        for i, seg in enumerate(segments)
-    ]
+    return [WindowResult(**r) for r in window_results(probs, quats, moving, segments)]
 
 
 @router.post(
@@ -167,8 +164,8 @@ async def assign_sensors(
         alignment = None
         if seg >= 0 and quats is not None:
             q = mean_alignment(quats[bounds[k] : bounds[k + 1], seg])
-            a_q, a_R = alignment_payload(q[None].repeat(len(SEGMENTS), 0), seg)
-            alignment = Alignment(segment=SEGMENTS[seg], q_segment_imu=a_q, R_segment_imu=a_R)
+            R = matrix_from_quat(q).round(7).tolist()
+            alignment = Alignment(segment=SEGMENTS[seg], q_segment_imu=q.tolist(), R_segment_imu=R)
         out.append(
             SensorAssignment(
                 sensor_id=sensor.sensor_id,

@@ -27,7 +27,7 @@ from service.api.protocol import (
 from service.core.assignment import is_moving, joint_assignment
 from service.core.segments import SEGMENTS
 from service.core.stream import SensorStream
-from service.inference.predict import window_result
+from service.inference.predict import window_results
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -112,9 +112,9 @@ async def _handle_packet(
     imu = np.stack(pushed.windows)
     probs, quats = await app.state.batcher.infer(imu)
     moving = is_moving(imu)
-    for i in range(len(imu)):
+    for i, result in enumerate(window_results(probs, quats, moving)):
         message = {"type": "result", "sensor_id": stream.sensor_id, "window_end_s": round(pushed.window_end_s[i], 6)}
-        message.update(window_result(probs[i], None if quats is None else quats[i], moving[i]))
+        message.update(result)
         if moving[i]:
             session.evidence[k] += np.log(np.clip(probs[i], 1e-12, 1.0))
             session.windows[k] += 1

@@ -56,28 +56,34 @@ def windows_to_model_input(x: np.ndarray, rate_hz: float, acc_unit: str, gyr_uni
     return x[:, -WINDOW_SAMPLES:].astype(np.float32)
 
 
-def alignment_payload(q_per_segment: np.ndarray, segment: int) -> tuple[list[float], list[list[float]]]:
-    """The quaternion row of ``segment`` from ``(7, 4)`` and its rotation matrix."""
-    q = canonical_quat(q_per_segment[segment])
-    return [float(v) for v in q], matrix_from_quat(q).round(7).tolist()
-
-
-def window_result(probs: np.ndarray, quats: np.ndarray | None, moving: bool, segment: int | None = None) -> dict:
-    """The per-window answer shared by REST and streaming: class, confidence, probabilities, ``moving``
-    and the alignment for ``segment`` (the declared one) or else the predicted class."""
-    cls = int(probs.argmax())
-    result = {
-        "segment": SEGMENTS[cls],
-        "confidence": float(probs[cls]),
-        "probabilities": {s: float(p) for s, p in zip(SEGMENTS, probs, strict=True)},
-        "moving": bool(moving),
-        "alignment": None,
-    }
+def window_results(
+    probs: np.ndarray, quats: np.ndarray | None, moving: np.ndarray, segments: list[int | None] | None = None
+) -> list[dict]:
+    """Per-window answers shared by REST and streaming, computed for the whole batch at once: class,
+    confidence, probabilities, ``moving`` and the alignment for the declared segment (``segments[i]``)
+    or else the predicted class."""
+    n = len(probs)
+    cls = probs.argmax(axis=1)
+    alignments: list[dict | None] = [None] * n
     if quats is not None:
-        seg = cls if segment is None else segment
-        q, R = alignment_payload(quats, seg)
-        result["alignment"] = {"segment": SEGMENTS[seg], "q_segment_imu": q, "R_segment_imu": R}
-    return result
+        seg = cls if segments is None else np.array([c if s is None else s for c, s in zip(cls, segments, strict=True)])
+        q = canonical_quat(quats[np.arange(n), seg])
+        R = matrix_from_quat(q).round(7).tolist()
+        alignments = [
+            {"segment": SEGMENTS[s], "q_segment_imu": qi, "R_segment_imu": Ri}
+            for s, qi, Ri in zip(seg.tolist(), q.tolist(), R, strict=True)
+        ]
+    rows = probs.tolist()
+    return [
+        {
+            "segment": SEGMENTS[c],
+            "confidence": row[c],
+            "probabilities": dict(zip(SEGMENTS, row, strict=True)),
+            "moving": bool(m),
+            "alignment": a,
+        }
+        for c, row, m, a in zip(cls.tolist(), rows, moving, alignments, strict=True)
+    ]
 
 
 def mean_alignment(q_rows: np.ndarray) -> np.ndarray:

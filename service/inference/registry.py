@@ -2,12 +2,13 @@
 
 A model is served only if its sha256 and its input/output names and shapes match ``manifest.json``;
 a mismatching model is logged and skipped while the others are served. Per name, the highest
-version (lexicographic; versions are UTC timestamps) wins.
+version wins (compared by its numeric parts: 1.10.0 > 1.9.0, 2026.11.22-0730 > 2026.11.21-2359).
 """
 
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,6 +67,10 @@ def load_model(model_dir: Path, threads: int) -> LoadedModel:
     return LoadedModel(manifest, session, model_dir)
 
 
+def version_key(version: str) -> tuple[int, ...]:
+    return tuple(int(part) for part in re.findall(r"\d+", version))
+
+
 def load_models(root: Path, threads: int) -> dict[str, LoadedModel]:
     """Newest valid version of every model below ``root``, keyed by task."""
     models: dict[str, LoadedModel] = {}
@@ -76,7 +81,7 @@ def load_models(root: Path, threads: int) -> dict[str, LoadedModel]:
             log.error("refusing model %s: %s", manifest_path.parent, exc)
             continue
         task = model.manifest.task
-        if task not in models or model.manifest.version > models[task].manifest.version:
+        if task not in models or version_key(model.manifest.version) > version_key(models[task].manifest.version):
             models[task] = model
         log.info("loaded %s %s (%s)", model.manifest.name, model.manifest.version, task)
     return models

@@ -1,0 +1,35 @@
+"""Runs the I2S models on a batch: small chunks × models spread over a pool of single-threaded runs.
+
+Measured on the 2-core CI machine (``python -m benchmarks.bench_ort_vs_torch`` has the numbers): one
+onnxruntime session per model with one intra-op thread, called concurrently from ``threads`` workers on
+chunks of ``chunk`` windows, beats one call with two intra-op threads — the recurrent layers parallelise
+poorly inside a call, small chunks stay in cache, and a single window runs its two models side by side.
+onnxruntime sessions are safe to call from several threads at once.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from service.inference.registry import LoadedModel
+
+ASSIGNMENT, ALIGNMENT = "i2s_assignment", "i2s_alignment"
+
+
+class ModelRunner:
+    def __init__(self, models: dict[str, LoadedModel], threads: int, chunk: int) -> None:
+        self.models, self.chunk = models, chunk
+        self.pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="onnxruntime")
+
+    def __call__(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(B, 128, 6)`` → probabilities ``(B, 7)`` and, if an alignment model is loaded, ``(B, 7, 4)``."""
+        tasks = [ASSIGNMENT] + ([ALIGNMENT] if ALIGNMENT in self.models else [])
+        chunks = [imu[i : i + self.chunk] for i in range(0, len(imu), self.chunk)]
+        futures = {task: [self.pool.submit(self.models[task].run, c) for c in chunks] for task in tasks}
+        out = {task: np.concatenate([f.result() for f in fs]) for task, fs in futures.items()}
+        return out[ASSIGNMENT], out.get(ALIGNMENT)
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=False, cancel_futures=True)
