@@ -1,8 +1,9 @@
 """Service benchmark on this machine, all measured in one run and written to benchmarks/results/service.json:
 
-(a) single-window POST latency and batched POST throughput (assignment + alignment);
+(a) single-window POST latency and batched POST throughput (assignment + alignment), JSON and raw float32;
 (b) N concurrent WebSocket streams at 60 Hz: samples/s sustained, result latency p50/p99, samples lost;
-(c) the assignment ONNX model behind our service vs behind ``mlflow models serve``, same batches, as a ratio.
+(c) each shipped assignment ONNX file behind our service vs behind ``mlflow models serve``, same batches, as a
+    ratio (ours with JSON and with raw float32 bodies; MLflow takes JSON).
 
     python -m benchmarks.bench_service --streams 50 100 200 --stream-seconds 15
 """
@@ -20,18 +21,24 @@ from pathlib import Path
 
 import httpx
 import mlflow
+import mlflow.onnx
 import numpy as np
+import onnx
 import websockets
 
 from benchmarks.servers import REPO, start_mlflow_serve, start_service, stop
 from service.api.protocol import encode_binary
 from service.core.manifest import read_manifest
+from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES
+from service.inference.registry import version_key
 
 RESULTS = REPO / "benchmarks" / "results"
+PACKET_SAMPLES = HOP_SAMPLES  # one packet per model hop: every packet completes a window once 128 samples are buffered
 
 
 def _latest(task_dir: Path) -> Path:
-    return sorted(p.parent for p in task_dir.glob("*/manifest.json"))[-1]
+    """The version the service serves by default."""
+    return max((p.parent for p in task_dir.glob("*/manifest.json")), key=lambda d: version_key(d.name))
 
 
 def _windows(n: int, seed: int = 0) -> np.ndarray:
@@ -45,31 +52,39 @@ def _pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
 
-def bench_rest(base: str, n_single: int, batch: int, n_batches: int) -> dict:
-    payload_one = {"windows": [{"samples": w.tolist()} for w in _windows(1)]}
-    payload_batch = {"windows": [{"samples": w.tolist()} for w in _windows(batch)]}
-    body_batch = json.dumps(payload_batch)
-    with httpx.Client(timeout=60) as c:
-        for _ in range(10):
-            c.post(f"{base}/v1/imu/windows", json=payload_one)
-        lat = []
-        for _ in range(n_single):
-            t = time.perf_counter()
-            r = c.post(f"{base}/v1/imu/windows", json=payload_one)
-            lat.append((time.perf_counter() - t) * 1000)
-            r.raise_for_status()
-        t = time.perf_counter()
-        for _ in range(n_batches):
-            c.post(
-                f"{base}/v1/imu/windows", content=body_batch, headers={"content-type": "application/json"}
-            ).raise_for_status()
-        elapsed = time.perf_counter() - t
+def _bodies(x: np.ndarray) -> dict[str, tuple[str, bytes, str]]:
+    """The same windows as a JSON body and as a raw float32 body: (path, body, content type)."""
+    as_json = json.dumps({"windows": [{"samples": w.tolist()} for w in x]}).encode()
     return {
-        "single_window_post_ms_p50": _pct(lat, 50),
-        "single_window_post_ms_p99": _pct(lat, 99),
-        "batched_windows_per_s": batch * n_batches / elapsed,
-        "batch_size": batch,
+        "json": ("/v1/imu/windows", as_json, "application/json"),
+        "binary": ("/v1/imu/windows/binary", x.astype("<f4").tobytes(), "application/octet-stream"),
     }
+
+
+def _post_rate(c: httpx.Client, url: str, body: bytes, ctype: str, windows: int, n: int) -> float:
+    c.post(url, content=body, headers={"content-type": ctype}).raise_for_status()
+    t = time.perf_counter()
+    for _ in range(n):
+        c.post(url, content=body, headers={"content-type": ctype}).raise_for_status()
+    return windows * n / (time.perf_counter() - t)
+
+
+def bench_rest(base: str, n_single: int, batch: int, n_batches: int) -> dict:
+    out: dict = {"batch_size": batch, "client": "httpx, one connection, one request at a time"}
+    with httpx.Client(timeout=60) as c:
+        for fmt, (path, body, ctype) in _bodies(_windows(1)).items():
+            for _ in range(20):
+                c.post(base + path, content=body, headers={"content-type": ctype}).raise_for_status()
+            lat = []
+            for _ in range(n_single):
+                t = time.perf_counter()
+                c.post(base + path, content=body, headers={"content-type": ctype}).raise_for_status()
+                lat.append((time.perf_counter() - t) * 1000)
+            out[f"single_window_{fmt}_post_ms_p50"] = _pct(lat, 50)
+            out[f"single_window_{fmt}_post_ms_p99"] = _pct(lat, 99)
+        for fmt, (path, body, ctype) in _bodies(_windows(batch)).items():
+            out[f"batched_{fmt}_windows_per_s"] = _post_rate(c, base + path, body, ctype, batch, n_batches)
+    return out
 
 
 async def _one_stream(
@@ -91,6 +106,8 @@ async def _stream_body(url: str, seconds: float, lat_ms: list[float], sent: list
 
         async def receive() -> None:
             async for raw in ws:
+                if not raw.startswith('{"type": "result"'):  # the client's CPU is this machine's too
+                    continue
                 m = json.loads(raw)
                 if m["type"] == "result":
                     t_sent = pending.pop(round(m["window_end_s"], 4), None)
@@ -100,13 +117,13 @@ async def _stream_body(url: str, seconds: float, lat_ms: list[float], sent: list
         rx = asyncio.create_task(receive())
         await asyncio.sleep(max(0.0, start_at - time.perf_counter()))
         t0 = time.perf_counter()
-        for first in range(0, len(samples), 16):
-            due = t0 + (first + 16) / 60.0
+        for first in range(0, len(samples), PACKET_SAMPLES):
+            due = t0 + (first + PACKET_SAMPLES) / 60.0
             await asyncio.sleep(max(0.0, due - time.perf_counter()))
-            end = first + 15
-            if end >= 127 and (end - 127) % 16 == 0:
+            end = first + PACKET_SAMPLES - 1  # index of the packet's last sample
+            if end >= WINDOW_SAMPLES - 1 and (end - WINDOW_SAMPLES + 1) % HOP_SAMPLES == 0:
                 pending[round(end / 60.0, 4)] = time.perf_counter()
-            await ws.send(encode_binary(0, first, samples[first : first + 16]))
+            await ws.send(encode_binary(0, first, samples[first : first + PACKET_SAMPLES]))
         await ws.send(json.dumps({"type": "stop"}))
         sent.append(len(samples))
         await rx
@@ -120,7 +137,9 @@ async def bench_streams(base: str, n: int, seconds: float) -> dict:
     before = _samples_metric(base)
     start_at = time.perf_counter() + 2.0 + n * 0.005
     t = time.perf_counter()
-    await asyncio.gather(*[_one_stream(url, seconds, lat, sent, start_at + k * 0.001, failures) for k in range(n)])
+    # Independent sensors: packet phases spread evenly over one packet period (16 samples at 60 Hz).
+    phase = PACKET_SAMPLES / 60.0 / n
+    await asyncio.gather(*[_one_stream(url, seconds, lat, sent, start_at + k * phase, failures) for k in range(n)])
     wall = time.perf_counter() - t
     received = _samples_metric(base) - before
     return {
@@ -146,34 +165,39 @@ def _samples_metric(base: str) -> float:
     return 0.0
 
 
-def bench_vs_mlflow(assignment_dir: Path, batch: int, n_batches: int) -> dict:
-    """Same ONNX file, same batches: our /v1/imu/windows (assignment only) vs mlflow /invocations."""
-    manifest = read_manifest(assignment_dir / "manifest.json")
+def bench_vs_mlflow(model_dir: Path, batch: int, n_batches: int) -> dict:
+    """One ONNX file behind our service (assignment only) and behind ``mlflow models serve``, same windows.
+
+    MLflow's scoring server takes JSON (or CSV) only, so it gets ``{"inputs": ...}``; ours is measured with
+    its JSON body and with its raw float32 body.
+    """
+    manifest = read_manifest(model_dir / "manifest.json")
     with tempfile.TemporaryDirectory() as tmp:
-        only = Path(tmp) / "models" / manifest.name / manifest.version
-        shutil.copytree(assignment_dir, only)
-        mlflow.set_tracking_uri(f"sqlite:///{REPO / 'mlflow.db'}")
-        model_dir = Path(mlflow.artifacts.download_artifacts(manifest.mlflow["model_uri"], dst_path=tmp))
+        ours_root = Path(tmp) / "models"
+        shutil.copytree(model_dir, ours_root / manifest.name / manifest.version)
+        mlflow_dir = Path(tmp) / "mlflow_model"
         x = _windows(batch)
-        ours_body = json.dumps({"windows": [{"samples": w.tolist()} for w in x]})
-        theirs_body = json.dumps({"inputs": x.tolist()})
-        out = {}
-        for name, (proc, base), path, body in (
-            ("ours", start_service(Path(tmp) / "models"), "/v1/imu/windows", ours_body),
-            ("mlflow_models_serve", start_mlflow_serve(model_dir), "/invocations", theirs_body),
-        ):
-            try:
-                with httpx.Client(timeout=120) as c:
-                    headers = {"content-type": "application/json"}
-                    c.post(base + path, content=body, headers=headers).raise_for_status()
-                    t = time.perf_counter()
-                    for _ in range(n_batches):
-                        c.post(base + path, content=body, headers=headers).raise_for_status()
-                    out[f"{name}_windows_per_s"] = batch * n_batches / (time.perf_counter() - t)
-            finally:
-                stop(proc)
-    out["ratio_ours_over_mlflow"] = out["ours_windows_per_s"] / out["mlflow_models_serve_windows_per_s"]
-    out["batch_size"] = batch
+        mlflow.onnx.save_model(onnx.load(str(model_dir / "model.onnx")), str(mlflow_dir), input_example=x[:1])
+        out: dict = {"model": str(model_dir.relative_to(REPO)), "batch_size": batch}
+        proc, base = start_service(ours_root)
+        try:
+            with httpx.Client(timeout=120) as c:
+                for fmt, (path, body, ctype) in _bodies(x).items():
+                    out[f"ours_{fmt}_windows_per_s"] = _post_rate(c, base + path, body, ctype, batch, n_batches)
+        finally:
+            stop(proc)
+        proc, base = start_mlflow_serve(mlflow_dir)
+        try:
+            with httpx.Client(timeout=120) as c:
+                body = json.dumps({"inputs": x.tolist()}).encode()
+                out["mlflow_models_serve_json_windows_per_s"] = _post_rate(
+                    c, base + "/invocations", body, "application/json", batch, n_batches
+                )
+        finally:
+            stop(proc)
+    theirs = out["mlflow_models_serve_json_windows_per_s"]
+    out["ratio_ours_json_over_mlflow"] = out["ours_json_windows_per_s"] / theirs
+    out["ratio_ours_binary_over_mlflow"] = out["ours_binary_windows_per_s"] / theirs
     return out
 
 
@@ -204,7 +228,9 @@ def main() -> None:
             print(json.dumps(result["streams"][-1], indent=2))
     finally:
         stop(proc)
-    result["vs_mlflow"] = bench_vs_mlflow(_latest(models / "i2s_assignment"), args.batch, args.batches)
+    result["vs_mlflow"] = [
+        bench_vs_mlflow(d, args.batch, args.batches) for d in sorted((models / "i2s_assignment").glob("*/"))
+    ]
     print(json.dumps(result["vs_mlflow"], indent=2))
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "service.json").write_text(json.dumps(result, indent=2) + "\n")

@@ -33,7 +33,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             log.error("no valid model under %s", settings.models_dir.resolve())
         runner = ModelRunner(app.state.models, settings.inference_threads, settings.inference_chunk_windows)
         app.state.batcher = MicroBatcher(
-            runner,
+            runner.run_async,
             settings.batch_max_windows,
             settings.batch_max_wait_ms,
             app.state.metrics.observe_batch,

@@ -20,6 +20,12 @@ class ServiceMetrics:
         self.inference = Histogram(
             "wearmocap_inference_seconds", "onnxruntime time per micro-batch", registry=self.registry
         )
+        self.stream_result = Histogram(
+            "wearmocap_stream_result_seconds",
+            "stream packet received -> its window results queued for sending",
+            buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5),
+            registry=self.registry,
+        )
         self.open_streams = Gauge("wearmocap_open_streams", "open WebSocket sessions", registry=self.registry)
         self.samples = Counter(
             "wearmocap_stream_samples_total", "sensor samples received on streams", registry=self.registry

@@ -6,6 +6,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from pydantic import BaseModel
 
 from service.api.schemas import (
     AccUnit,
@@ -67,6 +68,11 @@ async def _infer(request: Request, imu: np.ndarray) -> tuple[np.ndarray, np.ndar
     return probs, quats, versions
 
 
+def _json(body: BaseModel) -> Response:
+    """Serialise a response model once, with pydantic's serializer (FastAPI would validate it again first)."""
+    return Response(body.model_dump_json(), media_type="application/json")
+
+
 def _window_results(
     imu: np.ndarray, probs: np.ndarray, quats: np.ndarray | None, segments: list[int | None]
 ) -> list[WindowResult]:
@@ -82,12 +88,12 @@ def _window_results(
 )
 async def classify_windows(
     body: WindowsRequest, request: Request, settings: Settings = Depends(get_settings)
-) -> WindowsResponse:
+) -> Response:
     _check_count(len(body.windows), settings)
     imu = _inputs(body.windows, "windows")
     probs, quats, versions = await _infer(request, imu)
     segments = [segment_index(w.segment) if w.segment else None for w in body.windows]
-    return WindowsResponse(results=_window_results(imu, probs, quats, segments), model_versions=versions)
+    return _json(WindowsResponse(results=_window_results(imu, probs, quats, segments), model_versions=versions))
 
 
 BINARY_BODY = (
@@ -118,7 +124,7 @@ async def classify_windows_binary(
     samples_per_window: int = Query(128, ge=1, le=65536, description="128 at 60 Hz; more at higher rates"),
     segment: SegmentName | None = Query(None, description="known segment of every window: alignment given for it"),
     settings: Settings = Depends(get_settings),
-) -> WindowsResponse:
+) -> Response:
     body = await request.body()
     per_window = samples_per_window * 6 * 4
     if not body or len(body) % per_window:
@@ -132,7 +138,7 @@ async def classify_windows_binary(
     imu = windows_to_model_input(raw.astype(np.float64), sample_rate_hz, acc_unit, gyr_unit, "window {i}")
     probs, quats, versions = await _infer(request, imu)
     segments = [segment_index(segment) if segment else None] * len(imu)
-    return WindowsResponse(results=_window_results(imu, probs, quats, segments), model_versions=versions)
+    return _json(WindowsResponse(results=_window_results(imu, probs, quats, segments), model_versions=versions))
 
 
 @router.post(
@@ -141,9 +147,7 @@ async def classify_windows_binary(
     tags=["imu"],
     summary="Joint one-to-one assignment of simultaneously worn sensors to segments",
 )
-async def assign_sensors(
-    body: AssignRequest, request: Request, settings: Settings = Depends(get_settings)
-) -> AssignResponse:
+async def assign_sensors(body: AssignRequest, request: Request, settings: Settings = Depends(get_settings)) -> Response:
     ids = [s.sensor_id for s in body.sensors]
     if len(set(ids)) != len(ids):
         raise HTTPException(422, f"sensor_id values must be unique, got {ids}")
@@ -177,7 +181,7 @@ async def assign_sensors(
                 alignment=alignment,
             )
         )
-    return AssignResponse(sensors=out, model_versions=versions)
+    return _json(AssignResponse(sensors=out, model_versions=versions))
 
 
 @router.get("/v1/models", tags=["ops"], summary="Loaded models with their manifests")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import time
 from collections import deque
 
 import numpy as np
@@ -96,6 +97,7 @@ async def _handle_packet(
     ws: WebSocket, session: Session, k: int, seq: int, samples: np.ndarray, outbox: Outbox
 ) -> None:
     app = ws.app
+    received = time.perf_counter()
     stream = session.streams[k]
     pushed = stream.push(seq, samples)
     app.state.metrics.samples.inc(len(samples))
@@ -110,7 +112,7 @@ async def _handle_packet(
     if not pushed.windows:
         return
     imu = np.stack(pushed.windows)
-    probs, quats = await app.state.batcher.infer(imu)
+    probs, quats = await app.state.batcher.infer(imu, app.state.settings.stream_batch_wait_ms)
     moving = is_moving(imu)
     for i, result in enumerate(window_results(probs, quats, moving)):
         message = {"type": "result", "sensor_id": stream.sensor_id, "window_end_s": round(pushed.window_end_s[i], 6)}
@@ -121,6 +123,7 @@ async def _handle_packet(
         if outbox.put(message):
             app.state.metrics.dropped.inc()
     outbox.put(session.assignment_message(outbox.dropped))
+    app.state.metrics.stream_result.observe(time.perf_counter() - received)
 
 
 def _parse_text(text: str) -> dict:

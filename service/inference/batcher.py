@@ -1,28 +1,30 @@
 """Micro-batching: concurrent requests and streams share onnxruntime calls.
 
 Callers ``await batcher.infer(windows)``; a single worker task takes every window already queued (up
-to ``max_batch``), runs the models in a worker thread (never on the event loop) and hands each caller
+to ``max_batch``), runs the models in ``run``'s worker threads (never on the event loop) and hands each caller
 its rows. It does not wait for company by default (``max_wait_ms`` = 0): a lone request runs at once,
 and whatever arrives while a batch runs forms the next batch, so batches grow with load by themselves.
-A positive ``max_wait_ms`` additionally waits that long after the first window for more.
+A positive wait (the batcher's default, or per call: streams pass a longer one) keeps a batch open for
+more windows until the deadline of its most impatient caller: larger batches cost less CPU per window.
 """
 
 from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-RunModels = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]
+RunModels = Callable[[np.ndarray], Awaitable[tuple[np.ndarray, np.ndarray | None]]]
 
 
 @dataclass
 class _Pending:
     imu: np.ndarray
     future: asyncio.Future
+    deadline: float  # monotonic time by which this caller's windows must be running
 
 
 class MicroBatcher:
@@ -45,36 +47,39 @@ class MicroBatcher:
             except asyncio.CancelledError:
                 pass
 
-    async def infer(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    async def infer(self, imu: np.ndarray, max_wait_ms: float | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """Rows of the models' outputs for ``imu``; ``max_wait_ms`` overrides the batcher's wait for company
+        (streams, whose next window is 16 samples away, can wait longer than a request that someone awaits)."""
+        wait_s = self.max_wait_s if max_wait_ms is None else max_wait_ms / 1000.0
         future: asyncio.Future = asyncio.get_running_loop().create_future()
-        await self.queue.put(_Pending(imu, future))
+        await self.queue.put(_Pending(imu, future, time.monotonic() + wait_s))
         return await future
 
     async def _worker(self) -> None:
         while True:
             batch = [await self.queue.get()]
-            size = len(batch[0].imu)
-            while size < self.max_batch and not self.queue.empty():
-                batch.append(self.queue.get_nowait())
-                size += len(batch[-1].imu)
-            deadline = time.monotonic() + self.max_wait_s
-            while size < self.max_batch and self.max_wait_s > 0:
-                timeout = deadline - time.monotonic()
-                if timeout <= 0:
-                    break
-                try:
-                    item = await asyncio.wait_for(self.queue.get(), timeout)
-                except TimeoutError:
-                    break
+            size, deadline = len(batch[0].imu), batch[0].deadline
+            while size < self.max_batch:
+                # Take what is queued at once; then wait only until the most impatient caller's deadline.
+                if self.queue.empty():
+                    timeout = deadline - time.monotonic()
+                    if timeout <= 0:
+                        break
+                    try:
+                        item = await asyncio.wait_for(self.queue.get(), timeout)
+                    except TimeoutError:
+                        break
+                else:
+                    item = self.queue.get_nowait()
                 batch.append(item)
-                size += len(item.imu)
+                size, deadline = size + len(item.imu), min(deadline, item.deadline)
             await self._run(batch)
 
     async def _run(self, batch: list[_Pending]) -> None:
         imu = np.concatenate([p.imu for p in batch])
         start = time.perf_counter()
         try:
-            probs, quats = await asyncio.to_thread(self.run, imu)
+            probs, quats = await self.run(imu)
         except Exception as exc:  # a model failure reaches every waiting caller
             for p in batch:
                 if not p.future.done():

@@ -9,7 +9,8 @@ onnxruntime sessions are safe to call from several threads at once.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+import asyncio
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
@@ -23,12 +24,22 @@ class ModelRunner:
         self.models, self.chunk = models, chunk
         self.pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="onnxruntime")
 
-    def __call__(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """``(B, 128, 6)`` → probabilities ``(B, 7)`` and, if an alignment model is loaded, ``(B, 7, 4)``."""
+    def _submit(self, imu: np.ndarray) -> dict[str, list[Future]]:
         tasks = [ASSIGNMENT] + ([ALIGNMENT] if ALIGNMENT in self.models else [])
         chunks = [imu[i : i + self.chunk] for i in range(0, len(imu), self.chunk)]
-        futures = {task: [self.pool.submit(self.models[task].run, c) for c in chunks] for task in tasks}
-        out = {task: np.concatenate([f.result() for f in fs]) for task, fs in futures.items()}
+        return {task: [self.pool.submit(self.models[task].run, c) for c in chunks] for task in tasks}
+
+    def __call__(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(B, 128, 6)`` → probabilities ``(B, 7)`` and, if an alignment model is loaded, ``(B, 7, 4)``."""
+        out = {task: np.concatenate([f.result() for f in fs]) for task, fs in self._submit(imu).items()}
+        return out[ASSIGNMENT], out.get(ALIGNMENT)
+
+    async def run_async(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The same without blocking the event loop: it awaits the pool's futures directly."""
+        out = {}
+        for task, futures in self._submit(imu).items():
+            parts = await asyncio.gather(*(asyncio.wrap_future(f) for f in futures))
+            out[task] = np.concatenate(parts)
         return out[ASSIGNMENT], out.get(ALIGNMENT)
 
     def close(self) -> None:

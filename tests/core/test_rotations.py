@@ -31,6 +31,14 @@ def test_matrix_round_trip_keeps_w_nonnegative(v: list[float]) -> None:
     np.testing.assert_allclose(back, q, atol=1e-9)
 
 
+@given(unit)
+def test_matrix_closed_form_equals_scipy(v: list[float]) -> None:
+    q = np.array(v) * 3.0  # not normalised on purpose
+    expected = Rotation.from_quat(q, scalar_first=True).as_matrix()
+    np.testing.assert_allclose(matrix_from_quat(q), expected, atol=1e-12)
+    np.testing.assert_allclose(matrix_from_quat(np.stack([q, -q])[None]), np.stack([expected] * 2)[None], atol=1e-12)
+
+
 def test_stereographic_of_identity_is_zero() -> None:
     np.testing.assert_allclose(quat_to_stereographic(np.array([1.0, 0, 0, 0])), 0.0)
 
