@@ -134,14 +134,15 @@ async def bench_streams(base: str, n: int, seconds: float) -> dict:
     lat: list[float] = []
     sent: list[int] = []
     failures: list[str] = []
-    before = _samples_metric(base)
+    before = _server_metrics(base)
     start_at = time.perf_counter() + 2.0 + n * 0.005
     t = time.perf_counter()
     # Independent sensors: packet phases spread evenly over one packet period (16 samples at 60 Hz).
     phase = PACKET_SAMPLES / 60.0 / n
     await asyncio.gather(*[_one_stream(url, seconds, lat, sent, start_at + k * phase, failures) for k in range(n)])
     wall = time.perf_counter() - t
-    received = _samples_metric(base) - before
+    server = {k: v - before.get(k, 0.0) for k, v in _server_metrics(base).items()}
+    received = server["wearmocap_stream_samples_total"]
     return {
         "streams": n,
         "streams_failed": len(failures),
@@ -154,15 +155,49 @@ async def bench_streams(base: str, n: int, seconds: float) -> dict:
         "result_latency_ms_p50": _pct(lat, 50),
         "result_latency_ms_p99": _pct(lat, 99),
         "results_with_latency": len(lat),
+        "server_mean_packet_to_result_ms": 1000
+        * server["wearmocap_stream_result_seconds_sum"]
+        / max(server["wearmocap_stream_result_seconds_count"], 1),
+        "server_mean_batch_windows": server["wearmocap_inference_batch_windows_sum"]
+        / max(server["wearmocap_inference_batch_windows_count"], 1),
+        "server_inference_busy_fraction": server["wearmocap_inference_seconds_sum"] / wall,
         "wall_s": wall,
     }
 
 
-def _samples_metric(base: str) -> float:
+def summarize_streams(runs: list[dict]) -> dict:
+    """Repeated runs of one stream count: this machine's timing noise is large, so every run is kept."""
+    p99 = [r["result_latency_ms_p99"] for r in runs]
+    lost = [r["samples_lost_in_completed_streams"] for r in runs]
+    return {
+        "streams": runs[0]["streams"],
+        "runs": len(runs),
+        "samples_lost_per_run": lost,
+        "streams_failed_per_run": [r["streams_failed"] for r in runs],
+        "result_latency_ms_p50_per_run": [r["result_latency_ms_p50"] for r in runs],
+        "result_latency_ms_p99_per_run": p99,
+        "result_latency_ms_p99_median_of_runs": float(np.median(p99)),
+        "details": runs,
+    }
+
+
+SERVER_METRICS = (
+    "wearmocap_stream_samples_total",
+    "wearmocap_stream_result_seconds_sum",
+    "wearmocap_stream_result_seconds_count",
+    "wearmocap_inference_batch_windows_sum",
+    "wearmocap_inference_batch_windows_count",
+    "wearmocap_inference_seconds_sum",
+)
+
+
+def _server_metrics(base: str) -> dict[str, float]:
+    values = {}
     for line in httpx.get(f"{base}/metrics").text.splitlines():
-        if line.startswith("wearmocap_stream_samples_total "):
-            return float(line.split()[1])
-    return 0.0
+        name, _, value = line.partition(" ")
+        if name in SERVER_METRICS:
+            values[name] = float(value)
+    return values
 
 
 def bench_vs_mlflow(model_dir: Path, batch: int, n_batches: int) -> dict:
@@ -205,6 +240,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--streams", type=int, nargs="+", default=[50, 100, 200])
     parser.add_argument("--stream-seconds", type=float, default=20.0)
+    parser.add_argument("--repeats", type=int, default=3, help="runs per stream count")
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--batches", type=int, default=20)
     parser.add_argument("--single", type=int, default=300)
@@ -212,7 +248,8 @@ def main() -> None:
     models = REPO / "onnx_models"
     result: dict = {
         "command": "python -m benchmarks.bench_service "
-        f"--streams {' '.join(map(str, args.streams))} --stream-seconds {args.stream_seconds} --batch {args.batch}",
+        f"--streams {' '.join(map(str, args.streams))} --stream-seconds {args.stream_seconds} "
+        f"--repeats {args.repeats} --batch {args.batch}",
         "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
         "models": {
             p.parent.name: p.name for p in (_latest(models / "i2s_assignment"), _latest(models / "i2s_alignment"))
@@ -224,8 +261,11 @@ def main() -> None:
         print(json.dumps(result["rest"], indent=2))
         result["streams"] = []
         for n in args.streams:
-            result["streams"].append(asyncio.run(bench_streams(base, n, args.stream_seconds)))
-            print(json.dumps(result["streams"][-1], indent=2))
+            runs = []
+            for _ in range(args.repeats):
+                runs.append(asyncio.run(bench_streams(base, n, args.stream_seconds)))
+                print(json.dumps({k: v for k, v in runs[-1].items() if k != "failures"}))
+            result["streams"].append(summarize_streams(runs))
     finally:
         stop(proc)
     result["vs_mlflow"] = [

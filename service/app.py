@@ -16,7 +16,7 @@ from service.api.stream import router as stream_router
 from service.core.units import UnitError
 from service.inference.batcher import MicroBatcher
 from service.inference.predict import InputError
-from service.inference.registry import load_models
+from service.inference.registry import load_models, load_registry_models
 from service.inference.runner import ModelRunner
 from service.settings import Settings, get_settings
 
@@ -29,6 +29,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.models = load_models(settings.models_dir, threads=1)
+        uris = [u.strip() for u in settings.registry_models.split(",") if u.strip()]
+        for task, model in load_registry_models(
+            settings.mlflow_tracking_uri, uris, settings.registry_cache_dir, threads=1
+        ).items():
+            if task in app.state.models:
+                log.info("registry model %s replaces %s for %s", model.source, app.state.models[task].source, task)
+            app.state.models[task] = model
         if not app.state.models:
             log.error("no valid model under %s", settings.models_dir.resolve())
         runner = ModelRunner(app.state.models, settings.inference_threads, settings.inference_chunk_windows)

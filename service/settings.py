@@ -34,6 +34,13 @@ class Settings(BaseSettings):
     )
     stream_queue_limit: int = Field(1024, ge=8, description="outgoing messages queued per WebSocket")
     stream_max_samples_per_packet: int = Field(4096, ge=1)
+    mlflow_tracking_uri: str | None = Field(None, description="MLflow tracking server (http/https) for registry models")
+    registry_models: str = Field(
+        "",
+        description="comma-separated models:/<name>@<alias> or models:/<name>/<version>; each replaces the "
+        "local model of its task",
+    )
+    registry_cache_dir: Path = Field(Path(".cache/registry_models"), description="where registry models are stored")
     api_key: str | None = Field(None, description="if set, requests must send it in the X-API-Key header")
 
 

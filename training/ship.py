@@ -46,26 +46,19 @@ def _output_spec(task: str) -> tuple[TensorSpec, str]:
     ), "quaternion_per_segment"
 
 
-def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
-    """Write ``out_root/<name>/<version>/{model.onnx, manifest.json, golden.npz}`` from an MLflow run."""
-    client = MlflowClient()
-    run = client.get_run(run_id)
-    cfg = ExperimentConfig.model_validate(load_run_config(run_id))
-    version = version or dt.datetime.fromtimestamp(run.info.start_time / 1000, dt.UTC).strftime("%Y.%m.%d-%H%M%S")
-    target = out_root / cfg.name / version
-    target.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        model_dir = Path(mlflow.artifacts.download_artifacts(run.data.tags["model_uri"], dst_path=tmp))
-        # One self-contained file, also for models MLflow stored with external weight data.
-        onnx.save_model(
-            onnx.load(str(next(model_dir.rglob("*.onnx")))), str(target / "model.onnx"), save_as_external_data=False
-        )
-        golden = Path(mlflow.artifacts.download_artifacts(f"runs:/{run_id}/export/golden.npz", dst_path=tmp))
-        shutil.copy(golden, target / "golden.npz")
-    with np.load(target / "golden.npz") as z:
-        parity = onnx_parity(target / "model.onnx", dict(z))
+def run_version(run: mlflow.entities.Run) -> str:
+    """The default model version of a run: its start time in UTC."""
+    return dt.datetime.fromtimestamp(run.info.start_time / 1000, dt.UTC).strftime("%Y.%m.%d-%H%M%S")
+
+
+def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str, version: str) -> Manifest:
+    """The manifest of a run's ONNX model (DESIGN.md §1): written beside shipped files by ``export_run`` and
+    embedded in the logged MLflow model's metadata by ``training.pipeline`` (for registry serving)."""
     output, kind = _output_spec(cfg.task)
-    manifest = Manifest(
+    mlflow_info = {"run_id": run.info.run_id, "experiment_id": run.info.experiment_id}
+    if "model_uri" in run.data.tags:
+        mlflow_info["model_uri"] = run.data.tags["model_uri"]
+    return Manifest(
         name=cfg.name,
         task=TASKS[cfg.task],
         version=version,  # type: ignore[arg-type]
@@ -90,7 +83,7 @@ def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
         quaternion_convention="Hamilton, scalar first (w, x, y, z), unit, w >= 0; v_segment = R(q) v_imu"
         if cfg.task == "alignment"
         else None,
-        sha256=sha256_file(target / "model.onnx"),
+        sha256=sha256,
         training_data={
             "activities": cfg.data.activities,
             "test_subjects": cfg.data.test_subjects,
@@ -101,10 +94,30 @@ def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
             "train_wall_time_s": run.data.metrics.get("train_wall_time_s"),
             "best_epoch": run.data.metrics.get("best_epoch"),
         },
-        mlflow={"run_id": run_id, "model_uri": run.data.tags["model_uri"], "experiment_id": run.info.experiment_id},
+        mlflow=mlflow_info,
         exporter={"torch": torch.__version__, "onnx": onnx.__version__, "opset": OPSET, "exporter": "torchscript"},
         parity_atol=PARITY_ATOL,
     )
+
+
+def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
+    """Write ``out_root/<name>/<version>/{model.onnx, manifest.json, golden.npz}`` from an MLflow run."""
+    run = MlflowClient().get_run(run_id)
+    cfg = ExperimentConfig.model_validate(load_run_config(run_id))
+    version = version or run_version(run)
+    target = out_root / cfg.name / version
+    target.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        model_dir = Path(mlflow.artifacts.download_artifacts(run.data.tags["model_uri"], dst_path=tmp))
+        # One self-contained file, also for models MLflow stored with external weight data.
+        onnx.save_model(
+            onnx.load(str(next(model_dir.rglob("*.onnx")))), str(target / "model.onnx"), save_as_external_data=False
+        )
+        golden = Path(mlflow.artifacts.download_artifacts(f"runs:/{run_id}/export/golden.npz", dst_path=tmp))
+        shutil.copy(golden, target / "golden.npz")
+    with np.load(target / "golden.npz") as z:
+        parity = onnx_parity(target / "model.onnx", dict(z))
+    manifest = build_manifest(cfg, run, sha256_file(target / "model.onnx"), version)
     write_manifest(manifest, target / "manifest.json")
     log.info("shipped %s (parity %.2e) to %s", cfg.name, parity, target)
     return target

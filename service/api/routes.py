@@ -186,7 +186,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
 
 @router.get("/v1/models", tags=["ops"], summary="Loaded models with their manifests")
 async def list_models(request: Request) -> dict:
-    return {task: m.manifest.model_dump() for task, m in _models(request).items()}
+    return {task: {**m.manifest.model_dump(), "source": m.source} for task, m in _models(request).items()}
 
 
 @router.get("/health", tags=["ops"], summary="Liveness")

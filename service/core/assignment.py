@@ -43,13 +43,13 @@ def joint_assignment(log_probs: list[np.ndarray], allow_shared: bool = False) ->
         rows, cols = linear_sum_assignment(evidence, maximize=True)
         segment = np.full(n_sensors, -1)
         segment[rows] = cols
-    shifted = evidence - evidence.max(axis=1, keepdims=True)
-    post = np.exp(shifted) / np.exp(shifted).sum(axis=1, keepdims=True)
+    post = np.exp(evidence - evidence.max(axis=1, keepdims=True))
+    post /= post.sum(axis=1, keepdims=True)
     confidence = np.where(segment >= 0, post[np.arange(n_sensors), np.maximum(segment, 0)], 0.0)
-    margin = np.zeros(n_sensors)
-    for s in range(n_sensors):
-        if segment[s] < 0:
-            continue
-        others = np.delete(evidence[s], segment[s])
-        margin[s] = evidence[s, segment[s]] - others.max() if n_classes > 1 else np.inf
+    rows = np.arange(n_sensors)
+    chosen = np.maximum(segment, 0)
+    others = evidence.copy()
+    others[rows, chosen] = -np.inf
+    margin = evidence[rows, chosen] - others.max(axis=1) if n_classes > 1 else np.full(n_sensors, np.inf)
+    margin = np.where(segment >= 0, margin, 0.0)
     return JointAssignment(segment, evidence, confidence, margin)

@@ -9,6 +9,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 MANIFEST_SCHEMA_VERSION = 1
+# Key of the manifest inside a logged MLflow model's MLmodel metadata (models served from the registry).
+MLMODEL_METADATA_KEY = "wearmocap_manifest"
 
 
 class TensorSpec(BaseModel):

@@ -31,20 +31,38 @@ def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     return canonical_quat(flat.reshape(R.shape[:-2] + (4,)))
 
 
+def _quadratic_forms() -> np.ndarray:
+    """``A[i, j]`` with R_ij = qᵀ A_ij q / qᵀq for q = (w, x, y, z): the rotation matrix of any non-zero q."""
+    terms = {
+        (0, 0): [(0, 0, 1), (1, 1, 1), (2, 2, -1), (3, 3, -1)],
+        (0, 1): [(1, 2, 2), (0, 3, -2)],
+        (0, 2): [(1, 3, 2), (0, 2, 2)],
+        (1, 0): [(1, 2, 2), (0, 3, 2)],
+        (1, 1): [(0, 0, 1), (1, 1, -1), (2, 2, 1), (3, 3, -1)],
+        (1, 2): [(2, 3, 2), (0, 1, -2)],
+        (2, 0): [(1, 3, 2), (0, 2, -2)],
+        (2, 1): [(2, 3, 2), (0, 1, 2)],
+        (2, 2): [(0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, 1)],
+    }
+    A = np.zeros((3, 3, 4, 4))
+    for (i, j), entries in terms.items():
+        for a, b, c in entries:
+            A[i, j, a, b] = c
+    return A
+
+
+_A = _quadratic_forms()
+
+
 def matrix_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
     """Quaternions ``(..., 4)`` (w, x, y, z) to rotation matrices ``(..., 3, 3)``.
 
-    The closed form of the normalised quaternion (tested equal to scipy's ``Rotation``): it is on the
-    per-window path of the service, where scipy's per-call overhead dominates for a few quaternions.
+    A closed form (tested equal to scipy's ``Rotation``) in three numpy calls: it is on the service's
+    per-window path, where scipy's per-call overhead dominates for a few quaternions.
     """
     q = np.asarray(q_wxyz, dtype=np.float64)
-    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+    outer = q[..., :, None] * q[..., None, :]
+    return np.tensordot(outer, _A, axes=([-2, -1], [2, 3])) / (q * q).sum(axis=-1)[..., None, None]
 
 
 def stereographic_to_quat(p: np.ndarray) -> np.ndarray:

@@ -29,6 +29,7 @@ class LoadedModel:
     manifest: Manifest
     session: ort.InferenceSession
     path: Path
+    source: str = ""  # the directory, or the registry URI and version it was fetched from
 
     def run(self, imu: np.ndarray) -> np.ndarray:
         """``(B, 128, 6)`` float32 → the manifest's single output."""
@@ -64,7 +65,7 @@ def load_model(model_dir: Path, threads: int) -> LoadedModel:
     options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     session = ort.InferenceSession(str(onnx_path), options, providers=["CPUExecutionProvider"])
     _check_shapes(manifest, session)
-    return LoadedModel(manifest, session, model_dir)
+    return LoadedModel(manifest, session, model_dir, str(model_dir))
 
 
 def version_key(version: str) -> tuple[int, ...]:
@@ -84,4 +85,26 @@ def load_models(root: Path, threads: int) -> dict[str, LoadedModel]:
         if task not in models or version_key(model.manifest.version) > version_key(models[task].manifest.version):
             models[task] = model
         log.info("loaded %s %s (%s)", model.manifest.name, model.manifest.version, task)
+    return models
+
+
+def load_registry_models(
+    tracking_uri: str | None, model_uris: list[str], cache_dir: Path, threads: int
+) -> dict[str, LoadedModel]:
+    """Models named by MLflow registry URIs, keyed by task; each failure is logged and skipped."""
+    from service.inference.mlflow_registry import fetch_registry_model
+
+    models: dict[str, LoadedModel] = {}
+    for uri in model_uris:
+        try:
+            if not tracking_uri:
+                raise ValueError("set WEARMOCAP_MLFLOW_TRACKING_URI to the tracking server that holds the registry")
+            model_dir = fetch_registry_model(tracking_uri, uri, cache_dir)
+            model = load_model(model_dir, threads)
+        except Exception as exc:  # a registry problem must not stop the service from serving the others
+            log.error("refusing registry model %s: %s", uri, exc)
+            continue
+        model.source = f"{uri} (version {model_dir.name}) at {tracking_uri}"
+        models[model.manifest.task] = model
+        log.info("loaded %s from the registry (%s)", model.manifest.name, model.source)
     return models

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import httpx
 import mlflow
 import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
 
-from benchmarks.servers import start_mlflow_server, stop
+from benchmarks.servers import start_mlflow_server, start_service, stop
 from service.core.manifest import read_manifest, write_manifest
-from service.inference.registry import load_models
+from service.core.segments import SEGMENTS
+from service.inference.registry import load_models, load_registry_models
 from training.config import load_config
 from training.pipeline import run_training
 from training.ship import export_run
@@ -62,6 +64,26 @@ def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
     acc2 = client.get_run(run2).data.metrics["test_accuracy"]
     now = client.get_model_version_by_alias(cfg.registered_model, "champion").run_id
     assert now == (run2 if acc2 > acc1 else run_id)
+
+    # The service (a real uvicorn process) serves the champion straight from the registry, without mlflow.
+    champion = client.get_model_version_by_alias(cfg.registered_model, "champion")
+    proc, base = start_service(
+        tmp_path / "no_local_models",
+        mlflow_tracking_uri=mlflow_server,
+        registry_models=f"models:/{cfg.registered_model}@champion",
+        registry_cache_dir=str(tmp_path / "registry_cache"),
+    )
+    try:
+        served = httpx.get(f"{base}/v1/models").json()["i2s_assignment"]
+        assert f"@champion (version {champion.version})" in served["source"]
+        assert served["mlflow"]["run_id"] == champion.run_id
+        window = {"samples": np.tile([0.0, 0.0, 9.81, 0.5, 0.0, 0.0], (128, 1)).tolist()}
+        r = httpx.post(f"{base}/v1/imu/windows", json={"windows": [window]})
+        assert r.status_code == 200 and r.json()["results"][0]["segment"] in SEGMENTS
+    finally:
+        stop(proc)
+    missing = load_registry_models(mlflow_server, [f"models:/{cfg.registered_model}@nope"], tmp_path / "c", 1)
+    assert missing == {}
 
     # Export to an onnx_models tree; the service loads it and refuses a tampered copy.
     shipped = export_run(run_id, tmp_path / "onnx_models", version="0.0.1")
