@@ -18,7 +18,7 @@ from service.inference.batcher import MicroBatcher
 from service.inference.predict import InputError
 from service.inference.registry import load_models, load_registry_models
 from service.inference.runner import ModelRunner
-from service.settings import Settings, get_settings
+from service.settings import Settings, get_settings, parse_pins
 
 log = logging.getLogger(__name__)
 
@@ -28,7 +28,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        app.state.models = load_models(settings.models_dir, threads=1)
+        app.state.models = load_models(settings.models_dir, threads=1, pins=parse_pins(settings.model_versions))
         uris = [u.strip() for u in settings.registry_models.split(",") if u.strip()]
         for task, model in load_registry_models(
             settings.mlflow_tracking_uri, uris, settings.registry_cache_dir, threads=1

@@ -34,6 +34,9 @@ class Settings(BaseSettings):
     )
     stream_queue_limit: int = Field(1024, ge=8, description="outgoing messages queued per WebSocket")
     stream_max_samples_per_packet: int = Field(4096, ge=1)
+    model_versions: str = Field(
+        "", description="comma-separated <name>=<version> pins, e.g. i2s_alignment=1.0.0; default: newest version"
+    )
     mlflow_tracking_uri: str | None = Field(None, description="MLflow tracking server (http/https) for registry models")
     registry_models: str = Field(
         "",
@@ -42,6 +45,17 @@ class Settings(BaseSettings):
     )
     registry_cache_dir: Path = Field(Path(".cache/registry_models"), description="where registry models are stored")
     api_key: str | None = Field(None, description="if set, requests must send it in the X-API-Key header")
+
+
+def parse_pins(text: str) -> dict[str, str]:
+    """``"a=1.0.0, b=2"`` → ``{"a": "1.0.0", "b": "2"}``."""
+    pins = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, sep, version = item.partition("=")
+        if not sep or not name.strip() or not version.strip():
+            raise ValueError(f"model_versions entries look like <name>=<version>, got {item!r}")
+        pins[name.strip()] = version.strip()
+    return pins
 
 
 @lru_cache

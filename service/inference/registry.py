@@ -72,10 +72,14 @@ def version_key(version: str) -> tuple[int, ...]:
     return tuple(int(part) for part in re.findall(r"\d+", version))
 
 
-def load_models(root: Path, threads: int) -> dict[str, LoadedModel]:
-    """Newest valid version of every model below ``root``, keyed by task."""
+def load_models(root: Path, threads: int, pins: dict[str, str] | None = None) -> dict[str, LoadedModel]:
+    """Newest valid version of every model below ``root`` (or the version ``pins`` names), keyed by task."""
     models: dict[str, LoadedModel] = {}
+    pins = pins or {}
     for manifest_path in sorted(root.glob("*/*/manifest.json")):
+        name, version = manifest_path.parent.parent.name, manifest_path.parent.name
+        if name in pins and pins[name] != version:
+            continue
         try:
             model = load_model(manifest_path.parent, threads)
         except Exception as exc:  # any broken model is refused; the others are still served
@@ -85,6 +89,9 @@ def load_models(root: Path, threads: int) -> dict[str, LoadedModel]:
         if task not in models or version_key(model.manifest.version) > version_key(models[task].manifest.version):
             models[task] = model
         log.info("loaded %s %s (%s)", model.manifest.name, model.manifest.version, task)
+    for name, version in pins.items():
+        if not (root / name / version / "manifest.json").is_file():
+            log.error("pinned model %s %s is not under %s", name, version, root)
     return models
 
 

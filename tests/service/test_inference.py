@@ -7,7 +7,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+from service.core.manifest import read_manifest, write_manifest
 from service.inference.batcher import MicroBatcher
 from service.inference.registry import load_models, version_key
 from service.inference.runner import ModelRunner
@@ -78,3 +80,20 @@ def test_a_stream_window_waits_for_company_until_the_most_impatient_deadline() -
 def test_versions_compare_numerically() -> None:
     assert version_key("1.10.0") > version_key("1.9.0")
     assert version_key("2026.11.22-073000") > version_key("2026.11.21-235959")
+
+
+def test_a_pinned_version_is_served_instead_of_the_newest(tiny_models: Path) -> None:
+    import shutil
+
+    from service.settings import parse_pins
+
+    newer = tiny_models / "i2s_alignment" / "0.0.2"
+    shutil.copytree(tiny_models / "i2s_alignment" / "0.0.1", newer)
+    manifest = read_manifest(newer / "manifest.json")
+    manifest.version = "0.0.2"
+    write_manifest(manifest, newer / "manifest.json")
+    assert load_models(tiny_models, 1)["i2s_alignment"].manifest.version == "0.0.2"
+    pinned = load_models(tiny_models, 1, parse_pins("i2s_alignment=0.0.1"))
+    assert pinned["i2s_alignment"].manifest.version == "0.0.1" and "i2s_assignment" in pinned
+    with pytest.raises(ValueError, match="<name>=<version>"):
+        parse_pins("i2s_alignment")
