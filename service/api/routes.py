@@ -9,6 +9,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 
 from service.api.schemas import (
+    EXAMPLE_VERSIONS,
     AccUnit,
     Alignment,
     AssignRequest,
@@ -20,6 +21,7 @@ from service.api.schemas import (
     WindowResult,
     WindowsRequest,
     WindowsResponse,
+    error_responses,
 )
 from service.core.assignment import is_moving, joint_assignment
 from service.core.rotations import matrix_from_quat
@@ -85,6 +87,7 @@ def _window_results(
     response_model=WindowsResponse,
     tags=["imu"],
     summary="Segment class and alignment per 128-sample IMU window",
+    responses=error_responses(401, 413, 422, 503),
 )
 async def classify_windows(
     body: WindowsRequest, request: Request, settings: Settings = Depends(get_settings)
@@ -108,11 +111,20 @@ BINARY_BODY = (
     tags=["imu"],
     summary="The same as /v1/imu/windows with the samples as a raw float32 body (no JSON parsing)",
     description="Body: " + BINARY_BODY + ". All windows of one request share rate, units and length; the "
-    "number of windows is the body length / (samples_per_window × 24 bytes).",
+    "number of windows is the body length / (samples_per_window × 24 bytes). Example: "
+    "`curl --data-binary @windows.f32 -H 'content-type: application/octet-stream' "
+    "'localhost:8000/v1/imu/windows/binary?sample_rate_hz=100&samples_per_window=214&acc_unit=g'`.",
+    responses=error_responses(401, 413, 422, 503),
     openapi_extra={
         "requestBody": {
             "required": True,
-            "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
+            "content": {
+                "application/octet-stream": {
+                    "schema": {"type": "string", "format": "binary"},
+                    "example": "3072 bytes per 60 Hz window: 128 × (acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z) "
+                    "as little-endian float32",
+                }
+            },
         }
     },
 )
@@ -146,6 +158,7 @@ async def classify_windows_binary(
     response_model=AssignResponse,
     tags=["imu"],
     summary="Joint one-to-one assignment of simultaneously worn sensors to segments",
+    responses=error_responses(401, 413, 422, 503),
 )
 async def assign_sensors(body: AssignRequest, request: Request, settings: Settings = Depends(get_settings)) -> Response:
     ids = [s.sensor_id for s in body.sensors]
@@ -184,17 +197,51 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     return _json(AssignResponse(sensors=out, model_versions=versions))
 
 
-@router.get("/v1/models", tags=["ops"], summary="Loaded models with their manifests")
+@router.get(
+    "/v1/models",
+    tags=["ops"],
+    summary="Loaded models with their manifests",
+    responses={
+        200: {
+            "content": {
+                "application/json": {
+                    "example": {
+                        "i2s_assignment": {
+                            "name": "i2s_assignment",
+                            "version": "1.1.0",
+                            "classes": list(SEGMENTS),
+                            "evaluations": [{"name": "loso_simulated", "metrics": {"accuracy": 0.9997}}],
+                            "source": "onnx_models/i2s_assignment/1.1.0",
+                        }
+                    }
+                }
+            }
+        }
+    },
+)
 async def list_models(request: Request) -> dict:
     return {task: {**m.manifest.model_dump(), "source": m.source} for task, m in _models(request).items()}
 
 
-@router.get("/health", tags=["ops"], summary="Liveness")
+@router.get(
+    "/health",
+    tags=["ops"],
+    summary="Liveness",
+    responses={200: {"content": {"application/json": {"example": {"status": "alive"}}}}},
+)
 async def health() -> dict[str, str]:
     return {"status": "alive"}
 
 
-@router.get("/ready", tags=["ops"], summary="Readiness: at least the assignment model is loaded")
+@router.get(
+    "/ready",
+    tags=["ops"],
+    summary="Readiness: at least the assignment model is loaded",
+    responses={
+        200: {"content": {"application/json": {"example": {"ready": True, "models": EXAMPLE_VERSIONS}}}},
+        503: {"content": {"application/json": {"example": {"ready": False, "models": {}}}}},
+    },
+)
 async def ready(request: Request) -> JSONResponse:
     models = _models(request)
     ok = "i2s_assignment" in models
@@ -202,6 +249,17 @@ async def ready(request: Request) -> JSONResponse:
     return JSONResponse(body, status_code=200 if ok else 503)
 
 
-@router.get("/metrics", tags=["ops"], summary="Prometheus metrics")
+@router.get(
+    "/metrics",
+    tags=["ops"],
+    summary="Prometheus metrics",
+    responses={
+        200: {
+            "content": {
+                "text/plain": {"example": 'wearmocap_requests_total{path="/v1/imu/windows",status="200"} 42.0\n'}
+            }
+        }
+    },
+)
 async def metrics(request: Request) -> Response:
     return Response(generate_latest(request.app.state.metrics.registry), media_type=CONTENT_TYPE_LATEST)

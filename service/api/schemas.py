@@ -40,6 +40,22 @@ class WindowsRequest(BaseModel):
     windows: list[ImuWindow] = Field(min_length=1)
 
 
+_EXAMPLE_PROBS = dict(zip(SEGMENTS, [0.001, 0.002, 0.004, 0.985, 0.004, 0.002, 0.002], strict=True))
+EXAMPLE_ALIGNMENT = {
+    "segment": "Pelvis",
+    "q_segment_imu": [0.9238795, 0.0, 0.3826834, 0.0],
+    "R_segment_imu": [[0.7071068, 0.0, 0.7071068], [0.0, 1.0, 0.0], [-0.7071068, 0.0, 0.7071068]],
+}
+EXAMPLE_RESULT = {
+    "segment": "Pelvis",
+    "confidence": 0.985,
+    "probabilities": _EXAMPLE_PROBS,
+    "moving": True,
+    "alignment": EXAMPLE_ALIGNMENT,
+}
+EXAMPLE_VERSIONS = {"i2s_assignment": "1.1.0", "i2s_alignment": "1.1.0"}
+
+
 class Alignment(BaseModel):
     segment: SegmentName
     q_segment_imu: list[float] = Field(description="unit quaternion w, x, y, z (w >= 0): v_segment = R(q) v_imu")
@@ -47,6 +63,7 @@ class Alignment(BaseModel):
 
 
 class WindowResult(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [EXAMPLE_RESULT]})
     segment: SegmentName
     confidence: float
     probabilities: dict[str, float]
@@ -55,6 +72,9 @@ class WindowResult(BaseModel):
 
 
 class WindowsResponse(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"results": [EXAMPLE_RESULT], "model_versions": EXAMPLE_VERSIONS}]}
+    )
     results: list[WindowResult]
     model_versions: dict[str, str]
 
@@ -72,7 +92,20 @@ class AssignRequest(BaseModel):
     segments stay empty). ``allow_shared`` lets several sensors share a segment.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {
+                    "sensors": [
+                        {"sensor_id": "thigh_left", "windows": [EXAMPLE_WINDOW]},
+                        {"sensor_id": "pelvis", "windows": [EXAMPLE_WINDOW]},
+                    ],
+                    "allow_shared": False,
+                }
+            ]
+        },
+    )
     sensors: list[SensorWindows] = Field(min_length=1, max_length=64)
     allow_shared: bool = False
 
@@ -91,5 +124,39 @@ class SensorAssignment(BaseModel):
 
 
 class AssignResponse(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "sensors": [
+                        {
+                            "sensor_id": "pelvis",
+                            "segment": "Pelvis",
+                            "confidence": 0.999,
+                            "margin": 41.2,
+                            "windows": 12,
+                            "moving_windows": 11,
+                            "alignment": EXAMPLE_ALIGNMENT,
+                        }
+                    ],
+                    "model_versions": EXAMPLE_VERSIONS,
+                }
+            ]
+        }
+    )
     sensors: list[SensorAssignment]
     model_versions: dict[str, str]
+
+
+def error_responses(*codes: int) -> dict[int | str, dict]:
+    """OpenAPI entries for the 4xx/5xx answers of a route, each with an example ``detail``."""
+    examples = {
+        401: "missing or wrong X-API-Key header",
+        413: "at most 4096 windows per request, got 5000",
+        422: "windows[0]: at 60 Hz a window has 128 samples, got 127",
+        503: "no i2s_assignment model is loaded; loaded: none",
+    }
+    return {
+        code: {"description": examples[code], "content": {"application/json": {"example": {"detail": examples[code]}}}}
+        for code in codes
+    }
