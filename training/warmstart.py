@@ -15,6 +15,7 @@ import onnx
 import torch
 from onnx import numpy_helper
 
+from service.core.manifest import read_manifest
 from training.models import AssignmentNet
 
 
@@ -56,6 +57,10 @@ def assignment_state_from_onnx(onnx_path: Path, net: AssignmentNet) -> dict[str,
 
 def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1e-4) -> dict[str, torch.Tensor]:
     """State dict rebuilt from ``model_dir/model.onnx``, verified against ``model_dir/golden.npz``."""
+    manifest = read_manifest(model_dir / "manifest.json")
+    if "quantization" in manifest.exporter:
+        source = model_dir.parent / str(manifest.exporter.get("quantized_from", "?"))
+        raise ValueError(f"{model_dir} is an int8 model; warm start needs the float32 file it came from: {source}")
     state = assignment_state_from_onnx(model_dir / "model.onnx", net)
     probe = AssignmentNet(net.rnn.hidden_size, net.cnn.net[0].out_channels, net.cnn.net[0].kernel_size[0])
     probe.load_state_dict(state)

@@ -6,14 +6,23 @@ import numpy as np
 import pytest
 import torch
 
+from service.core.manifest import read_manifest
+from service.inference.registry import version_key
 from training.models import AssignmentNet
 from training.warmstart import warm_start_from_shipped
 
 SHIPPED = Path(__file__).resolve().parents[2] / "onnx_models" / "i2s_assignment"
 
 
+def _float32(quantized: bool = False) -> Path:
+    """The newest shipped float32 (or int8) assignment model."""
+    dirs = [p.parent for p in SHIPPED.glob("*/manifest.json")]
+    chosen = [d for d in dirs if ("quantization" in read_manifest(d / "manifest.json").exporter) == quantized]
+    return max(chosen, key=lambda d: version_key(d.name))
+
+
 def test_rebuilt_weights_match_the_shipped_model() -> None:
-    model_dir = sorted(p.parent for p in SHIPPED.glob("*/manifest.json"))[-1]
+    model_dir = _float32()
     net = AssignmentNet()
     net.load_state_dict(warm_start_from_shipped(model_dir, net))
     net.eval()
@@ -23,9 +32,15 @@ def test_rebuilt_weights_match_the_shipped_model() -> None:
 
 
 def test_a_wrong_golden_is_refused(tmp_path: Path) -> None:
-    model_dir = sorted(p.parent for p in SHIPPED.glob("*/manifest.json"))[-1]
+    model_dir = _float32()
+    (tmp_path / "manifest.json").write_bytes((model_dir / "manifest.json").read_bytes())
     (tmp_path / "model.onnx").write_bytes((model_dir / "model.onnx").read_bytes())
     with np.load(model_dir / "golden.npz") as golden:
         np.savez(tmp_path / "golden.npz", imu=golden["imu"], expected=golden["expected"][:, ::-1])
     with pytest.raises(ValueError, match="differ from its golden output"):
         warm_start_from_shipped(tmp_path, AssignmentNet())
+
+
+def test_an_int8_model_is_refused_with_its_float32_source_named() -> None:
+    with pytest.raises(ValueError, match="int8 model; warm start needs the float32 file"):
+        warm_start_from_shipped(_float32(quantized=True), AssignmentNet())
