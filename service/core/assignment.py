@@ -37,7 +37,7 @@ def joint_assignment(log_probs: list[np.ndarray], allow_shared: bool = False) ->
     """
     evidence = np.stack([lp.sum(axis=0) for lp in log_probs])
     n_sensors, n_classes = evidence.shape
-    if allow_shared:
+    if allow_shared or n_sensors == 1:  # one sensor: the one-to-one optimum is its own best segment
         segment = evidence.argmax(axis=1)
     else:
         rows, cols = linear_sum_assignment(evidence, maximize=True)
