@@ -54,11 +54,9 @@ def _shipped(task: str) -> tuple[Path, Path]:
     return int8.parent / str(dirs[int8].exporter["quantized_from"]), int8
 
 
-def _session(path: Path, threads: int) -> ort.InferenceSession:
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+def _session(model_dir: Path, threads: int) -> ort.InferenceSession:
+    """The service's session setup (manifest-checked, no busy-waiting) with ``threads`` intra-op threads."""
+    return load_model(model_dir, threads).session
 
 
 def main() -> None:
@@ -73,7 +71,7 @@ def main() -> None:
         net = build_model(cfg)
         net.load_state_dict(_torch_weights(manifest.mlflow["run_id"], fp32_dir, net))
         module = export_module(net)
-        fp32, int8 = _session(fp32_dir / "model.onnx", 2), _session(int8_dirs[task] / "model.onnx", 2)
+        fp32, int8 = _session(fp32_dir, 2), _session(int8_dirs[task], 2)
         for batch in (1, 256):
             x = np.random.default_rng(0).normal(size=(batch, 128, 6)).astype(np.float32)
             repeats = 200 if batch == 1 else 10
@@ -98,7 +96,7 @@ def main() -> None:
 
 def _runner_comparison(int8_dirs: dict[str, Path]) -> dict:
     """Assignment + alignment per window: one call per model with 2 intra-op threads vs the service runner."""
-    two_threads = {task: _session(d / "model.onnx", 2) for task, d in int8_dirs.items()}
+    two_threads = {task: _session(d, 2) for task, d in int8_dirs.items()}
     single = {task: load_model(d, threads=1) for task, d in int8_dirs.items()}
     result = {}
     for batch in (1, 256):
