@@ -13,6 +13,7 @@ from pathlib import Path
 import httpx
 
 REPO = Path(__file__).resolve().parents[1]
+LOGS = REPO / "artifacts" / "logs"
 
 
 def free_port() -> int:
@@ -38,10 +39,13 @@ def wait_ready(url: str, proc: subprocess.Popen, timeout_s: float = 120) -> None
 def start_process(
     cmd: list[str], ready_path: str, port: int, env: dict[str, str] | None = None, timeout_s: float = 120
 ) -> tuple[subprocess.Popen, str]:
-    """Start a server on ``port`` and wait until ``ready_path`` answers 200; returns (process, base URL)."""
-    proc = subprocess.Popen(
-        cmd, cwd=REPO, env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
+    """Start a server on ``port`` and wait until ``ready_path`` answers 200; returns (process, base URL).
+
+    Its output goes to ``artifacts/logs/server-<port>.log``, so a benchmark's server errors can be read.
+    """
+    LOGS.mkdir(parents=True, exist_ok=True)
+    with open(LOGS / f"server-{port}.log", "wb") as log:
+        proc = subprocess.Popen(cmd, cwd=REPO, env={**os.environ, **(env or {})}, stdout=log, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     try:
         wait_ready(f"{base}{ready_path}", proc, timeout_s)
@@ -49,6 +53,11 @@ def start_process(
         stop(proc)
         raise
     return proc, base
+
+
+def server_log(base: str) -> Path:
+    """The log file of the server started at ``base`` by ``start_process``."""
+    return LOGS / f"server-{base.rsplit(':', 1)[1]}.log"
 
 
 def start_service(models_dir: Path, threads: int = 2, **env: str) -> tuple[subprocess.Popen, str]:

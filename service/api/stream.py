@@ -17,6 +17,7 @@ from collections import deque
 import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import ValidationError
+from starlette.websockets import WebSocketState
 
 from service.api.protocol import (
     ProtocolError,
@@ -62,7 +63,10 @@ async def _sender(ws: WebSocket, outbox: Outbox) -> None:
         await outbox.event.wait()
         outbox.event.clear()
         while outbox.items:
-            await ws.send_text(json.dumps(outbox.items.popleft()))
+            try:
+                await ws.send_text(json.dumps(outbox.items.popleft()))
+            except WebSocketDisconnect:  # the client left; the receive loop sees it and ends the session
+                return
 
 
 class Session:
@@ -157,7 +161,7 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
     while True:
         message = await ws.receive()
         if message["type"] == "websocket.disconnect":
-            return
+            raise WebSocketDisconnect(message.get("code", 1000))
         if message.get("bytes") is not None:
             k, seq, samples = decode_binary(message["bytes"], len(session.streams), max_samples)
         else:
@@ -216,9 +220,19 @@ async def stream(ws: WebSocket) -> None:
         metrics.open_streams.dec()
         if code != -1:
             await _drain(outbox, sender)
-            await ws.close(code=code, reason=reason.encode()[:120].decode(errors="ignore"))
+            await _close(ws, code, reason)
         else:
             sender.cancel()
+
+
+async def _close(ws: WebSocket, code: int, reason: str) -> None:
+    """Close with ``code``, unless the client has gone already (then there is nobody to tell)."""
+    if WebSocketState.DISCONNECTED in (ws.application_state, ws.client_state):
+        return
+    try:
+        await ws.close(code=code, reason=reason.encode()[:120].decode(errors="ignore"))
+    except (WebSocketDisconnect, RuntimeError):  # the client left while we were closing
+        log.debug("stream client left before the close frame")
 
 
 async def _drain(outbox: Outbox, sender: asyncio.Task, timeout_s: float = 5.0) -> None:

@@ -4,13 +4,16 @@ recording (seven x-IMU3 sensors), and the same windows over REST: the results mu
 from __future__ import annotations
 
 import asyncio
+import json
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
+import websockets
 
-from benchmarks.servers import REPO, start_service, stop
+from benchmarks.servers import REPO, server_log, start_service, stop
+from service.api.protocol import encode_binary
 from service.client import ClientSensor, stream_sensors
 from service.core.recordings import read_recording
 from service.core.segments import SEGMENTS
@@ -60,3 +63,30 @@ def test_stream_equals_rest_and_reports_joint_assignment(server: str, data_dir: 
     assert len({s["segment"] for s in final}) == 7  # one-to-one
     metrics = httpx.get(f"{server}/metrics").text
     assert "wearmocap_stream_samples_total 2800.0" in metrics
+
+
+def test_clients_that_vanish_mid_stream_leave_no_server_errors(server: str) -> None:
+    """One client aborts its TCP connection and one closes cleanly while results are still being computed;
+    the server logs no application error, closes both sessions and goes on serving."""
+    url = server.replace("http", "ws") + "/v1/stream"
+    samples = np.tile(np.array([0.0, 0.0, 9.81, 0.1, 0.0, 0.0], dtype=np.float32), (256, 1))
+
+    async def leave(abort: bool) -> None:
+        async with websockets.connect(url) as ws:
+            await ws.send(json.dumps({"type": "start", "sensors": [{"sensor_id": "s"}]}))
+            await ws.recv()
+            for first in range(0, 256, 16):
+                await ws.send(encode_binary(0, first, samples[first : first + 16]))
+            if abort:
+                ws.transport.abort()
+
+    async def both() -> None:
+        await asyncio.gather(leave(abort=True), leave(abort=False))
+        await asyncio.sleep(0.5)
+
+    asyncio.run(both())
+    metrics = httpx.get(f"{server}/metrics").text
+    assert "wearmocap_open_streams 0.0" in metrics
+    log = server_log(server).read_text()
+    assert "Exception in ASGI application" not in log, log[-3000:]
+    assert "Task exception was never retrieved" not in log, log[-3000:]
