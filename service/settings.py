@@ -33,6 +33,12 @@ class Settings(BaseSettings):
         "cost less CPU per window; a sensor's next window is 267 ms away at 60 Hz)",
     )
     stream_queue_limit: int = Field(1024, ge=8, description="outgoing messages queued per WebSocket")
+    stream_max_pending_windows: int = Field(
+        256,
+        ge=1,
+        description="windows of one WebSocket session waiting for inference; beyond it the server stops "
+        "reading that socket until inference catches up (TCP back-pressure: nothing is dropped)",
+    )
     stream_max_samples_per_packet: int = Field(4096, ge=1)
     model_versions: str = Field(
         "", description="comma-separated <name>=<version> pins, e.g. i2s_alignment=1.0.0; default: newest version"

@@ -13,6 +13,7 @@ import json
 import logging
 import time
 from collections import deque
+from dataclasses import dataclass, field
 
 import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
@@ -69,8 +70,25 @@ async def _sender(ws: WebSocket, outbox: Outbox) -> None:
                 return
 
 
+@dataclass
+class Work:
+    """One accepted packet on its way through inference: its windows and any gap/late notices."""
+
+    sensor: int
+    received: float  # perf_counter() when the packet arrived
+    windows: list[np.ndarray] = field(default_factory=list)
+    window_end_s: list[float] = field(default_factory=list)
+    notices: list[dict] = field(default_factory=list)
+
+
 class Session:
-    def __init__(self, start: StartMessage) -> None:
+    """One WebSocket session: its sensors' ring buffers, the joint-assignment evidence and the inference
+    pipeline. The receive loop never waits for inference: accepted packets queue here and one worker per
+    session runs everything queued as one ``batcher.infer`` call, so a session that fell behind catches up
+    in one round trip instead of one round trip per packet. At most ``max_pending`` windows wait; beyond
+    that the receive loop stops reading the socket until the worker catches up (TCP back-pressure)."""
+
+    def __init__(self, start: StartMessage, max_pending: int) -> None:
         ids = [s.sensor_id for s in start.sensors]
         if len(set(ids)) != len(ids):
             raise ProtocolError(f"sensor_id values must be unique, got {ids}")
@@ -79,6 +97,30 @@ class Session:
         self.allow_shared = start.allow_shared
         self.evidence = np.zeros((len(self.streams), len(SEGMENTS)))
         self.windows = np.zeros(len(self.streams), dtype=np.int64)
+        self.max_pending = max_pending
+        self.work: deque[Work] = deque()
+        self.pending = 0  # windows queued or being inferred
+        self.wake, self.idle, self.room = asyncio.Event(), asyncio.Event(), asyncio.Event()
+        self.idle.set()
+        self.room.set()
+        self.failure: Exception | None = None
+
+    def submit(self, work: Work) -> None:
+        self.work.append(work)
+        self.pending += len(work.windows)
+        self.idle.clear()
+        self.wake.set()
+        if self.pending >= self.max_pending:
+            self.room.clear()
+
+    async def flush(self) -> None:
+        """Wait until every accepted packet's results are in the outbox."""
+        await self.idle.wait()
+        self.raise_failure()
+
+    def raise_failure(self) -> None:
+        if self.failure is not None:
+            raise ProtocolError(f"inference failed on the server: {self.failure}", 1011)
 
     def assignment_message(self, dropped: int) -> dict:
         joint = joint_assignment([e[None] for e in self.evidence], allow_shared=self.allow_shared)
@@ -97,12 +139,10 @@ class Session:
         return {"type": "assignment", "sensors": sensors, "results_dropped": dropped}
 
 
-async def _handle_packet(
-    ws: WebSocket, session: Session, k: int, seq: int, samples: np.ndarray, outbox: Outbox
-) -> None:
-    app = ws.app
-    received = time.perf_counter()
+async def _accept_packet(app, session: Session, k: int, seq: int, samples: np.ndarray) -> None:
+    """Buffer a packet's samples and queue its windows (and any sequence notice) for inference."""
     stream = session.streams[k]
+    work = Work(k, time.perf_counter())
     pushed = stream.push(seq, samples)
     app.state.metrics.samples.inc(len(samples))
     for kind, problem, extra in (("gap", pushed.gap, "missing"), ("late", pushed.late, "action")):
@@ -112,22 +152,65 @@ async def _handle_packet(
         expected, received = problem
         message = {"type": kind, "sensor_id": stream.sensor_id, "expected_seq": expected, "received_seq": received}
         message[extra] = received - expected if kind == "gap" else "packet dropped"
-        outbox.put(message)
-    if not pushed.windows:
+        work.notices.append(message)
+    if not (pushed.windows or work.notices):
         return
-    imu = np.stack(pushed.windows)
-    probs, quats = await app.state.batcher.infer(imu, app.state.settings.stream_batch_wait_ms)
-    moving = is_moving(imu)
-    for i, result in enumerate(window_results(probs, quats, moving)):
-        message = {"type": "result", "sensor_id": stream.sensor_id, "window_end_s": round(pushed.window_end_s[i], 6)}
-        message.update(result)
-        if moving[i]:
-            session.evidence[k] += np.log(np.clip(probs[i], 1e-12, 1.0))
-            session.windows[k] += 1
-        if outbox.put(message):
-            app.state.metrics.dropped.inc()
-    outbox.put(session.assignment_message(outbox.dropped))
-    app.state.metrics.stream_result.observe(time.perf_counter() - received)
+    work.windows, work.window_end_s = pushed.windows, pushed.window_end_s
+    session.submit(work)
+    await session.room.wait()
+    session.raise_failure()
+
+
+async def _infer_loop(app, session: Session, outbox: Outbox) -> None:
+    """The session's worker: takes everything queued, one inference call, results in arrival order."""
+    wait_ms = app.state.settings.stream_batch_wait_ms
+    while True:
+        await session.wake.wait()
+        session.wake.clear()
+        while session.work:
+            items = list(session.work)
+            session.work.clear()
+            try:
+                await _run_work(app, session, items, outbox, wait_ms)
+            except Exception as exc:  # a model failure ends the session with 1011, never silently
+                log.exception("stream inference failed")
+                session.failure = exc
+                session.idle.set()
+                session.room.set()
+                return
+            session.pending -= sum(len(w.windows) for w in items)
+            if session.pending < session.max_pending:
+                session.room.set()
+        session.idle.set()
+
+
+async def _run_work(app, session: Session, items: list[Work], outbox: Outbox, wait_ms: float) -> None:
+    windows = [w for item in items for w in item.windows]
+    results: list[dict] = []
+    if windows:
+        imu = np.stack(windows)
+        probs, quats = await app.state.batcher.infer(imu, wait_ms)
+        moving = is_moving(imu)
+        results = window_results(probs, quats, moving)
+        log_probs = np.log(np.clip(probs, 1e-12, 1.0))
+    row = 0
+    for item in items:
+        for notice in item.notices:
+            outbox.put(notice)
+        sensor_id = session.streams[item.sensor].sensor_id
+        for end_s in item.window_end_s:
+            message = {"type": "result", "sensor_id": sensor_id, "window_end_s": round(end_s, 6)}
+            message.update(results[row])
+            if moving[row]:
+                session.evidence[item.sensor] += log_probs[row]
+                session.windows[item.sensor] += 1
+            if outbox.put(message):
+                app.state.metrics.dropped.inc()
+            row += 1
+        if item.windows:
+            app.state.metrics.stream_result.observe(time.perf_counter() - item.received)
+    if windows:
+        outbox.put(session.assignment_message(outbox.dropped))
 
 
 def _parse_text(text: str) -> dict:
@@ -145,9 +228,10 @@ async def _receive_start(ws: WebSocket) -> Session:
     if first.get("text") is None:
         raise ProtocolError("the first message must be a JSON 'start' message, got binary data", 1003)
     try:
-        return Session(StartMessage.model_validate(_parse_text(first["text"])))
+        start = StartMessage.model_validate(_parse_text(first["text"]))
     except ValidationError as exc:
         raise ProtocolError(f"invalid start message: {_first_error(exc)}") from None
+    return Session(start, ws.app.state.settings.stream_max_pending_windows)
 
 
 def _first_error(exc: ValidationError) -> str:
@@ -167,6 +251,7 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
         else:
             data = _parse_text(message["text"])
             if data["type"] == "stop":
+                await session.flush()
                 outbox.put(session.assignment_message(outbox.dropped))
                 return
             try:
@@ -180,7 +265,7 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
                 raise ProtocolError(f"sensor {packet.sensor_id}: every sample needs 6 values")
             samples = np.asarray(packet.samples, dtype=np.float64)
         check_samples(samples, max_samples, f"sensor {session.streams[k].sensor_id}")
-        await _handle_packet(ws, session, k, seq, samples, outbox)
+        await _accept_packet(ws.app, session, k, seq, samples)
 
 
 @router.websocket("/v1/stream")
@@ -199,8 +284,11 @@ async def stream(ws: WebSocket) -> None:
     sender = asyncio.create_task(_sender(ws, outbox))
     metrics.open_streams.inc()
     code, reason = 1000, "stop"
+    session: Session | None = None
+    worker: asyncio.Task | None = None
     try:
         session = await _receive_start(ws)
+        worker = asyncio.create_task(_infer_loop(ws.app, session, outbox))
         outbox.put(
             {
                 "type": "started",
@@ -213,11 +301,15 @@ async def stream(ws: WebSocket) -> None:
         await _serve(ws, session, outbox)
     except ProtocolError as exc:
         code, reason = exc.code, str(exc)
+        if session is not None and session.failure is None:
+            await session.flush()  # the results of every packet accepted before the mistake still go out
         outbox.put({"type": "error", "detail": reason, "close_code": code})
     except WebSocketDisconnect:
         code = -1
     finally:
         metrics.open_streams.dec()
+        if worker is not None:
+            worker.cancel()
         if code != -1:
             await _drain(outbox, sender)
             await _close(ws, code, reason)

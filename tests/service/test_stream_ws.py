@@ -10,6 +10,8 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from service.api.protocol import encode_binary
+from service.app import create_app
+from service.settings import Settings
 
 START = {"type": "start", "sensors": [{"sensor_id": "a"}, {"sensor_id": "b", "sample_rate_hz": 120.0}]}
 
@@ -109,3 +111,60 @@ def test_protocol_violations_close_with_code_and_message(client: TestClient, fir
     assert messages[-1]["code"] == code
     # the server keeps serving others
     assert client.get("/health").status_code == 200
+
+
+def _window_ends(messages: list[dict]) -> list[float]:
+    return [m["window_end_s"] for m in messages if m["type"] == "result"]
+
+
+def _metric(client: TestClient, name: str) -> float:
+    line = next(x for x in client.get("/metrics").text.splitlines() if x.startswith(name + " "))
+    return float(line.split()[-1])
+
+
+def test_a_burst_of_packets_is_answered_in_order_with_few_inference_calls(client: TestClient) -> None:
+    """A client that sends faster than real time (or fell behind) is not served one packet per model call:
+    everything its socket holds goes through inference together, and the results keep their order."""
+    x = _signal(16 * 64)
+    calls_before = _metric(client, "wearmocap_inference_batch_windows_count")
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+        ws.receive_text()
+        for seq in range(0, len(x), 16):
+            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
+        ws.send_text(json.dumps({"type": "stop"}))
+        messages = _collect(ws)
+    ends = _window_ends(messages)
+    assert len(ends) == 64 - 7  # one window per 16 samples once 128 are buffered
+    assert ends == sorted(ends) and len(set(ends)) == len(ends)
+    assert _metric(client, "wearmocap_inference_batch_windows_count") - calls_before < len(ends)
+    assert messages[-1]["code"] == 1000
+
+
+def test_pending_window_limit_slows_reading_but_loses_nothing(tiny_models) -> None:
+    settings = Settings(models_dir=tiny_models, stream_max_pending_windows=1)
+    x = _signal(16 * 20)
+    with TestClient(create_app(settings)) as c, c.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+        ws.receive_text()
+        for seq in range(0, len(x), 16):
+            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
+        ws.send_text(json.dumps({"type": "stop"}))
+        messages = _collect(ws)
+    assert len(_window_ends(messages)) == 20 - 7
+    assert messages[-1]["code"] == 1000
+
+
+def test_results_of_accepted_packets_precede_the_error_close(client: TestClient) -> None:
+    x = _signal(16 * 12)
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+        ws.receive_text()
+        for seq in range(0, len(x), 16):
+            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
+        ws.send_bytes(encode_binary(3, len(x), x[:16]))  # sensor index 3 was never declared
+        messages = _collect(ws)
+    kinds = [m["type"] for m in messages]
+    assert kinds.count("result") == 12 - 7
+    assert kinds.index("error") > max(i for i, k in enumerate(kinds) if k == "result")
+    assert messages[-1]["code"] == 1008
