@@ -24,6 +24,7 @@ import mlflow
 import mlflow.onnx
 import numpy as np
 import onnx
+import orjson
 import websockets
 
 from benchmarks.servers import REPO, start_mlflow_serve, start_service, stop
@@ -106,9 +107,9 @@ async def _stream_body(url: str, seconds: float, lat_ms: list[float], sent: list
 
         async def receive() -> None:
             async for raw in ws:
-                if not raw.startswith('{"type": "result"'):  # the client's CPU is this machine's too
+                if not raw.startswith('{"type":"result"'):  # the client's CPU is this machine's too
                     continue
-                m = json.loads(raw)
+                m = orjson.loads(raw)
                 if m["type"] == "result":
                     t_sent = pending.pop(round(m["window_end_s"], 4), None)
                     if t_sent is not None:

@@ -16,6 +16,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import ValidationError
 from starlette.websockets import WebSocketState
@@ -65,7 +66,7 @@ async def _sender(ws: WebSocket, outbox: Outbox) -> None:
         outbox.event.clear()
         while outbox.items:
             try:
-                await ws.send_text(json.dumps(outbox.items.popleft()))
+                await ws.send_text(orjson.dumps(outbox.items.popleft(), option=orjson.OPT_SERIALIZE_NUMPY).decode())
             except WebSocketDisconnect:  # the client left; the receive loop sees it and ends the session
                 return
 
