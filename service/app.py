@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI, Request, Response
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 
 from service.api.guard import Guard
 from service.api.metrics import ServiceMetrics
@@ -64,9 +66,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(InputError)
     @app.exception_handler(UnitError)
-    async def _bad_input(request: Request, exc: ValueError) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=422)
+    async def _bad_input(request: Request, exc: ValueError) -> Response:
+        return _ascii_json({"detail": str(exc)}, 422)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid_request(request: Request, exc: RequestValidationError) -> Response:
+        return _ascii_json({"detail": jsonable_encoder(exc.errors())}, 422)
 
     app.add_middleware(Guard, settings=settings, metrics=app.state.metrics)
 
     return app
+
+
+def _ascii_json(content: object, status: int) -> Response:
+    """Error answers echo client input; escaped to ASCII, a lone surrogate in it (valid JSON: "\\ud800") cannot
+    make the answer unencodable, which FastAPI's default handler turns into a 500."""
+    return Response(json.dumps(content, ensure_ascii=True), status_code=status, media_type="application/json")

@@ -60,13 +60,20 @@ class Outbox:
         return dropped
 
 
+def _encode(message: dict) -> str:
+    try:
+        return orjson.dumps(message, option=orjson.OPT_SERIALIZE_NUMPY).decode()
+    except orjson.JSONEncodeError:  # an error detail echoing a lone surrogate that the client sent ("\\ud800")
+        return json.dumps(message, ensure_ascii=True)
+
+
 async def _sender(ws: WebSocket, outbox: Outbox) -> None:
     while True:
         await outbox.event.wait()
         outbox.event.clear()
         while outbox.items:
             try:
-                await ws.send_text(orjson.dumps(outbox.items.popleft(), option=orjson.OPT_SERIALIZE_NUMPY).decode())
+                await ws.send_text(_encode(outbox.items.popleft()))
             except WebSocketDisconnect:  # the client left; the receive loop sees it and ends the session
                 return
 
@@ -323,7 +330,7 @@ async def _close(ws: WebSocket, code: int, reason: str) -> None:
     if WebSocketState.DISCONNECTED in (ws.application_state, ws.client_state):
         return
     try:
-        await ws.close(code=code, reason=reason.encode()[:120].decode(errors="ignore"))
+        await ws.close(code=code, reason=reason.encode(errors="replace")[:120].decode(errors="ignore"))
     except (WebSocketDisconnect, RuntimeError):  # the client left while we were closing
         log.debug("stream client left before the close frame")
 

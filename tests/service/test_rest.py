@@ -199,3 +199,14 @@ def test_openapi_documents_every_endpoint_with_examples(client: TestClient) -> N
     for model in (WindowsRequest, WindowsResponse, AssignRequest, AssignResponse):
         for example in model.model_config["json_schema_extra"]["examples"]:
             model.model_validate(example)
+
+
+@pytest.mark.parametrize(
+    "body",
+    ['"\\ud800"', '{"windows": [{"samples": [[0, 0, 9.8, 0, 0, 0]], "segment": "\\udfff"}]}', '{"\\ud800": 1}'],
+)
+def test_lone_surrogates_in_json_get_a_422_not_a_500(client: TestClient, body: str) -> None:
+    """Valid JSON can escape a lone UTF-16 surrogate, which UTF-8 cannot encode; the 422 echoes it escaped."""
+    r = client.post("/v1/imu/windows", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"]

@@ -168,3 +168,14 @@ def test_results_of_accepted_packets_precede_the_error_close(client: TestClient)
     assert kinds.count("result") == 12 - 7
     assert kinds.index("error") > max(i for i, k in enumerate(kinds) if k == "result")
     assert messages[-1]["code"] == 1008
+
+
+def test_a_lone_surrogate_in_a_message_is_reported_not_crashed_on(client: TestClient) -> None:
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+        ws.receive_text()
+        ws.send_text('{"type": "samples", "sensor_id": "\\ud800", "seq": 0, "samples": [[0, 0, 9.8, 0, 0, 0]]}')
+        messages = _collect(ws)
+    error = next(m for m in messages if m["type"] == "error")
+    assert "unknown sensor_id" in error["detail"]
+    assert messages[-1]["code"] == 1008
