@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from benchmarks.servers import start_service, stop
 from tests.service.conftest import write_tiny_model
 
-CASES_PER_OPERATION = 260  # per operation and mode: > 1000 cases over the two POST operations
+CASES_PER_OPERATION = 260  # per operation and mode (POSTs: valid and schema-violating): > 1000 cases in all
 
 
 def test_generated_requests_never_get_a_server_error(tmp_path: Path) -> None:
