@@ -122,17 +122,23 @@ def _metric(client: TestClient, name: str) -> float:
     return float(line.split()[-1])
 
 
+def _stream_one_sensor(ws, x: np.ndarray, stop: bool = True) -> None:  # type: ignore[no-untyped-def]
+    """Start a session with sensor "a", send ``x`` as 16-sample binary packets, then (optionally) stop."""
+    ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+    ws.receive_text()
+    for seq in range(0, len(x), 16):
+        ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
+    if stop:
+        ws.send_text(json.dumps({"type": "stop"}))
+
+
 def test_a_burst_of_packets_is_answered_in_order_with_few_inference_calls(client: TestClient) -> None:
     """A client that sends faster than real time (or fell behind) is not served one packet per model call:
     everything its socket holds goes through inference together, and the results keep their order."""
     x = _signal(16 * 64)
     calls_before = _metric(client, "wearmocap_inference_batch_windows_count")
     with client.websocket_connect("/v1/stream") as ws:
-        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
-        ws.receive_text()
-        for seq in range(0, len(x), 16):
-            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
-        ws.send_text(json.dumps({"type": "stop"}))
+        _stream_one_sensor(ws, x)
         messages = _collect(ws)
     ends = _window_ends(messages)
     assert len(ends) == 64 - 7  # one window per 16 samples once 128 are buffered
@@ -145,11 +151,7 @@ def test_pending_window_limit_slows_reading_but_loses_nothing(tiny_models) -> No
     settings = Settings(models_dir=tiny_models, stream_max_pending_windows=1)
     x = _signal(16 * 20)
     with TestClient(create_app(settings)) as c, c.websocket_connect("/v1/stream") as ws:
-        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
-        ws.receive_text()
-        for seq in range(0, len(x), 16):
-            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
-        ws.send_text(json.dumps({"type": "stop"}))
+        _stream_one_sensor(ws, x)
         messages = _collect(ws)
     assert len(_window_ends(messages)) == 20 - 7
     assert messages[-1]["code"] == 1000
@@ -158,10 +160,7 @@ def test_pending_window_limit_slows_reading_but_loses_nothing(tiny_models) -> No
 def test_results_of_accepted_packets_precede_the_error_close(client: TestClient) -> None:
     x = _signal(16 * 12)
     with client.websocket_connect("/v1/stream") as ws:
-        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
-        ws.receive_text()
-        for seq in range(0, len(x), 16):
-            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
+        _stream_one_sensor(ws, x, stop=False)
         ws.send_bytes(encode_binary(3, len(x), x[:16]))  # sensor index 3 was never declared
         messages = _collect(ws)
     kinds = [m["type"] for m in messages]
