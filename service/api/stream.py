@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import orjson
-from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, FastAPI, WebSocket, WebSocketDisconnect
 from pydantic import ValidationError
 from starlette.websockets import WebSocketState
 
@@ -147,7 +147,7 @@ class Session:
         return {"type": "assignment", "sensors": sensors, "results_dropped": dropped}
 
 
-async def _accept_packet(app, session: Session, k: int, seq: int, samples: np.ndarray) -> None:
+async def _accept_packet(app: FastAPI, session: Session, k: int, seq: int, samples: np.ndarray) -> None:
     """Buffer a packet's samples and queue its windows (and any sequence notice) for inference."""
     stream = session.streams[k]
     work = Work(k, time.perf_counter())
@@ -169,7 +169,7 @@ async def _accept_packet(app, session: Session, k: int, seq: int, samples: np.nd
     session.raise_failure()
 
 
-async def _infer_loop(app, session: Session, outbox: Outbox) -> None:
+async def _infer_loop(app: FastAPI, session: Session, outbox: Outbox) -> None:
     """The session's worker: takes everything queued, one inference call, results in arrival order."""
     wait_ms = app.state.settings.stream_batch_wait_ms
     while True:
@@ -192,9 +192,10 @@ async def _infer_loop(app, session: Session, outbox: Outbox) -> None:
         session.idle.set()
 
 
-async def _run_work(app, session: Session, items: list[Work], outbox: Outbox, wait_ms: float) -> None:
+async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: Outbox, wait_ms: float) -> None:
     windows = [w for item in items for w in item.windows]
     results: list[dict] = []
+    moving, log_probs = np.zeros(0, dtype=bool), np.zeros((0, len(SEGMENTS)))
     if windows:
         imu = np.stack(windows)
         probs, quats = await app.state.batcher.infer(imu, wait_ms)
