@@ -40,7 +40,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.state.models[task] = model
         if not app.state.models:
             log.error("no valid model under %s", settings.models_dir.resolve())
-        runner = ModelRunner(app.state.models, settings.inference_threads, settings.inference_chunk_windows)
+        runner = app.state.runner = ModelRunner(
+            app.state.models, settings.inference_threads, settings.inference_chunk_windows
+        )
         app.state.batcher = MicroBatcher(
             runner.run_async,
             settings.batch_max_windows,

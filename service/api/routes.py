@@ -22,6 +22,9 @@ from service.api.schemas import (
     AssignResponse,
     GyrUnit,
     ImuWindow,
+    PoseRequest,
+    PoseResponse,
+    PoseResult,
     SegmentName,
     SensorAssignment,
     WindowResult,
@@ -34,6 +37,8 @@ from service.core.rotations import matrix_from_quat
 from service.core.segments import SEGMENTS, segment_index
 from service.inference.predict import (
     mean_alignment,
+    pose_model_input,
+    pose_results,
     window_results,
     window_to_model_input,
     windows_to_model_input,
@@ -230,6 +235,56 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
             )
         )
     return _json(AssignResponse(sensors=out, model_versions=versions))
+
+
+POSE_DESCRIPTION = (
+    "Generic over the pose models that are loaded: the model of task `{task}` declares in its manifest "
+    "(`GET /v1/models`) the input channels and their order, the sample rate, the window length, the value "
+    "range and the output joints. Answers 503 while no `{task}` model is loaded."
+)
+
+
+async def _pose(task: str, body: PoseRequest, request: Request, settings: Settings) -> Response:
+    model = _require(_models(request), task)
+    _check_count(len(body.blocks), settings)
+    blocks = enumerate(body.blocks)
+    x = np.stack([pose_model_input(b.samples, b.sample_rate_hz, model.manifest, f"blocks[{i}]") for i, b in blocks])
+    output = await request.app.state.runner.run_model(task, x)
+    return _json(
+        PoseResponse(
+            results=[PoseResult(**r) for r in pose_results(output, model.manifest)],
+            output_kind=model.manifest.output_kind,
+            model_versions={model.manifest.name: model.manifest.version},
+        )
+    )
+
+
+@router.post(
+    "/v1/pose/imu",
+    response_model=PoseResponse,
+    tags=["pose"],
+    summary="Body pose from a block of sparse-IMU features (task imu_pose)",
+    description=POSE_DESCRIPTION.format(task="imu_pose"),
+    responses=error_responses(
+        401, 413, 422, 503, details={503: "no imu_pose model is loaded; loaded: ['i2s_alignment', 'i2s_assignment']"}
+    ),
+)
+async def pose_from_imu(body: PoseRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
+    return await _pose("imu_pose", body, request, settings)
+
+
+@router.post(
+    "/v1/pose/flex",
+    response_model=PoseResponse,
+    tags=["pose"],
+    summary="Body pose from a block of flex-sensor readings (task flex_pose)",
+    description=POSE_DESCRIPTION.format(task="flex_pose"),
+    responses=error_responses(
+        401, 413, 422, 503, details={503: "no flex_pose model is loaded; loaded: ['i2s_alignment', 'i2s_assignment']"}
+    ),
+)
+async def pose_from_flex(body: PoseRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
+    return await _pose("flex_pose", body, request, settings)
 
 
 @router.get(

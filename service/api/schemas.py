@@ -148,14 +148,69 @@ class AssignResponse(BaseModel):
     model_versions: dict[str, str]
 
 
-def error_responses(*codes: int) -> dict[int | str, dict]:
-    """OpenAPI entries for the 4xx/5xx answers of a route, each with an example ``detail``."""
+EXAMPLE_FLEX_BLOCK = {"samples": [[2048.0, 1900.0, 2210.0, 2105.0]] * 100, "sample_rate_hz": 20.0}
+
+
+class PoseBlock(BaseModel):
+    """One block of a pose model's input: rows of the channels its manifest lists (``GET /v1/models``:
+    ``channels``, ``sample_rate_hz``, ``window_samples``, ``value_range``), oldest first.
+
+    At the model's rate exactly ``window_samples`` rows; at another rate enough rows for that many after
+    resampling (the last ones are used). The pose is that of the block's last sample.
+    """
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_FLEX_BLOCK]})
+    samples: list[list[float]] = Field(min_length=1)
+    sample_rate_hz: float | None = Field(None, gt=0, description="default: the model's rate")
+
+
+class PoseRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"blocks": [EXAMPLE_FLEX_BLOCK]}]})
+    blocks: list[PoseBlock] = Field(min_length=1)
+
+
+class JointRotation(BaseModel):
+    q: list[float] = Field(description="rotation as a unit quaternion w, x, y, z (Hamilton, w ≥ 0)")
+    rotation_vector_deg: list[float] = Field(description="the same rotation as axis × angle, degrees")
+
+
+class PoseResult(BaseModel):
+    """Models with ``output_kind`` ``joint_angles_deg`` fill ``joint_angles_deg`` (joint → angle name → degrees);
+    ``joint_axis_angle_rad`` models fill ``joint_rotations``."""
+
+    joint_angles_deg: dict[str, dict[str, float]] | None = None
+    joint_rotations: dict[str, JointRotation] | None = None
+
+
+_EXAMPLE_POSE = {"joint_angles_deg": {"LeftKnee": {"flexion": 12.5}, "RightKnee": {"flexion": 48.0}}}
+
+
+class PoseResponse(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "results": [_EXAMPLE_POSE],
+                    "output_kind": "joint_angles_deg",
+                    "model_versions": {"flex_pose": "1.0.0"},
+                }
+            ]
+        }
+    )
+    results: list[PoseResult]
+    output_kind: str = Field(description="the model's output kind (manifest)")
+    model_versions: dict[str, str]
+
+
+def error_responses(*codes: int, details: dict[int, str] | None = None) -> dict[int | str, dict]:
+    """OpenAPI entries for the 4xx/5xx answers of a route, each with an example ``detail`` (``details``
+    replaces the default example of a code)."""
     examples = {
         401: "missing or wrong X-API-Key header",
         413: "at most 4096 windows per request, got 5000",
         422: "windows[0]: at 60 Hz a window has 128 samples, got 127",
         503: "no i2s_assignment model is loaded; loaded: none",
-    }
+    } | (details or {})
     return {
         code: {"description": examples[code], "content": {"application/json": {"example": {"detail": examples[code]}}}}
         for code in codes

@@ -35,18 +35,31 @@ class Manifest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     schema_version: int = MANIFEST_SCHEMA_VERSION
     name: str
-    task: Literal["i2s_assignment", "i2s_alignment"]
+    # i2s_*: paper 000. imu_pose (sparse IMUs, paper 001) and flex_pose (flex sensors, paper 004) are served by the
+    # generic pose routes from what the manifest declares: input channels, rate, window, value range, joints.
+    task: Literal["i2s_assignment", "i2s_alignment", "imu_pose", "flex_pose"]
     version: str
     created_utc: str
     inputs: list[TensorSpec]
     outputs: list[TensorSpec]
-    output_kind: Literal["probabilities", "logits", "quaternion_per_segment"]
+    # joint_angles_deg: output (batch, joints, components) in degrees; joint_axis_angle_rad: (batch, joints, 3),
+    # each joint's rotation as axis × angle in radians.
+    output_kind: Literal[
+        "probabilities", "logits", "quaternion_per_segment", "joint_angles_deg", "joint_axis_angle_rad"
+    ]
     sample_rate_hz: float
     window_samples: int
     hop_samples: int
     channels: list[str]
     units: dict[str, str]
     classes: list[str]
+    joints: list[str] = Field(default_factory=list, description="pose models: output joints, in order")
+    joint_components: list[str] = Field(
+        default_factory=list, description="joint_angles_deg models: the angle names per joint, in order"
+    )
+    value_range: list[float] | None = Field(
+        None, min_length=2, max_length=2, description="inclusive bounds of every input value, e.g. 12-bit counts"
+    )
     quaternion_convention: str | None = None
     sha256: str
     training_data: dict[str, object] = Field(default_factory=dict)

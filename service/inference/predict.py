@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from service.core.manifest import Manifest
 from service.core.resample import resample_uniform
 from service.core.rotations import canonical_quat, matrix_from_quat
 from service.core.segments import SEGMENTS
@@ -12,6 +13,7 @@ from service.core.units import to_contract_units
 from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES
 
 MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 2000.0
+MIN_POSE_RATE_HZ = 1.0  # flex sensors report at 20 Hz (paper 004), some slower
 
 
 class InputError(ValueError):
@@ -40,20 +42,78 @@ def windows_to_model_input(x: np.ndarray, rate_hz: float, acc_unit: str, gyr_uni
         raise InputError(
             f"{where.format(i=0)}: sample_rate_hz must be in [{MIN_RATE_HZ}, {MAX_RATE_HZ}], got {rate_hz}"
         )
-    x = to_contract_units(x, acc_unit, gyr_unit)
+    return fit_window(to_contract_units(x, acc_unit, gyr_unit), rate_hz, MODEL_RATE_HZ, WINDOW_SAMPLES, where)
+
+
+def fit_window(x: np.ndarray, rate_hz: float, model_rate_hz: float, window: int, where: str) -> np.ndarray:
+    """Windows ``(n, N, C)`` at ``rate_hz`` → ``(n, window, C)`` float32 at the model's rate.
+
+    At the model's rate a window must have exactly ``window`` samples (another length is a mistake worth
+    reporting); at any other rate it is resampled and its last ``window`` samples are used.
+    """
     n_samples = x.shape[1]
-    if np.isclose(rate_hz, MODEL_RATE_HZ):
-        if n_samples != WINDOW_SAMPLES:
-            raise InputError(f"{where.format(i=0)}: at 60 Hz a window has {WINDOW_SAMPLES} samples, got {n_samples}")
+    if np.isclose(rate_hz, model_rate_hz):
+        if n_samples != window:
+            raise InputError(
+                f"{where.format(i=0)}: at {model_rate_hz:g} Hz a window has {window} samples, got {n_samples}"
+            )
         return x.astype(np.float32)
-    x = resample_uniform(x.transpose(1, 0, 2), rate_hz, MODEL_RATE_HZ).transpose(1, 0, 2)
-    if x.shape[1] < WINDOW_SAMPLES:
-        need = int(np.ceil(WINDOW_SAMPLES * rate_hz / MODEL_RATE_HZ))
+    x = resample_uniform(x.transpose(1, 0, 2), rate_hz, model_rate_hz).transpose(1, 0, 2)
+    if x.shape[1] < window:
+        need = int(np.ceil(window * rate_hz / model_rate_hz))
         raise InputError(
-            f"{where.format(i=0)}: at {rate_hz} Hz a window needs at least {need} samples "
-            f"({WINDOW_SAMPLES} after resampling to 60 Hz), got {n_samples}"
+            f"{where.format(i=0)}: at {rate_hz:g} Hz a window needs at least {need} samples "
+            f"({window} after resampling to {model_rate_hz:g} Hz), got {n_samples}"
         )
-    return x[:, -WINDOW_SAMPLES:].astype(np.float32)
+    return x[:, -window:].astype(np.float32)
+
+
+def pose_model_input(samples: list[list[float]], rate_hz: float | None, manifest: Manifest, where: str) -> np.ndarray:
+    """One block of a pose model's input rows (the manifest's ``channels``) → ``(window, C)`` float32."""
+    n_channels = len(manifest.channels)
+    bad = next((len(r) for r in samples if len(r) != n_channels), None)
+    if bad is not None:
+        raise InputError(
+            f"{where}: every sample needs {n_channels} values ({', '.join(manifest.channels)}), got a row of {bad}"
+        )
+    x = np.asarray(samples, dtype=np.float64)
+    if not np.isfinite(x).all():
+        raise InputError(f"{where}: samples must be finite numbers, got NaN or Inf")
+    if manifest.value_range is not None:
+        lo, hi = manifest.value_range
+        if x.min() < lo or x.max() > hi:
+            raise InputError(f"{where}: values must lie in [{lo:g}, {hi:g}], got [{x.min():g}, {x.max():g}]")
+    rate = manifest.sample_rate_hz if rate_hz is None else rate_hz
+    if not MIN_POSE_RATE_HZ <= rate <= MAX_RATE_HZ:
+        raise InputError(f"{where}: sample_rate_hz must be in [{MIN_POSE_RATE_HZ:g}, {MAX_RATE_HZ:g}], got {rate}")
+    return fit_window(x[None], rate, manifest.sample_rate_hz, manifest.window_samples, where)[0]
+
+
+def pose_results(output: np.ndarray, manifest: Manifest) -> list[dict]:
+    """Model output ``(B, joints, K)`` → per block ``joint_angles_deg`` (joint → angle name → degrees) or
+    ``joint_rotations`` (joint → quaternion w, x, y, z with w ≥ 0 and rotation vector in degrees)."""
+    if manifest.output_kind == "joint_angles_deg":
+        return [
+            {
+                "joint_angles_deg": {
+                    joint: dict(zip(manifest.joint_components, row, strict=True))
+                    for joint, row in zip(manifest.joints, block.tolist(), strict=True)
+                }
+            }
+            for block in output
+        ]
+    rotvec = output.reshape(-1, 3).astype(np.float64)
+    q = canonical_quat(Rotation.from_rotvec(rotvec).as_quat(scalar_first=True)).reshape(len(output), -1, 4)
+    degrees = np.degrees(rotvec).reshape(len(output), -1, 3)
+    return [
+        {
+            "joint_rotations": {
+                joint: {"q": qj, "rotation_vector_deg": vj}
+                for joint, qj, vj in zip(manifest.joints, qb.tolist(), vb.tolist(), strict=True)
+            }
+        }
+        for qb, vb in zip(q, degrees, strict=True)
+    ]
 
 
 def window_results(

@@ -31,9 +31,9 @@ class LoadedModel:
     path: Path
     source: str = ""  # the directory, or the registry URI and version it was fetched from
 
-    def run(self, imu: np.ndarray) -> np.ndarray:
-        """``(B, 128, 6)`` float32 → the manifest's single output."""
-        return self.session.run(None, {self.manifest.inputs[0].name: imu})[0]
+    def run(self, x: np.ndarray) -> np.ndarray:
+        """The manifest's single input (e.g. IMU windows ``(B, 128, 6)``) float32 → its single output."""
+        return self.session.run(None, {self.manifest.inputs[0].name: x})[0]
 
 
 def _check_shapes(manifest: Manifest, session: ort.InferenceSession) -> None:

@@ -42,5 +42,9 @@ class ModelRunner:
             out[task] = np.concatenate(parts)
         return out[ASSIGNMENT], out.get(ALIGNMENT)
 
+    async def run_model(self, task: str, x: np.ndarray) -> np.ndarray:
+        """One model (e.g. a pose model) on its input, in the same worker threads, without batching."""
+        return await asyncio.wrap_future(self.pool.submit(self.models[task].run, x))
+
     def close(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)

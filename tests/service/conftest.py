@@ -95,6 +95,71 @@ def write_tiny_model(root: Path, task: str) -> Path:
     return target
 
 
+# Two tiny pose models, one per output kind: (task, channels, rate Hz, window, value range, joints, components).
+TINY_POSE = {
+    "flex_pose": (
+        ["left_elbow", "right_elbow", "left_knee", "right_knee"],
+        20.0,
+        100,
+        [0.0, 4095.0],
+        ["LeftElbow", "RightElbow", "LeftKnee", "RightKnee"],
+        ["flexion"],
+    ),
+    "imu_pose": ([f"f{k}" for k in range(12)], 60.0, 30, None, ["LeftKnee", "RightKnee"], ["x", "y", "z"]),
+}
+
+
+def tiny_pose_weights(task: str) -> np.ndarray:
+    channels, _, _, _, joints, components = TINY_POSE[task]
+    rng = np.random.default_rng(1)
+    return (rng.normal(size=(len(channels), len(joints) * len(components))) * 0.01).astype(np.float32)
+
+
+def write_tiny_pose_model(root: Path, task: str) -> Path:
+    """pose = reshape(mean_t(x) @ W): a (batch, joints, components) output whose values a test can recompute."""
+    channels, rate, window, value_range, joints, components = TINY_POSE[task]
+    W = numpy_helper.from_array(tiny_pose_weights(task), "W")
+    axes = numpy_helper.from_array(np.array([1], dtype=np.int64), "axes")
+    shape = numpy_helper.from_array(np.array([-1, len(joints), len(components)], dtype=np.int64), "shape")
+    nodes = [
+        helper.make_node("ReduceMean", ["x", "axes"], ["m"], keepdims=0),
+        helper.make_node("MatMul", ["m", "W"], ["z"]),
+        helper.make_node("Reshape", ["z", "shape"], ["pose"]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        f"tiny_{task}",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["batch", window, len(channels)])],
+        [helper.make_tensor_value_info("pose", TensorProto.FLOAT, ["batch", len(joints), len(components)])],
+        [W, axes, shape],
+    )
+    target = root / task / "0.0.1"
+    target.mkdir(parents=True)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=9)
+    onnx.save(model, target / "model.onnx")
+    manifest = Manifest(
+        name=task,
+        task=task,
+        version="0.0.1",
+        created_utc=dt.datetime.now(dt.UTC).isoformat(),
+        inputs=[TensorSpec(name="x", shape=["batch", window, len(channels)], dtype="float32")],
+        outputs=[TensorSpec(name="pose", shape=["batch", len(joints), len(components)], dtype="float32")],
+        output_kind="joint_angles_deg" if task == "flex_pose" else "joint_axis_angle_rad",
+        sample_rate_hz=rate,
+        window_samples=window,
+        hop_samples=1,
+        channels=channels,
+        units={"flex": "counts_12bit"} if task == "flex_pose" else {"features": "see channels"},
+        classes=[],
+        joints=joints,
+        joint_components=components if task == "flex_pose" else [],
+        value_range=value_range,
+        sha256=sha256_file(target / "model.onnx"),
+    )
+    write_manifest(manifest, target / "manifest.json")
+    return target
+
+
 @pytest.fixture
 def tiny_models(tmp_path: Path) -> Path:
     root = tmp_path / "onnx_models"

@@ -13,7 +13,7 @@ import schemathesis
 from hypothesis import HealthCheck, given, settings
 
 from benchmarks.servers import start_service, stop
-from tests.service.conftest import write_tiny_model
+from tests.service.conftest import TINY_POSE, write_tiny_model, write_tiny_pose_model
 
 CASES_PER_OPERATION = 260  # per operation and mode (POSTs: valid and schema-violating): > 1000 cases in all
 
@@ -22,6 +22,8 @@ def test_generated_requests_never_get_a_server_error(tmp_path: Path) -> None:
     root = tmp_path / "onnx_models"
     write_tiny_model(root, "i2s_assignment")
     write_tiny_model(root, "i2s_alignment")
+    for task in TINY_POSE:  # the pose routes answer 503 without a pose model; with one they must never 5xx
+        write_tiny_pose_model(root, task)
     server, base = start_service(root, max_body_bytes="1000000")
     counts: dict[str, int] = {}
     try:
@@ -34,7 +36,9 @@ def test_generated_requests_never_get_a_server_error(tmp_path: Path) -> None:
         assert httpx.get(f"{base}/health").status_code == 200  # still up after all of it
     finally:
         stop(server)
-    assert {"POST /v1/imu/windows negative", "POST /v1/imu/assign negative"} <= set(counts)
+    assert {"POST /v1/imu/windows negative", "POST /v1/imu/assign negative", "POST /v1/pose/flex negative"} <= set(
+        counts
+    )
     assert sum(counts.values()) >= 1000, counts
 
 

@@ -180,7 +180,14 @@ def test_openapi_documents_every_endpoint_with_examples(client: TestClient) -> N
     import json
     import re
 
-    from service.api.schemas import AssignRequest, AssignResponse, WindowsRequest, WindowsResponse
+    from service.api.schemas import (
+        AssignRequest,
+        AssignResponse,
+        PoseRequest,
+        PoseResponse,
+        WindowsRequest,
+        WindowsResponse,
+    )
 
     spec = client.get("/openapi.json").json()
     schemas = spec["components"]["schemas"]
@@ -196,7 +203,7 @@ def test_openapi_documents_every_endpoint_with_examples(client: TestClient) -> N
             if "requestBody" in op:
                 assert has_example(op["requestBody"]), f"{method} {path}: no request example"
     # The examples are valid bodies.
-    for model in (WindowsRequest, WindowsResponse, AssignRequest, AssignResponse):
+    for model in (WindowsRequest, WindowsResponse, AssignRequest, AssignResponse, PoseRequest, PoseResponse):
         for example in model.model_config["json_schema_extra"]["examples"]:
             model.model_validate(example)
 
