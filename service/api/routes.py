@@ -90,9 +90,9 @@ def _require(models: dict[str, LoadedModel], task: str) -> LoadedModel:
     return models[task]
 
 
-def _check_count(n: int, settings: Settings) -> None:
+def _check_count(n: int, settings: Settings, what: str = "windows") -> None:
     if n > settings.max_windows_per_request:
-        raise HTTPException(413, f"at most {settings.max_windows_per_request} windows per request, got {n}")
+        raise HTTPException(413, f"at most {settings.max_windows_per_request} {what} per request, got {n}")
 
 
 def _inputs(windows: list[ImuWindow], prefix: str) -> np.ndarray:
@@ -246,7 +246,7 @@ POSE_DESCRIPTION = (
 
 async def _pose(task: str, body: PoseRequest, request: Request, settings: Settings) -> Response:
     model = _require(_models(request), task)
-    _check_count(len(body.blocks), settings)
+    _check_count(len(body.blocks), settings, "blocks")
     blocks = enumerate(body.blocks)
     x = np.stack([pose_model_input(b.samples, b.sample_rate_hz, model.manifest, f"blocks[{i}]") for i, b in blocks])
     output = await request.app.state.runner.run_model(task, x)

@@ -6,7 +6,7 @@ import hashlib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 MANIFEST_SCHEMA_VERSION = 1
 # Key of the manifest inside a logged MLflow model's MLmodel metadata (models served from the registry).
@@ -68,6 +68,23 @@ class Manifest(BaseModel):
     exporter: dict[str, str | int] = Field(default_factory=dict)
     golden: str = "golden.npz"
     parity_atol: float = 1e-4
+
+    @model_validator(mode="after")
+    def _pose_contract_is_consistent(self) -> Manifest:
+        """A pose model's manifest must describe its tensors fully: the service builds inputs and labels
+        outputs from it alone."""
+        if self.task not in ("imu_pose", "flex_pose"):
+            return self
+        if self.output_kind not in ("joint_angles_deg", "joint_axis_angle_rad"):
+            raise ValueError(f"a {self.task} model needs a joint output_kind, got {self.output_kind}")
+        expected_in = ["batch", self.window_samples, len(self.channels)]
+        if len(self.inputs) != 1 or self.inputs[0].shape != expected_in:
+            raise ValueError(f"a {self.task} model takes one input of shape {expected_in}")
+        k = len(self.joint_components) if self.output_kind == "joint_angles_deg" else 3
+        expected_out = ["batch", len(self.joints), k]
+        if len(self.outputs) != 1 or self.outputs[0].shape != expected_out or not self.joints or not k:
+            raise ValueError(f"a {self.task} model gives one output of shape {expected_out} (joints × components)")
+        return self
 
 
 def sha256_file(path: Path) -> str:

@@ -100,3 +100,17 @@ def test_models_endpoint_lists_the_pose_contract(pose_client: TestClient) -> Non
     manifest = flex["manifest"] if "manifest" in flex else flex
     assert manifest["channels"][0] == "left_elbow" and manifest["joints"][0] == "LeftElbow"
     assert manifest["value_range"] == [0.0, 4095.0]
+
+
+def test_a_pose_manifest_that_does_not_describe_its_tensors_is_refused(tmp_path: Path) -> None:
+    from service.core.manifest import read_manifest
+    from service.inference.registry import load_models
+
+    root = tmp_path / "onnx_models"
+    target = write_tiny_pose_model(root, "flex_pose")
+    manifest = read_manifest(target / "manifest.json").model_dump()
+    manifest["joints"] = manifest["joints"][:3]  # the output has 4 joints
+    (target / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match=r"output of shape \['batch', 3, 1\]"):
+        read_manifest(target / "manifest.json")
+    assert load_models(root, 1) == {}  # refused with a log line, nothing served
