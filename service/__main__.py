@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 
 import uvicorn
 
 from service.app import create_app
+
+GC_GEN0_THRESHOLD = 50_000
 
 
 def main() -> None:
@@ -22,7 +25,18 @@ def main() -> None:
         action="store_true",
         help="permessage-deflate on WebSockets (off: it costs server CPU per message for small JSON results)",
     )
+    parser.add_argument(
+        "--gc-threshold",
+        type=int,
+        default=GC_GEN0_THRESHOLD,
+        help="allocations between young-generation garbage collections (Python's default: 700)",
+    )
     args = parser.parse_args()
+    # A 256-window JSON body is ~33,000 lists and 200,000 floats. At Python's default threshold (700) the cyclic
+    # collector runs dozens of times while one body is parsed and validated, and the older generations are
+    # traversed again and again. 50,000 took 256-window JSON batches from ~990 to ~1,340 windows/s (median of 3
+    # interleaved runs each on 2 cores). Only reference cycles wait longer; everything else is freed at once.
+    gc.set_threshold(args.gc_threshold, 20, 100)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     uvicorn.run(
         create_app(),
