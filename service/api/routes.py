@@ -259,32 +259,24 @@ async def _pose(task: str, body: PoseRequest, request: Request, settings: Settin
     )
 
 
-@router.post(
-    "/v1/pose/imu",
-    response_model=PoseResponse,
-    tags=["pose"],
-    summary="Body pose from a block of sparse-IMU features (task imu_pose)",
-    description=POSE_DESCRIPTION.format(task="imu_pose"),
-    responses=error_responses(
-        401, 413, 422, 503, details={503: "no imu_pose model is loaded; loaded: ['i2s_alignment', 'i2s_assignment']"}
-    ),
-)
-async def pose_from_imu(body: PoseRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
-    return await _pose("imu_pose", body, request, settings)
+def _add_pose_route(path: str, task: str, source: str) -> None:
+    async def pose(body: PoseRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
+        return await _pose(task, body, request, settings)
+
+    pose.__name__ = f"pose_from_{path.rsplit('/', 1)[-1]}"  # FastAPI's operationId
+    loaded = "['i2s_alignment', 'i2s_assignment']"
+    router.post(
+        path,
+        response_model=PoseResponse,
+        tags=["pose"],
+        summary=f"Body pose from a block of {source} (task {task})",
+        description=POSE_DESCRIPTION.format(task=task),
+        responses=error_responses(401, 413, 422, 503, details={503: f"no {task} model is loaded; loaded: {loaded}"}),
+    )(pose)
 
 
-@router.post(
-    "/v1/pose/flex",
-    response_model=PoseResponse,
-    tags=["pose"],
-    summary="Body pose from a block of flex-sensor readings (task flex_pose)",
-    description=POSE_DESCRIPTION.format(task="flex_pose"),
-    responses=error_responses(
-        401, 413, 422, 503, details={503: "no flex_pose model is loaded; loaded: ['i2s_alignment', 'i2s_assignment']"}
-    ),
-)
-async def pose_from_flex(body: PoseRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
-    return await _pose("flex_pose", body, request, settings)
+_add_pose_route("/v1/pose/imu", "imu_pose", "sparse-IMU features")
+_add_pose_route("/v1/pose/flex", "flex_pose", "flex-sensor readings")
 
 
 @router.get(
