@@ -20,14 +20,31 @@ class InputError(ValueError):
     """A client's input cannot be turned into a model window; the message says why."""
 
 
+def _rows(samples: list[list[float]], n: int, names: str, where: str) -> np.ndarray:
+    """Rows of ``n`` values each → ``(N, n)`` float64; a shorter or longer row is named in the error."""
+    bad = next((len(r) for r in samples if len(r) != n), None)
+    if bad is not None:
+        raise InputError(f"{where}: every sample needs {n} values ({names}), got a row of {bad}")
+    return np.asarray(samples, dtype=np.float64)
+
+
+def _check_finite_and_rate(x: np.ndarray, rate_hz: float, min_rate_hz: float, where: str) -> None:
+    """``x`` ``(n, N, C)``; ``where`` may hold ``{i}``, replaced by the offending window's index."""
+    finite = np.isfinite(x).reshape(len(x), -1).all(axis=1)
+    if not finite.all():
+        raise InputError(f"{where.format(i=int(np.argmin(finite)))}: samples must be finite numbers, got NaN or Inf")
+    if not min_rate_hz <= rate_hz <= MAX_RATE_HZ:
+        raise InputError(
+            f"{where.format(i=0)}: sample_rate_hz must be in [{min_rate_hz:g}, {MAX_RATE_HZ:g}], got {rate_hz}"
+        )
+
+
 def window_to_model_input(
     samples: list[list[float]], rate_hz: float, acc_unit: str, gyr_unit: str, where: str
 ) -> np.ndarray:
     """Rows ``(N, 6)`` in any supported unit and rate → ``(128, 6)`` float32 at 60 Hz, contract units."""
-    bad = next((len(r) for r in samples if len(r) != 6), None)
-    if bad is not None:
-        raise InputError(f"{where}: every sample needs 6 values (acc xyz, gyr xyz), got a row of {bad}")
-    return windows_to_model_input(np.asarray(samples, dtype=np.float64)[None], rate_hz, acc_unit, gyr_unit, where)[0]
+    x = _rows(samples, 6, "acc xyz, gyr xyz", where)
+    return windows_to_model_input(x[None], rate_hz, acc_unit, gyr_unit, where)[0]
 
 
 def windows_to_model_input(x: np.ndarray, rate_hz: float, acc_unit: str, gyr_unit: str, where: str) -> np.ndarray:
@@ -35,13 +52,7 @@ def windows_to_model_input(x: np.ndarray, rate_hz: float, acc_unit: str, gyr_uni
 
     ``where`` names the stack in error messages; a ``{i}`` in it is replaced by the offending window's index.
     """
-    finite = np.isfinite(x).reshape(len(x), -1).all(axis=1)
-    if not finite.all():
-        raise InputError(f"{where.format(i=int(np.argmin(finite)))}: samples must be finite numbers, got NaN or Inf")
-    if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
-        raise InputError(
-            f"{where.format(i=0)}: sample_rate_hz must be in [{MIN_RATE_HZ}, {MAX_RATE_HZ}], got {rate_hz}"
-        )
+    _check_finite_and_rate(x, rate_hz, MIN_RATE_HZ, where)
     return fit_window(to_contract_units(x, acc_unit, gyr_unit), rate_hz, MODEL_RATE_HZ, WINDOW_SAMPLES, where)
 
 
@@ -70,23 +81,14 @@ def fit_window(x: np.ndarray, rate_hz: float, model_rate_hz: float, window: int,
 
 def pose_model_input(samples: list[list[float]], rate_hz: float | None, manifest: Manifest, where: str) -> np.ndarray:
     """One block of a pose model's input rows (the manifest's ``channels``) → ``(window, C)`` float32."""
-    n_channels = len(manifest.channels)
-    bad = next((len(r) for r in samples if len(r) != n_channels), None)
-    if bad is not None:
-        raise InputError(
-            f"{where}: every sample needs {n_channels} values ({', '.join(manifest.channels)}), got a row of {bad}"
-        )
-    x = np.asarray(samples, dtype=np.float64)
-    if not np.isfinite(x).all():
-        raise InputError(f"{where}: samples must be finite numbers, got NaN or Inf")
+    x = _rows(samples, len(manifest.channels), ", ".join(manifest.channels), where)[None]
+    rate = manifest.sample_rate_hz if rate_hz is None else rate_hz
+    _check_finite_and_rate(x, rate, MIN_POSE_RATE_HZ, where)
     if manifest.value_range is not None:
         lo, hi = manifest.value_range
         if x.min() < lo or x.max() > hi:
             raise InputError(f"{where}: values must lie in [{lo:g}, {hi:g}], got [{x.min():g}, {x.max():g}]")
-    rate = manifest.sample_rate_hz if rate_hz is None else rate_hz
-    if not MIN_POSE_RATE_HZ <= rate <= MAX_RATE_HZ:
-        raise InputError(f"{where}: sample_rate_hz must be in [{MIN_POSE_RATE_HZ:g}, {MAX_RATE_HZ:g}], got {rate}")
-    return fit_window(x[None], rate, manifest.sample_rate_hz, manifest.window_samples, where)[0]
+    return fit_window(x, rate, manifest.sample_rate_hz, manifest.window_samples, where)[0]
 
 
 def pose_results(output: np.ndarray, manifest: Manifest) -> list[dict]:
