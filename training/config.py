@@ -35,6 +35,8 @@ class TrainConfig(_Strict):
     hidden: int = 128
     channels: int = 64
     kernel: int = 16
+    # alignment only: rotate each window into its own canonical frame first (training.models.CanonicalFrame)
+    canonical_frame: bool = False
     # alignment loss: sign-invariant quaternion distance, or the paper's L2 on the stereographic projection
     alignment_loss: Literal["quaternion", "stereographic_l2"] = "quaternion"
     grad_clip_norm: float | None = None  # clip the global gradient norm (stabilises the LSTM)

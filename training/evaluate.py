@@ -11,10 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
+from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from service.core.assignment import is_moving, joint_assignment
 from service.core.recordings import RealRecording
+from service.core.segments import SEGMENTS
 from service.core.windowing import sliding_windows
 from training.data.mocap import Clip
 from training.data.windows import Augmentation, grid_batches
@@ -112,3 +114,48 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     metrics["real_joint_assignment_correct_fraction"] = joint_correct / max(joint_total, 1)
     metrics["real_still_windows_skipped"] = float(still)
     return metrics, confusion_matrix(yt, yp)
+
+
+LEG_SEGMENTS = frozenset(SEGMENTS.index(n) for n in ("LeftUpperLeg", "LeftLowerLeg", "RightUpperLeg", "RightLowerLeg"))
+
+
+def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -> dict[str, float]:
+    """Alignment on real recordings, which carry no I2S ground truth: two label-free checks per sensor.
+
+    - Stability: a strapped sensor does not turn on its segment, so every moving window should give the same
+      q_segment_imu. Reported: the angle of each window's prediction from the sensor's mean rotation.
+    - Uprightness (upper and lower legs): over a 2 s window of gait the mean specific force is near the
+      leg's long axis, so R_segment_imu · mean(acc) should point near the segment's +z. Reported: its angle
+      from +z. The true alignment of a sensor simulated from CMU walking reads about 19° (the shank leans
+      during gait; tests/training/test_evaluate.py), one 90° off about x reads about 97°. Rotation about z
+      (the long axis) does not show here.
+    Both are necessary, not sufficient (a constant output is perfectly stable); the simulated LOSO is the
+    accuracy measure. Predictions are for the sensor's known segment.
+    """
+    spreads, tilts, metrics = [], [], {}
+    for rec in recordings:
+        rec_spread = []
+        for s in (s for s in rec.sensors if s.segment is not None):
+            windows = sliding_windows(s.imu.astype(np.float32))
+            windows = np.ascontiguousarray(windows[is_moving(windows)])
+            if len(windows) < 2:
+                continue
+            rot = Rotation.from_quat(predict(windows)[:, s.segment].astype(np.float64), scalar_first=True)
+            rec_spread.append(np.degrees((rot.mean().inv() * rot).magnitude()))
+            if s.segment in LEG_SEGMENTS:
+                up = rot.apply(windows[..., :3].mean(axis=1).astype(np.float64))
+                tilts.append(np.degrees(np.arccos(np.clip(up[:, 2] / np.linalg.norm(up, axis=1), -1.0, 1.0))))
+        if rec_spread:
+            spreads += rec_spread
+            metrics[f"alignment_spread_median_deg/{rec.name}"] = float(np.median(np.concatenate(rec_spread)))
+    spread, tilt = np.concatenate(spreads), np.concatenate(tilts)
+    metrics.update(
+        {
+            "real_alignment_spread_median_deg": float(np.median(spread)),
+            "real_alignment_spread_p90_deg": float(np.percentile(spread, 90)),
+            "real_leg_up_axis_angle_median_deg": float(np.median(tilt)),
+            "real_leg_up_axis_angle_p90_deg": float(np.percentile(tilt, 90)),
+            "real_alignment_n_windows": float(len(spread)),
+        }
+    )
+    return metrics

@@ -10,7 +10,7 @@ import onnxruntime as ort
 import torch
 from torch import nn
 
-from training.models import AlignmentExport, AlignmentNet, AssignmentExport, AssignmentNet
+from training.models import AlignmentNet, AssignmentExport, AssignmentNet
 
 log = logging.getLogger(__name__)
 
@@ -20,11 +20,12 @@ OUTPUT_NAMES = {"assignment": "probabilities", "alignment": "q_segment_imu"}
 
 
 def export_module(model: nn.Module) -> nn.Module:
-    """Wrap a trained net in its exported graph (softmax or stereographic → quaternion inside)."""
+    """The exported graph of a trained net: softmax added for assignment; the alignment net already ends in
+    unit quaternions (stereographic → quaternion, and the canonical frame if it has one)."""
     if isinstance(model, AssignmentNet):
         return AssignmentExport(model).eval()
     if isinstance(model, AlignmentNet):
-        return AlignmentExport(model).eval()
+        return model.eval()
     raise TypeError(f"expected AssignmentNet or AlignmentNet, got {type(model).__name__}")
 
 

@@ -58,24 +58,126 @@ class AssignmentNet(nn.Module):
         return self.head(features[:, -1])
 
 
-class AlignmentNet(nn.Module):
-    """CNN → 2-layer LSTM(128) → linear → stereographic projections, one per segment hypothesis.
+def _unit(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    return v / torch.sqrt((v * v).sum(-1, keepdim=True) + eps)
 
-    The alignment R_SI is only defined relative to a segment, so the head regresses 3 values for
-    each of the 7 segments, ``(B, 7, 3)``; training supervises the row of the true segment and the
-    service picks the row of the assigned (or declared) segment.
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Cross product over the last axis, written out (``torch.linalg.cross`` has no ONNX export)."""
+    a0, a1, a2 = a.unbind(-1)
+    b0, b1, b2 = b.unbind(-1)
+    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim=-1)
+
+
+def _sign(x: torch.Tensor) -> torch.Tensor:
+    """+1 for x ≥ 0, else −1 (never 0, so a frame built from it stays a rotation)."""
+    return torch.where(x >= 0, 1.0, -1.0)
+
+
+def quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
+    """Unit quaternions ``(..., 4)`` (w, x, y, z) of rotation matrices ``(..., 3, 3)``, exportable to ONNX.
+
+    Shepperd's method: the four closed forms, each accurate where its pivot (1 + trace, or 1 + 2 R_ii − trace)
+    is the largest, are all evaluated and the best one is picked per matrix, so 180° rotations are exact too.
+    """
+    r00, r01, r02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    r10, r11, r12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    r20, r21, r22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    pivots = torch.stack([1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22], -1)
+    s = 2.0 * torch.sqrt(pivots.clamp(min=1e-12))  # 4 × the pivot's quaternion component
+    candidates = torch.stack(
+        [
+            torch.stack([s[..., 0] / 4, (r21 - r12) / s[..., 0], (r02 - r20) / s[..., 0], (r10 - r01) / s[..., 0]], -1),
+            torch.stack([(r21 - r12) / s[..., 1], s[..., 1] / 4, (r01 + r10) / s[..., 1], (r02 + r20) / s[..., 1]], -1),
+            torch.stack([(r02 - r20) / s[..., 2], (r01 + r10) / s[..., 2], s[..., 2] / 4, (r12 + r21) / s[..., 2]], -1),
+            torch.stack([(r10 - r01) / s[..., 3], (r02 + r20) / s[..., 3], (r12 + r21) / s[..., 3], s[..., 3] / 4], -1),
+        ],
+        dim=-2,
+    )  # (..., 4 candidates, 4)
+    pick = nn.functional.one_hot(pivots.argmax(-1), 4).to(R.dtype)
+    return _unit((candidates * pick[..., None]).sum(-2))
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a ⊗ b of ``(..., 4)`` quaternions (w, x, y, z)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
+
+
+class CanonicalFrame(nn.Module):
+    """A frame computed from the window itself, so the network only has to learn what is left over.
+
+    Not in paper 000; our addition (README "Alignment"). z_c is the mean specific force (gravity, up to the
+    motion's mean acceleration); y_c is the dominant axis of the angular velocity in the plane normal to z_c
+    (for the legs the flexion axis, the segment's y), signed so that the third moment of ω·y_c is positive
+    (the swing phase is faster than the stance); x_c = y_c × z_c. Returned is ``R_c`` ``(B, 3, 3)`` with rows
+    x_c, y_c, z_c in sensor coordinates, i.e. v_c = R_c · v_imu. On sensor data simulated from the training
+    clips, R_segment_imu · R_cᵀ is then constant per segment to within a few degrees, up to a 180° turn about
+    z_c that the network resolves (it sees the window expressed in the canonical frame).
     """
 
-    def __init__(self, hidden: int = 128, channels: int = 64, kernel: int = 16, keep_prob: float = 0.8) -> None:
+    def forward(self, imu: torch.Tensor) -> torch.Tensor:
+        acc, gyr = imu[..., :3], imu[..., 3:]
+        z = _unit(acc.mean(1))  # (B, 3)
+        ref = torch.where(z[:, :1].abs() < 0.9, z.new_tensor([1.0, 0.0, 0.0]), z.new_tensor([0.0, 1.0, 0.0]))
+        e1 = _unit(_cross(z, ref))
+        e2 = _cross(z, e1)
+        u, v = (gyr * e1[:, None]).sum(-1), (gyr * e2[:, None]).sum(-1)  # (B, T) in-plane components
+        # Principal axis of the in-plane 2 × 2 covariance: direction of the doubled angle, then halved.
+        d = _unit(torch.stack([(u * u - v * v).mean(1), 2.0 * (u * v).mean(1)], -1))
+        cos = torch.sqrt(((1.0 + d[:, 0]) / 2.0).clamp(min=0.0))
+        sin = _sign(d[:, 1]) * torch.sqrt(((1.0 - d[:, 0]) / 2.0).clamp(min=0.0))
+        y = cos[:, None] * e1 + sin[:, None] * e2
+        y = y * _sign((((gyr * y[:, None]).sum(-1)) ** 3).mean(1))[:, None]
+        return torch.stack([_cross(y, z), y, z], dim=1)
+
+
+class AlignmentNet(nn.Module):
+    """CNN → 2-layer LSTM(128) → linear → stereographic projections → unit quaternions, one per segment.
+
+    The alignment R_SI is only defined relative to a segment, so the head regresses 3 values for
+    each of the 7 segments; training supervises the row of the true segment and the service picks the
+    row of the assigned (or declared) segment. ``forward`` returns q_segment_imu ``(B, 7, 4)``, unit, w ≥ 0.
+
+    With ``canonical=True`` the window is first rotated into its ``CanonicalFrame`` and the network predicts
+    q_segment_canonical, so q_segment_imu = q_segment_canonical ⊗ q_canonical_imu (all inside the graph).
+    """
+
+    def __init__(
+        self, hidden: int = 128, channels: int = 64, kernel: int = 16, keep_prob: float = 0.8, canonical: bool = False
+    ) -> None:
         super().__init__()
         self.scale = InputScale()
+        self.canonical = CanonicalFrame() if canonical else None
         self.cnn = ConvFrontEnd(channels, kernel, 3, keep_prob)
         self.rnn = nn.LSTM(channels, hidden, num_layers=2, batch_first=True)
         self.head = nn.Linear(hidden, 3 * len(SEGMENTS))
 
+    def stereographic(self, imu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The head's projections ``(B, 7, 3)`` and the canonical frame ``R_c`` (or None) they are relative to."""
+        x = self.scale(imu)
+        R_c = None
+        if self.canonical is not None:
+            R_c = self.canonical(x).detach()
+            x = torch.cat([x[..., :3] @ R_c.transpose(1, 2), x[..., 3:] @ R_c.transpose(1, 2)], dim=-1)
+        features, _ = self.rnn(self.cnn(x))
+        return self.head(features[:, -1]).reshape(-1, len(SEGMENTS), 3), R_c
+
     def forward(self, imu: torch.Tensor) -> torch.Tensor:
-        features, _ = self.rnn(self.cnn(self.scale(imu)))
-        return self.head(features[:, -1]).reshape(-1, len(SEGMENTS), 3)
+        p, R_c = self.stereographic(imu)
+        q = stereographic_to_quat(p)
+        if R_c is not None:
+            q = quat_multiply(q, quat_from_matrix(R_c)[:, None, :])
+        return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
 
 
 def stereographic_to_quat(p: torch.Tensor) -> torch.Tensor:
@@ -83,17 +185,6 @@ def stereographic_to_quat(p: torch.Tensor) -> torch.Tensor:
     n2 = (p * p).sum(-1, keepdim=True)
     q = torch.cat([1.0 - n2, 2.0 * p], dim=-1) / (1.0 + n2)
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
-
-
-class AlignmentExport(nn.Module):
-    """Exported alignment graph: imu ``(B, 128, 6)`` → q_segment_imu ``(B, 7, 4)`` unit, w ≥ 0."""
-
-    def __init__(self, net: AlignmentNet) -> None:
-        super().__init__()
-        self.net = net
-
-    def forward(self, imu: torch.Tensor) -> torch.Tensor:
-        return stereographic_to_quat(self.net(imu))
 
 
 class AssignmentExport(nn.Module):

@@ -23,7 +23,7 @@ from training.config import ExperimentConfig
 from training.data.catalog import mocap_entries
 from training.data.mocap import Clip, KinematicsParams, build_kinematics, dataset_digest
 from training.data.windows import Augmentation, RealWindowSampler, WindowSampler
-from training.evaluate import evaluate_real, evaluate_simulated, onnx_predictor
+from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
 from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
 from training.plots import confusion_matrix_png, error_boxplot_png, learning_curves_png
 from training.ship import build_manifest, run_version
@@ -125,7 +125,7 @@ def run_training(
         mlflow.log_artifact(str(tmp / "golden.npz"), "export")
         if test_clips:
             _log_simulated_evaluation(cfg, onnx_path, test_clips, tmp, eval_max_windows)
-        if cfg.task == "assignment" and eval_max_windows is None:
+        if eval_max_windows is None:
             _log_real_evaluation(cfg, onnx_path, data_dir, tmp)
         signature = infer_signature(golden["imu"], golden["expected"])
         proto = onnx.load(str(onnx_path))
@@ -197,10 +197,14 @@ def held_out_recordings(cfg: ExperimentConfig, data_dir: Path) -> list[RealRecor
 
 
 def _log_real_evaluation(cfg: ExperimentConfig, onnx_path: Path, data_dir: Path, tmp: Path) -> None:
-    metrics, cm = evaluate_real(onnx_predictor(onnx_path), held_out_recordings(cfg, data_dir))
+    predict, recordings = onnx_predictor(onnx_path), held_out_recordings(cfg, data_dir)
+    if cfg.task == "alignment":
+        metrics = evaluate_real_alignment(predict, recordings)
+    else:
+        metrics, cm = evaluate_real(predict, recordings)
+        png = confusion_matrix_png(cm, tmp / "confusion_real.png", f"{cfg.name}: real recordings (moving windows)")
+        mlflow.log_artifact(str(png), "plots")
     mlflow.log_metrics({k.replace("/", "."): v for k, v in metrics.items()})
-    png = confusion_matrix_png(cm, tmp / "confusion_real.png", f"{cfg.name}: real recordings (moving windows)")
-    mlflow.log_artifact(str(png), "plots")
     mlflow.log_dict(metrics, "evaluation/real_recordings.json")
 
 

@@ -20,7 +20,7 @@ from service.core.manifest import Evaluation, Manifest, TensorSpec, read_manifes
 from service.core.segments import SEGMENTS
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
 from training.config import ExperimentConfig
-from training.evaluate import evaluate_real, evaluate_simulated, onnx_predictor
+from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
 from training.export import OPSET, OUTPUT_NAMES, PARITY_ATOL, onnx_parity
 from training.plots import confusion_matrix_png
 
@@ -181,6 +181,18 @@ def evaluate_shipped(
             )
             _log_to_run(manifest.mlflow["run_id"], metrics_to_log, png)
     else:
+        real_metrics = evaluate_real_alignment(predict, held_out_recordings(cfg, data_dir))
+        evaluations.append(
+            Evaluation(
+                name="real_recordings_label_free",
+                command=command,
+                data="imu_real recordings (no I2S ground truth): per sensor, spread of the predicted alignment over "
+                "its moving windows, and for the legs the angle of the rotated mean specific force from segment +z "
+                "(training.evaluate.evaluate_real_alignment)",
+                metrics=_headline(real_metrics),
+            )
+        )
+        metrics_to_log.update({f"{prefix}{k.replace('/', '.')}": v for k, v in real_metrics.items()})
         _log_to_run(manifest.mlflow["run_id"], metrics_to_log, None)
     manifest.evaluations = evaluations
     write_manifest(manifest, model_dir / "manifest.json")

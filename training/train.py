@@ -18,7 +18,7 @@ from tqdm import tqdm
 from training.config import ExperimentConfig
 from training.data.mocap import Clip
 from training.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, concat_batches
-from training.models import AlignmentNet, AssignmentNet, stereographic_to_quat
+from training.models import AlignmentNet, AssignmentNet
 
 log = logging.getLogger(__name__)
 
@@ -27,8 +27,9 @@ MetricLogger = Callable[[dict[str, float], int], None]
 
 def build_model(cfg: ExperimentConfig) -> nn.Module:
     t = cfg.train
-    cls = AssignmentNet if cfg.task == "assignment" else AlignmentNet
-    return cls(hidden=t.hidden, channels=t.channels, kernel=t.kernel, keep_prob=t.keep_prob)
+    if cfg.task == "assignment":
+        return AssignmentNet(hidden=t.hidden, channels=t.channels, kernel=t.kernel, keep_prob=t.keep_prob)
+    return AlignmentNet(t.hidden, t.channels, t.kernel, t.keep_prob, canonical=t.canonical_frame)
 
 
 def quat_distance(q_pred: torch.Tensor, q_true: torch.Tensor) -> torch.Tensor:
@@ -36,22 +37,28 @@ def quat_distance(q_pred: torch.Tensor, q_true: torch.Tensor) -> torch.Tensor:
     return 2.0 - 2.0 * (q_pred * q_true).sum(-1).abs()
 
 
-def task_loss(
-    task: str, output: torch.Tensor, segment: torch.Tensor, q_true: torch.Tensor, alignment_loss: str = "quaternion"
-) -> torch.Tensor:
-    """Cross entropy (assignment, §2.2.5) or the quaternion distance of the true segment's row (alignment).
+def task_loss(task: str, output: torch.Tensor, segment: torch.Tensor, q_true: torch.Tensor) -> torch.Tensor:
+    """Cross entropy of the logits (assignment, §2.2.5), or the sign-invariant quaternion distance of the true
+    segment's row of the predicted quaternions (alignment).
 
-    The paper regresses the stereographic projection with an L2 loss; with w ≥ 0 canonical targets
-    that loss jumps at 180° rotations, which eq. 8's full circles produce, so the loss here compares
-    the mapped quaternions sign-invariantly. The parametrisation (3 values, stereographic) is the paper's.
+    The paper regresses the stereographic projection with an L2 loss (``stereographic_l2_loss``); with w ≥ 0
+    canonical targets that loss jumps at 180° rotations, which eq. 8's full circles produce, so the default
+    compares the mapped quaternions sign-invariantly. The parametrisation (3 values, stereographic) is the paper's.
     """
     if task == "assignment":
         return nn.functional.cross_entropy(output, segment)
-    p = output[torch.arange(len(segment)), segment]
-    if alignment_loss == "stereographic_l2":  # paper 000 §2.2.5: L2 on p, target from the w >= 0 quaternion
-        p_true = q_true[:, 1:] / (1.0 + q_true[:, :1])
-        return ((p - p_true) ** 2).sum(-1).mean()
-    return quat_distance(stereographic_to_quat(p), q_true).mean()
+    return quat_distance(output[torch.arange(len(segment)), segment], q_true).mean()
+
+
+def stereographic_l2_loss(
+    model: AlignmentNet, imu: torch.Tensor, segment: torch.Tensor, q_true: torch.Tensor
+) -> torch.Tensor:
+    """Paper 000 §2.2.5: L2 on the stereographic projection p, target from the w ≥ 0 quaternion."""
+    p, R_c = model.stereographic(imu)
+    if R_c is not None:
+        raise ValueError("alignment_loss stereographic_l2 needs a net without canonical frame (train.canonical_frame)")
+    p_true = q_true[:, 1:] / (1.0 + q_true[:, :1])
+    return ((p[torch.arange(len(segment)), segment] - p_true) ** 2).sum(-1).mean()
 
 
 def to_tensors(batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -89,7 +96,7 @@ def _validate(model: nn.Module, task: str, batches: list[Batch]) -> dict[str, fl
         if task == "assignment":
             correct += int((out.argmax(-1) == seg).sum())
         else:
-            qp = stereographic_to_quat(out[torch.arange(len(seg)), seg])
+            qp = out[torch.arange(len(seg)), seg]
             angles.append(torch.rad2deg(2 * torch.acos((qp * q).sum(-1).abs().clamp(max=1.0))))
     n = sum(len(b.segment) for b in batches)
     metrics = {"val_loss": sum(losses) / n}
@@ -135,7 +142,10 @@ def train(
         bar = tqdm(range(t.steps_per_epoch), desc=f"{cfg.name} epoch {epoch}/{t.max_epochs}", unit="step", leave=False)
         for _ in bar:
             imu, seg, q = to_tensors(_draw(sampler, real, cfg.data.real_fraction, rng, t.batch_size))
-            loss = task_loss(cfg.task, model(imu), seg, q, t.alignment_loss)
+            if t.alignment_loss == "stereographic_l2" and isinstance(model, AlignmentNet):
+                loss = stereographic_l2_loss(model, imu, seg, q)
+            else:
+                loss = task_loss(cfg.task, model(imu), seg, q)
             optimiser.zero_grad()
             loss.backward()
             if t.grad_clip_norm is not None:
