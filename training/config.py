@@ -35,7 +35,7 @@ class TrainConfig(_Strict):
     hidden: int = 128
     channels: int = 64
     kernel: int = 16
-    # alignment only: rotate each window into its own canonical frame first (training.models.CanonicalFrame)
+    # rotate each window into its own canonical frame first (training.models.CanonicalFrame; not in the paper)
     canonical_frame: bool = False
     # alignment loss: sign-invariant quaternion distance, or the paper's L2 on the stereographic projection
     alignment_loss: Literal["quaternion", "stereographic_l2"] = "quaternion"

@@ -43,21 +43,6 @@ class ConvFrontEnd(nn.Module):
         return self.net(x).transpose(1, 2)
 
 
-class AssignmentNet(nn.Module):
-    """CNN → GRU(128) → linear → 7 logits in ``SEGMENTS`` order (paper 000 Fig. 2, Table A1)."""
-
-    def __init__(self, hidden: int = 128, channels: int = 64, kernel: int = 16, keep_prob: float = 0.8) -> None:
-        super().__init__()
-        self.scale = InputScale()
-        self.cnn = ConvFrontEnd(channels, kernel, 3, keep_prob)
-        self.rnn = nn.GRU(channels, hidden, num_layers=1, batch_first=True)
-        self.head = nn.Linear(hidden, len(SEGMENTS))
-
-    def forward(self, imu: torch.Tensor) -> torch.Tensor:
-        features, _ = self.rnn(self.cnn(self.scale(imu)))
-        return self.head(features[:, -1])
-
-
 def _unit(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     return v / torch.sqrt((v * v).sum(-1, keepdim=True) + eps)
 
@@ -141,6 +126,37 @@ class CanonicalFrame(nn.Module):
         return torch.stack([_cross(y, z), y, z], dim=1)
 
 
+class AssignmentNet(nn.Module):
+    """CNN → GRU(128) → linear → 7 logits in ``SEGMENTS`` order (paper 000 Fig. 2, Table A1).
+
+    With ``canonical=True`` the window is first rotated into its ``CanonicalFrame`` (our addition), so the
+    network no longer has to learn invariance to how the sensor is mounted.
+    """
+
+    def __init__(
+        self, hidden: int = 128, channels: int = 64, kernel: int = 16, keep_prob: float = 0.8, canonical: bool = False
+    ) -> None:
+        super().__init__()
+        self.scale = InputScale()
+        self.canonical = CanonicalFrame() if canonical else None
+        self.cnn = ConvFrontEnd(channels, kernel, 3, keep_prob)
+        self.rnn = nn.GRU(channels, hidden, num_layers=1, batch_first=True)
+        self.head = nn.Linear(hidden, len(SEGMENTS))
+
+    def forward(self, imu: torch.Tensor) -> torch.Tensor:
+        x = self.scale(imu)
+        if self.canonical is not None:
+            x = rotate_imu(x, self.canonical(x).detach())
+        features, _ = self.rnn(self.cnn(x))
+        return self.head(features[:, -1])
+
+
+def rotate_imu(imu: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """Readings ``(B, T, 6)`` expressed in another frame: acc' = R · acc, gyr' = R · gyr, with ``R`` ``(B, 3, 3)``."""
+    Rt = R.transpose(1, 2)
+    return torch.cat([imu[..., :3] @ Rt, imu[..., 3:] @ Rt], dim=-1)
+
+
 class AlignmentNet(nn.Module):
     """CNN → 2-layer LSTM(128) → linear → stereographic projections → unit quaternions, one per segment.
 
@@ -168,7 +184,7 @@ class AlignmentNet(nn.Module):
         R_c = None
         if self.canonical is not None:
             R_c = self.canonical(x).detach()
-            x = torch.cat([x[..., :3] @ R_c.transpose(1, 2), x[..., 3:] @ R_c.transpose(1, 2)], dim=-1)
+            x = rotate_imu(x, R_c)
         features, _ = self.rnn(self.cnn(x))
         return self.head(features[:, -1]).reshape(-1, len(SEGMENTS), 3), R_c
 

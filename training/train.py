@@ -28,7 +28,7 @@ MetricLogger = Callable[[dict[str, float], int], None]
 def build_model(cfg: ExperimentConfig) -> nn.Module:
     t = cfg.train
     if cfg.task == "assignment":
-        return AssignmentNet(hidden=t.hidden, channels=t.channels, kernel=t.kernel, keep_prob=t.keep_prob)
+        return AssignmentNet(t.hidden, t.channels, t.kernel, t.keep_prob, canonical=t.canonical_frame)
     return AlignmentNet(t.hidden, t.channels, t.kernel, t.keep_prob, canonical=t.canonical_frame)
 
 

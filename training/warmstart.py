@@ -62,7 +62,12 @@ def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1
         source = model_dir.parent / str(manifest.exporter.get("quantized_from", "?"))
         raise ValueError(f"{model_dir} is an int8 model; warm start needs the float32 file it came from: {source}")
     state = assignment_state_from_onnx(model_dir / "model.onnx", net)
-    probe = AssignmentNet(net.rnn.hidden_size, net.cnn.net[0].out_channels, net.cnn.net[0].kernel_size[0])
+    probe = AssignmentNet(
+        net.rnn.hidden_size,
+        net.cnn.net[0].out_channels,
+        net.cnn.net[0].kernel_size[0],
+        canonical=net.canonical is not None,
+    )
     probe.load_state_dict(state)
     probe.eval()
     with np.load(model_dir / "golden.npz") as golden, torch.no_grad():

@@ -14,7 +14,7 @@ from training.data.catalog import mocap_entries
 from training.data.mocap import build_kinematics
 from training.data.windows import Augmentation, WindowSampler
 from training.export import export_onnx, golden_pair, onnx_parity
-from training.models import AlignmentNet, CanonicalFrame, quat_from_matrix
+from training.models import AlignmentNet, AssignmentNet, CanonicalFrame, quat_from_matrix
 
 
 def _rotate(imu: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
@@ -89,6 +89,18 @@ def test_canonical_alignment_net_is_equivariant_and_exports() -> None:
         P @ Q.transpose(1, 2).numpy()[:, None],
         atol=1e-2,
     )
+
+
+def test_canonical_assignment_net_does_not_depend_on_the_mounting() -> None:
+    """With the canonical frame, class logits are the same however the sensor is turned (any weights)."""
+    torch.manual_seed(0)
+    imu = _moving_windows(16, seed=5)
+    Q = torch.tensor(Rotation.random(16, random_state=6).as_matrix(), dtype=torch.float32)
+    net = AssignmentNet(hidden=16, channels=8, kernel=4, canonical=True).eval()
+    with torch.no_grad():
+        torch.testing.assert_close(net(_rotate(imu, Q)), net(imu), atol=2e-4, rtol=0)
+        plain = AssignmentNet(hidden=16, channels=8, kernel=4).eval()
+        assert (plain(_rotate(imu, Q)) - plain(imu)).abs().max() > 1e-3  # 10x the canonical net's tolerance
 
 
 def test_canonical_alignment_net_onnx_parity(tmp_path: Path) -> None:
