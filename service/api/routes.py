@@ -218,9 +218,11 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     out = []
     for k, sensor in enumerate(body.sensors):
         seg = int(joint.segment[k])
-        alignment = None
+        alignment, spread = None, None
         if seg >= 0 and quats is not None:
-            q = mean_alignment(quats[bounds[k] : bounds[k + 1], seg])
+            rows = quats[bounds[k] : bounds[k + 1], seg]
+            # Still windows carry no information on rotation about gravity: average the moving ones if any.
+            q, spread = mean_alignment(rows[moving[k]] if moving[k].any() else rows)
             R = matrix_from_quat(q).round(7).tolist()
             alignment = Alignment(segment=SEGMENTS[seg], q_segment_imu=q.tolist(), R_segment_imu=R)
         out.append(
@@ -232,6 +234,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
                 windows=len(per_sensor[k]),
                 moving_windows=int(moving[k].sum()),
                 alignment=alignment,
+                alignment_spread_deg=spread,
             )
         )
     return _json(AssignResponse(sensors=out, model_versions=versions))

@@ -120,7 +120,12 @@ class SensorAssignment(BaseModel):
     )
     windows: int
     moving_windows: int
-    alignment: Alignment | None = None
+    alignment: Alignment | None = Field(
+        None, description="robust mean over the sensor's moving windows (all windows if none moves)"
+    )
+    alignment_spread_deg: float | None = Field(
+        None, description="median angle of those windows' alignments from the mean; large: they disagree"
+    )
 
 
 class AssignResponse(BaseModel):
@@ -137,6 +142,7 @@ class AssignResponse(BaseModel):
                             "windows": 12,
                             "moving_windows": 11,
                             "alignment": EXAMPLE_ALIGNMENT,
+                            "alignment_spread_deg": 3.1,
                         }
                     ],
                     "model_versions": EXAMPLE_VERSIONS,

@@ -148,7 +148,17 @@ def window_results(
     ]
 
 
-def mean_alignment(q_rows: np.ndarray) -> np.ndarray:
-    """Rotation mean of window quaternions ``(N, 4)`` → ``(4,)`` canonical."""
-    mean = Rotation.from_quat(q_rows, scalar_first=True).mean().as_quat(scalar_first=True)
-    return canonical_quat(mean)
+def mean_alignment(q_rows: np.ndarray) -> tuple[np.ndarray, float]:
+    """Robust rotation mean of window quaternions ``(N, 4)`` → (canonical ``(4,)``, spread in degrees).
+
+    The chordal mean is re-taken three times over the windows no farther from it than the median, so a
+    minority of windows that disagree (e.g. a 180° turn about the long axis) cannot pull it. The spread is
+    the median angle of all windows from the result.
+    """
+    rot = Rotation.from_quat(q_rows, scalar_first=True)
+    mean = rot.mean()
+    for _ in range(3):
+        dist = (mean.inv() * rot).magnitude()
+        mean = rot[dist <= np.median(dist)].mean()
+    spread = float(np.degrees(np.median((mean.inv() * rot).magnitude())))
+    return canonical_quat(mean.as_quat(scalar_first=True)), spread
