@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from training.data.windows import Augmentation
 
@@ -48,6 +48,14 @@ class TrainConfig(_Strict):
     init_from_run: str | None = None  # MLflow run id whose checkpoint warm-starts training (pre-training)
     init_from_onnx: str | None = None  # or a shipped assignment model dir (onnx_models/<name>/<version>)
     max_minutes: float | None = None  # wall-time budget; stops after the epoch that crosses it
+
+    @model_validator(mode="after")
+    def _loss_fits_the_net(self) -> TrainConfig:
+        if self.canonical_frame and self.alignment_loss == "stereographic_l2":
+            raise ValueError(
+                "alignment_loss stereographic_l2 regresses p in the sensor frame; it needs canonical_frame false"
+            )
+        return self
 
 
 class TrackingConfig(_Strict):

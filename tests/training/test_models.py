@@ -131,3 +131,14 @@ def test_leg_segments_sit_at_a_fixed_rotation_from_the_canonical_frame(walk_clip
         spread = np.degrees((centre.inv() * r).magnitude())
         assert np.median(spread) < 8.0, (name, np.median(spread))
         assert np.mean(spread > 30.0) < 0.05, (name, np.mean(spread > 30.0))
+
+
+def test_the_papers_stereographic_loss_is_refused_with_a_canonical_frame() -> None:
+    from pydantic import ValidationError
+
+    from training.config import load_config
+
+    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_alignment.yaml"
+    with pytest.raises(ValidationError, match="needs canonical_frame false"):
+        load_config(config, ["train.alignment_loss=stereographic_l2"])
+    assert load_config(config, ["train.alignment_loss=stereographic_l2", "train.canonical_frame=false"])
