@@ -1,5 +1,6 @@
 """The networks of paper 000 §2.2 and Table A1: a shared CNN front end, a GRU for assignment and a
-2-layer LSTM for alignment. Only the models live here; training is in ``training.train``.
+2-layer LSTM for alignment, plus our optional ``CanonicalFrame`` in front of either (not in the paper; README
+"Canonical frame"). Only the models live here; training is in ``training.train``.
 """
 
 from __future__ import annotations
