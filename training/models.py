@@ -102,7 +102,7 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 class CanonicalFrame(nn.Module):
     """A frame computed from the window itself, so the network only has to learn what is left over.
 
-    Not in paper 000; our addition (README "Alignment"). z_c is the mean specific force (gravity, up to the
+    Not in paper 000; our addition (README "Canonical frame"). z_c is the mean specific force (gravity, up to the
     motion's mean acceleration); y_c is the dominant axis of the angular velocity in the plane normal to z_c
     (for the legs the flexion axis, the segment's y), signed so that the third moment of ω·y_c is positive
     (the swing phase is faster than the stance); x_c = y_c × z_c. Returned is ``R_c`` ``(B, 3, 3)`` with rows
