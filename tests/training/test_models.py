@@ -14,12 +14,7 @@ from training.data.catalog import mocap_entries
 from training.data.mocap import build_kinematics
 from training.data.windows import Augmentation, WindowSampler
 from training.export import export_onnx, golden_pair, onnx_parity
-from training.models import AlignmentNet, AssignmentNet, CanonicalFrame, quat_from_matrix
-
-
-def _rotate(imu: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
-    """Readings of the same motion by a sensor turned by Qᵀ: v' = Q · v for acc and gyr."""
-    return torch.cat([imu[..., :3] @ Q.transpose(-1, -2), imu[..., 3:] @ Q.transpose(-1, -2)], dim=-1)
+from training.models import AlignmentNet, AssignmentNet, CanonicalFrame, quat_from_matrix, rotate_imu
 
 
 def _moving_windows(n: int, seed: int = 0) -> torch.Tensor:
@@ -63,7 +58,7 @@ def test_canonical_frame_turns_with_the_sensor() -> None:
     """R_c(Q · imu) · Q = R_c(imu): the frame belongs to the motion, not to how the sensor is mounted."""
     imu = _moving_windows(64)
     Q = torch.tensor(Rotation.random(64, random_state=3).as_matrix(), dtype=torch.float32)
-    R, R_turned = CanonicalFrame()(imu), CanonicalFrame()(_rotate(imu, Q))
+    R, R_turned = CanonicalFrame()(imu), CanonicalFrame()(rotate_imu(imu, Q))
     assert torch.allclose(R_turned @ Q, R, atol=1e-4)
 
 
@@ -74,7 +69,7 @@ def test_canonical_alignment_net_is_equivariant_and_exports() -> None:
     imu = _moving_windows(16, seed=1)
     Q = torch.tensor(Rotation.random(16, random_state=4).as_matrix(), dtype=torch.float32)
     with torch.no_grad():
-        q, q_turned = net(imu), net(_rotate(imu, Q))
+        q, q_turned = net(imu), net(rotate_imu(imu, Q))
     R = Rotation.from_quat(q.reshape(-1, 4).numpy(), scalar_first=True).as_matrix().reshape(16, 7, 3, 3)
     R_turned = Rotation.from_quat(q_turned.reshape(-1, 4).numpy(), scalar_first=True).as_matrix().reshape(16, 7, 3, 3)
     expected = R @ Q.transpose(1, 2).numpy()[:, None]
@@ -83,7 +78,7 @@ def test_canonical_alignment_net_is_equivariant_and_exports() -> None:
     plain = AlignmentNet(hidden=16, channels=8, kernel=4).eval()
     with torch.no_grad():
         P = Rotation.from_quat(plain(imu).reshape(-1, 4).numpy(), scalar_first=True).as_matrix().reshape(16, 7, 3, 3)
-        P_turned = plain(_rotate(imu, Q)).reshape(-1, 4).numpy()
+        P_turned = plain(rotate_imu(imu, Q)).reshape(-1, 4).numpy()
     assert not np.allclose(
         Rotation.from_quat(P_turned, scalar_first=True).as_matrix().reshape(16, 7, 3, 3),
         P @ Q.transpose(1, 2).numpy()[:, None],
@@ -98,9 +93,9 @@ def test_canonical_assignment_net_does_not_depend_on_the_mounting() -> None:
     Q = torch.tensor(Rotation.random(16, random_state=6).as_matrix(), dtype=torch.float32)
     net = AssignmentNet(hidden=16, channels=8, kernel=4, canonical=True).eval()
     with torch.no_grad():
-        torch.testing.assert_close(net(_rotate(imu, Q)), net(imu), atol=2e-4, rtol=0)
+        torch.testing.assert_close(net(rotate_imu(imu, Q)), net(imu), atol=2e-4, rtol=0)
         plain = AssignmentNet(hidden=16, channels=8, kernel=4).eval()
-        assert (plain(_rotate(imu, Q)) - plain(imu)).abs().max() > 1e-3  # 10x the canonical net's tolerance
+        assert (plain(rotate_imu(imu, Q)) - plain(imu)).abs().max() > 1e-3  # 10x the canonical net's tolerance
 
 
 def test_canonical_alignment_net_onnx_parity(tmp_path: Path) -> None:
