@@ -24,9 +24,11 @@ def walk_clips(data_dir: Path, kinematics_cache: Path):
     return build_kinematics(data_dir, entries, kinematics_cache)
 
 
-def test_sampled_labels_match_the_readings(walk_clips) -> None:
+@pytest.mark.parametrize("mirror", [False, True])
+def test_sampled_labels_match_the_readings(walk_clips, mirror: bool) -> None:
     """Rotating the readings back by the label's R_SI gives the segment-frame gravity direction."""
-    sampler = WindowSampler(walk_clips, Augmentation(alignment="grid", acc_noise_std_mps2=0.0))
+    sampler = WindowSampler(walk_clips, Augmentation(alignment="grid", acc_noise_std_mps2=0.0, mirror=mirror))
+    assert len(sampler.clips) == (2 if mirror else 1) * sum(c.n_samples > 128 for c in walk_clips)
     batch = sampler.sample(np.random.default_rng(0), 64)
     assert batch.imu.shape == (64, 128, 6) and batch.imu.dtype == np.float32
     assert np.all(batch.q_segment_imu[:, 0] >= -1e-6)

@@ -102,6 +102,30 @@ def segment_kinematics(
     )
 
 
+# Reflection through the sagittal plane (x–z) of every segment frame: y → −y.
+_SAGITTAL = np.array([1.0, -1.0, 1.0])
+
+
+def mirrored(kin: SegmentKinematics) -> SegmentKinematics:
+    """The same clip performed by the mirror-image body: left and right legs swap (our addition, not paper 000).
+
+    Reflecting the whole scene through a vertical plane M = diag(1, −1, 1) is a valid motion under gravity,
+    and turns each left segment into a right one whose frame (x anterior, y left, z up) is R' = M R M. In
+    segment coordinates a polar vector (acceleration, gravity) maps to M v and an axial one (angular velocity
+    and acceleration) to −M ω. Classes swap k ↔ 6 − k (``SEGMENTS`` is symmetric about the pelvis).
+    """
+    swap = np.arange(kin.gyr_rads.shape[1])[::-1]
+    M = np.diag(_SAGITTAL)
+    return SegmentKinematics(
+        lin_acc_mps2=kin.lin_acc_mps2[:, swap] * _SAGITTAL,
+        up_mps2=kin.up_mps2[:, swap] * _SAGITTAL,
+        gyr_rads=-kin.gyr_rads[:, swap] * _SAGITTAL,
+        ang_acc_rads2=-kin.ang_acc_rads2[:, swap] * _SAGITTAL,
+        R_world_segment=M @ kin.R_world_segment[:, swap] @ M,
+        sample_rate_hz=kin.sample_rate_hz,
+    )
+
+
 # ---- alignments, eq. 8 ------------------------------------------------------------------------------
 
 

@@ -2,7 +2,7 @@
 
 Training draws fresh windows every step (``WindowSampler``): a random clip, start, segment and
 eq. 8 alignment, plus the augmentations of ``Augmentation`` (playback speed, sensor offset, gain,
-bias, noise). Evaluation enumerates every window (hop 16) × segment × eq. 8 grid alignment
+bias, noise, mirror image). Evaluation enumerates every window (hop 16) × segment × eq. 8 grid alignment
 (``grid_batches``), deterministically, with the paper's noise and quantisation only.
 """
 
@@ -19,7 +19,7 @@ from service.core.assignment import is_moving
 from service.core.recordings import RealRecording
 from service.core.rotations import quat_from_matrix
 from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES, sliding_windows
-from training.data.imu_sim import SensorSpec, alignment, alignment_grid, imu_readings, quantise
+from training.data.imu_sim import SensorSpec, alignment, alignment_grid, imu_readings, mirrored, quantise
 from training.data.mocap import Clip
 
 N_SEGMENTS = 7
@@ -39,6 +39,7 @@ class Augmentation(BaseModel):
     gyr_bias_std_rads: float = 0.0
     acc_noise_std_mps2: float = 1.0  # paper 000 §2.4.2: variance 1 m²/s⁴
     gyr_noise_std_rads: float = 0.0
+    mirror: bool = False  # also draw from every clip's mirror image, left and right swapped (``mirrored``)
 
 
 @dataclass(frozen=True)
@@ -82,6 +83,8 @@ class WindowSampler:
 
     def __init__(self, clips: list[Clip], aug: Augmentation, spec: SensorSpec = SensorSpec()) -> None:
         self.clips = [c for c in clips if c.n_samples >= WINDOW_SAMPLES + 1]
+        if aug.mirror:
+            self.clips += [Clip(c.entry, mirrored(c.kin), f"{c.digest}-mirror") for c in self.clips]
         self.stack = _Stacked(self.clips)
         self.aug, self.spec = aug, spec
 
