@@ -156,6 +156,26 @@ def evaluate_real_command(
             typer.echo(f"{key}: {value:.4f}")
 
 
+@app.command("offset-baseline")
+def offset_baseline(
+    config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE, overrides: list[str] = Override
+) -> None:
+    """Alignment error of the untrained population-offset reference on a config's LOSO fold (Table A10)."""
+    from service.core.segments import SEGMENTS
+    from training.evaluate import population_offset_baseline
+    from training.pipeline import load_clips, split_clips
+
+    cfg = load_config(config, overrides)
+    clips = load_clips(cfg, resolve_data_dir(data_dir), cache_dir)
+    train_clips, _, test_clips = split_clips(clips, cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
+    m = population_offset_baseline(train_clips, test_clips, cfg.augmentation)
+    headline = ", ".join(f"{k} {m[f'{k}_angle_error_deg']:.2f}°" for k in ("mean", "median", "max"))
+    typer.echo(f"held out {cfg.data.test_subjects}: {headline}")
+    typer.echo("segment: mean error about x / y / z (deg)")
+    for name in SEGMENTS:
+        typer.echo(f"  {name}: " + " / ".join(f"{m[f'{name}_ax{ax}_mean_deg']:.1f}" for ax in range(3)))
+
+
 @app.command()
 def ui(port: int = 5000, host: str = "127.0.0.1") -> None:
     """Start the MLflow UI on the project's tracking store."""

@@ -19,7 +19,7 @@ from service.core.recordings import RealRecording
 from service.core.segments import SEGMENTS
 from service.core.windowing import sliding_windows
 from training.data.mocap import Clip
-from training.data.windows import Augmentation, grid_batches
+from training.data.windows import Augmentation, Batch, grid_batches
 from training.metrics import alignment_metrics, assignment_metrics, confusion_matrix
 
 Predict = Callable[[np.ndarray], np.ndarray]
@@ -158,4 +158,60 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
             "real_alignment_n_windows": float(len(spread)),
         }
     )
+    return metrics
+
+
+_HALF_TURN_Z = Rotation.from_euler("z", 180.0, degrees=True)
+
+
+def _folded_mean(r: Rotation, rounds: int = 4) -> Rotation:
+    """Robust mean of ``r`` with each rotation first turned by 180° about z where that brings it closer."""
+    centre = r.mean()
+    for _ in range(rounds):
+        flip = (centre.inv() * r * _HALF_TURN_Z).magnitude() < (centre.inv() * r).magnitude()
+        folded = Rotation.concatenate([r[~flip], r[flip] * _HALF_TURN_Z]) if flip.any() else r
+        d = (centre.inv() * folded).magnitude()
+        centre = folded[d <= np.median(d)].mean()
+    return centre
+
+
+def population_offset_baseline(
+    train_clips: list[Clip], test_clips: list[Clip], aug: Augmentation, n_fit_windows: int = 28_000
+) -> dict[str, float]:
+    """The alignment error of a reference predictor that needs no training: q_pred = c_seg ⊗ q_canonical_imu.
+
+    c_seg is the training subjects' robust mean of R_segment_canonical (``CanonicalFrame`` of each window) per
+    segment, and the 180° turn about z_c is resolved by the truth (an oracle, so the reference is optimistic
+    there). What is left is how far the held-out subject's segment frames sit from the training subjects'
+    relative to its own motion. A network that reads the segment frame off the motion, as the canonical
+    alignment model does, cannot be expected to get below this without learning subject-specific cues. Scored
+    on exactly the windows of ``evaluate_simulated`` (same seed and noise), in the Table A10 layout.
+    """
+    import torch  # training-side only: the canonical frame is the graph's own torch code
+
+    from training.data.windows import WindowSampler
+    from training.models import CanonicalFrame
+
+    def residual(batch: Batch) -> tuple[Rotation, np.ndarray]:
+        R_c = CanonicalFrame()(torch.from_numpy(batch.imu).double()).numpy()
+        R_si = Rotation.from_quat(batch.q_segment_imu, scalar_first=True).as_matrix()
+        return Rotation.from_matrix(R_si @ np.transpose(R_c, (0, 2, 1))), R_c
+
+    fit_aug = Augmentation(alignment="grid", acc_noise_std_mps2=aug.acc_noise_std_mps2)
+    fit = WindowSampler(train_clips, fit_aug).sample(np.random.default_rng(EVAL_SEED), n_fit_windows)
+    r_fit, _ = residual(fit)
+    centres = [_folded_mean(r_fit[fit.segment == k]).as_matrix() for k in range(len(SEGMENTS))]
+    segs, q_true, q_pred = [], [], []
+    for batch, _ in tqdm(grid_batches(test_clips, aug, EVAL_SEED), desc="offset baseline", unit="batch", leave=False):
+        _, R_c = residual(batch)
+        C = np.stack([centres[s] for s in batch.segment])
+        candidates = [Rotation.from_matrix(C @ turn @ R_c) for turn in (np.eye(3), _HALF_TURN_Z.as_matrix())]
+        truth = Rotation.from_quat(batch.q_segment_imu, scalar_first=True)
+        closer = (candidates[1] * truth.inv()).magnitude() < (candidates[0] * truth.inv()).magnitude()
+        q0, q1 = (c.as_quat(scalar_first=True) for c in candidates)
+        q = np.where(closer[:, None], q1, q0)
+        segs.append(batch.segment)
+        q_true.append(batch.q_segment_imu)
+        q_pred.append(q.astype(np.float32))
+    metrics, _ = alignment_metrics(np.concatenate(segs), np.concatenate(q_true), np.concatenate(q_pred))
     return metrics
