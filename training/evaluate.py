@@ -83,7 +83,8 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     """Assignment on real recordings: per moving window, and per recording jointly (one-to-one).
 
     Windows whose gyroscope is still (``is_moving``) are counted, not scored: they carry no gait
-    information (DESIGN.md §5). Returns metrics and the confusion matrix of moving windows.
+    information (DESIGN.md §5). Per recording and per sensor (``accuracy/<recording>/<segment>``) too.
+    Returns metrics and the confusion matrix of moving windows.
     """
     y_true, y_pred, metrics = [], [], {}
     joint_correct = joint_total = still = 0
@@ -97,6 +98,8 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
             probs = predict(np.ascontiguousarray(windows[moving]))
             y_true.append(np.full(len(probs), s.segment))
             y_pred.append(probs.argmax(-1))
+            if len(probs):
+                metrics[f"accuracy/{rec.name}/{SEGMENTS[s.segment]}"] = float(np.mean(y_pred[-1] == s.segment))
             log_probs.append(np.log(np.clip(probs, 1e-12, 1.0)))
         if not all(len(lp) for lp in log_probs):
             continue
