@@ -37,6 +37,9 @@ class TrainConfig(_Strict):
     kernel: int = 16
     # rotate each window into its own canonical frame first (training.models.CanonicalFrame; not in the paper)
     canonical_frame: bool = False
+    # assignment: average the class probabilities over the window turned by 0/90/180/270° about the sensor's z
+    # axis (training.models.AssignmentNet; not in the paper): the same weights, 4× the compute
+    quarter_turns: bool = False
     # alignment loss: sign-invariant quaternion distance, or the paper's L2 on the stereographic projection
     alignment_loss: Literal["quaternion", "stereographic_l2"] = "quaternion"
     grad_clip_norm: float | None = None  # clip the global gradient norm (stabilises the LSTM)
@@ -55,6 +58,12 @@ class TrainConfig(_Strict):
             raise ValueError(
                 "alignment_loss stereographic_l2 regresses p in the sensor frame; it needs canonical_frame false"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _quarter_turns_need_an_invariant_task(self) -> TrainConfig:
+        if self.quarter_turns and self.canonical_frame:
+            raise ValueError("quarter_turns averages over sensor rotations the canonical frame already removes")
         return self
 
 

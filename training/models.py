@@ -5,6 +5,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -132,14 +134,27 @@ class AssignmentNet(nn.Module):
 
     With ``canonical=True`` the window is first rotated into its ``CanonicalFrame`` (our addition), so the
     network no longer has to learn invariance to how the sensor is mounted.
+
+    With ``quarter_turns=True`` (our addition) the class probabilities are averaged over the window turned by
+    0°, 90°, 180° and 270° about the sensor's z axis, and ``forward`` returns their log. Eq. 8 turns the sensor
+    about its own z by a uniform θ₁, so each turned copy is as plausible a mounting as the original; the
+    average is invariant to those four turns, whatever the weights. The turns are exact axis permutations.
+    The weights and state-dict keys are those of the plain net, so a trained plain net can be wrapped as it is.
     """
 
     def __init__(
-        self, hidden: int = 128, channels: int = 64, kernel: int = 16, keep_prob: float = 0.8, canonical: bool = False
+        self,
+        hidden: int = 128,
+        channels: int = 64,
+        kernel: int = 16,
+        keep_prob: float = 0.8,
+        canonical: bool = False,
+        quarter_turns: bool = False,
     ) -> None:
         super().__init__()
         self.scale = InputScale()
         self.canonical = CanonicalFrame() if canonical else None
+        self.quarter_turns = quarter_turns
         self.cnn = ConvFrontEnd(channels, kernel, 3, keep_prob)
         self.rnn = nn.GRU(channels, hidden, num_layers=1, batch_first=True)
         self.head = nn.Linear(hidden, len(SEGMENTS))
@@ -148,8 +163,25 @@ class AssignmentNet(nn.Module):
         x = self.scale(imu)
         if self.canonical is not None:
             x = rotate_imu(x, self.canonical(x).detach())
+        if not self.quarter_turns:
+            return self._logits(x)
+        turned = torch.cat([_quarter_turn(x, k) for k in range(4)])  # (4B, T, 6), one batched pass
+        log_probs = torch.log_softmax(self._logits(turned), dim=-1).reshape(4, x.shape[0], -1)
+        return torch.logsumexp(log_probs, dim=0) - math.log(4.0)  # log of the mean probability
+
+    def _logits(self, x: torch.Tensor) -> torch.Tensor:
         features, _ = self.rnn(self.cnn(x))
         return self.head(features[:, -1])
+
+
+def _quarter_turn(imu: torch.Tensor, k: int) -> torch.Tensor:
+    """Readings of the same motion with the sensor turned by k · 90° about its z axis: v' = R_z(k · 90°)ᵀ v, an
+    exact permutation and sign change of the x and y channels of both the accelerometer and the gyroscope."""
+    if k == 0:
+        return imu
+    ax, ay, az, gx, gy, gz = imu.unbind(-1)
+    turns = {1: (ay, -ax, az, gy, -gx, gz), 2: (-ax, -ay, az, -gx, -gy, gz), 3: (-ay, ax, az, -gy, gx, gz)}
+    return torch.stack(turns[k], dim=-1)
 
 
 def rotate_imu(imu: torch.Tensor, R: torch.Tensor) -> torch.Tensor:

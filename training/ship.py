@@ -95,7 +95,15 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
             "best_epoch": run.data.metrics.get("best_epoch"),
         },
         mlflow=mlflow_info,
-        exporter={"torch": torch.__version__, "onnx": onnx.__version__, "opset": OPSET, "exporter": "torchscript"},
+        exporter={
+            "torch": torch.__version__,
+            "onnx": onnx.__version__,
+            "opset": OPSET,
+            "exporter": "torchscript",
+            # our additions inside the graph (README "Method"); absent keys mean false in older manifests
+            "canonical_frame": cfg.train.canonical_frame,
+            "quarter_turns": cfg.train.quarter_turns,
+        },
         parity_atol=PARITY_ATOL,
     )
 

@@ -28,7 +28,9 @@ MetricLogger = Callable[[dict[str, float], int], None]
 def build_model(cfg: ExperimentConfig) -> nn.Module:
     t = cfg.train
     if cfg.task == "assignment":
-        return AssignmentNet(t.hidden, t.channels, t.kernel, t.keep_prob, canonical=t.canonical_frame)
+        return AssignmentNet(
+            t.hidden, t.channels, t.kernel, t.keep_prob, canonical=t.canonical_frame, quarter_turns=t.quarter_turns
+        )
     return AlignmentNet(t.hidden, t.channels, t.kernel, t.keep_prob, canonical=t.canonical_frame)
 
 

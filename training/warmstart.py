@@ -67,6 +67,7 @@ def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1
         net.cnn.net[0].out_channels,
         net.cnn.net[0].kernel_size[0],
         canonical=net.canonical is not None,
+        quarter_turns=bool(manifest.exporter.get("quarter_turns", False)),
     )
     probe.load_state_dict(state)
     probe.eval()

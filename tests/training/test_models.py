@@ -144,3 +144,39 @@ def test_the_papers_stereographic_loss_is_refused_with_a_canonical_frame() -> No
     with pytest.raises(ValidationError, match="needs canonical_frame false"):
         load_config(config, ["train.alignment_loss=stereographic_l2"])
     assert load_config(config, ["train.alignment_loss=stereographic_l2", "train.canonical_frame=false"])
+
+
+def test_quarter_turns_are_exact_sensor_rotations_and_the_average_is_invariant(tmp_path: Path) -> None:
+    """_quarter_turn(k) is the reading of a sensor turned k · 90° about its z; averaging over the four makes the
+    class probabilities invariant to those turns for any weights (the plain net is not), and it exports."""
+    from training.models import _quarter_turn
+
+    imu = _moving_windows(8, seed=7)
+    for k in range(4):
+        R = torch.tensor(Rotation.from_euler("z", 90.0 * k, degrees=True).as_matrix().T, dtype=torch.float32)
+        torch.testing.assert_close(_quarter_turn(imu, k), rotate_imu(imu, R.expand(8, 3, 3)), atol=1e-5, rtol=0)
+    torch.manual_seed(0)
+    averaged = AssignmentNet(hidden=16, channels=8, kernel=4, quarter_turns=True).eval()
+    plain = AssignmentNet(hidden=16, channels=8, kernel=4).eval()
+    plain.load_state_dict(averaged.state_dict())  # same weights, same keys
+    with torch.no_grad():
+        probs = torch.softmax(averaged(imu), -1)
+        torch.testing.assert_close(probs.sum(-1), torch.ones(8))
+        mean_of_plain = torch.stack([torch.softmax(plain(_quarter_turn(imu, k)), -1) for k in range(4)]).mean(0)
+        torch.testing.assert_close(probs, mean_of_plain, atol=1e-5, rtol=0)
+        for k in (1, 2, 3):
+            torch.testing.assert_close(torch.softmax(averaged(_quarter_turn(imu, k)), -1), probs, atol=1e-5, rtol=0)
+        assert not torch.allclose(torch.softmax(plain(_quarter_turn(imu, 1)), -1), torch.softmax(plain(imu), -1))
+    onnx_path = export_onnx(averaged, "assignment", tmp_path / "model.onnx")
+    assert onnx_parity(onnx_path, golden_pair(averaged, imu.numpy())) < 1e-4
+
+
+def test_quarter_turns_and_the_canonical_frame_are_refused_together() -> None:
+    from pydantic import ValidationError
+
+    from training.config import load_config
+
+    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_assignment.yaml"
+    with pytest.raises(ValidationError, match="quarter_turns"):
+        load_config(config, ["train.quarter_turns=true", "train.canonical_frame=true"])
+    assert load_config(config, ["train.quarter_turns=true"]).train.quarter_turns
