@@ -165,8 +165,9 @@ class AssignmentNet(nn.Module):
             x = rotate_imu(x, self.canonical(x).detach())
         if not self.quarter_turns:
             return self._logits(x)
-        turned = torch.cat([_quarter_turn(x, k) for k in range(4)])  # (4B, T, 6), one batched pass
-        log_probs = torch.log_softmax(self._logits(turned), dim=-1).reshape(4, x.shape[0], -1)
+        # One pass per turn (not one 4B batch): a reshape back from 4B would leave the exported class dimension
+        # symbolic, and the service checks the manifest's [batch, 7] against the graph.
+        log_probs = torch.stack([torch.log_softmax(self._logits(_quarter_turn(x, k)), dim=-1) for k in range(4)])
         return torch.logsumexp(log_probs, dim=0) - math.log(4.0)  # log of the mean probability
 
     def _logits(self, x: torch.Tensor) -> torch.Tensor:

@@ -169,6 +169,11 @@ def test_quarter_turns_are_exact_sensor_rotations_and_the_average_is_invariant(t
         assert not torch.allclose(torch.softmax(plain(_quarter_turn(imu, 1)), -1), torch.softmax(plain(imu), -1))
     onnx_path = export_onnx(averaged, "assignment", tmp_path / "model.onnx")
     assert onnx_parity(onnx_path, golden_pair(averaged, imu.numpy())) < 1e-4
+    # the manifest's output shape [batch, 7] must hold in the graph, or the service refuses the model
+    import onnx
+
+    dims = onnx.load(str(onnx_path)).graph.output[0].type.tensor_type.shape.dim
+    assert [d.dim_value or d.dim_param for d in dims][1] == len(SEGMENTS)
 
 
 def test_quarter_turns_and_the_canonical_frame_are_refused_together() -> None:
