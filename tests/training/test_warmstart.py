@@ -21,9 +21,14 @@ def _float32(quantized: bool = False) -> Path:
     return max(chosen, key=lambda d: version_key(d.name))
 
 
-def test_rebuilt_weights_match_the_shipped_model() -> None:
-    model_dir = _float32()
-    net = AssignmentNet()
+@pytest.mark.parametrize(
+    "model_dir",
+    sorted(d.parent for d in SHIPPED.glob("*/manifest.json") if "quantization" not in read_manifest(d).exporter),
+    ids=lambda d: d.name,
+)
+def test_rebuilt_weights_match_the_shipped_model(model_dir: Path) -> None:
+    """Every shipped float32 file, with the quarter-turn average (1.2.0) or without (1.0.0)."""
+    net = AssignmentNet(quarter_turns=bool(read_manifest(model_dir / "manifest.json").exporter.get("quarter_turns")))
     net.load_state_dict(warm_start_from_shipped(model_dir, net))
     net.eval()
     with np.load(model_dir / "golden.npz") as golden, torch.no_grad():
