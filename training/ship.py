@@ -23,6 +23,7 @@ from training.config import ExperimentConfig
 from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
 from training.export import OPSET, OUTPUT_NAMES, PARITY_ATOL, onnx_parity
 from training.plots import confusion_matrix_png
+from training.tracking import record_evaluation
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +150,7 @@ def evaluate_shipped(
     model_dir: Path, data_dir: Path, cache_dir: Path, command: str, max_windows: int | None = None
 ) -> Manifest:
     """Evaluate the shipped ONNX file (LOSO simulated fold and, for assignment, real recordings)."""
-    from training.pipeline import held_out_recordings, load_clips, split_clips
+    from training.pipeline import PRIMARY_METRIC, held_out_recordings, load_clips, split_clips
 
     manifest = read_manifest(model_dir / "manifest.json")
     cfg = ExperimentConfig.model_validate(load_run_config(manifest.mlflow["run_id"]))
@@ -169,6 +170,9 @@ def evaluate_shipped(
     )
     # Each shipped file of a run (float32, int8) logs under its own prefix.
     prefix = "shipped_int8_" if "quantization" in manifest.exporter else "shipped_"
+    if "quantization" not in manifest.exporter:  # the registered model is the float32 one
+        metric, _ = PRIMARY_METRIC[cfg.task]
+        record_evaluation(cfg.registered_model, manifest.mlflow["run_id"], metric, sim.metrics[metric], sim.digest)
     metrics_to_log = {f"{prefix}sim_{k}": v for k, v in sim.metrics.items()}
     if cfg.task == "assignment":
         held_out = held_out_recordings(cfg, data_dir)

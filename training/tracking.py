@@ -60,3 +60,17 @@ def maybe_promote(
             return False
     client.set_registered_model_alias(name, CHAMPION, version)
     return True
+
+
+def record_evaluation(name: str, run_id: str, metric: str, value: float, evaluation_digest: str) -> list[str]:
+    """Tag the registered versions of ``run_id`` with a newer evaluation of the same model (``evaluate`` on its
+    shipped float32 file), so that ``maybe_promote`` compares later versions with it on the same data."""
+    client = MlflowClient()
+    try:
+        versions = client.search_model_versions(f"name='{name}' and run_id='{run_id}'")
+    except mlflow.exceptions.MlflowException:
+        return []
+    for v in versions:
+        client.set_model_version_tag(name, v.version, "eval_digest", evaluation_digest)
+        client.set_model_version_tag(name, v.version, f"eval_{metric}", f"{value:.6f}")
+    return [v.version for v in versions]

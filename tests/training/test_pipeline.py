@@ -17,6 +17,7 @@ from service.inference.registry import load_models, load_registry_models
 from training.config import load_config
 from training.pipeline import run_training
 from training.ship import export_run
+from training.tracking import record_evaluation
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = [
@@ -64,6 +65,10 @@ def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
     acc2 = client.get_run(run2).data.metrics["test_accuracy"]
     now = client.get_model_version_by_alias(cfg.registered_model, "champion").run_id
     assert now == (run2 if acc2 > acc1 else run_id)
+    # `evaluate` on a shipped float32 file re-tags its registered version with the newer evaluation
+    (tagged,) = record_evaluation(cfg.registered_model, run_id, "accuracy", 0.25, "re-evaluated")
+    version = client.get_model_version(cfg.registered_model, tagged)
+    assert (version.tags["eval_digest"], version.tags["eval_accuracy"]) == ("re-evaluated", "0.250000")
 
     # The service (a real uvicorn process) serves the champion straight from the registry, without mlflow.
     champion = client.get_model_version_by_alias(cfg.registered_model, "champion")
