@@ -195,18 +195,17 @@ def population_offset_baseline(
     from training.data.windows import WindowSampler
     from training.models import CanonicalFrame
 
-    def residual(batch: Batch) -> tuple[Rotation, np.ndarray]:
-        R_c = CanonicalFrame()(torch.from_numpy(batch.imu).double()).numpy()
-        R_si = Rotation.from_quat(batch.q_segment_imu, scalar_first=True).as_matrix()
-        return Rotation.from_matrix(R_si @ np.transpose(R_c, (0, 2, 1))), R_c
+    def canonical(batch: Batch) -> np.ndarray:
+        return CanonicalFrame()(torch.from_numpy(batch.imu).double()).numpy()
 
     fit_aug = Augmentation(alignment="grid", acc_noise_std_mps2=aug.acc_noise_std_mps2)
     fit = WindowSampler(train_clips, fit_aug).sample(np.random.default_rng(EVAL_SEED), n_fit_windows)
-    r_fit, _ = residual(fit)
+    R_si = Rotation.from_quat(fit.q_segment_imu, scalar_first=True).as_matrix()
+    r_fit = Rotation.from_matrix(R_si @ np.transpose(canonical(fit), (0, 2, 1)))  # R_segment_canonical
     centres = [_folded_mean(r_fit[fit.segment == k]).as_matrix() for k in range(len(SEGMENTS))]
     segs, q_true, q_pred = [], [], []
     for batch, _ in tqdm(grid_batches(test_clips, aug, EVAL_SEED), desc="offset baseline", unit="batch", leave=False):
-        _, R_c = residual(batch)
+        R_c = canonical(batch)
         C = np.stack([centres[s] for s in batch.segment])
         candidates = [Rotation.from_matrix(C @ turn @ R_c) for turn in (np.eye(3), _HALF_TURN_Z.as_matrix())]
         truth = Rotation.from_quat(batch.q_segment_imu, scalar_first=True)

@@ -46,8 +46,7 @@ def maybe_promote(
     is not comparable, so the alias stays where it is (and the caller logs why).
     """
     client = MlflowClient()
-    client.set_model_version_tag(name, version, "eval_digest", evaluation_digest)
-    client.set_model_version_tag(name, version, f"eval_{metric}", f"{value:.6f}")
+    _tag_evaluation(client, name, version, metric, value, evaluation_digest)
     try:
         champion = client.get_model_version_by_alias(name, CHAMPION)
     except mlflow.exceptions.MlflowException:
@@ -71,6 +70,11 @@ def record_evaluation(name: str, run_id: str, metric: str, value: float, evaluat
     except mlflow.exceptions.MlflowException:
         return []
     for v in versions:
-        client.set_model_version_tag(name, v.version, "eval_digest", evaluation_digest)
-        client.set_model_version_tag(name, v.version, f"eval_{metric}", f"{value:.6f}")
+        _tag_evaluation(client, name, v.version, metric, value, evaluation_digest)
     return [v.version for v in versions]
+
+
+def _tag_evaluation(client: MlflowClient, name: str, version: str, metric: str, value: float, digest: str) -> None:
+    """The tags ``maybe_promote`` compares versions by: which evaluation, and the score on it."""
+    client.set_model_version_tag(name, version, "eval_digest", digest)
+    client.set_model_version_tag(name, version, f"eval_{metric}", f"{value:.6f}")
