@@ -33,7 +33,7 @@ def simulate(
     config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE, overrides: list[str] = Override
 ) -> None:
     """Compute (or reuse from the digest cache) the segment kinematics the simulation draws from."""
-    from training.pipeline import load_clips
+    from training.data.split import load_clips
 
     cfg = load_config(config, overrides)
     clips = load_clips(cfg, resolve_data_dir(data_dir), cache_dir)
@@ -48,13 +48,50 @@ def train(
     overrides: list[str] = Override,
     register: bool = typer.Option(True, help="register the model"),
     eval_max_windows: int | None = typer.Option(None, help="cap the test evaluation (quick runs)"),
+    fitted: Path | None = typer.Option(None, help="track a training done by `fit` instead of training here"),
 ) -> None:
     """Train, export ONNX, evaluate on the held-out subjects and log it all to MLflow."""
     from training.pipeline import run_training
 
     cfg = load_config(config, overrides)
-    run_id = run_training(cfg, resolve_data_dir(data_dir), cache_dir, register, eval_max_windows)
+    run_id = run_training(cfg, resolve_data_dir(data_dir), cache_dir, register, eval_max_windows, fitted)
     typer.echo(f"run_id={run_id}")
+
+
+@app.command()
+def pack(
+    config: Path,
+    out: Path,
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = DEFAULT_CACHE,
+    overrides: list[str] = Override,
+) -> None:
+    """Write a config's clips (segment kinematics, entries, digests) to one file for `fit` on another machine."""
+    from training.data.split import load_clips, save_pack
+
+    cfg = load_config(config, overrides)
+    clips = load_clips(cfg, resolve_data_dir(data_dir), cache_dir)
+    typer.echo(f"{len(clips)} clips → {save_pack(clips, out)} ({out.stat().st_size / 1e6:.1f} MB)")
+
+
+@app.command()
+def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -> None:
+    """Train only (no MLflow, no data directory) on a `pack` file; `train --fitted OUT` then tracks the result.
+
+    For a GPU machine: `-s train.device=cuda -s train.loader_workers=8`.
+    """
+    from training.data.mocap import dataset_digest
+    from training.data.split import load_pack, split_clips
+    from training.train import save_fitted
+    from training.train import train as train_model
+
+    cfg = load_config(config, overrides)
+    if cfg.train.init_from_run or cfg.train.init_from_onnx or cfg.data.real_train_recordings:
+        raise typer.BadParameter("fit trains from scratch on simulated clips only (no init_from_*, no real data)")
+    train_clips, val_clips, _ = split_clips(load_pack(clips), cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
+    result = train_model(cfg, train_clips, val_clips)
+    save_fitted(out, cfg, result, dataset_digest(train_clips), dataset_digest(val_clips))
+    typer.echo(f"best epoch {result.best_epoch} of {len(result.history)}, {result.wall_time_s / 60:.1f} min → {out}")
 
 
 @app.command()
@@ -162,8 +199,8 @@ def offset_baseline(
 ) -> None:
     """Alignment error of the untrained population-offset reference on a config's LOSO fold (Table A10)."""
     from service.core.segments import SEGMENTS
+    from training.data.split import load_clips, split_clips
     from training.evaluate import population_offset_baseline
-    from training.pipeline import load_clips, split_clips
 
     cfg = load_config(config, overrides)
     clips = load_clips(cfg, resolve_data_dir(data_dir), cache_dir)

@@ -48,6 +48,12 @@ class TrainConfig(_Strict):
     patience: int = 5  # early stopping on validation loss
     val_windows: int = 4096
     threads: int = 2
+    # where the network trains: "cpu", or "cuda" on a GPU machine (training.cli fit); the exported graph is the same
+    device: str = "cpu"
+    # processes that simulate batches ahead of the optimiser (torch DataLoader); 0 draws them in the training
+    # process, as every run before this option did. Each worker has its own seeded generator, so a run is
+    # reproducible for a given worker count, but differs between counts.
+    loader_workers: int = 0
     init_from_run: str | None = None  # MLflow run id whose checkpoint warm-starts training (pre-training)
     init_from_onnx: str | None = None  # or a shipped assignment model dir (onnx_models/<name>/<version>)
     max_minutes: float | None = None  # wall-time budget; stops after the epoch that crosses it

@@ -20,42 +20,20 @@ from mlflow.tracking import MlflowClient
 from service.core.manifest import MLMODEL_METADATA_KEY
 from service.core.recordings import RealRecording, read_all_real, read_recording
 from training.config import ExperimentConfig
-from training.data.catalog import mocap_entries
-from training.data.mocap import Clip, KinematicsParams, build_kinematics, dataset_digest
+from training.data.mocap import Clip, dataset_digest
+from training.data.split import load_clips, split_clips
 from training.data.windows import Augmentation, RealWindowSampler, WindowSampler
 from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
 from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
 from training.plots import confusion_matrix_png, error_boxplot_png, learning_curves_png
 from training.ship import build_manifest, run_version
 from training.tracking import flatten, maybe_promote, setup_tracking
-from training.train import build_model, train
+from training.train import TrainResult, build_model, load_fitted, train
 from training.warmstart import warm_start_from_shipped
 
 log = logging.getLogger(__name__)
 
 PRIMARY_METRIC = {"assignment": ("accuracy", True), "alignment": ("mean_angle_error_deg", False)}
-
-
-def load_clips(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path) -> list[Clip]:
-    params = KinematicsParams(cfg.data.sample_rate_hz, cfg.data.cutoff_hz, cfg.data.filter_order)
-    return build_kinematics(data_dir, mocap_entries(data_dir, cfg.data.activities), cache_dir, params)
-
-
-def split_clips(
-    clips: list[Clip], test_subjects: list[str], val_fraction: float, seed: int
-) -> tuple[list[Clip], list[Clip], list[Clip]]:
-    """LOSO split by subject group; the validation clips are a seeded fraction of the rest."""
-    test = [c for c in clips if c.entry.group in test_subjects]
-    rest = [c for c in clips if c.entry.group not in test_subjects]
-    missing = set(test_subjects) - {c.entry.group for c in test}
-    if missing:
-        raise ValueError(
-            f"test subjects {sorted(missing)} have no clips; groups are {sorted({c.entry.group for c in clips})}"
-        )
-    order = np.random.default_rng(seed).permutation(len(rest))
-    n_val = max(1, int(round(val_fraction * len(rest))))
-    val = [rest[i] for i in order[:n_val]]
-    return [rest[i] for i in order[n_val:]], val, test
 
 
 def clip_table(clips: list[Clip]) -> pd.DataFrame:
@@ -86,9 +64,18 @@ def _log_dataset(clips: list[Clip], data_dir: Path, context: str) -> None:
 
 
 def run_training(
-    cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, register: bool = True, eval_max_windows: int | None = None
+    cfg: ExperimentConfig,
+    data_dir: Path,
+    cache_dir: Path,
+    register: bool = True,
+    eval_max_windows: int | None = None,
+    fitted: Path | None = None,
 ) -> str:
-    """One tracked training run; returns the MLflow run id."""
+    """One tracked training run; returns the MLflow run id.
+
+    With ``fitted`` (a ``training.cli fit`` output) the training itself happened elsewhere, on the same clips
+    and config (checked): its per-epoch history is logged as this run's, with tags saying where it ran.
+    """
     setup_tracking(cfg.tracking.experiment)
     clips = load_clips(cfg, data_dir, cache_dir)
     train_clips, val_clips, test_clips = split_clips(clips, cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
@@ -100,16 +87,17 @@ def run_training(
         for context, part in (("training", train_clips), ("validation", val_clips), ("test", test_clips)):
             if part:
                 _log_dataset(part, data_dir, context)
-        init_state = _initial_state(cfg, tmp)
-        real = _real_sampler(cfg, data_dir)
-        result = train(
-            cfg,
-            train_clips,
-            val_clips,
-            log_metrics=lambda m, step: mlflow.log_metrics(m, step=step),
-            init_state=init_state,
-            real=real,
-        )
+        if fitted is not None:
+            result = _fitted_elsewhere(fitted, cfg, train_clips, val_clips)
+        else:
+            result = train(
+                cfg,
+                train_clips,
+                val_clips,
+                log_metrics=lambda m, step: mlflow.log_metrics(m, step=step),
+                init_state=_initial_state(cfg, tmp),
+                real=_real_sampler(cfg, data_dir),
+            )
         torch.save(result.model.state_dict(), tmp / "model_state.pt")
         mlflow.log_artifact(str(tmp / "model_state.pt"), "checkpoint")
         mlflow.log_metrics({"best_epoch": result.best_epoch, "train_wall_time_s": result.wall_time_s})
@@ -147,6 +135,22 @@ def run_training(
     if register:
         register_run(run_id, cfg.registered_model, cfg.task)
     return run_id
+
+
+def _fitted_elsewhere(
+    fitted: Path, cfg: ExperimentConfig, train_clips: list[Clip], val_clips: list[Clip]
+) -> TrainResult:
+    result, where = load_fitted(fitted, cfg, dataset_digest(train_clips), dataset_digest(val_clips))
+    for epoch, metrics in enumerate(result.history, start=1):
+        mlflow.log_metrics(metrics, step=epoch)
+    mlflow.set_tags(
+        {
+            "fitted_elsewhere": fitted.name,
+            "fitted_device": str(where["device"]),
+            "fitted_loader_workers": str(where["loader_workers"]),
+        }
+    )
+    return result
 
 
 def _initial_state(cfg: ExperimentConfig, tmp: Path) -> dict | None:

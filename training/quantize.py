@@ -47,7 +47,7 @@ class _Windows(CalibrationDataReader):
 
 def calibration_windows(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, n: int) -> np.ndarray:
     """``n`` simulated windows of the *training* subjects, with the run's own augmentations."""
-    from training.pipeline import load_clips, split_clips
+    from training.data.split import load_clips, split_clips
 
     train, _, _ = split_clips(
         load_clips(cfg, data_dir, cache_dir), cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed

@@ -150,7 +150,8 @@ def evaluate_shipped(
     model_dir: Path, data_dir: Path, cache_dir: Path, command: str, max_windows: int | None = None
 ) -> Manifest:
     """Evaluate the shipped ONNX file (LOSO simulated fold and, for assignment, real recordings)."""
-    from training.pipeline import PRIMARY_METRIC, held_out_recordings, load_clips, split_clips
+    from training.data.split import load_clips, split_clips
+    from training.pipeline import PRIMARY_METRIC, held_out_recordings
 
     manifest = read_manifest(model_dir / "manifest.json")
     cfg = ExperimentConfig.model_validate(load_run_config(manifest.mlflow["run_id"]))

@@ -1,5 +1,8 @@
 """Training loop for the paper 000 networks: fresh simulated windows every step, Adam with L2,
-early stopping on a fixed validation set, seeded and reproducible (CPU, fixed thread count).
+early stopping on a fixed validation set, seeded and reproducible (fixed thread count, device and loader workers).
+
+``save_fitted`` / ``load_fitted`` carry a finished training from a machine without the tracking store (a GPU box
+running ``training.cli fit``) to ``training.cli train --fitted``, which tracks, exports and evaluates it here.
 """
 
 from __future__ import annotations
@@ -7,8 +10,9 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -79,6 +83,38 @@ def _draw(
     return concat_batches(batch, real.sample(rng, n_real)) if n_real else batch
 
 
+class _SimulatedBatches(torch.utils.data.IterableDataset):
+    """Endless training batches for a DataLoader worker, each worker with generator ``(seed, worker id)``."""
+
+    def __init__(self, sampler: WindowSampler, real: RealWindowSampler | None, cfg: ExperimentConfig) -> None:
+        self.sampler, self.real, self.cfg = sampler, real, cfg
+
+    def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        info = torch.utils.data.get_worker_info()
+        rng = np.random.default_rng([self.cfg.seed, info.id if info is not None else 0])
+        while True:
+            yield to_tensors(
+                _draw(self.sampler, self.real, self.cfg.data.real_fraction, rng, self.cfg.train.batch_size)
+            )
+
+
+def _training_batches(
+    sampler: WindowSampler, real: RealWindowSampler | None, cfg: ExperimentConfig, rng: np.random.Generator
+) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    if cfg.train.loader_workers == 0:
+        while True:
+            yield to_tensors(_draw(sampler, real, cfg.data.real_fraction, rng, cfg.train.batch_size))
+    loader = torch.utils.data.DataLoader(
+        _SimulatedBatches(sampler, real, cfg),
+        batch_size=None,
+        num_workers=cfg.train.loader_workers,
+        prefetch_factor=4,
+        persistent_workers=True,
+        pin_memory=cfg.train.device != "cpu",
+    )
+    yield from loader
+
+
 @dataclass
 class TrainResult:
     model: nn.Module
@@ -88,11 +124,11 @@ class TrainResult:
 
 
 @torch.no_grad()
-def _validate(model: nn.Module, task: str, batches: list[Batch]) -> dict[str, float]:
+def _validate(model: nn.Module, task: str, batches: list[Batch], device: torch.device) -> dict[str, float]:
     model.eval()
     losses, correct, angles = [], 0, []
     for b in batches:
-        imu, seg, q = to_tensors(b)
+        imu, seg, q = (x.to(device) for x in to_tensors(b))
         out = model(imu)
         losses.append(float(task_loss(task, out, seg, q)) * len(seg))
         if task == "assignment":
@@ -125,9 +161,11 @@ def train(
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(t.threads)
     rng = np.random.default_rng(cfg.seed)
+    device = torch.device(t.device)
     model = build_model(cfg)
     if init_state is not None:
         model.load_state_dict(init_state)
+    model.to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     sampler = WindowSampler(train_clips, cfg.augmentation)
     # Validation: the training distribution of alignments, with only the paper's noise (no other augmentation).
@@ -137,13 +175,14 @@ def train(
     val_batches = [val_sampler.sample(val_rng, t.batch_size) for _ in range(max(1, t.val_windows // t.batch_size))]
     best, best_state, best_epoch, stale = float("inf"), copy.deepcopy(model.state_dict()), 0, 0
     result = TrainResult(model, 0)
+    batches = _training_batches(sampler, real, cfg, rng)
     start = time.monotonic()
     for epoch in range(1, t.max_epochs + 1):
         model.train()
         running = 0.0
         bar = tqdm(range(t.steps_per_epoch), desc=f"{cfg.name} epoch {epoch}/{t.max_epochs}", unit="step", leave=False)
         for _ in bar:
-            imu, seg, q = to_tensors(_draw(sampler, real, cfg.data.real_fraction, rng, t.batch_size))
+            imu, seg, q = (x.to(device, non_blocking=True) for x in next(batches))
             if t.alignment_loss == "stereographic_l2" and isinstance(model, AlignmentNet):
                 loss = stereographic_l2_loss(model, imu, seg, q)
             else:
@@ -155,7 +194,7 @@ def train(
             optimiser.step()
             running += float(loss)
             bar.set_postfix(loss=f"{float(loss):.4f}")
-        metrics = {"train_loss": running / t.steps_per_epoch, **_validate(model, cfg.task, val_batches)}
+        metrics = {"train_loss": running / t.steps_per_epoch, **_validate(model, cfg.task, val_batches, device)}
         metrics["wall_time_s"] = time.monotonic() - start
         result.history.append(metrics)
         if log_metrics:
@@ -171,7 +210,69 @@ def train(
         if t.max_minutes is not None and metrics["wall_time_s"] > 60 * t.max_minutes:
             log.info("wall-time budget of %.1f min reached after epoch %d", t.max_minutes, epoch)
             break
+    batches.close()  # stops the loader workers
     model.load_state_dict(best_state)
-    model.eval()
+    model.to("cpu").eval()  # export and evaluation run on the CPU
     result.best_epoch, result.wall_time_s = best_epoch, time.monotonic() - start
     return result
+
+
+def save_fitted(path: Path, cfg: ExperimentConfig, result: TrainResult, train_digest: str, val_digest: str) -> Path:
+    """A finished training (weights, per-epoch history, the config and the digests of the clips it used)."""
+    device = torch.cuda.get_device_name() if cfg.train.device.startswith("cuda") else "cpu"
+    payload = {
+        "state": result.model.state_dict(),
+        "history": result.history,
+        "best_epoch": result.best_epoch,
+        "wall_time_s": result.wall_time_s,
+        "config": cfg.model_dump(mode="json"),
+        "train_digest": train_digest,
+        "val_digest": val_digest,
+        "device": device,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(payload, path)
+    return path
+
+
+_WHERE_ONLY = {"train.device", "train.loader_workers", "train.threads"}  # where a run trained, not what
+
+
+def _settings(config: dict, prefix: str = "") -> dict[str, object]:
+    """Dotted keys → values of a dumped config, without ``_WHERE_ONLY``."""
+    out: dict[str, object] = {}
+    for key, value in config.items():
+        if isinstance(value, dict):
+            out.update(_settings(value, f"{prefix}{key}."))
+        elif f"{prefix}{key}" not in _WHERE_ONLY:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def load_fitted(
+    path: Path, cfg: ExperimentConfig, train_digest: str, val_digest: str
+) -> tuple[TrainResult, dict[str, object]]:
+    """The training saved by ``save_fitted``, checked against the run that will track it.
+
+    The configs must agree except for where it ran (``train.device``, ``loader_workers``, ``threads``), and the
+    training and validation clips must be the same by digest; otherwise the tracked run would misdescribe it.
+    Returns the result and the fitted config (for the run's record of where it trained).
+    """
+    payload = torch.load(path, weights_only=True)
+    theirs, ours = _settings(payload["config"]), _settings(cfg.model_dump(mode="json"))
+    differ = sorted(k for k in theirs.keys() | ours.keys() if theirs.get(k) != ours.get(k))
+    if differ:
+        raise ValueError(
+            f"{path} was fitted with another configuration: "
+            + ", ".join(f"{k} {theirs.get(k)!r} there, {ours.get(k)!r} here" for k in differ)
+        )
+    if (payload["train_digest"], payload["val_digest"]) != (train_digest, val_digest):
+        raise ValueError(
+            f"{path} was fitted on other clips (train/val digests {payload['train_digest']}/{payload['val_digest']}, "
+            f"here {train_digest}/{val_digest}): the kinematics or the data directory differ"
+        )
+    model = build_model(cfg)
+    model.load_state_dict(payload["state"])
+    model.eval()
+    result = TrainResult(model, payload["best_epoch"], payload["history"], payload["wall_time_s"])
+    return result, {"device": payload["device"], **payload["config"]["train"]}

@@ -164,3 +164,104 @@ def resample_segments(traj: SegmentTrajectories, sample_rate_hz: float) -> Segme
         interp_along_time(t_new, t_old, traj.midpoint_m),
         sample_rate_hz,
     )
+
+
+# --- Functional segment frames -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FunctionalCorrection:
+    """Per-clip rotations ``R_geometric_functional`` (7, 3, 3) and their angles in degrees (7,)."""
+
+    R_geometric_functional: np.ndarray
+    angle_deg: np.ndarray
+
+
+def _body_rates(R: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Angular velocity in the moving frame, ``(T-1, 3)`` rad/s, from consecutive orientations ``(T, 3, 3)``."""
+    step = np.einsum("tji,tjk->tik", R[:-1], R[1:])  # R_t⁻¹ R_{t+1}
+    return Rotation.from_matrix(step).as_rotvec() * rate_hz
+
+
+def _principal_axis(w: np.ndarray, normal: np.ndarray, sign_hint: np.ndarray) -> np.ndarray:
+    """Dominant axis of the rates ``w`` (N, 3) in the plane normal to ``normal``, signed towards ``sign_hint``.
+
+    The top eigenvector of Σ w wᵀ over the rates projected onto that plane (as ``CanonicalFrame`` does per
+    window). The fastest 1 % of samples are dropped first, so that a single mocap glitch cannot set the axis.
+    """
+    w = w - np.outer(w @ normal, normal)
+    speed = np.linalg.norm(w, axis=1)
+    kept = w[speed <= np.quantile(speed, 0.99)]
+    axis = np.linalg.eigh(kept.T @ kept)[1][:, -1]
+    return axis if axis @ sign_hint >= 0 else -axis
+
+
+def _frame_with_z(z: np.ndarray, y_hint: np.ndarray) -> np.ndarray:
+    """Columns x, y, z of a right-handed frame with z exact and y the hint made orthogonal to it."""
+    z = z / np.linalg.norm(z)
+    y = y_hint - (y_hint @ z) * z
+    y /= np.linalg.norm(y)
+    return np.stack([np.cross(y, z), y, z], axis=1)
+
+
+def functional_correction(
+    traj: SegmentTrajectories, foot_flat: bool = True, min_speed_mps: float = 0.5
+) -> FunctionalCorrection:
+    """The rotation from each geometric segment frame to the frame that the clip's motion defines.
+
+    DESIGN.md §2 wants x anterior, y left and z superior in neutral stance; ``segment_trajectories`` builds that
+    from joint positions, which every mocap fit places a little differently per person (toe-out, the ankle→toe
+    line, the hip line). Functional calibration (paper 000 refs. 14-15) reads the same axes off the motion:
+
+    - upper and lower legs: z stays the long axis; y is the dominant axis of the segment's angular velocity
+      (the flexion axis in gait), made orthogonal to z; x = y × z;
+    - feet: z is "up" while the foot is flat on the ground (the slowest quarter of its samples, the neutral
+      stance of DESIGN.md §2); y is the flexion axis made orthogonal to it; x = y × z;
+    - pelvis: z stays; x is the direction of travel (mean horizontal velocity direction in the pelvis frame, over
+      samples faster than ``min_speed_mps``), made orthogonal to z; y = z × x.
+
+    Each correction is one constant rotation per clip and segment, so the frames stay rigid on their bones.
+    Clips must be locomotion (the activities the alignment trains on); the pelvis keeps its geometric frame
+    where a clip has fewer than 60 moving samples. ``foot_flat=False`` is for clips whose feet are never flat
+    (running lands on the forefoot: the slowest samples read the toes 25-45° down); their feet keep the
+    geometric z and take only the functional y.
+    """
+    R, rate = traj.R_world_segment, traj.sample_rate_hz
+    ex, ey, ez = np.eye(3)
+    out = np.empty((7, 3, 3))
+    for k, name in enumerate(SEGMENTS):
+        Rk = R[:, k]
+        if name == "Pelvis":
+            v = np.diff(traj.origin_m[:, k], axis=0) * rate
+            v[:, 2] = 0.0
+            speed = np.linalg.norm(v, axis=1)
+            moving = speed > min_speed_mps
+            if moving.sum() < 60:
+                out[k] = np.eye(3)
+                continue
+            d = np.einsum("tji,tj->ti", Rk[:-1][moving], v[moving] / speed[moving, None])  # R⁻¹ v̂
+            x = d.mean(axis=0)
+            x -= (x @ ez) * ez
+            x /= np.linalg.norm(x)
+            out[k] = np.stack([x, np.cross(ez, x), ez], axis=1)
+            continue
+        w = _body_rates(Rk, rate)
+        if name.endswith("Foot") and foot_flat:
+            slow = np.linalg.norm(w, axis=1) <= np.quantile(np.linalg.norm(w, axis=1), 0.25)
+            up = Rk[:-1][slow][:, 2, :].mean(axis=0)  # world z in the segment frame: row 2 of R
+            up[1] = 0.0  # pitch only: the roll of a flat foot varies with the floor and the person, not the gait
+            up /= np.linalg.norm(up)
+            out[k] = _frame_with_z(up, _principal_axis(w, up, ey))
+        else:
+            out[k] = _frame_with_z(ez, _principal_axis(w, ez, ey))
+    angle = np.degrees(Rotation.from_matrix(out).magnitude())
+    return FunctionalCorrection(out, angle)
+
+
+def functional_frames(
+    traj: SegmentTrajectories, foot_flat: bool = True
+) -> tuple[SegmentTrajectories, FunctionalCorrection]:
+    """``traj`` with every segment frame turned onto its functional axes (``functional_correction``)."""
+    corr = functional_correction(traj, foot_flat)
+    R = np.einsum("tkij,kjl->tkil", traj.R_world_segment, corr.R_geometric_functional)
+    return SegmentTrajectories(R, traj.origin_m, traj.midpoint_m, traj.sample_rate_hz), corr

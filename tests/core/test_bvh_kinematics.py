@@ -66,3 +66,62 @@ def test_truncated_file_is_a_clear_error(tmp_path: Path, data_dir: Path) -> None
     bad.write_text(text[: len(text) // 2])
     with pytest.raises(BvhFormatError, match="expected .* values"):
         read_bvh(bad)
+
+
+def _hinge_trajectories(axis: np.ndarray, n: int = 1200, rate: float = 60.0):
+    """Seven segments swinging about ``axis`` (segment frame) like legs in gait, the pelvis walking along x."""
+    from scipy.spatial.transform import Rotation
+
+    from service.core.skeleton import SegmentTrajectories
+
+    t = np.arange(n) / rate
+    swing = 0.5 * np.sin(2 * np.pi * 0.9 * t) + 0.05 * np.sin(2 * np.pi * 2.7 * t)  # rad
+    wobble = 0.03 * np.sin(2 * np.pi * 1.8 * t)  # a little rotation about z, as real gait has
+    R_seg = Rotation.from_rotvec(swing[:, None] * axis) * Rotation.from_rotvec(wobble[:, None] * np.array([0, 0, 1.0]))
+    R = np.repeat(R_seg.as_matrix()[:, None], 7, axis=1)
+    R[:, 3] = Rotation.from_rotvec(wobble[:, None] * np.array([0, 0, 1.0])).as_matrix()
+    origin = np.zeros((n, 7, 3))
+    origin[:, :, 0] = 1.2 * t[:, None]  # 1.2 m/s along world x
+    return SegmentTrajectories(R, origin, origin.copy(), rate)
+
+
+def test_functional_frames_find_a_known_flexion_axis_and_direction_of_travel() -> None:
+    """Segments that flex about an axis 12° off the geometric y get y on that axis; the pelvis, whose geometric
+    frame is turned 8° from the direction of travel, gets x along it."""
+    from scipy.spatial.transform import Rotation
+
+    from service.core.skeleton import SegmentTrajectories, functional_correction
+
+    turn = Rotation.from_euler("z", 12, degrees=True).as_matrix()
+    axis = turn[:, 1]  # the hinge in the geometric segment frame
+    traj = _hinge_trajectories(axis)
+    pelvis_off = Rotation.from_euler("z", 8, degrees=True).as_matrix()
+    R = traj.R_world_segment.copy()
+    R[:, 3] = R[:, 3] @ pelvis_off  # geometric pelvis frame turned 8° about z from the body
+    corr = functional_correction(SegmentTrajectories(R, traj.origin_m, traj.midpoint_m, traj.sample_rate_hz))
+    for k in (1, 2, 4, 5):  # the legs: y onto the hinge, z kept
+        np.testing.assert_allclose(corr.R_geometric_functional[k][:, 1], axis, atol=2e-3)
+        np.testing.assert_allclose(corr.R_geometric_functional[k][:, 2], [0, 0, 1], atol=1e-9)
+    for k in (0, 6):  # the feet: y onto the hinge too (the flat-foot up is ~z here)
+        assert abs(corr.R_geometric_functional[k][:, 1] @ axis) > 0.999
+    np.testing.assert_allclose(corr.angle_deg[3], 8.0, atol=0.1)
+    x_pelvis_world = np.einsum("tij,j->ti", R[:, 3] @ corr.R_geometric_functional[3], [1.0, 0.0, 0.0])
+    assert np.median(x_pelvis_world[:, 0]) > 0.9995  # along the direction of travel
+
+
+@pytest.mark.parametrize("path", ["mocap/cmu_iclone/07_05.bvh", "mocap/cmu_li2018/walking/train_walking_1.bvh"])
+def test_functional_frames_on_real_walking_are_small_turns_and_a_fixed_point(data_dir: Path, path: str) -> None:
+    """On real walking the functional frames sit within 25° of the geometric ones (measured 0-19°, the feet
+    most), and computing them again from the corrected frames changes nothing for the legs and the pelvis."""
+    from service.core.skeleton import functional_correction, functional_frames
+
+    entry = next(e for e in read_catalog(data_dir) if e.path == path)
+    poses = forward_kinematics(read_bvh(data_dir / path), METRES_PER_UNIT[entry.source])
+    traj = segment_trajectories(poses, skeleton_map_for(entry.source, poses.names))
+    skip = entry.tpose_frames
+    traj = type(traj)(traj.R_world_segment[skip:], traj.origin_m[skip:], traj.midpoint_m[skip:], traj.sample_rate_hz)
+    corrected, corr = functional_frames(traj)
+    assert np.all(corr.angle_deg < 25.0), corr.angle_deg
+    assert np.any(corr.angle_deg > 1.0), "the geometric frames are not already functional"
+    again = functional_correction(corrected)
+    np.testing.assert_allclose(again.angle_deg[1:6], 0.0, atol=1e-6)

@@ -61,12 +61,13 @@ def test_unstable_predictions_fail_the_spread_check(recording) -> None:
     assert evaluate_real_alignment(random_rotations, [rec])["real_alignment_spread_median_deg"] > 60.0
 
 
-def test_population_offset_baseline_is_small_on_its_own_subject_and_hurt_by_a_wrong_offset(
+def test_population_offset_baseline_is_small_on_its_own_subject_and_across_subjects_with_functional_frames(
     data_dir: Path, kinematics_cache: Path
 ) -> None:
     """Fitted and scored on the same subject's walking, the untrained reference (canonical frame ⊗ mean offset)
-    reads under 2° (measured 0.7°); fitted on another subject it reads far more (measured 6.6°): the offset
-    between a subject's segment frames and its motion is the subject's own."""
+    reads under 2° (measured 0.6°). Fitted on another subject it reads 2.5° with the functional segment frames
+    (``service.core.skeleton.functional_correction``); with the geometric frames alone it read 6.6°, the offset
+    between a subject's skeleton-fitted frames and its motion being the subject's own."""
     from training.data.windows import Augmentation
     from training.evaluate import population_offset_baseline
 
@@ -78,4 +79,4 @@ def test_population_offset_baseline_is_small_on_its_own_subject_and_hurt_by_a_wr
     for leg in ("LeftUpperLeg", "LeftLowerLeg", "RightUpperLeg", "RightLowerLeg"):
         assert max(same[f"{leg}_ax{ax}_mean_deg"] for ax in range(3)) < 3.0, leg
     across = population_offset_baseline(other, own, Augmentation(alignment="grid"), n_fit_windows=7_000)
-    assert across["mean_angle_error_deg"] > 3.0 * same["mean_angle_error_deg"]
+    assert same["mean_angle_error_deg"] < across["mean_angle_error_deg"] < 3.5, across["mean_angle_error_deg"]

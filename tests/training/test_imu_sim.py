@@ -93,10 +93,11 @@ def test_quantisation_clips_and_rounds() -> None:
 
 def test_mirrored_kinematics_are_those_of_the_mirrored_mocap(data_dir) -> None:
     """``mirrored`` (closed form on cached kinematics) equals simulating the mocap reflected through a vertical
-    plane with the skeleton's sides swapped: the mirror image is a left/right-swapped body, not a guess."""
+    plane with the skeleton's sides swapped: the mirror image is a left/right-swapped body, not a guess. The
+    functional segment frames are part of it: they reflect with the body."""
     from service.core.bvh import read_bvh
     from service.core.kinematics import GlobalPoses, forward_kinematics
-    from service.core.skeleton import SkeletonMap, segment_trajectories, skeleton_map_for
+    from service.core.skeleton import SkeletonMap, functional_frames, segment_trajectories, skeleton_map_for
     from training.data.catalog import METRES_PER_UNIT, mocap_entries
     from training.data.imu_sim import mirrored
 
@@ -108,9 +109,9 @@ def test_mirrored_kinematics_are_those_of_the_mirrored_mocap(data_dir) -> None:
     reflected = GlobalPoses(poses.names, poses.positions_m @ M, M @ poses.R_world_joint @ M, poses.sample_rate_hz)
     swapped = SkeletonMap(skeleton.pelvis, skeleton.right, skeleton.left)
 
-    original = segment_kinematics(segment_trajectories(poses, skeleton))
+    original = segment_kinematics(functional_frames(segment_trajectories(poses, skeleton))[0])
     expected = mirrored(original)
-    got = segment_kinematics(segment_trajectories(reflected, swapped))
+    got = segment_kinematics(functional_frames(segment_trajectories(reflected, swapped))[0])
     for name in ("lin_acc_mps2", "up_mps2", "gyr_rads", "ang_acc_rads2", "R_world_segment"):
         np.testing.assert_allclose(getattr(got, name), getattr(expected, name), atol=1e-6, err_msg=name)
     # and it is not the identity: the left foot's angular velocity changed

@@ -117,3 +117,49 @@ def test_alignment_job_runs_and_exports_unit_quaternions(
     np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-5)
     assert np.all(q[..., 0] >= 0)
     assert read_manifest(shipped / "manifest.json").output_kind == "quaternion_per_segment"
+
+
+def test_a_training_fitted_elsewhere_is_tracked_here_and_only_with_its_own_config_and_clips(
+    mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path
+) -> None:
+    """`pack` → `fit` (no MLflow, no data directory; here on the CPU with a loader worker) → `train --fitted`:
+    the run logs the fitted history and weights, says where they were trained, and refuses a fitted file whose
+    config or clips differ from the run's."""
+    import torch
+    from typer.testing import CliRunner
+
+    from training.cli import app
+    from training.data.mocap import dataset_digest
+    from training.data.split import load_clips, load_pack, save_pack, split_clips
+    from training.train import load_fitted
+
+    overrides = TINY + ["tracking.experiment=test-fitted"]
+    cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", overrides)
+    clips = load_clips(cfg, data_dir, kinematics_cache)
+    packed = load_pack(save_pack(clips, tmp_path / "clips.npz"))
+    assert [c.digest for c in packed] == [c.digest for c in clips]
+    np.testing.assert_allclose(packed[0].kin.gyr_rads, clips[0].kin.gyr_rads, rtol=1e-6, atol=1e-6)
+
+    fitted = tmp_path / "fitted.pt"
+    args = ["fit", str(REPO / "training/configs/i2s_alignment.yaml"), str(tmp_path / "clips.npz"), str(fitted)]
+    for item in overrides + ["train.loader_workers=1"]:
+        args += ["-s", item]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "best epoch" in result.output
+
+    run_id = run_training(cfg, data_dir, kinematics_cache, register=False, eval_max_windows=500, fitted=fitted)
+    run = MlflowClient().get_run(run_id)
+    assert run.data.tags["fitted_device"] == "cpu" and run.data.tags["fitted_loader_workers"] == "1"
+    history = MlflowClient().get_metric_history(run_id, "val_angle_error_deg")
+    assert [m.step for m in history] == [1, 2]
+    saved = torch.load(fitted, weights_only=True)
+    assert history[-1].value == pytest.approx(saved["history"][-1]["val_angle_error_deg"])
+
+    train_clips, val_clips, _ = split_clips(clips, cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
+    digests = dataset_digest(train_clips), dataset_digest(val_clips)
+    other = load_config(REPO / "training/configs/i2s_alignment.yaml", overrides + ["train.lr=5e-4"])
+    with pytest.raises(ValueError, match=r"train.lr 0.001 there, 0.0005 here"):
+        load_fitted(fitted, other, *digests)
+    with pytest.raises(ValueError, match="fitted on other clips"):
+        load_fitted(fitted, cfg, digests[0], "0" * 20)

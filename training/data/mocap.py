@@ -17,13 +17,13 @@ from tqdm import tqdm
 
 from service.core.bvh import read_bvh
 from service.core.kinematics import forward_kinematics
-from service.core.skeleton import segment_trajectories, skeleton_map_for
+from service.core.skeleton import functional_frames, segment_trajectories, skeleton_map_for
 from training.data.catalog import METRES_PER_UNIT, CatalogEntry
 from training.data.imu_sim import SegmentKinematics, segment_kinematics
 
 log = logging.getLogger(__name__)
 
-KINEMATICS_VERSION = "1"
+KINEMATICS_VERSION = "2"  # 2: functional segment frames
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,7 @@ def compute_kinematics(bvh_path: Path, entry: CatalogEntry, params: KinematicsPa
     traj = segment_trajectories(poses, skeleton_map_for(entry.source, poses.names))
     skip = entry.tpose_frames
     traj = type(traj)(traj.R_world_segment[skip:], traj.origin_m[skip:], traj.midpoint_m[skip:], traj.sample_rate_hz)
+    traj, _ = functional_frames(traj, foot_flat=entry.activity != "run")
     return segment_kinematics(traj, params.sample_rate_hz, params.cutoff_hz, params.filter_order)
 
 
