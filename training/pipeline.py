@@ -20,7 +20,7 @@ from mlflow.tracking import MlflowClient
 from service.core.manifest import MLMODEL_METADATA_KEY
 from service.core.recordings import RealRecording, read_all_real, read_recording
 from training.config import ExperimentConfig
-from training.data.mocap import Clip, dataset_digest
+from training.data.mocap import KINEMATICS_VERSION, Clip, dataset_digest
 from training.data.split import load_clips, split_clips
 from training.data.windows import Augmentation, RealWindowSampler, WindowSampler
 from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
@@ -83,7 +83,13 @@ def run_training(
         tmp = Path(tmp_dir)
         mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
         mlflow.log_text(yaml.safe_dump(cfg.model_dump(), sort_keys=False), "config.yaml")
-        mlflow.set_tags({"task": cfg.task, "test_subjects": ",".join(cfg.data.test_subjects)})
+        mlflow.set_tags(
+            {
+                "task": cfg.task,
+                "test_subjects": ",".join(cfg.data.test_subjects),
+                "kinematics_version": KINEMATICS_VERSION,
+            }
+        )
         for context, part in (("training", train_clips), ("validation", val_clips), ("test", test_clips)):
             if part:
                 _log_dataset(part, data_dir, context)

@@ -15,6 +15,7 @@ from service.core.manifest import read_manifest, write_manifest
 from service.core.segments import SEGMENTS
 from service.inference.registry import load_models, load_registry_models
 from training.config import load_config
+from training.data.mocap import KINEMATICS_VERSION
 from training.pipeline import run_training
 from training.ship import export_run
 from training.tracking import record_evaluation
@@ -116,7 +117,9 @@ def test_alignment_job_runs_and_exports_unit_quaternions(
     assert q.shape == (5, 7, 4)
     np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-5)
     assert np.all(q[..., 0] >= 0)
-    assert read_manifest(shipped / "manifest.json").output_kind == "quaternion_per_segment"
+    manifest = read_manifest(shipped / "manifest.json")
+    assert manifest.output_kind == "quaternion_per_segment"
+    assert manifest.exporter["kinematics_version"] == int(KINEMATICS_VERSION) == 2  # functional segment frames
 
 
 def test_a_training_fitted_elsewhere_is_tracked_here_and_only_with_its_own_config_and_clips(
