@@ -192,8 +192,8 @@ def train(
             if t.grad_clip_norm is not None:
                 nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip_norm)
             optimiser.step()
-            running += float(loss)
-            bar.set_postfix(loss=f"{float(loss):.4f}")
+            running += float(loss.detach())
+            bar.set_postfix(loss=f"{running / (bar.n + 1):.4f}")
         metrics = {"train_loss": running / t.steps_per_epoch, **_validate(model, cfg.task, val_batches, device)}
         metrics["wall_time_s"] = time.monotonic() - start
         result.history.append(metrics)
