@@ -216,7 +216,7 @@ def functional_correction(
     - upper and lower legs: z stays the long axis; y is the dominant axis of the segment's angular velocity
       (the flexion axis in gait), made orthogonal to z; x = y × z;
     - feet: z is "up" while the foot is flat on the ground (the slowest quarter of its samples, the neutral
-      stance of DESIGN.md §2); y is the flexion axis made orthogonal to it; x = y × z;
+      stance of DESIGN.md §2), its pitch only; y is the flexion axis made orthogonal to it; x = y × z;
     - pelvis: z stays; x is the direction of travel (mean horizontal velocity direction in the pelvis frame, over
       samples faster than ``min_speed_mps``), made orthogonal to z; y = z × x.
 
@@ -227,7 +227,7 @@ def functional_correction(
     geometric z and take only the functional y.
     """
     R, rate = traj.R_world_segment, traj.sample_rate_hz
-    ex, ey, ez = np.eye(3)
+    _, ey, ez = np.eye(3)
     out = np.empty((7, 3, 3))
     for k, name in enumerate(SEGMENTS):
         Rk = R[:, k]
