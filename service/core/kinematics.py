@@ -75,3 +75,21 @@ def forward_kinematics(bvh: Bvh, metres_per_unit: float) -> GlobalPoses:
     R_world_joint = np.einsum("ij,tkjl->tkil", C_PROJECT_BVH, R)
     names = tuple(joint.name for joint in bvh.joints)
     return GlobalPoses(names, positions_m, R_world_joint, bvh.sample_rate_hz)
+
+
+def body_rate_steps(R_world_body: np.ndarray, sample_rate_hz: float) -> np.ndarray:
+    """Forward body-frame increments log(R_tᵀ R_{t+1}) · rate, ``(T-1, 3)`` rad/s, from orientations ``(T, 3, 3)``."""
+    rot = Rotation.from_matrix(R_world_body)
+    return (rot[:-1].inv() * rot[1:]).as_rotvec() * sample_rate_hz
+
+
+def body_angular_velocity(R_world_body: np.ndarray, sample_rate_hz: float) -> np.ndarray:
+    """Angular velocity in the body frame ``(T, 3)`` from orientations ``(T, 3, 3)``.
+
+    Central estimate: the mean of the backward and forward body-frame increments
+    log(R_{t-1}ᵀ R_t) and log(R_tᵀ R_{t+1}), divided by the sample interval.
+    """
+    step = body_rate_steps(R_world_body, sample_rate_hz)  # (T-1, 3) in the frame of t
+    # Express the backward increment (in frame t-1) in frame t: the rotation vector of R_{t-1}ᵀR_t is
+    # invariant under that rotation, so the same vector holds in both frames.
+    return np.concatenate([step[:1], (step[:-1] + step[1:]) / 2.0, step[-1:]], axis=0)

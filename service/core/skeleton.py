@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from service.core.kinematics import GlobalPoses
+from service.core.kinematics import GlobalPoses, body_rate_steps
 from service.core.resample import interp_along_time
 from service.core.segments import SEGMENTS
 
@@ -171,16 +171,14 @@ def resample_segments(traj: SegmentTrajectories, sample_rate_hz: float) -> Segme
 
 @dataclass(frozen=True)
 class FunctionalCorrection:
-    """Per-clip rotations ``R_geometric_functional`` (7, 3, 3) and their angles in degrees (7,)."""
+    """Per-clip rotations ``R_geometric_functional`` (7, 3, 3), one per segment."""
 
     R_geometric_functional: np.ndarray
-    angle_deg: np.ndarray
 
-
-def _body_rates(R: np.ndarray, rate_hz: float) -> np.ndarray:
-    """Angular velocity in the moving frame, ``(T-1, 3)`` rad/s, from consecutive orientations ``(T, 3, 3)``."""
-    step = np.einsum("tji,tjk->tik", R[:-1], R[1:])  # R_t⁻¹ R_{t+1}
-    return Rotation.from_matrix(step).as_rotvec() * rate_hz
+    @property
+    def angle_deg(self) -> np.ndarray:
+        """How far each functional frame is turned from the geometric one, degrees (7,)."""
+        return np.degrees(Rotation.from_matrix(self.R_geometric_functional).magnitude())
 
 
 def _principal_axis(w: np.ndarray, normal: np.ndarray, sign_hint: np.ndarray) -> np.ndarray:
@@ -198,10 +196,7 @@ def _principal_axis(w: np.ndarray, normal: np.ndarray, sign_hint: np.ndarray) ->
 
 def _frame_with_z(z: np.ndarray, y_hint: np.ndarray) -> np.ndarray:
     """Columns x, y, z of a right-handed frame with z exact and y the hint made orthogonal to it."""
-    z = z / np.linalg.norm(z)
-    y = y_hint - (y_hint @ z) * z
-    y /= np.linalg.norm(y)
-    return np.stack([np.cross(y, z), y, z], axis=1)
+    return _frame_from_z_and_x(z, np.cross(y_hint, z))
 
 
 def functional_correction(
@@ -240,12 +235,9 @@ def functional_correction(
                 out[k] = np.eye(3)
                 continue
             d = np.einsum("tji,tj->ti", Rk[:-1][moving], v[moving] / speed[moving, None])  # R⁻¹ v̂
-            x = d.mean(axis=0)
-            x -= (x @ ez) * ez
-            x /= np.linalg.norm(x)
-            out[k] = np.stack([x, np.cross(ez, x), ez], axis=1)
+            out[k] = _frame_from_z_and_x(ez, d.mean(axis=0))
             continue
-        w = _body_rates(Rk, rate)
+        w = body_rate_steps(Rk, rate)
         if name.endswith("Foot") and foot_flat:
             slow = np.linalg.norm(w, axis=1) <= np.quantile(np.linalg.norm(w, axis=1), 0.25)
             up = Rk[:-1][slow][:, 2, :].mean(axis=0)  # world z in the segment frame: row 2 of R
@@ -254,8 +246,7 @@ def functional_correction(
             out[k] = _frame_with_z(up, _principal_axis(w, up, ey))
         else:
             out[k] = _frame_with_z(ez, _principal_axis(w, ez, ey))
-    angle = np.degrees(Rotation.from_matrix(out).magnitude())
-    return FunctionalCorrection(out, angle)
+    return FunctionalCorrection(out)
 
 
 def functional_frames(

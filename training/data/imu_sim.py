@@ -20,6 +20,7 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 from scipy.spatial.transform import Rotation
 
+from service.core.kinematics import body_angular_velocity
 from service.core.skeleton import FOOT_AXIS_IN_SEGMENT, SegmentTrajectories, resample_segments
 from service.core.units import GRAVITY_MPS2
 
@@ -67,19 +68,6 @@ def lowpass_segments(traj: SegmentTrajectories, cutoff_hz: float = 10.0, order: 
     return SegmentTrajectories(
         R, sosfiltfilt(sos, traj.origin_m, axis=0), sosfiltfilt(sos, traj.midpoint_m, axis=0), traj.sample_rate_hz
     )
-
-
-def body_angular_velocity(R_world_body: np.ndarray, sample_rate_hz: float) -> np.ndarray:
-    """Angular velocity in the body frame ``(T, 3)`` from orientations ``(T, 3, 3)``.
-
-    Central estimate: the mean of the backward and forward body-frame increments
-    log(R_{t-1}ᵀ R_t) and log(R_tᵀ R_{t+1}), divided by the sample interval.
-    """
-    rot = Rotation.from_matrix(R_world_body)
-    step = (rot[:-1].inv() * rot[1:]).as_rotvec() * sample_rate_hz  # (T-1, 3) in the frame of t
-    # Express the backward increment (in frame t-1) in frame t: the rotation vector of R_{t-1}ᵀR_t is
-    # invariant under that rotation, so the same vector holds in both frames.
-    return np.concatenate([step[:1], (step[:-1] + step[1:]) / 2.0, step[-1:]], axis=0)
 
 
 def segment_kinematics(
