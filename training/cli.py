@@ -78,7 +78,7 @@ def pack(
 def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -> None:
     """Train only (no MLflow, no data directory) on a `pack` file; `train --fitted OUT` then tracks the result.
 
-    For a GPU machine: `-s train.device=cuda -s train.loader_workers=8`.
+    For a GPU machine: `-s train.device=cuda -s train.loader_workers=3` (README "Training on another machine").
     """
     from training.data.mocap import dataset_digest
     from training.data.split import load_pack, split_clips
