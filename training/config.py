@@ -40,6 +40,9 @@ class TrainConfig(_Strict):
     # assignment: average the class probabilities over the window turned by 0/90/180/270° about the sensor's z
     # axis (training.models.AssignmentNet; not in the paper): the same weights, 4× the compute
     quarter_turns: bool = False
+    # assignment: also average over the window turned by 360°/n about its mean specific force (the limb's long
+    # axis, eq. 8's θ₂; training.models.AssignmentNet; not in the paper): n × the compute; 1 = off
+    gravity_turns: int = Field(default=1, ge=1)
     # alignment loss: sign-invariant quaternion distance, or the paper's L2 on the stereographic projection
     alignment_loss: Literal["quaternion", "stereographic_l2"] = "quaternion"
     grad_clip_norm: float | None = None  # clip the global gradient norm (stabilises the LSTM)
@@ -70,6 +73,8 @@ class TrainConfig(_Strict):
     def _quarter_turns_need_an_invariant_task(self) -> TrainConfig:
         if self.quarter_turns and self.canonical_frame:
             raise ValueError("quarter_turns averages over sensor rotations the canonical frame already removes")
+        if self.gravity_turns > 1 and self.canonical_frame:
+            raise ValueError("gravity_turns averages over turns about gravity that the canonical frame already removes")
         return self
 
 

@@ -33,7 +33,13 @@ def build_model(cfg: ExperimentConfig) -> nn.Module:
     t = cfg.train
     if cfg.task == "assignment":
         return AssignmentNet(
-            t.hidden, t.channels, t.kernel, t.keep_prob, canonical=t.canonical_frame, quarter_turns=t.quarter_turns
+            t.hidden,
+            t.channels,
+            t.kernel,
+            t.keep_prob,
+            canonical=t.canonical_frame,
+            quarter_turns=t.quarter_turns,
+            gravity_turns=t.gravity_turns,
         )
     return AlignmentNet(t.hidden, t.channels, t.kernel, t.keep_prob, canonical=t.canonical_frame)
 
@@ -175,8 +181,13 @@ def train(
     val_batches = [val_sampler.sample(val_rng, t.batch_size) for _ in range(max(1, t.val_windows // t.batch_size))]
     best, best_state, best_epoch, stale = float("inf"), copy.deepcopy(model.state_dict()), 0, 0
     result = TrainResult(model, 0)
-    batches = _training_batches(sampler, real, cfg, rng)
     start = time.monotonic()
+    if init_state is not None:
+        # The warm-start weights compete as epoch 0: fine-tuning that never beats them returns them unchanged
+        # (and max_epochs 0 wraps them as they are, e.g. in a new turn average).
+        best = _validate(model, cfg.task, val_batches, device)["val_loss"]
+        log.info("epoch 0 (warm start) val_loss %.4f", best)
+    batches = _training_batches(sampler, real, cfg, rng)
     for epoch in range(1, t.max_epochs + 1):
         model.train()
         running = 0.0

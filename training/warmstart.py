@@ -25,19 +25,18 @@ def _reorder_gates(w: np.ndarray, hidden: int) -> np.ndarray:
     return np.concatenate([r, z, h])
 
 
-def assignment_state_from_onnx(onnx_path: Path, net: AssignmentNet, averaged: bool = False) -> dict[str, torch.Tensor]:
-    """``net``'s state dict filled from an exported assignment graph; ``averaged``: a quarter-turn graph."""
+def assignment_state_from_onnx(onnx_path: Path, net: AssignmentNet) -> dict[str, torch.Tensor]:
+    """``net``'s state dict filled from an exported assignment graph, plain or averaged over turns (every pass
+    runs the same weights; the first is the window as it came, which the golden check covers)."""
     model = onnx.load(str(onnx_path))
     inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
     convs = [n for n in model.graph.node if n.op_type == "Conv"]
     gru = next(n for n in model.graph.node if n.op_type == "GRU")
-    if averaged:  # four passes of the same weights; the first is the unturned window (golden-checked)
-        convs = convs[: len(convs) // 4]
     state = {k: v.clone() for k, v in net.state_dict().items()}
     conv_layers = [k for k in state if k.startswith("cnn.net.") and k.endswith(".weight") and state[k].dim() == 3]
-    if len(conv_layers) != len(convs):
-        raise ValueError(f"expected {len(conv_layers)} Conv nodes, the ONNX graph has {len(convs)}")
-    for key, node in zip(conv_layers, convs, strict=True):
+    if not convs or len(convs) % len(conv_layers):
+        raise ValueError(f"expected a multiple of {len(conv_layers)} Conv nodes, the ONNX graph has {len(convs)}")
+    for key, node in zip(conv_layers, convs[: len(conv_layers)], strict=True):
         index = int(key.split(".")[2])
         state[key] = torch.from_numpy(inits[node.input[1]].copy())
         state[f"cnn.net.{index}.bias"] = torch.from_numpy(inits[node.input[2]].copy())
@@ -64,14 +63,14 @@ def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1
     if "quantization" in manifest.exporter:
         source = model_dir.parent / str(manifest.exporter.get("quantized_from", "?"))
         raise ValueError(f"{model_dir} is an int8 model; warm start needs the float32 file it came from: {source}")
-    averaged = bool(manifest.exporter.get("quarter_turns", False))
-    state = assignment_state_from_onnx(model_dir / "model.onnx", net, averaged)
+    state = assignment_state_from_onnx(model_dir / "model.onnx", net)
     probe = AssignmentNet(
         net.rnn.hidden_size,
         net.cnn.net[0].out_channels,
         net.cnn.net[0].kernel_size[0],
         canonical=net.canonical is not None,
-        quarter_turns=averaged,
+        quarter_turns=bool(manifest.exporter.get("quarter_turns", False)),
+        gravity_turns=int(manifest.exporter.get("gravity_turns", 1)),
     )
     probe.load_state_dict(state)
     probe.eval()

@@ -176,6 +176,41 @@ def test_quarter_turns_are_exact_sensor_rotations_and_the_average_is_invariant(t
     assert [d.dim_value or d.dim_param for d in dims][1] == len(SEGMENTS)
 
 
+def test_gravity_turns_rotate_about_the_mean_specific_force_and_the_average_is_invariant(tmp_path: Path) -> None:
+    """turned_about_gravity(n)[j] is the window rotated by j · 360°/n about its own mean specific force (which it
+    leaves fixed); with the quarter turns too, the average over all 4n passes is invariant to either kind of
+    turn, for any weights (the plain net is not), and it exports with the class dimension fixed."""
+    from training.models import _quarter_turn, turned_about_gravity
+
+    imu = _moving_windows(8, seed=3)
+    axis = imu[..., :3].mean(1).numpy()
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    views = turned_about_gravity(imu, 3)
+    torch.testing.assert_close(views[0], imu)
+    for j, view in enumerate(views):
+        R = Rotation.from_rotvec(axis * np.radians(120.0 * j)).as_matrix()
+        torch.testing.assert_close(view, rotate_imu(imu, torch.tensor(R, dtype=torch.float32)), atol=1e-4, rtol=0)
+        torch.testing.assert_close(view[..., :3].mean(1), imu[..., :3].mean(1), atol=1e-4, rtol=0)
+    torch.manual_seed(0)
+    averaged = AssignmentNet(hidden=16, channels=8, kernel=4, quarter_turns=True, gravity_turns=3).eval()
+    plain = AssignmentNet(hidden=16, channels=8, kernel=4).eval()
+    plain.load_state_dict(averaged.state_dict())
+    with torch.no_grad():
+        probs = torch.softmax(averaged(imu), -1)
+        torch.testing.assert_close(probs.sum(-1), torch.ones(8))
+        for turned in (views[1], views[2], _quarter_turn(imu, 1), _quarter_turn(views[1], 3)):
+            torch.testing.assert_close(averaged(turned), averaged(imu), atol=2e-6, rtol=0)  # log-probabilities
+        assert float((plain(views[1]) - plain(imu)).abs().max()) > 1e-4  # the plain net's logits do move
+    onnx_path = export_onnx(averaged, "assignment", tmp_path / "model.onnx")
+    assert onnx_parity(onnx_path, golden_pair(averaged, imu.numpy())) < 1e-4
+    import onnx
+
+    dims = onnx.load(str(onnx_path)).graph.output[0].type.tensor_type.shape.dim
+    assert [d.dim_value or d.dim_param for d in dims][1] == len(SEGMENTS)
+    with pytest.raises(ValueError, match="at least 1"):
+        AssignmentNet(gravity_turns=0)
+
+
 def test_quarter_turns_and_the_canonical_frame_are_refused_together() -> None:
     from pydantic import ValidationError
 
@@ -184,4 +219,6 @@ def test_quarter_turns_and_the_canonical_frame_are_refused_together() -> None:
     config = Path(__file__).resolve().parents[2] / "training/configs/i2s_assignment.yaml"
     with pytest.raises(ValidationError, match="quarter_turns"):
         load_config(config, ["train.quarter_turns=true", "train.canonical_frame=true"])
+    with pytest.raises(ValidationError, match="gravity_turns"):
+        load_config(config, ["train.gravity_turns=4", "train.canonical_frame=true"])
     assert load_config(config, ["train.quarter_turns=true"]).train.quarter_turns

@@ -27,8 +27,12 @@ def _float32(quantized: bool = False) -> Path:
     ids=lambda d: d.name,
 )
 def test_rebuilt_weights_match_the_shipped_model(model_dir: Path) -> None:
-    """Every shipped float32 file, with the quarter-turn average (1.2.0) or without (1.0.0)."""
-    net = AssignmentNet(quarter_turns=bool(read_manifest(model_dir / "manifest.json").exporter.get("quarter_turns")))
+    """Every shipped float32 file, plain (1.0.0) or averaged over turns (1.2.0 quarter turns, 1.4.0 also about
+    gravity)."""
+    exporter = read_manifest(model_dir / "manifest.json").exporter
+    net = AssignmentNet(
+        quarter_turns=bool(exporter.get("quarter_turns")), gravity_turns=int(exporter.get("gravity_turns", 1))
+    )
     net.load_state_dict(warm_start_from_shipped(model_dir, net))
     net.eval()
     with np.load(model_dir / "golden.npz") as golden, torch.no_grad():
@@ -49,3 +53,25 @@ def test_a_wrong_golden_is_refused(tmp_path: Path) -> None:
 def test_an_int8_model_is_refused_with_its_float32_source_named() -> None:
     with pytest.raises(ValueError, match="int8 model; warm start needs the float32 file"):
         warm_start_from_shipped(_float32(quantized=True), AssignmentNet())
+
+
+def test_the_warm_start_competes_as_epoch_zero(data_dir: Path, kinematics_cache: Path) -> None:
+    """Fine-tuning that never beats the warm-start weights on validation returns them unchanged (best epoch 0);
+    an epoch that does beat them is kept. A learning rate of 1 wrecks the shipped weights in two steps."""
+    from training.config import load_config
+    from training.data.catalog import mocap_entries
+    from training.data.mocap import build_kinematics
+    from training.train import train
+
+    entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"][:3]
+    clips = build_kinematics(data_dir, entries, kinematics_cache)
+    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_assignment.yaml"
+    tiny = ["train.steps_per_epoch=2", "train.val_windows=256", "train.batch_size=64", "train.threads=2"]
+    net = AssignmentNet()
+    init = warm_start_from_shipped(_float32(), net)
+    wrecked = train(load_config(config, [*tiny, "train.max_epochs=1", "train.lr=1.0"]), clips, clips, init_state=init)
+    assert wrecked.best_epoch == 0 and len(wrecked.history) == 1
+    for key, value in wrecked.model.state_dict().items():
+        torch.testing.assert_close(value, init[key], msg=key)
+    from_scratch = train(load_config(config, [*tiny, "train.max_epochs=1"]), clips, clips)
+    assert from_scratch.best_epoch == 1  # without a warm start, the first epoch is the first candidate
