@@ -79,22 +79,44 @@ def evaluate_simulated(
     return SimEvaluation(metrics, seg, err, None, digest)
 
 
+LEG_SEGMENTS = frozenset(SEGMENTS.index(n) for n in ("LeftUpperLeg", "LeftLowerLeg", "RightUpperLeg", "RightLowerLeg"))
+
+
+def turns_about_vertical(windows: np.ndarray, within_deg: float = 45.0) -> np.ndarray:
+    """Per window ``(B, T, 6)``: is the dominant rotation axis (top eigenvector of Σ ω ωᵀ) within ``within_deg`` of
+    the mean specific force, i.e. does the segment mostly twist or turn about the vertical rather than swing?
+
+    A label-free description of what a real recording contains: in gait the legs swing about their flexion axis,
+    which is horizontal; the training clips are gait. Reported per recording by ``evaluate_real``.
+    """
+    if not len(windows):
+        return np.zeros(0, dtype=bool)
+    up = windows[..., :3].mean(axis=1).astype(np.float64)
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    gyr = windows[..., 3:].astype(np.float64)
+    axis = np.linalg.eigh(np.einsum("bti,btj->bij", gyr, gyr))[1][..., -1]
+    return np.abs(np.einsum("bi,bi->b", axis, up)) > np.cos(np.radians(within_deg))
+
+
 def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[dict[str, float], np.ndarray]:
     """Assignment on real recordings: per moving window, and per recording jointly (one-to-one).
 
     Windows whose gyroscope is still (``is_moving``) are counted, not scored: they carry no gait
-    information (DESIGN.md §5). Per recording and per sensor (``accuracy/<recording>/<segment>``) too.
+    information (DESIGN.md §5). Per recording and per sensor (``accuracy/<recording>/<segment>``) too, and per
+    recording the share of moving leg windows that turn about the vertical (``turns_about_vertical``).
     Returns metrics and the confusion matrix of moving windows.
     """
     y_true, y_pred, metrics = [], [], {}
     joint_correct = joint_total = still = 0
     for rec in recordings:
         sensors = [s for s in rec.sensors if s.segment is not None]
-        log_probs = []
+        log_probs, twisting = [], []
         for s in sensors:
             windows = sliding_windows(s.imu.astype(np.float32))
             moving = is_moving(windows)
             still += int((~moving).sum())
+            if s.segment in LEG_SEGMENTS:
+                twisting.append(turns_about_vertical(windows[moving]))
             probs = predict(np.ascontiguousarray(windows[moving]))
             y_true.append(np.full(len(probs), s.segment))
             y_pred.append(probs.argmax(-1))
@@ -110,6 +132,8 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
         metrics[f"joint_correct_fraction/{rec.name}"] = float(np.mean(joint.segment == truth))
         rec_true, rec_pred = np.concatenate(y_true[-len(sensors) :]), np.concatenate(y_pred[-len(sensors) :])
         metrics[f"accuracy/{rec.name}"] = float(np.mean(rec_true == rec_pred))
+        if twisting:
+            metrics[f"leg_windows_turning_about_vertical/{rec.name}"] = float(np.mean(np.concatenate(twisting)))
         metrics[f"n_windows/{rec.name}"] = float(len(rec_true))
     yt, yp = np.concatenate(y_true), np.concatenate(y_pred)
     overall = assignment_metrics(yt, yp)
@@ -117,9 +141,6 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     metrics["real_joint_assignment_correct_fraction"] = joint_correct / max(joint_total, 1)
     metrics["real_still_windows_skipped"] = float(still)
     return metrics, confusion_matrix(yt, yp)
-
-
-LEG_SEGMENTS = frozenset(SEGMENTS.index(n) for n in ("LeftUpperLeg", "LeftLowerLeg", "RightUpperLeg", "RightLowerLeg"))
 
 
 def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -> dict[str, float]:

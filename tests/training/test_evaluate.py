@@ -13,7 +13,7 @@ from service.core.segments import SEGMENTS
 from training.data.catalog import mocap_entries
 from training.data.imu_sim import alignment, imu_readings
 from training.data.mocap import build_kinematics
-from training.evaluate import evaluate_real_alignment
+from training.evaluate import evaluate_real_alignment, turns_about_vertical
 
 SEGMENT = SEGMENTS.index("LeftLowerLeg")
 
@@ -59,6 +59,21 @@ def test_unstable_predictions_fail_the_spread_check(recording) -> None:
         return q.reshape(len(windows), len(SEGMENTS), 4).astype(np.float32)
 
     assert evaluate_real_alignment(random_rotations, [rec])["real_alignment_spread_median_deg"] > 60.0
+
+
+def test_walking_legs_swing_and_a_leg_turned_about_the_vertical_does_not(recording) -> None:
+    """Simulated walking (any mounting) swings about a horizontal axis; the same window with a turn rate about
+    the mean specific force added dominates that axis and is flagged."""
+    from service.core.windowing import sliding_windows
+
+    windows = sliding_windows(recording[0].sensors[0].imu)
+    assert turns_about_vertical(windows).mean() < 0.05
+    up = windows[..., :3].mean(axis=1)
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    twisting = windows.copy()
+    twisting[..., 3:] += 8.0 * np.sin(np.linspace(0.0, 12.0, windows.shape[1]))[None, :, None] * up[:, None, :]
+    assert turns_about_vertical(twisting).mean() > 0.95
+    assert turns_about_vertical(windows[:0]).shape == (0,)
 
 
 def test_population_offset_baseline_is_small_on_its_own_subject_and_across_subjects_with_functional_frames(
