@@ -53,7 +53,7 @@ EXAMPLE_RESULT = {
     "moving": True,
     "alignment": EXAMPLE_ALIGNMENT,
 }
-EXAMPLE_VERSIONS = {"i2s_assignment": "1.3.0", "i2s_alignment": "3.1.0"}
+EXAMPLE_VERSIONS = {"i2s_assignment": "1.5.0", "i2s_alignment": "3.1.0"}
 
 
 class Alignment(BaseModel):
