@@ -83,6 +83,18 @@ class TrackingConfig(_Strict):
     registered_model: str | None = None  # defaults to the experiment name of the config
 
 
+def flatten(d: dict, prefix: str = "") -> dict[str, object]:
+    """Dotted keys → values of a nested (dumped) config, e.g. ``{"train.lr": 0.001}``."""
+    out: dict[str, object] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
 class ExperimentConfig(_Strict):
     name: str
     task: Literal["assignment", "alignment"]

@@ -19,7 +19,7 @@ from mlflow.tracking import MlflowClient
 
 from service.core.manifest import MLMODEL_METADATA_KEY
 from service.core.recordings import RealRecording, read_all_real, read_recording
-from training.config import ExperimentConfig
+from training.config import ExperimentConfig, flatten
 from training.data.mocap import KINEMATICS_VERSION, Clip, dataset_digest
 from training.data.split import load_clips, split_clips
 from training.data.windows import Augmentation, RealWindowSampler, WindowSampler
@@ -27,7 +27,7 @@ from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_s
 from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
 from training.plots import confusion_matrix_png, error_boxplot_png, learning_curves_png
 from training.ship import build_manifest, run_version
-from training.tracking import flatten, maybe_promote, setup_tracking
+from training.tracking import maybe_promote, setup_tracking
 from training.train import TrainResult, build_model, load_fitted, train
 from training.warmstart import warm_start_from_shipped
 

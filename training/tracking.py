@@ -26,17 +26,6 @@ def setup_tracking(experiment: str) -> str:
     return uri
 
 
-def flatten(d: dict, prefix: str = "") -> dict[str, object]:
-    out: dict[str, object] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(flatten(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
 def maybe_promote(
     name: str, version: str, metric: str, value: float, higher_is_better: bool, evaluation_digest: str
 ) -> bool:

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from training.config import ExperimentConfig
+from training.config import ExperimentConfig, flatten
 from training.data.mocap import Clip
 from training.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, concat_batches
 from training.models import AlignmentNet, AssignmentNet
@@ -249,15 +249,9 @@ def save_fitted(path: Path, cfg: ExperimentConfig, result: TrainResult, train_di
 _WHERE_ONLY = {"train.device", "train.loader_workers", "train.threads"}  # where a run trained, not what
 
 
-def _settings(config: dict, prefix: str = "") -> dict[str, object]:
+def _settings(config: dict) -> dict[str, object]:
     """Dotted keys → values of a dumped config, without ``_WHERE_ONLY``."""
-    out: dict[str, object] = {}
-    for key, value in config.items():
-        if isinstance(value, dict):
-            out.update(_settings(value, f"{prefix}{key}."))
-        elif f"{prefix}{key}" not in _WHERE_ONLY:
-            out[f"{prefix}{key}"] = value
-    return out
+    return {k: v for k, v in flatten(config).items() if k not in _WHERE_ONLY}
 
 
 def load_fitted(

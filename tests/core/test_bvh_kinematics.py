@@ -114,13 +114,10 @@ def test_functional_frames_on_real_walking_are_small_turns_and_a_fixed_point(dat
     """On real walking the functional frames sit within 25° of the geometric ones (measured 0-19°, the feet
     most), and computing them again from the corrected frames changes nothing for the legs and the pelvis."""
     from service.core.skeleton import functional_correction, functional_frames
+    from training.data.mocap import geometric_trajectories
 
     entry = next(e for e in read_catalog(data_dir) if e.path == path)
-    poses = forward_kinematics(read_bvh(data_dir / path), METRES_PER_UNIT[entry.source])
-    traj = segment_trajectories(poses, skeleton_map_for(entry.source, poses.names))
-    skip = entry.tpose_frames
-    traj = type(traj)(traj.R_world_segment[skip:], traj.origin_m[skip:], traj.midpoint_m[skip:], traj.sample_rate_hz)
-    corrected, corr = functional_frames(traj)
+    corrected, corr = functional_frames(geometric_trajectories(data_dir / path, entry))
     assert np.all(corr.angle_deg < 25.0), corr.angle_deg
     assert np.any(corr.angle_deg > 1.0), "the geometric frames are not already functional"
     again = functional_correction(corrected)

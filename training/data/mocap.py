@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from service.core.bvh import read_bvh
 from service.core.kinematics import forward_kinematics
-from service.core.skeleton import functional_frames, segment_trajectories, skeleton_map_for
+from service.core.skeleton import SegmentTrajectories, functional_frames, segment_trajectories, skeleton_map_for
 from training.data.catalog import METRES_PER_UNIT, CatalogEntry
 from training.data.imu_sim import SegmentKinematics, segment_kinematics
 
@@ -52,13 +52,18 @@ def clip_digest(bvh_path: Path, params: KinematicsParams) -> str:
     return h.hexdigest()[:20]
 
 
-def compute_kinematics(bvh_path: Path, entry: CatalogEntry, params: KinematicsParams) -> SegmentKinematics:
-    bvh = read_bvh(bvh_path)
-    poses = forward_kinematics(bvh, METRES_PER_UNIT[entry.source])
+def geometric_trajectories(bvh_path: Path, entry: CatalogEntry) -> SegmentTrajectories:
+    """The clip's seven segment trajectories in the geometric frames, T-pose frames dropped."""
+    poses = forward_kinematics(read_bvh(bvh_path), METRES_PER_UNIT[entry.source])
     traj = segment_trajectories(poses, skeleton_map_for(entry.source, poses.names))
     skip = entry.tpose_frames
-    traj = type(traj)(traj.R_world_segment[skip:], traj.origin_m[skip:], traj.midpoint_m[skip:], traj.sample_rate_hz)
-    traj, _ = functional_frames(traj, foot_flat=entry.activity != "run")
+    return SegmentTrajectories(
+        traj.R_world_segment[skip:], traj.origin_m[skip:], traj.midpoint_m[skip:], traj.sample_rate_hz
+    )
+
+
+def compute_kinematics(bvh_path: Path, entry: CatalogEntry, params: KinematicsParams) -> SegmentKinematics:
+    traj, _ = functional_frames(geometric_trajectories(bvh_path, entry), foot_flat=entry.activity != "run")
     return segment_kinematics(traj, params.sample_rate_hz, params.cutoff_hz, params.filter_order)
 
 
