@@ -144,7 +144,8 @@ class AssignmentNet(nn.Module):
     inclination (10-20°), so each copy is the sensor moved around the limb, eq. 8's other angle θ₂; on the feet it
     is close to the surface normal (θ₁ again); the pelvis is classified alike at any turn. The network is not
     invariant to these turns on real recordings whose motion it has not seen (a real thigh sensor read 34-88 %
-    depending on the turn), and the average removes that dependence. Passes: n × (4 with ``quarter_turns``).
+    depending on the turn, in an ad-hoc scan; README "Method"), and the average removes that dependence.
+    Passes: n × (4 with ``quarter_turns``).
     The weights and state-dict keys are those of the plain net, so a trained plain net can be wrapped as it is.
     """
 
@@ -179,7 +180,8 @@ class AssignmentNet(nn.Module):
         turns = range(4) if self.quarter_turns else range(1)
         # One pass per turn (not one batch of all turns): a reshape back would leave the exported class dimension
         # symbolic, and the service checks the manifest's [batch, 7] against the graph; one batch was not faster
-        # in onnxruntime either. The first pass is the window as it came (training.warmstart reads it).
+        # in onnxruntime either (ad-hoc timing, README "Benchmarks"). The first pass is the window as it came
+        # (training.warmstart reads it).
         passes = [torch.log_softmax(self._logits(_quarter_turn(v, k)), dim=-1) for v in views for k in turns]
         return torch.logsumexp(torch.stack(passes), dim=0) - math.log(len(passes))  # log of the mean probability
 
