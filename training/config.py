@@ -8,6 +8,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from service.core.segments import SEGMENTS
 from training.data.windows import Augmentation
 
 
@@ -43,6 +44,9 @@ class TrainConfig(_Strict):
     # assignment: also average over the window turned by 360°/n about its mean specific force (the limb's long
     # axis, eq. 8's θ₂; training.models.AssignmentNet; not in the paper): n × the compute; 1 = off
     gravity_turns: int = Field(default=1, ge=1)
+    # assignment: the classes that take their probability from the turns about gravity (None: all); the others use
+    # the window's own quarter turns (training.models.AssignmentNet; the legs, whose long axis is near gravity)
+    gravity_turn_segments: list[str] | None = None
     # alignment loss: sign-invariant quaternion distance, or the paper's L2 on the stereographic projection
     alignment_loss: Literal["quaternion", "stereographic_l2"] = "quaternion"
     grad_clip_norm: float | None = None  # clip the global gradient norm (stabilises the LSTM)
@@ -75,6 +79,13 @@ class TrainConfig(_Strict):
             raise ValueError("quarter_turns averages over sensor rotations the canonical frame already removes")
         if self.gravity_turns > 1 and self.canonical_frame:
             raise ValueError("gravity_turns averages over turns about gravity that the canonical frame already removes")
+        if self.gravity_turn_segments is not None:
+            unknown = sorted(set(self.gravity_turn_segments) - set(SEGMENTS))
+            if unknown or not self.gravity_turn_segments or self.gravity_turns == 1:
+                raise ValueError(
+                    f"gravity_turn_segments needs gravity_turns > 1 and some of {list(SEGMENTS)}; "
+                    f"got gravity_turns={self.gravity_turns}, unknown names {unknown}"
+                )
         return self
 
 

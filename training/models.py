@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import nn
@@ -146,6 +147,14 @@ class AssignmentNet(nn.Module):
     invariant to these turns on real recordings whose motion it has not seen (a real thigh sensor read 34-88 %
     depending on the turn, in an ad-hoc scan; README "Method"), and the average removes that dependence.
     Passes: n × (4 with ``quarter_turns``).
+
+    With ``gravity_turn_segments`` (a subset of ``SEGMENTS``) only those classes take their probability from the
+    average over the turns about gravity; the others take it from the passes of the window as it came (its
+    quarter turns), and the mixture is renormalised. The turn about the mean specific force is eq. 8's θ₂ only
+    for a segment whose long axis is near gravity: the thighs and shanks. For a foot it is near the surface
+    normal and for the pelvis the heading, which the network was never trained to see turned that way, so the
+    hypothesis "this is a foot" is best scored on the window's own quarter turns (the cmu_05 LOSO fold lost its
+    feet to the full average; README "Method").
     The weights and state-dict keys are those of the plain net, so a trained plain net can be wrapped as it is.
     """
 
@@ -158,10 +167,18 @@ class AssignmentNet(nn.Module):
         canonical: bool = False,
         quarter_turns: bool = False,
         gravity_turns: int = 1,
+        gravity_turn_segments: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         if gravity_turns < 1:
             raise ValueError(f"gravity_turns must be at least 1 (no turning), got {gravity_turns}")
+        turned = SEGMENTS if gravity_turn_segments is None else tuple(gravity_turn_segments)
+        if gravity_turn_segments is not None and (gravity_turns == 1 or not set(turned) <= set(SEGMENTS)):
+            raise ValueError(f"gravity_turn_segments {turned} needs gravity_turns > 1 and names from SEGMENTS")
+        self.gravity_turn_segments = None if gravity_turn_segments is None else tuple(gravity_turn_segments)
+        # not in the state dict: the weights stay those of the plain net
+        mask = torch.tensor([s in turned for s in SEGMENTS])
+        self.register_buffer("_turned_classes", mask, persistent=False)
         self.scale = InputScale()
         self.canonical = CanonicalFrame() if canonical else None
         self.quarter_turns = quarter_turns
@@ -182,8 +199,13 @@ class AssignmentNet(nn.Module):
         # symbolic, and the service checks the manifest's [batch, 7] against the graph; one batch was not faster
         # in onnxruntime either (ad-hoc timing, README "Benchmarks"). The first pass is the window as it came
         # (training.warmstart reads it).
-        passes = [torch.log_softmax(self._logits(_quarter_turn(v, k)), dim=-1) for v in views for k in turns]
-        return torch.logsumexp(torch.stack(passes), dim=0) - math.log(len(passes))  # log of the mean probability
+        passes = torch.stack([torch.log_softmax(self._logits(_quarter_turn(v, k)), -1) for v in views for k in turns])
+        averaged = torch.logsumexp(passes, dim=0) - math.log(len(views) * len(turns))  # log of the mean probability
+        if self.gravity_turn_segments is None:
+            return averaged
+        unturned = torch.logsumexp(passes[: len(turns)], dim=0) - math.log(len(turns))
+        mixed = torch.where(self._turned_classes, averaged, unturned)
+        return mixed - torch.logsumexp(mixed, dim=-1, keepdim=True)
 
     def _logits(self, x: torch.Tensor) -> torch.Tensor:
         features, _ = self.rnn(self.cnn(x))

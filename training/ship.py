@@ -105,6 +105,7 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
             "canonical_frame": cfg.train.canonical_frame,
             "quarter_turns": cfg.train.quarter_turns,
             "gravity_turns": cfg.train.gravity_turns,
+            "gravity_turn_segments": cfg.train.gravity_turn_segments,
             # segment-frame definition of the training labels: 1 geometric, 2 functional (README "Method")
             "kinematics_version": int(run.data.tags.get("kinematics_version", "1")),
         },

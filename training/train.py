@@ -40,6 +40,7 @@ def build_model(cfg: ExperimentConfig) -> nn.Module:
             canonical=t.canonical_frame,
             quarter_turns=t.quarter_turns,
             gravity_turns=t.gravity_turns,
+            gravity_turn_segments=t.gravity_turn_segments,
         )
     return AlignmentNet(t.hidden, t.channels, t.kernel, t.keep_prob, canonical=t.canonical_frame)
 

@@ -71,6 +71,7 @@ def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1
         canonical=net.canonical is not None,
         quarter_turns=bool(manifest.exporter.get("quarter_turns", False)),
         gravity_turns=int(manifest.exporter.get("gravity_turns", 1)),
+        gravity_turn_segments=manifest.exporter.get("gravity_turn_segments"),
     )
     probe.load_state_dict(state)
     probe.eval()

@@ -211,6 +211,49 @@ def test_gravity_turns_rotate_about_the_mean_specific_force_and_the_average_is_i
         AssignmentNet(gravity_turns=0)
 
 
+def test_gravity_turn_segments_mix_the_two_averages_per_class(tmp_path: Path) -> None:
+    """With gravity_turn_segments the named classes take the 4n-pass average and the others the window's own
+    quarter turns, renormalised; the mixture stays exactly invariant to the quarter turns, the leg classes keep
+    their invariance to the turns about gravity, and the graph exports with the class dimension fixed."""
+    from training.models import _quarter_turn, turned_about_gravity
+
+    legs = ["LeftLowerLeg", "LeftUpperLeg", "RightUpperLeg", "RightLowerLeg"]
+    is_leg = torch.tensor([s in legs for s in SEGMENTS])
+    imu = _moving_windows(8, seed=5)
+    torch.manual_seed(1)
+    mixed = AssignmentNet(
+        hidden=16, channels=8, kernel=4, quarter_turns=True, gravity_turns=4, gravity_turn_segments=legs
+    )
+    full = AssignmentNet(hidden=16, channels=8, kernel=4, quarter_turns=True, gravity_turns=4)
+    quarter = AssignmentNet(hidden=16, channels=8, kernel=4, quarter_turns=True)
+    with torch.no_grad():
+        mixed.head.weight.mul_(50.0)  # an untrained net is near uniform; make the passes disagree
+    full.load_state_dict(mixed.state_dict())
+    quarter.load_state_dict(mixed.state_dict())
+    for net in (mixed, full, quarter):
+        net.eval()
+    with torch.no_grad():
+        expected = torch.where(is_leg, full(imu).exp(), quarter(imu).exp())
+        expected = expected / expected.sum(-1, keepdim=True)
+        torch.testing.assert_close(mixed(imu).exp(), expected, atol=1e-6, rtol=0)
+        assert (
+            float((mixed(imu) - full(imu)).abs().max()) > 1e-4 and float((mixed(imu) - quarter(imu)).abs().max()) > 1e-4
+        )
+        torch.testing.assert_close(mixed(_quarter_turn(imu, 1)), mixed(imu), atol=2e-6, rtol=0)
+        # the leg classes' unnormalised evidence (the 16-pass mean) does not move with a turn about gravity
+        turned = turned_about_gravity(imu, 4)[1]
+        torch.testing.assert_close(full(turned)[:, is_leg], full(imu)[:, is_leg], atol=2e-6, rtol=0)
+    onnx_path = export_onnx(mixed, "assignment", tmp_path / "model.onnx")
+    assert onnx_parity(onnx_path, golden_pair(mixed, imu.numpy())) < 1e-4
+    import onnx
+
+    dims = onnx.load(str(onnx_path)).graph.output[0].type.tensor_type.shape.dim
+    assert [d.dim_value or d.dim_param for d in dims][1] == len(SEGMENTS)
+    for bad in ({"gravity_turns": 1}, {"gravity_turns": 4, "gravity_turn_segments": ["Head"]}):
+        with pytest.raises(ValueError, match="gravity_turn_segments"):
+            AssignmentNet(**{"gravity_turn_segments": legs, **bad})
+
+
 def test_quarter_turns_and_the_canonical_frame_are_refused_together() -> None:
     from pydantic import ValidationError
 
@@ -221,4 +264,10 @@ def test_quarter_turns_and_the_canonical_frame_are_refused_together() -> None:
         load_config(config, ["train.quarter_turns=true", "train.canonical_frame=true"])
     with pytest.raises(ValidationError, match="gravity_turns"):
         load_config(config, ["train.gravity_turns=4", "train.canonical_frame=true"])
+    for overrides in (
+        ["train.gravity_turn_segments=[LeftFoot]"],
+        ["train.gravity_turns=4", "train.gravity_turn_segments=[Hip]"],
+    ):
+        with pytest.raises(ValidationError, match="gravity_turn_segments"):
+            load_config(config, ["train.quarter_turns=true", *overrides])
     assert load_config(config, ["train.quarter_turns=true"]).train.quarter_turns
