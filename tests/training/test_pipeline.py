@@ -59,13 +59,21 @@ def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
     champion = client.get_model_version_by_alias(cfg.registered_model, "champion")
     assert champion.run_id == run_id
 
-    # A second run on the same evaluation: champion moves iff its accuracy is strictly higher.
-    cfg2 = cfg.model_copy(update={"seed": 1})
+    # A second run on the same evaluation: champion moves iff its accuracy is strictly higher. It averages over
+    # turns (about gravity for the leg classes only), which its manifest records.
+    legs = "[LeftLowerLeg,LeftUpperLeg,RightUpperLeg,RightLowerLeg]"
+    averaged = ["train.quarter_turns=true", "train.gravity_turns=2", f"train.gravity_turn_segments={legs}"]
+    cfg2 = load_config(
+        REPO / "training/configs/i2s_assignment.yaml", TINY + ["tracking.experiment=test-i2s", *averaged]
+    )
+    cfg2 = cfg2.model_copy(update={"seed": 1})
     run2 = run_training(cfg2, data_dir, kinematics_cache, register=True, eval_max_windows=1500)
     acc1 = run.data.metrics["test_accuracy"]
     acc2 = client.get_run(run2).data.metrics["test_accuracy"]
     now = client.get_model_version_by_alias(cfg.registered_model, "champion").run_id
     assert now == (run2 if acc2 > acc1 else run_id)
+    exporter = read_manifest(export_run(run2, tmp_path / "averaged", version="0.0.2") / "manifest.json").exporter
+    assert exporter["gravity_turn_segments"] == legs.strip("[]").split(",") and exporter["gravity_turns"] == 2
     # `evaluate` on a shipped float32 file re-tags its registered version with the newer evaluation
     (tagged,) = record_evaluation(cfg.registered_model, run_id, "accuracy", 0.25, "re-evaluated")
     version = client.get_model_version(cfg.registered_model, tagged)
