@@ -14,7 +14,7 @@ import onnxruntime as ort
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from service.core.assignment import is_moving, joint_assignment
+from service.core.assignment import is_moving, joint_assignment, turns_about_vertical
 from service.core.recordings import RealRecording
 from service.core.segments import SEGMENTS
 from service.core.windowing import sliding_windows
@@ -80,22 +80,6 @@ def evaluate_simulated(
 
 
 LEG_SEGMENTS = frozenset(SEGMENTS.index(n) for n in ("LeftUpperLeg", "LeftLowerLeg", "RightUpperLeg", "RightLowerLeg"))
-
-
-def turns_about_vertical(windows: np.ndarray, within_deg: float = 45.0) -> np.ndarray:
-    """Per window ``(B, T, 6)``: is the dominant rotation axis (top eigenvector of Σ ω ωᵀ) within ``within_deg`` of
-    the mean specific force, i.e. does the segment mostly twist or turn about the vertical rather than swing?
-
-    A label-free description of what a real recording contains: in gait the legs swing about their flexion axis,
-    which is horizontal; the training clips are gait. Reported per recording by ``evaluate_real``.
-    """
-    if not len(windows):
-        return np.zeros(0, dtype=bool)
-    up = windows[..., :3].mean(axis=1).astype(np.float64)
-    up /= np.linalg.norm(up, axis=1, keepdims=True)
-    gyr = windows[..., 3:].astype(np.float64)
-    axis = np.linalg.eigh(np.einsum("bti,btj->bij", gyr, gyr))[1][..., -1]
-    return np.abs(np.einsum("bi,bi->b", axis, up)) > np.cos(np.radians(within_deg))
 
 
 def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[dict[str, float], np.ndarray]:

@@ -10,7 +10,7 @@ Client → server
 ``seq`` is the sensor's sample counter of the packet's first sample (0, 1, 2, … per sample).
 
 Server → client
-  started · result (per window: class, probabilities, moving, alignment) · assignment (joint,
+  started · result (per window: class, probabilities, moving, turns_about_vertical, alignment) · assignment (joint,
   one-to-one over the session's evidence; after each group of results) · gap / late (sequence
   problems, in order with the results) · error (then close, after the results of every accepted packet).
 Close codes: 1003 unsupported data, 1008 protocol violation, 1009 message too big, 1000 after stop.

@@ -32,7 +32,7 @@ from service.api.schemas import (
     WindowsResponse,
     error_responses,
 )
-from service.core.assignment import is_moving, joint_assignment
+from service.core.assignment import is_moving, joint_assignment, turns_about_vertical
 from service.core.rotations import matrix_from_quat
 from service.core.segments import SEGMENTS, segment_index
 from service.inference.predict import (
@@ -120,8 +120,8 @@ def _json(body: BaseModel) -> Response:
 def _window_results(
     imu: np.ndarray, probs: np.ndarray, quats: np.ndarray | None, segments: list[int | None]
 ) -> list[WindowResult]:
-    moving = is_moving(imu)
-    return [WindowResult(**r) for r in window_results(probs, quats, moving, segments)]
+    turning = turns_about_vertical(imu)
+    return [WindowResult(**r) for r in window_results(probs, quats, is_moving(imu), turning, segments)]
 
 
 @router.post(
@@ -233,6 +233,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
                 margin=float(joint.margin[k]),
                 windows=len(per_sensor[k]),
                 moving_windows=int(moving[k].sum()),
+                moving_windows_turning_about_vertical=int((moving[k] & turns_about_vertical(per_sensor[k])).sum()),
                 alignment=alignment,
                 alignment_spread_deg=spread,
             )
@@ -293,10 +294,10 @@ _add_pose_route("/v1/pose/flex", "flex_pose", "flex-sensor readings")
                     "example": {
                         "i2s_assignment": {
                             "name": "i2s_assignment",
-                            "version": "1.5.0",
+                            "version": "1.7.0",
                             "classes": list(SEGMENTS),
                             "evaluations": [{"name": "loso_simulated", "metrics": {"accuracy": 0.997}}],
-                            "source": "onnx_models/i2s_assignment/1.5.0",
+                            "source": "onnx_models/i2s_assignment/1.7.0",
                         }
                     }
                 }

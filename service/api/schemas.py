@@ -51,9 +51,10 @@ EXAMPLE_RESULT = {
     "confidence": 0.985,
     "probabilities": _EXAMPLE_PROBS,
     "moving": True,
+    "turns_about_vertical": False,
     "alignment": EXAMPLE_ALIGNMENT,
 }
-EXAMPLE_VERSIONS = {"i2s_assignment": "1.5.0", "i2s_alignment": "3.1.0"}
+EXAMPLE_VERSIONS = {"i2s_assignment": "1.7.0", "i2s_alignment": "3.1.0"}
 
 
 class Alignment(BaseModel):
@@ -68,6 +69,12 @@ class WindowResult(BaseModel):
     confidence: float
     probabilities: dict[str, float]
     moving: bool = Field(description="false: the gyroscope was still, the class is a guess")
+    turns_about_vertical: bool = Field(
+        description="true: a moving window whose dominant rotation axis lies within 45° of gravity. Legs and feet "
+        "swing about a horizontal axis in gait, the motion the models were trained on; for a leg or foot sensor such "
+        "a window (twisting, turning on the spot) is outside it, so treat its class and alignment with caution. "
+        "The pelvis turns about the vertical in gait too."
+    )
     alignment: Alignment | None = None
 
 
@@ -120,6 +127,9 @@ class SensorAssignment(BaseModel):
     )
     windows: int
     moving_windows: int
+    moving_windows_turning_about_vertical: int = Field(
+        description="of the moving windows, those that turn about the vertical (see the per-window field)"
+    )
     alignment: Alignment | None = Field(
         None, description="robust mean over the sensor's moving windows (all windows if none moves)"
     )
@@ -141,6 +151,7 @@ class AssignResponse(BaseModel):
                             "margin": 41.2,
                             "windows": 12,
                             "moving_windows": 11,
+                            "moving_windows_turning_about_vertical": 0,
                             "alignment": EXAMPLE_ALIGNMENT,
                             "alignment_spread_deg": 3.1,
                         }

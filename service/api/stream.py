@@ -28,7 +28,7 @@ from service.api.protocol import (
     check_samples,
     decode_binary,
 )
-from service.core.assignment import is_moving, joint_assignment
+from service.core.assignment import is_moving, joint_assignment, turns_about_vertical
 from service.core.segments import SEGMENTS
 from service.core.stream import SensorStream
 from service.inference.predict import window_results
@@ -200,7 +200,7 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
         imu = np.stack(windows)
         probs, quats = await app.state.batcher.infer(imu, wait_ms)
         moving = is_moving(imu)
-        results = window_results(probs, quats, moving)
+        results = window_results(probs, quats, moving, turns_about_vertical(imu))
         log_probs = np.log(np.clip(probs, 1e-12, 1.0))
     row = 0
     for item in items:

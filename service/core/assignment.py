@@ -21,6 +21,24 @@ def is_moving(windows: np.ndarray) -> np.ndarray:
     return np.linalg.norm(windows[..., 3:6], axis=-1).mean(axis=-1) > STILL_GYR_MEAN_RADS
 
 
+def turns_about_vertical(windows: np.ndarray, within_deg: float = 45.0) -> np.ndarray:
+    """Per window ``(B, T, 6)``: is the dominant rotation axis (top eigenvector of Σ ω ωᵀ) within ``within_deg`` of
+    the mean specific force, i.e. does the segment mostly twist or turn about the vertical rather than swing?
+
+    A label-free description of what a window contains: in gait the legs and feet swing about their flexion axis,
+    which is horizontal, and the training clips are gait, so a leg or foot window that turns about the vertical is
+    outside what the models know. The service returns it per window; ``training.evaluate.evaluate_real`` reports
+    the share per recording. (The pelvis turns about the vertical in gait too.)
+    """
+    if not len(windows):
+        return np.zeros(0, dtype=bool)
+    up = windows[..., :3].mean(axis=1).astype(np.float64)
+    up /= np.maximum(np.linalg.norm(up, axis=1, keepdims=True), 1e-9)  # no specific force (free fall): False
+    gyr = windows[..., 3:].astype(np.float64)
+    axis = np.linalg.eigh(np.einsum("bti,btj->bij", gyr, gyr))[1][..., -1]
+    return np.abs(np.einsum("bi,bi->b", axis, up)) > np.cos(np.radians(within_deg))
+
+
 @dataclass(frozen=True)
 class JointAssignment:
     segment: np.ndarray  # (S,) class index per sensor, -1 if unassigned (more sensors than segments)

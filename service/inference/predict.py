@@ -119,11 +119,15 @@ def pose_results(output: np.ndarray, manifest: Manifest) -> list[dict]:
 
 
 def window_results(
-    probs: np.ndarray, quats: np.ndarray | None, moving: np.ndarray, segments: list[int | None] | None = None
+    probs: np.ndarray,
+    quats: np.ndarray | None,
+    moving: np.ndarray,
+    turning: np.ndarray,
+    segments: list[int | None] | None = None,
 ) -> list[dict]:
     """Per-window answers shared by REST and streaming, computed for the whole batch at once: class,
-    confidence, probabilities, ``moving`` and the alignment for the declared segment (``segments[i]``)
-    or else the predicted class."""
+    confidence, probabilities, ``moving``, ``turns_about_vertical`` (``turning`` of a moving window) and the
+    alignment for the declared segment (``segments[i]``) or else the predicted class."""
     n = len(probs)
     cls = probs.argmax(axis=1)
     alignments: list[dict | None] = [None] * n
@@ -142,9 +146,10 @@ def window_results(
             "confidence": row[c],
             "probabilities": dict(zip(SEGMENTS, row, strict=True)),
             "moving": bool(m),
+            "turns_about_vertical": bool(m and t),
             "alignment": a,
         }
-        for c, row, m, a in zip(cls.tolist(), rows, moving, alignments, strict=True)
+        for c, row, m, t, a in zip(cls.tolist(), rows, moving, turning, alignments, strict=True)
     ]
 
 

@@ -105,6 +105,25 @@ def test_joint_assignment_endpoint(client: TestClient) -> None:
     assert sum(s["segment"] is None for s in out) == 2  # more sensors than segments
 
 
+def test_windows_that_turn_about_the_vertical_are_flagged(client: TestClient) -> None:
+    """The flag follows the window's dominant rotation axis relative to gravity, in any sensor orientation, and is
+    false for still windows; /v1/imu/assign counts the flagged moving windows per sensor."""
+    swing = np.array(_window()["samples"])  # rotates mostly about x, gravity along z
+    twist = swing[:, [0, 1, 2, 5, 4, 3]]  # the same rates with x and z swapped: mostly about gravity
+    tilted = twist @ np.kron(
+        np.eye(2), np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    )  # sensor on its side
+    still = swing.copy()
+    still[:, 3:] *= 0.01
+    windows = [{"samples": w.tolist()} for w in (swing, twist, tilted, still)]
+    res = client.post("/v1/imu/windows", json={"windows": windows}).json()["results"]
+    assert [r["turns_about_vertical"] for r in res] == [False, True, True, False]
+    assert [r["moving"] for r in res] == [True, True, True, False]
+    sensors = [{"sensor_id": "a", "windows": windows}, {"sensor_id": "b", "windows": windows[:1]}]
+    out = client.post("/v1/imu/assign", json={"sensors": sensors}).json()["sensors"]
+    assert [s["moving_windows_turning_about_vertical"] for s in out] == [2, 0]
+
+
 def test_no_model_is_503_and_api_key_is_enforced(tmp_path: Path) -> None:
     with TestClient(create_app(Settings(models_dir=tmp_path))) as c:
         r = c.post("/v1/imu/windows", json={"windows": [_window()]})

@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from service.core.assignment import turns_about_vertical
 from service.core.recordings import RealRecording, RealSensor
 from service.core.segments import SEGMENTS
 from training.data.catalog import mocap_entries
 from training.data.imu_sim import alignment, imu_readings
 from training.data.mocap import build_kinematics
-from training.evaluate import evaluate_real_alignment, turns_about_vertical
+from training.evaluate import evaluate_real_alignment
 
 SEGMENT = SEGMENTS.index("LeftLowerLeg")
 
