@@ -40,6 +40,12 @@ class Settings(BaseSettings):
         "reading that socket until inference catches up (TCP back-pressure: nothing is dropped)",
     )
     stream_max_samples_per_packet: int = Field(4096, ge=1)
+    stream_alignment_windows: int = Field(
+        450,
+        ge=1,
+        description="a streamed sensor's alignment in the assignment message is the robust mean over its last this "
+        "many moving windows (450: about two minutes at 60 Hz, hop 16)",
+    )
     model_versions: str = Field(
         "", description="comma-separated <name>=<version> pins, e.g. i2s_alignment=1.0.0; default: newest version"
     )

@@ -11,7 +11,8 @@ Client → server
 
 Server → client
   started · result (per window: class, probabilities, moving, turns_about_vertical, alignment) · assignment (joint,
-  one-to-one over the session's evidence; after each group of results) · gap / late (sequence
+  one-to-one over the session's evidence, and per sensor the robust mean alignment over its last
+  WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread; after each group of results) · gap / late (sequence
   problems, in order with the results) · error (then close, after the results of every accepted packet).
 Close codes: 1003 unsupported data, 1008 protocol violation, 1009 message too big, 1000 after stop.
 """

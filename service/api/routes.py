@@ -33,9 +33,9 @@ from service.api.schemas import (
     error_responses,
 )
 from service.core.assignment import is_moving, joint_assignment, turns_about_vertical
-from service.core.rotations import matrix_from_quat
 from service.core.segments import SEGMENTS, segment_index
 from service.inference.predict import (
+    alignment_answer,
     mean_alignment,
     pose_model_input,
     pose_results,
@@ -223,8 +223,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
             rows = quats[bounds[k] : bounds[k + 1], seg]
             # Still windows carry no information on rotation about gravity: average the moving ones if any.
             q, spread = mean_alignment(rows[moving[k]] if moving[k].any() else rows)
-            R = matrix_from_quat(q).round(7).tolist()
-            alignment = Alignment(segment=SEGMENTS[seg], q_segment_imu=q.tolist(), R_segment_imu=R)
+            alignment = Alignment(**alignment_answer(seg, q))
         out.append(
             SensorAssignment(
                 sensor_id=sensor.sensor_id,

@@ -31,7 +31,7 @@ from service.api.protocol import (
 from service.core.assignment import is_moving, joint_assignment, turns_about_vertical
 from service.core.segments import SEGMENTS
 from service.core.stream import SensorStream
-from service.inference.predict import window_results
+from service.inference.predict import RunningAlignment, alignment_answer, window_results
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -96,7 +96,7 @@ class Session:
     in one round trip instead of one round trip per packet. At most ``max_pending`` windows wait; beyond
     that the receive loop stops reading the socket until the worker catches up (TCP back-pressure)."""
 
-    def __init__(self, start: StartMessage, max_pending: int) -> None:
+    def __init__(self, start: StartMessage, max_pending: int, alignment_windows: int = 450) -> None:
         ids = [s.sensor_id for s in start.sensors]
         if len(set(ids)) != len(ids):
             raise ProtocolError(f"sensor_id values must be unique, got {ids}")
@@ -105,6 +105,7 @@ class Session:
         self.allow_shared = start.allow_shared
         self.evidence = np.zeros((len(self.streams), len(SEGMENTS)))
         self.windows = np.zeros(len(self.streams), dtype=np.int64)
+        self.alignments = [RunningAlignment(alignment_windows) for _ in self.streams]
         self.max_pending = max_pending
         self.work: deque[Work] = deque()
         self.pending = 0  # windows queued or being inferred
@@ -132,18 +133,20 @@ class Session:
 
     def assignment_message(self, dropped: int) -> dict:
         joint = joint_assignment([e[None] for e in self.evidence], allow_shared=self.allow_shared)
-        sensors = [
-            {
-                "sensor_id": s.sensor_id,
-                "segment": SEGMENTS[g] if g >= 0 and n else None,
-                "confidence": float(c) if n else 0.0,
-                "margin": float(m) if n else 0.0,
-                "windows": int(n),
-            }
-            for s, g, c, m, n in zip(
-                self.streams, joint.segment, joint.confidence, joint.margin, self.windows, strict=True
+        sensors = []
+        for k, (s, g, n) in enumerate(zip(self.streams, joint.segment.tolist(), self.windows, strict=True)):
+            mean = self.alignments[k].mean(g) if g >= 0 and n else None
+            sensors.append(
+                {
+                    "sensor_id": s.sensor_id,
+                    "segment": SEGMENTS[g] if g >= 0 and n else None,
+                    "confidence": float(joint.confidence[k]) if n else 0.0,
+                    "margin": float(joint.margin[k]) if n else 0.0,
+                    "windows": int(n),
+                    "alignment": None if mean is None else alignment_answer(g, mean[0]),
+                    "alignment_spread_deg": None if mean is None else mean[1],
+                }
             )
-        ]
         return {"type": "assignment", "sensors": sensors, "results_dropped": dropped}
 
 
@@ -195,7 +198,7 @@ async def _infer_loop(app: FastAPI, session: Session, outbox: Outbox) -> None:
 async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: Outbox, wait_ms: float) -> None:
     windows = [w for item in items for w in item.windows]
     results: list[dict] = []
-    moving, log_probs = np.zeros(0, dtype=bool), np.zeros((0, len(SEGMENTS)))
+    moving, log_probs, quats = np.zeros(0, dtype=bool), np.zeros((0, len(SEGMENTS))), None
     if windows:
         imu = np.stack(windows)
         probs, quats = await app.state.batcher.infer(imu, wait_ms)
@@ -213,6 +216,8 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
             if moving[row]:
                 session.evidence[item.sensor] += log_probs[row]
                 session.windows[item.sensor] += 1
+                if quats is not None:
+                    session.alignments[item.sensor].add(quats[row])
             if outbox.put(message):
                 app.state.metrics.dropped.inc()
             row += 1
@@ -240,7 +245,8 @@ async def _receive_start(ws: WebSocket) -> Session:
         start = StartMessage.model_validate(_parse_text(first["text"]))
     except ValidationError as exc:
         raise ProtocolError(f"invalid start message: {_first_error(exc)}") from None
-    return Session(start, ws.app.state.settings.stream_max_pending_windows)
+    settings = ws.app.state.settings
+    return Session(start, settings.stream_max_pending_windows, settings.stream_alignment_windows)
 
 
 def _first_error(exc: ValidationError) -> str:

@@ -167,3 +167,38 @@ def mean_alignment(q_rows: np.ndarray) -> tuple[np.ndarray, float]:
         mean = rot[dist <= np.median(dist)].mean()
     spread = float(np.degrees(np.median((mean.inv() * rot).magnitude())))
     return canonical_quat(mean.as_quat(scalar_first=True)), spread
+
+
+def alignment_answer(segment: int, q: np.ndarray) -> dict:
+    """The ``Alignment`` of the API for one segment index and quaternion."""
+    return {
+        "segment": SEGMENTS[segment],
+        "q_segment_imu": q.tolist(),
+        "R_segment_imu": matrix_from_quat(q).round(7).tolist(),
+    }
+
+
+class RunningAlignment:
+    """A streamed sensor's alignment: ``mean_alignment`` over its last ``capacity`` moving windows (the same robust
+    mean as ``/v1/imu/assign``) for whichever segment the session assigns it to. The quaternions of all seven
+    segment hypotheses are kept in a fixed ring (memory is bounded; a sensor that slipped is followed), and the
+    mean is recomputed only when windows arrived or the segment changed."""
+
+    def __init__(self, capacity: int) -> None:
+        self.rows = np.zeros((capacity, len(SEGMENTS), 4), dtype=np.float32)
+        self.count = 0  # moving windows ever added
+        self._cached: tuple[int, int, np.ndarray, float] | None = None
+
+    def add(self, q_segments: np.ndarray) -> None:
+        """One window's ``(7, 4)`` quaternions."""
+        self.rows[self.count % len(self.rows)] = q_segments
+        self.count += 1
+
+    def mean(self, segment: int) -> tuple[np.ndarray, float] | None:
+        """(canonical quaternion, spread in degrees), or None before the first moving window."""
+        if not self.count:
+            return None
+        if self._cached is None or self._cached[:2] != (self.count, segment):
+            q, spread = mean_alignment(self.rows[: min(self.count, len(self.rows)), segment].astype(np.float64))
+            self._cached = (self.count, segment, q, spread)
+        return self._cached[2], self._cached[3]

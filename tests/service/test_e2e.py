@@ -63,6 +63,20 @@ def test_stream_equals_rest_and_reports_joint_assignment(server: str, data_dir: 
     final = outcome.assignment["sensors"]
     assert len(final) == 7 and all(s["segment"] in SEGMENTS for s in final)
     assert len({s["segment"] for s in final}) == 7  # one-to-one
+    # The stream's settled alignment per sensor is /v1/imu/assign's robust mean over the same windows.
+    body = {
+        "sensors": [
+            {"sensor_id": s.sensor_id, "windows": [{"samples": w.tolist()} for w in sliding_windows(s.samples)]}
+            for s in sensors
+        ]
+    }
+    assigned = httpx.post(f"{server}/v1/imu/assign", json=body, timeout=60).json()["sensors"]
+    for got, want in zip(final, assigned, strict=True):
+        assert (got["sensor_id"], got["segment"]) == (want["sensor_id"], want["segment"])
+        assert got["alignment"]["segment"] == got["segment"]
+        dot = abs(float(np.dot(got["alignment"]["q_segment_imu"], want["alignment"]["q_segment_imu"])))
+        assert np.degrees(2 * np.arccos(min(dot, 1.0))) < MAX_BATCHING_ANGLE_DEG
+        assert got["alignment_spread_deg"] == pytest.approx(want["alignment_spread_deg"], abs=MAX_BATCHING_ANGLE_DEG)
     metrics = httpx.get(f"{server}/metrics").text
     assert "wearmocap_stream_samples_total 2800.0" in metrics
 

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from service.core.manifest import read_manifest, write_manifest
 from service.inference.batcher import MicroBatcher
-from service.inference.predict import mean_alignment
+from service.inference.predict import RunningAlignment, mean_alignment
 from service.inference.registry import load_models, version_key
 from service.inference.runner import ModelRunner
 
@@ -117,3 +117,31 @@ def test_mean_alignment_is_not_pulled_by_a_minority_of_turned_windows(turn_deg: 
     assert plain > 10.0 or turn_deg == 180.0  # quaternions 180° apart are orthogonal: the majority wins anyway
     assert 1.0 < spread < 6.0
     assert q[0] >= 0.0
+
+
+def test_a_streamed_sensors_alignment_follows_its_last_windows_for_its_segment() -> None:
+    """RunningAlignment keeps the last ``capacity`` windows of all seven segment hypotheses: its mean for a segment
+    is mean_alignment of exactly those rows, and once the ring has turned over, an old mounting no longer counts."""
+    rng = np.random.default_rng(1)
+
+    def windows(euler: list[float], n: int) -> np.ndarray:
+        truth = Rotation.from_euler("xyz", euler, degrees=True)
+        per_segment = [truth * Rotation.from_euler("z", 20 * k, degrees=True) for k in range(7)]  # one per segment
+        noise = Rotation.from_rotvec(rng.normal(scale=np.radians(2.0), size=(n, 3)))
+        return np.stack([(r * noise).as_quat(scalar_first=True) for r in per_segment], axis=1)  # (n, 7, 4)
+
+    running = RunningAlignment(capacity=30)
+    assert running.mean(3) is None
+    first = windows([10, 20, 30], 20)
+    for row in first:
+        running.add(row)
+    for segment in (3, 5):
+        q, spread = running.mean(segment)
+        q_ref, spread_ref = mean_alignment(first[:, segment].astype(np.float32).astype(np.float64))
+        np.testing.assert_allclose(q, q_ref, atol=1e-6)
+        assert spread == pytest.approx(spread_ref)
+    for row in windows([-40, 5, 90], 30):  # the sensor was re-strapped: 30 new windows fill the ring
+        running.add(row)
+    q, _ = running.mean(0)
+    moved = Rotation.from_euler("xyz", [-40, 5, 90], degrees=True)  # 86° from the old mounting
+    assert np.degrees((Rotation.from_quat(q, scalar_first=True).inv() * moved).magnitude()) < 3.0
