@@ -156,17 +156,25 @@ def window_results(
 def mean_alignment(q_rows: np.ndarray) -> tuple[np.ndarray, float]:
     """Robust rotation mean of window quaternions ``(N, 4)`` → (canonical ``(4,)``, spread in degrees).
 
-    The chordal mean is re-taken three times over the windows no farther from it than the median, so a
-    minority of windows that disagree (e.g. a 180° turn about the long axis) cannot pull it. The spread is
-    the median angle of all windows from the result.
+    The chordal mean (the top eigenvector of Σ q qᵀ, sign-free; what ``scipy``'s ``Rotation.mean`` computes) is
+    re-taken three times over the windows no farther from it than the median, so a minority of windows that
+    disagree (e.g. a 180° turn about the long axis) cannot pull it. The spread is the median angle of all windows
+    from the result. Plain numpy: streams recompute it as windows arrive.
     """
-    rot = Rotation.from_quat(q_rows, scalar_first=True)
-    mean = rot.mean()
+    q = q_rows / np.linalg.norm(q_rows, axis=1, keepdims=True)
+
+    def chordal_mean(rows: np.ndarray) -> np.ndarray:
+        return np.linalg.eigh(rows.T @ rows)[1][:, -1]
+
+    def angles(mean: np.ndarray) -> np.ndarray:
+        return 2.0 * np.arccos(np.clip(np.abs(q @ mean), 0.0, 1.0))
+
+    mean = chordal_mean(q)
     for _ in range(3):
-        dist = (mean.inv() * rot).magnitude()
-        mean = rot[dist <= np.median(dist)].mean()
-    spread = float(np.degrees(np.median((mean.inv() * rot).magnitude())))
-    return canonical_quat(mean.as_quat(scalar_first=True)), spread
+        dist = angles(mean)
+        mean = chordal_mean(q[dist <= np.median(dist)])
+    spread = float(np.degrees(np.median(angles(mean))))
+    return canonical_quat(mean), spread
 
 
 def alignment_answer(segment: int, q: np.ndarray) -> dict:

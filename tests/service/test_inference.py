@@ -117,6 +117,10 @@ def test_mean_alignment_is_not_pulled_by_a_minority_of_turned_windows(turn_deg: 
     assert plain > 10.0 or turn_deg == 180.0  # quaternions 180° apart are orthogonal: the majority wins anyway
     assert 1.0 < spread < 6.0
     assert q[0] >= 0.0
+    signs = rng.choice([-1.0, 1.0], size=(len(rows), 1))  # q and -q are the same rotation
+    q_signed, spread_signed = mean_alignment(rows * signs)
+    np.testing.assert_allclose(q_signed, q, atol=1e-9)
+    assert spread_signed == pytest.approx(spread)
 
 
 def test_a_streamed_sensors_alignment_follows_its_last_windows_for_its_segment() -> None:
