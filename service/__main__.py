@@ -35,7 +35,7 @@ def main() -> None:
     # A 256-window JSON body is ~33,000 lists and 200,000 floats. At Python's default threshold (700) the cyclic
     # collector runs dozens of times while one body is parsed and validated, and the older generations are
     # traversed again and again. 50,000 took 256-window JSON batches from ~990 to ~1,340 windows/s (median of 3
-    # interleaved runs each on 2 cores; an uncommitted diagnostic, README § Benchmarks has the committed
+    # interleaved runs each on 2 cores; an uncommitted diagnostic, docs/benchmarks.md has the committed
     # figures). Only reference cycles wait longer; everything else is freed at once.
     gc.set_threshold(args.gc_threshold, 20, 100)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -197,7 +197,7 @@ class AssignmentNet(nn.Module):
         turns = range(4) if self.quarter_turns else range(1)
         # One pass per turn (not one batch of all turns): a reshape back would leave the exported class dimension
         # symbolic, and the service checks the manifest's [batch, 7] against the graph; one batch was not faster
-        # in onnxruntime either (ad-hoc timing, README "Benchmarks"). The first pass is the window as it came
+        # in onnxruntime either (ad-hoc timing, docs/benchmarks.md). The first pass is the window as it came
         # (training.warmstart reads it).
         passes = torch.stack([torch.log_softmax(self._logits(_quarter_turn(v, k)), -1) for v in views for k in turns])
         averaged = torch.logsumexp(passes, dim=0) - math.log(len(views) * len(turns))  # log of the mean probability
