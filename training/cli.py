@@ -1,5 +1,5 @@
 """``wearmocap-train``: thin typer commands over the training library (simulate, train, register,
-export, evaluate, ui). Run ``python -m training.cli --help``.
+export, evaluate, snapshot-export / snapshot-restore, ui). Run ``python -m training.cli --help``.
 """
 
 from __future__ import annotations
@@ -213,12 +213,52 @@ def offset_baseline(
         typer.echo(f"  {name}: " + " / ".join(f"{m[f'{name}_ax{ax}_mean_deg']:.1f}" for ax in range(3)))
 
 
+SNAPSHOT = Path("mlflow_snapshot")
+
+
+@app.command("snapshot-export")
+def snapshot_export(out_dir: Path = typer.Option(SNAPSHOT), experiment: list[str] = typer.Option(["i2s"])) -> None:
+    """Write the finished runs of the tracking store and its registry to a folder (training.snapshot)."""
+    import mlflow
+
+    from training.snapshot import export_snapshot
+    from training.tracking import default_tracking_uri
+
+    mlflow.set_tracking_uri(default_tracking_uri())
+    typer.echo(f"{export_snapshot(out_dir, experiment)} runs written to {out_dir}")
+
+
+@app.command("snapshot-restore")
+def snapshot_restore(
+    snapshot_dir: Path = typer.Option(SNAPSHOT), models_dir: Path = typer.Option(Path("onnx_models"))
+) -> None:
+    """Replay a snapshot into the tracking store; runs restored before are skipped (training.snapshot)."""
+    import mlflow
+
+    from training.snapshot import log_restore, restore_snapshot
+    from training.tracking import default_tracking_uri
+
+    mlflow.set_tracking_uri(default_tracking_uri())
+    log_restore(restore_snapshot(snapshot_dir, models_dir))
+
+
 @app.command()
-def ui(port: int = 5000, host: str = "127.0.0.1") -> None:
-    """Start the MLflow UI on the project's tracking store."""
+def ui(
+    port: int = 5000,
+    host: str = "127.0.0.1",
+    restore: bool = typer.Option(True, help="restore mlflow_snapshot/ into an empty store first"),
+) -> None:
+    """Start the MLflow UI on the project's tracking store. A store with no runs yet (a fresh clone) first gets the
+    committed snapshot of the runs behind the shipped models (``snapshot-restore``)."""
+    import mlflow
+
+    from training.snapshot import log_restore, restore_if_empty
     from training.tracking import default_tracking_uri
 
     uri = default_tracking_uri()
+    mlflow.set_tracking_uri(uri)
+    if restore and (report := restore_if_empty(SNAPSHOT, Path("onnx_models"))) is not None:
+        log_restore(report)
     cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", host, "--port", str(port)]
     typer.echo(f"MLflow UI on http://{host}:{port} (store {uri})")
     raise typer.Exit(subprocess.call(cmd))

@@ -14,10 +14,8 @@ import onnx
 import pandas as pd
 import torch
 import yaml
-from mlflow.models import infer_signature
 from mlflow.tracking import MlflowClient
 
-from service.core.manifest import MLMODEL_METADATA_KEY
 from service.core.recordings import RealRecording, read_all_real, read_recording
 from training.config import ExperimentConfig, flatten
 from training.data.mocap import KINEMATICS_VERSION, Clip, dataset_digest
@@ -27,7 +25,7 @@ from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_s
 from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
 from training.plots import confusion_matrix_png, error_boxplot_png, learning_curves_png
 from training.ship import build_manifest, run_version
-from training.tracking import maybe_promote, setup_tracking
+from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 from training.train import TrainResult, build_model, load_fitted, train
 from training.warmstart import warm_start_from_shipped
 
@@ -121,21 +119,12 @@ def run_training(
             _log_simulated_evaluation(cfg, onnx_path, test_clips, tmp, eval_max_windows)
         if eval_max_windows is None:
             _log_real_evaluation(cfg, onnx_path, data_dir, tmp)
-        signature = infer_signature(golden["imu"], golden["expected"])
         proto = onnx.load(str(onnx_path))
-        # The manifest rides in the MLmodel metadata, so the service can serve this model from the registry;
         # mlflow.onnx writes the proto's serialisation, whose sha256 the manifest states.
         current = MlflowClient().get_run(run.info.run_id)
         digest = hashlib.sha256(proto.SerializeToString()).hexdigest()
         manifest = build_manifest(cfg, current, digest, run_version(current))
-        info = mlflow.onnx.log_model(
-            onnx_model=proto,
-            name="model",
-            signature=signature,
-            input_example=golden["imu"][:1],
-            save_as_external_data=False,
-            metadata={MLMODEL_METADATA_KEY: manifest.model_dump(mode="json")},
-        )
+        info = log_onnx_model(proto, golden, manifest)
         mlflow.set_tag("model_uri", info.model_uri)
         run_id = run.info.run_id
     if register:

@@ -6,7 +6,13 @@ import os
 from pathlib import Path
 
 import mlflow
+import numpy as np
+import onnx
+from mlflow.models import infer_signature
+from mlflow.models.model import ModelInfo
 from mlflow.tracking import MlflowClient
+
+from service.core.manifest import MLMODEL_METADATA_KEY, Manifest
 
 CHAMPION = "champion"
 
@@ -24,6 +30,19 @@ def setup_tracking(experiment: str) -> str:
         mlflow.create_experiment(experiment, artifact_location=location)
     mlflow.set_experiment(experiment)
     return uri
+
+
+def log_onnx_model(proto: onnx.ModelProto, golden: dict[str, np.ndarray], manifest: Manifest) -> ModelInfo:
+    """Log the active run's ONNX model with its signature and input example (from the golden pair). The manifest
+    rides in the MLmodel metadata, so the service can serve the model straight from the registry."""
+    return mlflow.onnx.log_model(
+        onnx_model=proto,
+        name="model",
+        signature=infer_signature(golden["imu"], golden["expected"]),
+        input_example=golden["imu"][:1],
+        save_as_external_data=False,
+        metadata={MLMODEL_METADATA_KEY: manifest.model_dump(mode="json")},
+    )
 
 
 def maybe_promote(

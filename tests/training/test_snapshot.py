@@ -1,0 +1,76 @@
+"""The committed tracking snapshot: a fresh store gets the runs behind the shipped models, their metrics, datasets,
+plots and registered versions with the champion aliases; restoring twice adds nothing; exporting the restored
+store gives back the same records."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mlflow
+import pytest
+from mlflow.tracking import MlflowClient
+
+from service.core.manifest import read_manifest
+from service.inference.registry import version_key
+from training.snapshot import RESTORED_TAG, export_snapshot, restore_if_empty, restore_snapshot
+from training.tracking import default_tracking_uri
+
+REPO = Path(__file__).resolve().parents[2]
+SNAPSHOT = REPO / "mlflow_snapshot"
+MODELS = REPO / "onnx_models"
+
+
+@pytest.fixture
+def fresh_store(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> MlflowClient:
+    """An embedded sqlite store in an empty working directory, as on a fresh clone."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    mlflow.set_tracking_uri(default_tracking_uri())
+    return MlflowClient()
+
+
+def _newest_float32(name: str) -> Path:
+    dirs = [p.parent for p in (MODELS / name).glob("*/manifest.json")]
+    return max(
+        (d for d in dirs if "quantization" not in read_manifest(d / "manifest.json").exporter),
+        key=lambda d: version_key(d.name),
+    )
+
+
+def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
+    fresh_store: MlflowClient, tmp_path: Path
+) -> None:
+    client = fresh_store
+    report = restore_if_empty(SNAPSHOT, MODELS)
+    assert report is not None and report.runs_restored == len(json.loads((SNAPSHOT / "runs.json").read_text()))
+    runs = client.search_runs([e.experiment_id for e in client.search_experiments()], max_results=1000)
+    by_origin = {r.data.tags[RESTORED_TAG]: r for r in runs}
+    for manifest_path in MODELS.glob("*/*/manifest.json"):
+        manifest = read_manifest(manifest_path)
+        run = by_origin[manifest.mlflow["run_id"]]  # every shipped model's run is there
+        assert run.info.status == "FINISHED"
+        assert {i.tags[0].value for i in run.inputs.dataset_inputs} >= {"training", "validation"}
+        assert "plots" in {a.path for a in client.list_artifacts(run.info.run_id)}
+    trained = by_origin[read_manifest(MODELS / "i2s_alignment/3.0.0/manifest.json").mlflow["run_id"]]
+    assert len(client.get_metric_history(trained.info.run_id, "val_loss")) > 1  # the learning curve, not one value
+    # the champion of each registered model is the newest float32 file shipped of it
+    for name in ("i2s_assignment", "i2s_alignment"):
+        champion, newest = client.get_model_version_by_alias(name, "champion"), _newest_float32(name)
+        assert champion.tags["model_dir"].endswith(f"{name}/{newest.name}")
+        assert champion.run_id == by_origin[read_manifest(newest / "manifest.json").mlflow["run_id"]].info.run_id
+    assert report.versions_without_model == ["i2s_assignment_finetune v1"]  # its file does not ship: left out
+
+    assert restore_if_empty(SNAPSHOT, MODELS) is None  # the store has runs now
+    again = restore_snapshot(SNAPSHOT, MODELS)
+    assert (again.runs_restored, again.versions_registered) == (0, [])
+
+    export_snapshot(tmp_path / "again", ["i2s"])
+    original = {r["run_id"]: r for r in json.loads((SNAPSHOT / "runs.json").read_text())}
+    for record in json.loads((tmp_path / "again/runs.json").read_text()):
+        source = original[record["tags"][RESTORED_TAG]]
+        assert (record["params"], record["metrics"], record["inputs"]) == (
+            source["params"],
+            source["metrics"],
+            source["inputs"],
+        )

@@ -1,0 +1,228 @@
+"""A committed snapshot of the tracking store, so that a fresh clone's MLflow UI shows the runs behind the shipped
+models instead of an empty dashboard.
+
+``export_snapshot`` writes the finished runs of the local store (params, tags, every metric's history, the
+datasets logged with ``log_input``, and the artifacts except the torch checkpoints) and the model registry
+(versions, tags, aliases) to a folder: JSON plus the plots and evaluation files. ``restore_snapshot`` replays
+them into any tracking store as new runs tagged ``restored_from_run_id`` (MLflow assigns run ids; the manifests
+name the original ones), and re-registers every version whose float32 ONNX file ships in ``onnx_models/``
+(the manifest names its run), with the original tags, the ``original_version`` and the aliases. A version whose
+model file does not ship is reported and left out, never faked. Restoring twice adds nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import onnx
+from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param
+from mlflow.tracking import MlflowClient
+
+from service.core.manifest import read_manifest
+from training.tracking import log_onnx_model, setup_tracking
+
+log = logging.getLogger(__name__)
+
+RESTORED_TAG = "restored_from_run_id"
+SKIPPED_ARTIFACTS = {"checkpoint"}  # torch weights: large, and the ONNX files ship in onnx_models/
+BATCH = 500  # metrics per log_batch call (its limits: 1000 metrics, 100 params, 100 tags)
+
+
+@dataclass
+class RestoreReport:
+    runs_restored: int = 0
+    runs_present: int = 0
+    versions_registered: list[str] = field(default_factory=list)
+    versions_without_model: list[str] = field(default_factory=list)
+
+
+def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
+    """Write the FINISHED runs of ``experiments`` and the whole registry to ``out_dir``; returns the run count."""
+    client = MlflowClient()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ids = [e.experiment_id for name in experiments if (e := client.get_experiment_by_name(name)) is not None]
+    runs = client.search_runs(ids, "attributes.status = 'FINISHED'", max_results=10_000, order_by=["start_time ASC"])
+    records = []
+    for run in runs:
+        rid = run.info.run_id
+        records.append(
+            {
+                "run_id": rid,
+                "experiment": client.get_experiment(run.info.experiment_id).name,
+                "run_name": run.info.run_name,
+                "start_time": run.info.start_time,
+                "end_time": run.info.end_time,
+                "params": run.data.params,
+                "tags": {k: v for k, v in run.data.tags.items() if k != "model_uri"},  # model URIs are per store
+                "metrics": {
+                    key: [[m.step, m.timestamp, m.value] for m in client.get_metric_history(rid, key)]
+                    for key in run.data.metrics
+                },
+                "inputs": [
+                    {
+                        "name": d.dataset.name,
+                        "digest": d.dataset.digest,
+                        "source_type": d.dataset.source_type,
+                        "source": d.dataset.source,
+                        "schema": d.dataset.schema,
+                        "profile": d.dataset.profile,
+                        "tags": {t.key: t.value for t in d.tags},
+                    }
+                    for d in run.inputs.dataset_inputs
+                ],
+            }
+        )
+        for top in client.list_artifacts(rid):
+            if top.path not in SKIPPED_ARTIFACTS:
+                client.download_artifacts(rid, top.path, str(_artifact_dir(out_dir, rid)))
+    registry = {}
+    for model in client.search_registered_models():
+        versions = sorted(client.search_model_versions(f"name='{model.name}'"), key=lambda v: int(v.version))
+        registry[model.name] = {
+            "aliases": {alias: str(version) for alias, version in model.aliases.items()},
+            "versions": [{"version": str(v.version), "run_id": v.run_id, "tags": v.tags} for v in versions],
+        }
+    (out_dir / "runs.json").write_text(json.dumps(records, indent=1, sort_keys=True) + "\n")
+    (out_dir / "registry.json").write_text(json.dumps(registry, indent=1, sort_keys=True) + "\n")
+    return len(records)
+
+
+def restore_snapshot(snapshot_dir: Path, models_dir: Path) -> RestoreReport:
+    """Replay ``snapshot_dir`` into the current tracking store (see the module docstring)."""
+    client = MlflowClient()
+    report = RestoreReport()
+    records = json.loads((snapshot_dir / "runs.json").read_text())
+    registry = json.loads((snapshot_dir / "registry.json").read_text())
+    restored = _restored_runs(client)
+    models = _shipped_float32_models(models_dir)
+    for record in records:
+        if record["run_id"] in restored:
+            report.runs_present += 1
+            continue
+        restored[record["run_id"]] = _restore_run(client, record, snapshot_dir)
+        report.runs_restored += 1
+    for name, entry in registry.items():
+        _restore_registered_model(client, name, entry, restored, models, report)
+    return report
+
+
+def restore_if_empty(snapshot_dir: Path, models_dir: Path) -> RestoreReport | None:
+    """Restore only into a store with no runs at all (a fresh clone's); None if it has runs or there is no snapshot."""
+    client = MlflowClient()
+    experiments = [e.experiment_id for e in client.search_experiments()]
+    if not (snapshot_dir / "runs.json").is_file() or client.search_runs(experiments, max_results=1):
+        return None
+    return restore_snapshot(snapshot_dir, models_dir)
+
+
+def _artifact_dir(snapshot_dir: Path, run_id: str) -> Path:
+    path = snapshot_dir / "artifacts" / run_id
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _restored_runs(client: MlflowClient) -> dict[str, str]:
+    """original run id → run id in this store, for the runs restored before."""
+    ids = [e.experiment_id for e in client.search_experiments()]
+    runs = client.search_runs(ids, f"tags.{RESTORED_TAG} != ''", max_results=10_000) if ids else []
+    return {r.data.tags[RESTORED_TAG]: r.info.run_id for r in runs}
+
+
+def _shipped_float32_models(models_dir: Path) -> dict[str, Path]:
+    """original run id → the float32 model dir it shipped as (the int8 files are derived, not registered)."""
+    found = {}
+    for path in sorted(models_dir.glob("*/*/manifest.json")):
+        manifest = read_manifest(path)
+        if "quantization" not in manifest.exporter and manifest.mlflow.get("run_id"):
+            found[manifest.mlflow["run_id"]] = path.parent
+    return found
+
+
+def _restore_run(client: MlflowClient, record: dict, snapshot_dir: Path) -> str:
+    setup_tracking(record["experiment"])
+    experiment = client.get_experiment_by_name(record["experiment"])
+    tags = {**record["tags"], RESTORED_TAG: record["run_id"], "restored_from": "mlflow_snapshot/ (training.snapshot)"}
+    run = client.create_run(
+        experiment.experiment_id, start_time=record["start_time"], tags=tags, run_name=record["run_name"]
+    )
+    rid = run.info.run_id
+    params = [Param(k, v) for k, v in record["params"].items()]
+    metrics = [
+        Metric(k, value, timestamp, step) for k, rows in record["metrics"].items() for step, timestamp, value in rows
+    ]
+    for i in range(0, len(metrics), BATCH):
+        client.log_batch(rid, metrics=metrics[i : i + BATCH])
+    for i in range(0, len(params), 100):
+        client.log_batch(rid, params=params[i : i + 100])
+    datasets = [
+        DatasetInput(
+            Dataset(d["name"], d["digest"], d["source_type"], d["source"], d["schema"], d["profile"]),
+            [InputTag(k, v) for k, v in d["tags"].items()],
+        )
+        for d in record["inputs"]
+    ]
+    if datasets:
+        client.log_inputs(rid, datasets=datasets)
+    artifacts = snapshot_dir / "artifacts" / record["run_id"]
+    if artifacts.is_dir():
+        client.log_artifacts(rid, str(artifacts))
+    client.set_terminated(rid, "FINISHED", end_time=record["end_time"])
+    return rid
+
+
+def _restore_registered_model(
+    client: MlflowClient,
+    name: str,
+    entry: dict,
+    restored: dict[str, str],
+    models: dict[str, Path],
+    report: RestoreReport,
+) -> None:
+    try:
+        client.get_registered_model(name)
+    except mlflow.exceptions.MlflowException:
+        client.create_registered_model(name)
+    # original version → version in this store, for the versions restored before
+    new_version = {
+        v.tags["original_version"]: v.version
+        for v in client.search_model_versions(f"name='{name}'")
+        if "original_version" in v.tags
+    }
+    for version in entry["versions"]:
+        label = f"{name} v{version['version']}"
+        model_dir = models.get(version["run_id"])
+        if version["version"] in new_version:
+            continue
+        if model_dir is None or version["run_id"] not in restored:
+            report.versions_without_model.append(label)
+            continue
+        rid = restored[version["run_id"]]
+        with np.load(model_dir / "golden.npz") as z, mlflow.start_run(run_id=rid):
+            end_time = client.get_run(rid).info.end_time
+            info = log_onnx_model(
+                onnx.load(str(model_dir / "model.onnx")), dict(z), read_manifest(model_dir / "manifest.json")
+            )
+            mlflow.set_tag("model_uri", info.model_uri)
+        client.set_terminated(rid, "FINISHED", end_time=end_time)  # the original end, not now
+        tags = {**version["tags"], "original_version": version["version"], "model_dir": str(model_dir)}
+        mv = client.create_model_version(name, info.model_uri, run_id=rid, tags=tags)
+        new_version[version["version"]] = mv.version
+        report.versions_registered.append(label)
+    for alias, original in entry["aliases"].items():
+        if original in new_version:
+            client.set_registered_model_alias(name, alias, new_version[original])
+
+
+def log_restore(report: RestoreReport) -> None:
+    log.info(
+        "tracking snapshot: %d runs restored (%d already there), registered %s; no shipped model file for %s",
+        report.runs_restored,
+        report.runs_present,
+        ", ".join(report.versions_registered) or "nothing",
+        ", ".join(report.versions_without_model) or "none",
+    )
