@@ -23,6 +23,9 @@ class DataConfig(_Strict):
     # Real recordings mixed into training (paper 000 §4.3, assignment only); never evaluated on.
     real_train_recordings: list[str] = Field(default_factory=list)
     real_fraction: float = Field(0.0, ge=0.0, lt=1.0)  # share of each batch drawn from them
+    # the last part of every real training recording (in time) is kept for validation: early stopping and the
+    # warm start's epoch 0 are then judged on real windows too, not on simulated ones alone (0: train on all)
+    real_val_fraction: float = Field(0.2, ge=0.0, lt=1.0)
     sample_rate_hz: float = 60.0
     cutoff_hz: float = 10.0
     filter_order: int = 8

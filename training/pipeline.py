@@ -94,13 +94,15 @@ def run_training(
         if fitted is not None:
             result = _fitted_elsewhere(fitted, cfg, train_clips, val_clips)
         else:
+            real, real_val = _real_samplers(cfg, data_dir)
             result = train(
                 cfg,
                 train_clips,
                 val_clips,
                 log_metrics=lambda m, step: mlflow.log_metrics(m, step=step),
                 init_state=_initial_state(cfg, tmp),
-                real=_real_sampler(cfg, data_dir),
+                real=real,
+                real_val=real_val,
             )
         torch.save(result.model.state_dict(), tmp / "model_state.pt")
         mlflow.log_artifact(str(tmp / "model_state.pt"), "checkpoint")
@@ -166,12 +168,21 @@ def _checkpoint(run_id: str, tmp: Path) -> dict:
     return torch.load(path, weights_only=True)
 
 
-def _real_sampler(cfg: ExperimentConfig, data_dir: Path) -> RealWindowSampler | None:
+def _real_samplers(cfg: ExperimentConfig, data_dir: Path) -> tuple[RealWindowSampler | None, RealWindowSampler | None]:
+    """Training and validation windows of the real training recordings (paper 000 §4.3 fine-tuning), split in
+    time by ``data.real_val_fraction``; (None, None) without real data."""
     if not cfg.data.real_train_recordings or cfg.data.real_fraction == 0:
-        return None
+        return None, None
     recordings = [read_recording(data_dir, name) for name in cfg.data.real_train_recordings]
-    mlflow.log_param("real_train_windows", len(RealWindowSampler(recordings).segment))
-    return RealWindowSampler(recordings)
+    fraction = cfg.data.real_val_fraction
+    if fraction == 0:
+        train_part, val_part = RealWindowSampler(recordings), None
+    else:
+        train_part = RealWindowSampler(recordings, "train", fraction)
+        val_part = RealWindowSampler(recordings, "validation", fraction)
+        mlflow.log_param("real_val_windows", len(val_part.segment))
+    mlflow.log_param("real_train_windows", len(train_part.segment))
+    return train_part, val_part
 
 
 def _log_simulated_evaluation(

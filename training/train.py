@@ -152,6 +152,16 @@ def _validate(model: nn.Module, task: str, batches: list[Batch], device: torch.d
     return metrics
 
 
+def _validation(
+    model: nn.Module, task: str, simulated: list[Batch], real: list[Batch], device: torch.device
+) -> dict[str, float]:
+    """Validation over the simulated and real batches together (what selects the epoch), and the real ones alone."""
+    metrics = _validate(model, task, simulated + real, device)
+    if real:
+        metrics.update({k.replace("val_", "val_real_", 1): v for k, v in _validate(model, task, real, device).items()})
+    return metrics
+
+
 def train(
     cfg: ExperimentConfig,
     train_clips: list[Clip],
@@ -159,10 +169,13 @@ def train(
     log_metrics: MetricLogger | None = None,
     init_state: dict | None = None,
     real: RealWindowSampler | None = None,
+    real_val: RealWindowSampler | None = None,
 ) -> TrainResult:
     """Train one model; ``init_state`` warm-starts it and ``real`` mixes real windows into every batch
-    (``cfg.data.real_fraction`` of it): pre-training then fine-tuning as in paper 000 §4.3."""
-    if real is not None and cfg.task != "assignment":
+    (``cfg.data.real_fraction`` of it): pre-training then fine-tuning as in paper 000 §4.3. ``real_val`` joins
+    the validation in the same share, so early stopping and the warm start's epoch 0 are judged on real windows
+    too (reported alone as ``val_real_*``)."""
+    if (real is not None or real_val is not None) and cfg.task != "assignment":
         raise ValueError("real recordings carry no alignment labels; mix them into assignment training only")
     t = cfg.train
     torch.manual_seed(cfg.seed)
@@ -180,13 +193,17 @@ def train(
     val_sampler = WindowSampler(val_clips, val_aug)
     val_rng = np.random.default_rng(cfg.seed + 1)
     val_batches = [val_sampler.sample(val_rng, t.batch_size) for _ in range(max(1, t.val_windows // t.batch_size))]
+    real_batches = []
+    if real_val is not None:  # as many real windows as the training batches' share: f / (1 - f) per simulated one
+        share = cfg.data.real_fraction / (1.0 - cfg.data.real_fraction)
+        real_batches = [real_val.sample(val_rng, t.batch_size) for _ in range(max(1, round(len(val_batches) * share)))]
     best, best_state, best_epoch, stale = float("inf"), copy.deepcopy(model.state_dict()), 0, 0
     result = TrainResult(model, 0)
     start = time.monotonic()
     if init_state is not None:
         # The warm-start weights compete as epoch 0: fine-tuning that never beats them returns them unchanged
         # (and max_epochs 0 wraps them as they are, e.g. in a new turn average).
-        best = _validate(model, cfg.task, val_batches, device)["val_loss"]
+        best = _validation(model, cfg.task, val_batches, real_batches, device)["val_loss"]
         log.info("epoch 0 (warm start) val_loss %.4f", best)
     batches = _training_batches(sampler, real, cfg, rng)
     for epoch in range(1, t.max_epochs + 1):
@@ -206,7 +223,10 @@ def train(
             optimiser.step()
             running += float(loss.detach())
             bar.set_postfix(loss=f"{running / (bar.n + 1):.4f}")
-        metrics = {"train_loss": running / t.steps_per_epoch, **_validate(model, cfg.task, val_batches, device)}
+        metrics = {
+            "train_loss": running / t.steps_per_epoch,
+            **_validation(model, cfg.task, val_batches, real_batches, device),
+        }
         metrics["wall_time_s"] = time.monotonic() - start
         result.history.append(metrics)
         if log_metrics:

@@ -55,6 +55,25 @@ def test_real_windows_are_moving_and_labelled(data_dir: Path) -> None:
     assert np.isnan(batch.q_segment_imu).all()  # no alignment labels on real data
 
 
+def test_real_validation_windows_come_after_every_training_window(data_dir: Path) -> None:
+    """The time split: the validation part is the last fifth of each sensor's recording, and no validation window
+    shares a sample with a training window."""
+    recording = read_recording(data_dir, "capacitive_sub01/CSBaseline")
+    train_part = RealWindowSampler([recording], "train", 0.2)
+    val_part = RealWindowSampler([recording], "validation", 0.2)
+    whole = RealWindowSampler([recording])
+    assert 0.1 < len(val_part.segment) / len(whole.segment) < 0.3
+    assert len(train_part.segment) + len(val_part.segment) <= len(whole.segment)
+    sensor = next(s for s in recording.sensors if s.segment is not None)
+    cut = int(round(len(sensor.imu) * 0.8))
+    first_val = val_part.imu[val_part.segment == sensor.segment][0]
+    windows = np.lib.stride_tricks.sliding_window_view(sensor.imu.astype(np.float32), (128, 6))[:, 0]
+    starts = np.flatnonzero((np.abs(windows - first_val) < 1e-6).all(axis=(1, 2)))
+    assert len(starts) and starts[0] >= cut  # it begins after the cut: no sample shared with a training window
+    with pytest.raises(ValueError, match="validation part"):
+        RealWindowSampler([recording], "validation", 1e-4)  # too short for one window
+
+
 def test_training_mixes_real_windows_and_refuses_them_for_alignment(walk_clips, data_dir: Path) -> None:
     cfg = load_config(
         REPO / "training/configs/i2s_assignment.yaml",
@@ -66,9 +85,11 @@ def test_training_mixes_real_windows_and_refuses_them_for_alignment(walk_clips, 
             "data.real_fraction=0.25",
         ],
     )
-    real = RealWindowSampler([read_recording(data_dir, "capacitive_sub01/CSBaseline")])
-    result = train(cfg, walk_clips[2:], walk_clips[:2], real=real)
+    recording = read_recording(data_dir, "capacitive_sub01/CSBaseline")
+    real, real_val = RealWindowSampler([recording], "train"), RealWindowSampler([recording], "validation")
+    result = train(cfg, walk_clips[2:], walk_clips[:2], real=real, real_val=real_val)
     assert len(result.history) == 1 and np.isfinite(result.history[0]["train_loss"])
+    assert 0.0 <= result.history[0]["val_real_accuracy"] <= 1.0  # the real validation windows, reported alone
     align = cfg.model_copy(update={"task": "alignment"})
     with pytest.raises(ValueError, match="alignment labels"):
         train(align, walk_clips[2:], walk_clips[:2], real=real)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
@@ -164,20 +165,34 @@ def grid_batches(
 
 
 class RealWindowSampler:
-    """Moving windows (hop 1) of labelled real recordings, for mixing into assignment training."""
+    """Moving windows (hop 4) of labelled real recordings, for mixing into assignment training.
 
-    def __init__(self, recordings: list[RealRecording]) -> None:
+    ``part`` splits every sensor's recording in time: ``"train"`` takes the first ``1 - val_fraction`` of its
+    samples, ``"validation"`` the rest, so no validation window shares a sample with a training window;
+    ``"all"`` takes everything.
+    """
+
+    def __init__(
+        self,
+        recordings: list[RealRecording],
+        part: Literal["all", "train", "validation"] = "all",
+        val_fraction: float = 0.2,
+    ) -> None:
         imu, seg = [], []
         for rec in recordings:
             for sensor in rec.sensors:
                 if sensor.segment is None:
                     continue
-                w = sliding_windows(sensor.imu.astype(np.float32), hop=4)
+                cut = int(round(len(sensor.imu) * (1.0 - val_fraction)))
+                samples = {"all": sensor.imu, "train": sensor.imu[:cut], "validation": sensor.imu[cut:]}[part]
+                if len(samples) < WINDOW_SAMPLES:
+                    continue
+                w = sliding_windows(samples.astype(np.float32), hop=4)
                 w = w[is_moving(w)]
                 imu.append(w)
                 seg.append(np.full(len(w), sensor.segment))
-        if not imu:
-            raise ValueError("no labelled moving windows in the real training recordings")
+        if not imu or not sum(len(w) for w in imu):
+            raise ValueError(f"no labelled moving windows in the {part} part of the real training recordings")
         self.imu, self.segment = np.concatenate(imu), np.concatenate(seg)
 
     def sample(self, rng: np.random.Generator, batch_size: int) -> Batch:
