@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,17 +43,22 @@ class RestoreReport:
 
 
 def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
-    """Write the FINISHED runs of ``experiments`` and the whole registry to ``out_dir``; returns the run count."""
+    """Write the FINISHED runs of ``experiments`` and the whole registry to ``out_dir``; returns the run count.
+
+    Runs and versions that were themselves restored are written under their original run id and version, so
+    that a snapshot of a restored store still matches the manifests."""
     client = MlflowClient()
+    shutil.rmtree(out_dir / "artifacts", ignore_errors=True)  # no files of runs that are gone
     out_dir.mkdir(parents=True, exist_ok=True)
     ids = [e.experiment_id for name in experiments if (e := client.get_experiment_by_name(name)) is not None]
     runs = client.search_runs(ids, "attributes.status = 'FINISHED'", max_results=10_000, order_by=["start_time ASC"])
-    records = []
+    records, origin = [], {}
     for run in runs:
         rid = run.info.run_id
+        origin[rid] = run.data.tags.get(RESTORED_TAG, rid)
         records.append(
             {
-                "run_id": rid,
+                "run_id": origin[rid],
                 "experiment": client.get_experiment(run.info.experiment_id).name,
                 "run_name": run.info.run_name,
                 "start_time": run.info.start_time,
@@ -79,13 +85,21 @@ def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
         )
         for top in client.list_artifacts(rid):
             if top.path not in SKIPPED_ARTIFACTS:
-                client.download_artifacts(rid, top.path, str(_artifact_dir(out_dir, rid)))
+                client.download_artifacts(rid, top.path, str(_artifact_dir(out_dir, origin[rid])))
     registry = {}
     for model in client.search_registered_models():
         versions = sorted(client.search_model_versions(f"name='{model.name}'"), key=lambda v: int(v.version))
+        original = {str(v.version): v.tags.get("original_version", str(v.version)) for v in versions}
         registry[model.name] = {
-            "aliases": {alias: str(version) for alias, version in model.aliases.items()},
-            "versions": [{"version": str(v.version), "run_id": v.run_id, "tags": v.tags} for v in versions],
+            "aliases": {alias: original[str(version)] for alias, version in model.aliases.items()},
+            "versions": [
+                {
+                    "version": original[str(v.version)],
+                    "run_id": origin.get(v.run_id, v.run_id),
+                    "tags": {k: t for k, t in v.tags.items() if k not in ("original_version", "model_dir")},
+                }
+                for v in versions
+            ],
         }
     (out_dir / "runs.json").write_text(json.dumps(records, indent=1, sort_keys=True) + "\n")
     (out_dir / "registry.json").write_text(json.dumps(registry, indent=1, sort_keys=True) + "\n")

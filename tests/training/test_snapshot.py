@@ -65,12 +65,18 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
     again = restore_snapshot(SNAPSHOT, MODELS)
     assert (again.runs_restored, again.versions_registered) == (0, [])
 
+    # a snapshot of the restored store is the committed one again, under the original run ids and versions
     export_snapshot(tmp_path / "again", ["i2s"])
     original = {r["run_id"]: r for r in json.loads((SNAPSHOT / "runs.json").read_text())}
-    for record in json.loads((tmp_path / "again/runs.json").read_text()):
-        source = original[record["tags"][RESTORED_TAG]]
+    again = json.loads((tmp_path / "again/runs.json").read_text())
+    assert {r["run_id"] for r in again} == set(original)
+    for record in again:
+        source = original[record["run_id"]]
         assert (record["params"], record["metrics"], record["inputs"]) == (
             source["params"],
             source["metrics"],
             source["inputs"],
         )
+    registry, registry_again = (json.loads((d / "registry.json").read_text()) for d in (SNAPSHOT, tmp_path / "again"))
+    for name in ("i2s_assignment", "i2s_alignment"):
+        assert registry_again[name] == registry[name]
