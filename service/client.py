@@ -158,13 +158,17 @@ def main() -> None:
         log.info("%s", event)
     log.info("%d window results", len(outcome.results))
     for s in (outcome.assignment or {}).get("sensors", []):
+        alignment = s.get("alignment")
+        q = "" if alignment is None else " ".join(f"{v:+.3f}" for v in alignment["q_segment_imu"])
         log.info(
-            "%-32s -> %-14s confidence %.3f  margin %.1f  (%d moving windows)",
+            "%-32s -> %-14s confidence %.3f  margin %.1f  (%d moving windows)  q_segment_imu [%s] spread %s",
             s["sensor_id"],
             s["segment"],
             s["confidence"],
             s["margin"],
             s["windows"],
+            q,
+            "-" if s.get("alignment_spread_deg") is None else f"{s['alignment_spread_deg']:.1f}°",
         )
 
 
