@@ -175,7 +175,7 @@ class AssignmentNet(nn.Module):
         turned = SEGMENTS if gravity_turn_segments is None else tuple(gravity_turn_segments)
         if gravity_turn_segments is not None and (gravity_turns == 1 or not set(turned) <= set(SEGMENTS)):
             raise ValueError(f"gravity_turn_segments {turned} needs gravity_turns > 1 and names from SEGMENTS")
-        self.gravity_turn_segments = None if gravity_turn_segments is None else tuple(gravity_turn_segments)
+        self.gravity_turn_segments = None if gravity_turn_segments is None else turned
         # not in the state dict: the weights stay those of the plain net
         mask = torch.tensor([s in turned for s in SEGMENTS])
         self.register_buffer("_turned_classes", mask, persistent=False)

@@ -155,11 +155,15 @@ def _validate(model: nn.Module, task: str, batches: list[Batch], device: torch.d
 def _validation(
     model: nn.Module, task: str, simulated: list[Batch], real: list[Batch], device: torch.device
 ) -> dict[str, float]:
-    """Validation over the simulated and real batches together (what selects the epoch), and the real ones alone."""
-    metrics = _validate(model, task, simulated + real, device)
-    if real:
-        metrics.update({k.replace("val_", "val_real_", 1): v for k, v in _validate(model, task, real, device).items()})
-    return metrics
+    """Validation over the simulated and real batches together (what selects the epoch), and the real ones alone.
+    Each set runs once; the joint figures are their means weighted by window count."""
+    metrics = _validate(model, task, simulated, device)
+    if not real:
+        return metrics
+    alone = _validate(model, task, real, device)
+    n_sim, n_real = (sum(len(b.segment) for b in batches) for batches in (simulated, real))
+    joint = {k: (metrics[k] * n_sim + alone[k] * n_real) / (n_sim + n_real) for k in metrics}
+    return joint | {k.replace("val_", "val_real_", 1): v for k, v in alone.items()}
 
 
 def train(

@@ -57,6 +57,16 @@ def assignment_state_from_onnx(onnx_path: Path, net: AssignmentNet) -> dict[str,
     return state
 
 
+def averaging_options(exporter: dict) -> dict:
+    """``AssignmentNet`` keyword arguments for the turn averages a shipped graph was exported with (manifest
+    ``exporter``; absent keys: off)."""
+    return {
+        "quarter_turns": bool(exporter.get("quarter_turns", False)),
+        "gravity_turns": int(exporter.get("gravity_turns", 1)),
+        "gravity_turn_segments": exporter.get("gravity_turn_segments"),
+    }
+
+
 def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1e-4) -> dict[str, torch.Tensor]:
     """State dict rebuilt from ``model_dir/model.onnx``, verified against ``model_dir/golden.npz``."""
     manifest = read_manifest(model_dir / "manifest.json")
@@ -69,9 +79,7 @@ def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1
         net.cnn.net[0].out_channels,
         net.cnn.net[0].kernel_size[0],
         canonical=net.canonical is not None,
-        quarter_turns=bool(manifest.exporter.get("quarter_turns", False)),
-        gravity_turns=int(manifest.exporter.get("gravity_turns", 1)),
-        gravity_turn_segments=manifest.exporter.get("gravity_turn_segments"),
+        **averaging_options(manifest.exporter),
     )
     probe.load_state_dict(state)
     probe.eval()

@@ -9,7 +9,7 @@ import torch
 from service.core.manifest import read_manifest
 from service.inference.registry import version_key
 from training.models import AssignmentNet
-from training.warmstart import warm_start_from_shipped
+from training.warmstart import averaging_options, warm_start_from_shipped
 
 SHIPPED = Path(__file__).resolve().parents[2] / "onnx_models" / "i2s_assignment"
 
@@ -29,12 +29,7 @@ def _float32(quantized: bool = False) -> Path:
 def test_rebuilt_weights_match_the_shipped_model(model_dir: Path) -> None:
     """Every shipped float32 file, plain (1.0.0) or averaged over turns (1.2.0 quarter turns, 1.4.0 also about
     gravity, 1.6.0 about gravity for the leg classes only)."""
-    exporter = read_manifest(model_dir / "manifest.json").exporter
-    net = AssignmentNet(
-        quarter_turns=bool(exporter.get("quarter_turns")),
-        gravity_turns=int(exporter.get("gravity_turns", 1)),
-        gravity_turn_segments=exporter.get("gravity_turn_segments"),
-    )
+    net = AssignmentNet(**averaging_options(read_manifest(model_dir / "manifest.json").exporter))
     net.load_state_dict(warm_start_from_shipped(model_dir, net))
     net.eval()
     with np.load(model_dir / "golden.npz") as golden, torch.no_grad():

@@ -191,7 +191,7 @@ class RealWindowSampler:
                 w = w[is_moving(w)]
                 imu.append(w)
                 seg.append(np.full(len(w), sensor.segment))
-        if not imu or not sum(len(w) for w in imu):
+        if not sum(len(w) for w in imu):
             raise ValueError(f"no labelled moving windows in the {part} part of the real training recordings")
         self.imu, self.segment = np.concatenate(imu), np.concatenate(seg)
 
