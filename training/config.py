@@ -67,6 +67,9 @@ class TrainConfig(_Strict):
     init_from_run: str | None = None  # MLflow run id whose checkpoint warm-starts training (pre-training)
     init_from_onnx: str | None = None  # or a shipped assignment model dir (onnx_models/<name>/<version>)
     max_minutes: float | None = None  # wall-time budget; stops after the epoch that crosses it
+    # exponential moving average of the weights (and batch-norm statistics) after every step, decay per step;
+    # validation, early stopping and the returned model use the average (None: the raw weights, as before)
+    ema_decay: float | None = Field(default=None, ge=0.0, lt=1.0)
 
     @model_validator(mode="after")
     def _loss_fits_the_net(self) -> TrainConfig:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm import tqdm
 
 from training.config import ExperimentConfig, flatten
@@ -201,6 +202,13 @@ def train(
     if real_val is not None:  # as many real windows as the training batches' share: f / (1 - f) per simulated one
         share = cfg.data.real_fraction / (1.0 - cfg.data.real_fraction)
         real_batches = [real_val.sample(val_rng, t.batch_size) for _ in range(max(1, round(len(val_batches) * share)))]
+    # With ``ema_decay`` the weights that are validated, kept and returned are the moving average (``scored``);
+    # it starts at the initial (or warm-start) weights. Without it ``scored`` is the trained model itself.
+    ema = None
+    if t.ema_decay is not None:
+        ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(t.ema_decay), use_buffers=True)
+        ema.update_parameters(model)
+    scored = model if ema is None else ema.module
     best, best_state, best_epoch, stale = float("inf"), copy.deepcopy(model.state_dict()), 0, 0
     result = TrainResult(model, 0)
     start = time.monotonic()
@@ -225,11 +233,13 @@ def train(
             if t.grad_clip_norm is not None:
                 nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip_norm)
             optimiser.step()
+            if ema is not None:
+                ema.update_parameters(model)
             running += float(loss.detach())
             bar.set_postfix(loss=f"{running / (bar.n + 1):.4f}")
         metrics = {
             "train_loss": running / t.steps_per_epoch,
-            **_validation(model, cfg.task, val_batches, real_batches, device),
+            **_validation(scored, cfg.task, val_batches, real_batches, device),
         }
         metrics["wall_time_s"] = time.monotonic() - start
         result.history.append(metrics)
@@ -237,7 +247,7 @@ def train(
             log_metrics(metrics, epoch)
         log.info("epoch %d %s", epoch, {k: round(v, 4) for k, v in metrics.items()})
         if metrics["val_loss"] < best:
-            best, best_state, best_epoch, stale = metrics["val_loss"], copy.deepcopy(model.state_dict()), epoch, 0
+            best, best_state, best_epoch, stale = metrics["val_loss"], copy.deepcopy(scored.state_dict()), epoch, 0
         else:
             stale += 1
         if stale >= t.patience:
