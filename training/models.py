@@ -239,6 +239,50 @@ def turned_about_gravity(imu: torch.Tensor, n: int) -> list[torch.Tensor]:
     return views
 
 
+class FlexionAxis(nn.Module):
+    """Turns each predicted segment frame about its own z so that its y is the window's flexion axis.
+
+    Our addition, not in paper 000 (README "Flexion axis"). The functional segment frames
+    (``service.core.skeleton.functional_correction``) define y of the upper legs, lower legs and feet as the
+    dominant axis of the segment's angular velocity in the plane normal to its z, over the clip. That axis is in
+    the window itself: the gyroscope, expressed in the predicted segment frame, has a dominant in-plane axis, and
+    the frame is turned about its predicted z by the angle ψ from its y to that axis (the 2 × 2 covariance's
+    principal direction, by the half-angle formulas of ``CanonicalFrame``; |ψ| < 45°). The network's z (and with
+    it the rotations about x and y) is kept. A hypothesis is left as the network gave it unless its segment is in
+    ``segments`` and the window shows a clear axis: the in-plane RMS rate at least ``min_rate_rads`` and the
+    covariance's eigenvalues apart by ``min_anisotropy`` of their sum, with the axis within 45° of the
+    predicted y. Input: q_segment_imu ``(B, 7, 4)`` and the gyroscope ``(B, T, 3)`` in rad/s.
+    """
+
+    def __init__(self, segments: Sequence[str], min_anisotropy: float = 0.5, min_rate_rads: float = 0.2) -> None:
+        super().__init__()
+        unknown = sorted(set(segments) - set(SEGMENTS))
+        if unknown or not segments:
+            raise ValueError(f"flexion axis segments must be some of {list(SEGMENTS)}; got {list(segments)}")
+        self.segments = tuple(segments)
+        self.register_buffer("mask", torch.tensor([n in self.segments for n in SEGMENTS]), persistent=False)
+        self.min_anisotropy, self.min_rate_rads = min_anisotropy, min_rate_rads
+
+    def forward(self, q: torch.Tensor, gyr: torch.Tensor) -> torch.Tensor:
+        w, x, y, z = q.unbind(-1)
+        # Rows 0 and 1 of R(q) (v_segment = R · v_imu): the predicted segment x and y axes in sensor coordinates.
+        x_axis = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1)
+        y_axis = torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1)
+        u = torch.einsum("btk,bsk->bst", gyr, x_axis)  # (B, 7, T) rates about the predicted x and y
+        v = torch.einsum("btk,bsk->bst", gyr, y_axis)
+        sxx, syy, sxy = (u * u).mean(-1), (v * v).mean(-1), (u * v).mean(-1)
+        r = torch.sqrt((syy - sxx) ** 2 + 4 * sxy * sxy + 1e-12)
+        cos2, sin2 = (syy - sxx) / r, 2 * sxy / r  # doubled angle ψ from y towards x
+        cos = torch.sqrt(((1 + cos2) / 2).clamp(min=0.0))
+        sin = _sign(sin2) * torch.sqrt(((1 - cos2) / 2).clamp(min=0.0))
+        half_cos = torch.sqrt(((1 + cos) / 2).clamp(min=1e-12))
+        turn = torch.stack([half_cos, torch.zeros_like(cos), torch.zeros_like(cos), sin / (2 * half_cos)], -1)
+        clear = (syy > sxx) & (r >= self.min_anisotropy * (sxx + syy)) & (sxx + syy >= self.min_rate_rads**2)
+        turn = torch.where((clear & self.mask)[..., None], turn, turn.new_tensor([1.0, 0.0, 0.0, 0.0]))
+        out = quat_multiply(turn, q)  # R_new = R_z(ψ) · R: the frame turned about its own z
+        return out * torch.where(out[..., :1] < 0, -1.0, 1.0)
+
+
 def rotate_imu(imu: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     """Readings ``(B, T, 6)`` expressed in another frame: acc' = R · acc, gyr' = R · gyr, with ``R`` ``(B, 3, 3)``."""
     Rt = R.transpose(1, 2)
@@ -254,14 +298,23 @@ class AlignmentNet(nn.Module):
 
     With ``canonical=True`` the window is first rotated into its ``CanonicalFrame`` and the network predicts
     q_segment_canonical, so q_segment_imu = q_segment_canonical ⊗ q_canonical_imu (all inside the graph).
+    With ``flexion_axis_segments`` those segments' frames are then turned about their z onto the window's
+    flexion axis (``FlexionAxis``; no weights, so it can wrap trained weights as they are).
     """
 
     def __init__(
-        self, hidden: int = 128, channels: int = 64, kernel: int = 16, keep_prob: float = 0.8, canonical: bool = False
+        self,
+        hidden: int = 128,
+        channels: int = 64,
+        kernel: int = 16,
+        keep_prob: float = 0.8,
+        canonical: bool = False,
+        flexion_axis_segments: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         self.scale = InputScale()
         self.canonical = CanonicalFrame() if canonical else None
+        self.flexion_axis = None if flexion_axis_segments is None else FlexionAxis(flexion_axis_segments)
         self.cnn = ConvFrontEnd(channels, kernel, 3, keep_prob)
         self.rnn = nn.LSTM(channels, hidden, num_layers=2, batch_first=True)
         self.head = nn.Linear(hidden, 3 * len(SEGMENTS))
@@ -281,7 +334,8 @@ class AlignmentNet(nn.Module):
         q = stereographic_to_quat(p)
         if R_c is not None:
             q = quat_multiply(q, quat_from_matrix(R_c)[:, None, :])
-        return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
+        q = q * torch.where(q[..., :1] < 0, -1.0, 1.0)
+        return q if self.flexion_axis is None else self.flexion_axis(q, imu[..., 3:])
 
 
 def stereographic_to_quat(p: torch.Tensor) -> torch.Tensor:

@@ -109,7 +109,8 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
             "kinematics_version": int(run.data.tags.get("kinematics_version", "1")),
         }
         # the classes that take the average over turns about gravity; absent: all of them
-        | ({"gravity_turn_segments": cfg.train.gravity_turn_segments} if cfg.train.gravity_turn_segments else {}),
+        | ({"gravity_turn_segments": cfg.train.gravity_turn_segments} if cfg.train.gravity_turn_segments else {})
+        | ({"flexion_axis_segments": cfg.train.flexion_axis_segments} if cfg.train.flexion_axis_segments else {}),
         parity_atol=PARITY_ATOL,
     )
 

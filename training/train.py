@@ -43,7 +43,16 @@ def build_model(cfg: ExperimentConfig) -> nn.Module:
             gravity_turns=t.gravity_turns,
             gravity_turn_segments=t.gravity_turn_segments,
         )
-    return AlignmentNet(t.hidden, t.channels, t.kernel, t.keep_prob, canonical=t.canonical_frame)
+    if t.flexion_axis_segments is not None and cfg.task != "alignment":
+        raise ValueError("flexion_axis_segments turns alignment predictions; the assignment task has none")
+    return AlignmentNet(
+        t.hidden,
+        t.channels,
+        t.kernel,
+        t.keep_prob,
+        canonical=t.canonical_frame,
+        flexion_axis_segments=t.flexion_axis_segments,
+    )
 
 
 def quat_distance(q_pred: torch.Tensor, q_true: torch.Tensor) -> torch.Tensor:
