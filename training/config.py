@@ -50,9 +50,10 @@ class TrainConfig(_Strict):
     # assignment: the classes that take their probability from the turns about gravity (None: all); the others use
     # the window's own quarter turns (training.models.AssignmentNet; the legs, whose long axis is near gravity)
     gravity_turn_segments: list[str] | None = None
-    # alignment: turn these segments' predicted frames about their z onto the window's flexion axis
-    # (training.models.FlexionAxis; not in the paper; the functional frames' y of the legs and feet)
-    flexion_axis_segments: list[str] | None = None
+    # alignment: turn these segments' predicted frames about their z onto the axes the window's motion defines
+    # (training.models.FunctionalAxes; not in the paper): the flexion axis (y) of the legs and feet, the
+    # direction of travel (x) of the pelvis
+    functional_axes: list[str] | None = None
     # alignment loss: sign-invariant quaternion distance, or the paper's L2 on the stereographic projection
     alignment_loss: Literal["quaternion", "stereographic_l2"] = "quaternion"
     grad_clip_norm: float | None = None  # clip the global gradient norm (stabilises the LSTM)
@@ -95,10 +96,10 @@ class TrainConfig(_Strict):
                     f"gravity_turn_segments needs gravity_turns > 1 and some of {list(SEGMENTS)}; "
                     f"got gravity_turns={self.gravity_turns}, unknown names {unknown}"
                 )
-        if self.flexion_axis_segments is not None:
-            unknown = sorted(set(self.flexion_axis_segments) - set(SEGMENTS))
-            if unknown or not self.flexion_axis_segments:
-                raise ValueError(f"flexion_axis_segments must be some of {list(SEGMENTS)}; unknown names {unknown}")
+        if self.functional_axes is not None:
+            unknown = sorted(set(self.functional_axes) - set(SEGMENTS))
+            if unknown or not self.functional_axes:
+                raise ValueError(f"functional_axes must be some of {list(SEGMENTS)}; unknown names {unknown}")
         return self
 
 

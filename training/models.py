@@ -239,47 +239,116 @@ def turned_about_gravity(imu: torch.Tensor, n: int) -> list[torch.Tensor]:
     return views
 
 
-class FlexionAxis(nn.Module):
-    """Turns each predicted segment frame about its own z so that its y is the window's flexion axis.
+def _turn_about_z(cos2: torch.Tensor, sin2: torch.Tensor) -> torch.Tensor:
+    """Quaternions ``(..., 4)`` of R_z(ψ) from the doubled angle (cos 2ψ, sin 2ψ) with cos 2ψ ≥ 0 (|ψ| ≤ 45°),
+    by the half-angle formulas (no atan2 in the graph)."""
+    cos = torch.sqrt(((1 + cos2) / 2).clamp(min=0.0))
+    sin = _sign(sin2) * torch.sqrt(((1 - cos2) / 2).clamp(min=0.0))
+    half_cos = torch.sqrt(((1 + cos) / 2).clamp(min=1e-12))
+    zero = torch.zeros_like(cos)
+    return torch.stack([half_cos, zero, zero, sin / (2 * half_cos)], -1)
 
-    Our addition, not in paper 000 (README "Flexion axis"). The functional segment frames
-    (``service.core.skeleton.functional_correction``) define y of the upper legs, lower legs and feet as the
-    dominant axis of the segment's angular velocity in the plane normal to its z, over the clip. That axis is in
-    the window itself: the gyroscope, expressed in the predicted segment frame, has a dominant in-plane axis, and
-    the frame is turned about its predicted z by the angle ψ from its y to that axis (the 2 × 2 covariance's
-    principal direction, by the half-angle formulas of ``CanonicalFrame``; |ψ| < 45°). The network's z (and with
-    it the rotations about x and y) is kept. A hypothesis is left as the network gave it unless its segment is in
-    ``segments`` and the window shows a clear axis: the in-plane RMS rate at least ``min_rate_rads`` and the
-    covariance's eigenvalues apart by ``min_anisotropy`` of their sum, with the axis within 45° of the
-    predicted y. Input: q_segment_imu ``(B, 7, 4)`` and the gyroscope ``(B, T, 3)`` in rad/s.
+
+def _lagged(a: torch.Tensor, b: torch.Tensor, lags: Sequence[int]) -> torch.Tensor:
+    """Symmetrised lagged products ½·mean(a_t b_t+L + b_t a_t+L) over time, ``(..., T)`` → ``(..., len(lags))``."""
+    return torch.stack([0.5 * (a[..., :-k] * b[..., k:] + b[..., :-k] * a[..., k:]).mean(-1) for k in lags], -1)
+
+
+class FunctionalAxes(nn.Module):
+    """Turns predicted segment frames about their own z onto the axes that the window's motion defines.
+
+    Our addition, not in paper 000 (README "Functional axes"). The functional segment frames
+    (``service.core.skeleton.functional_correction``, the training labels) read y of the upper legs, lower legs
+    and feet, and x of the pelvis, off the clip's motion; the same quantities are in the window itself, and
+    measured there they do not depend on how a person's joints were fitted. The network's z (and with it the
+    rotations about x and y) is kept; each named hypothesis is turned about its predicted z by the angle ψ
+    (|ψ| < 45°) from its axis to the measured one:
+
+    - legs and feet: y onto the dominant axis of the angular velocity in the predicted x-y plane (the flexion
+      axis, as the labels define it): the principal direction of the 2 × 2 covariance. Only where the in-plane
+      RMS rate is at least ``min_rate_rads`` and the eigenvalues are apart by ``min_anisotropy`` of their sum.
+    - pelvis: x onto the direction of travel. In gait the pelvis accelerates forwards and backwards once per step
+      and sways sideways once per stride, so at a lag of one step the forward acceleration is correlated with
+      itself and the sideways one anti-correlated; the rotation rates do the opposite (tilt about the sideways
+      axis once per step, obliquity about the forward axis once per stride). The step is the lag of 0.25-0.75 s
+      with the largest autocorrelation of the vertical (predicted z) acceleration; the two lagged 2 × 2
+      covariances, each divided by its signal's in-plane power, are combined (acceleration minus rate) and x is
+      turned onto the principal direction. Only where the step autocorrelation reaches ``min_periodicity`` of
+      the vertical variance and the combined contrast ``min_contrast``.
+
+    Input: q_segment_imu ``(B, 7, 4)`` (w ≥ 0) and the raw window ``(B, T, 6)`` (m/s², rad/s, 60 Hz).
     """
 
-    def __init__(self, segments: Sequence[str], min_anisotropy: float = 0.5, min_rate_rads: float = 0.2) -> None:
+    STEP_LAGS = tuple(range(15, 46))  # samples at 60 Hz: steps of 0.25-0.75 s (cadence 80-240 steps/min)
+
+    def __init__(
+        self,
+        segments: Sequence[str],
+        min_anisotropy: float = 0.5,
+        min_rate_rads: float = 0.2,
+        min_periodicity: float = 0.3,
+        min_contrast: float = 0.8,
+    ) -> None:
         super().__init__()
         unknown = sorted(set(segments) - set(SEGMENTS))
         if unknown or not segments:
-            raise ValueError(f"flexion axis segments must be some of {list(SEGMENTS)}; got {list(segments)}")
+            raise ValueError(f"functional axes segments must be some of {list(SEGMENTS)}; got {list(segments)}")
         self.segments = tuple(segments)
-        self.register_buffer("mask", torch.tensor([n in self.segments for n in SEGMENTS]), persistent=False)
+        flexion = [n in self.segments and n != "Pelvis" for n in SEGMENTS]
+        self.register_buffer("flexion_mask", torch.tensor(flexion), persistent=False)
+        self.pelvis = SEGMENTS.index("Pelvis") if "Pelvis" in self.segments else None
         self.min_anisotropy, self.min_rate_rads = min_anisotropy, min_rate_rads
+        self.min_periodicity, self.min_contrast = min_periodicity, min_contrast
 
-    def forward(self, q: torch.Tensor, gyr: torch.Tensor) -> torch.Tensor:
+    @staticmethod
+    def _axes(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Rows of R(q) (v_segment = R · v_imu): the predicted segment x, y, z axes in sensor coordinates."""
         w, x, y, z = q.unbind(-1)
-        # Rows 0 and 1 of R(q) (v_segment = R · v_imu): the predicted segment x and y axes in sensor coordinates.
-        x_axis = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1)
-        y_axis = torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1)
+        return (
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        )
+
+    def _flexion_turn(self, q: torch.Tensor, gyr: torch.Tensor) -> torch.Tensor:
+        x_axis, y_axis, _ = self._axes(q)
         u = torch.einsum("btk,bsk->bst", gyr, x_axis)  # (B, 7, T) rates about the predicted x and y
         v = torch.einsum("btk,bsk->bst", gyr, y_axis)
         sxx, syy, sxy = (u * u).mean(-1), (v * v).mean(-1), (u * v).mean(-1)
         r = torch.sqrt((syy - sxx) ** 2 + 4 * sxy * sxy + 1e-12)
-        cos2, sin2 = (syy - sxx) / r, 2 * sxy / r  # doubled angle ψ from y towards x
-        cos = torch.sqrt(((1 + cos2) / 2).clamp(min=0.0))
-        sin = _sign(sin2) * torch.sqrt(((1 - cos2) / 2).clamp(min=0.0))
-        half_cos = torch.sqrt(((1 + cos) / 2).clamp(min=1e-12))
-        turn = torch.stack([half_cos, torch.zeros_like(cos), torch.zeros_like(cos), sin / (2 * half_cos)], -1)
+        turn = _turn_about_z((syy - sxx) / r, 2 * sxy / r)  # ψ from y towards the principal direction
         clear = (syy > sxx) & (r >= self.min_anisotropy * (sxx + syy)) & (sxx + syy >= self.min_rate_rads**2)
-        turn = torch.where((clear & self.mask)[..., None], turn, turn.new_tensor([1.0, 0.0, 0.0, 0.0]))
-        out = quat_multiply(turn, q)  # R_new = R_z(ψ) · R: the frame turned about its own z
+        return torch.where((clear & self.flexion_mask)[..., None], turn, turn.new_tensor([1.0, 0.0, 0.0, 0.0]))
+
+    def _pelvis_turn(self, q: torch.Tensor, imu: torch.Tensor) -> torch.Tensor:
+        axes = self._axes(q)  # q (B, 4): the pelvis hypothesis
+        acc, gyr = imu[..., :3], imu[..., 3:]
+        ax, ay, az = (torch.einsum("btk,bk->bt", acc, a) for a in axes)
+        gx, gy = (torch.einsum("btk,bk->bt", gyr, a) for a in axes[:2])
+        ax, ay, az, gx, gy = (s - s.mean(-1, keepdim=True) for s in (ax, ay, az, gx, gy))
+        vertical = _lagged(az, az, self.STEP_LAGS)  # (B, lags)
+        step = nn.functional.one_hot(vertical.argmax(-1), len(self.STEP_LAGS)).to(q.dtype)
+        periodic = (vertical * step).sum(-1) >= self.min_periodicity * (az * az).mean(-1)
+
+        def contrast(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+            """(Sxx − Syy, 2 Sxy) at the step lag over the in-plane power: the doubled principal direction."""
+            sxx, syy, sxy = ((_lagged(m, n, self.STEP_LAGS) * step).sum(-1) for m, n in ((a, a), (b, b), (a, b)))
+            power = (a * a + b * b).mean(-1) + 1e-12
+            return torch.stack([sxx - syy, 2 * sxy], -1) / power[:, None]
+
+        d = contrast(ax, ay) - contrast(gx, gy)  # forward: acceleration in step, rate out of step
+        norm = torch.sqrt((d * d).sum(-1) + 1e-12)
+        turn = _turn_about_z(d[:, 0] / norm, -d[:, 1] / norm)  # ψ = minus the principal direction's angle
+        clear = periodic & (norm >= self.min_contrast) & (d[:, 0] > 0)
+        return torch.where(clear[:, None], turn, turn.new_tensor([1.0, 0.0, 0.0, 0.0]))
+
+    def forward(self, q: torch.Tensor, imu: torch.Tensor) -> torch.Tensor:
+        turn = self._flexion_turn(q, imu[..., 3:])
+        if self.pelvis is not None:
+            pelvis = self._pelvis_turn(q[:, self.pelvis], imu)[:, None]
+            is_pelvis = torch.arange(len(SEGMENTS), device=q.device)[None, :, None] == self.pelvis
+            turn = torch.where(is_pelvis, pelvis, turn)
+        out = quat_multiply(turn, q)  # R_new = R_z(ψ) · R: each frame turned about its own z
         return out * torch.where(out[..., :1] < 0, -1.0, 1.0)
 
 
@@ -298,8 +367,8 @@ class AlignmentNet(nn.Module):
 
     With ``canonical=True`` the window is first rotated into its ``CanonicalFrame`` and the network predicts
     q_segment_canonical, so q_segment_imu = q_segment_canonical ⊗ q_canonical_imu (all inside the graph).
-    With ``flexion_axis_segments`` those segments' frames are then turned about their z onto the window's
-    flexion axis (``FlexionAxis``; no weights, so it can wrap trained weights as they are).
+    With ``functional_axes`` those segments' frames are then turned about their z onto the axes that the
+    window's motion defines (``FunctionalAxes``; no weights, so it can wrap trained weights as they are).
     """
 
     def __init__(
@@ -309,12 +378,12 @@ class AlignmentNet(nn.Module):
         kernel: int = 16,
         keep_prob: float = 0.8,
         canonical: bool = False,
-        flexion_axis_segments: Sequence[str] | None = None,
+        functional_axes: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         self.scale = InputScale()
         self.canonical = CanonicalFrame() if canonical else None
-        self.flexion_axis = None if flexion_axis_segments is None else FlexionAxis(flexion_axis_segments)
+        self.functional_axes = None if functional_axes is None else FunctionalAxes(functional_axes)
         self.cnn = ConvFrontEnd(channels, kernel, 3, keep_prob)
         self.rnn = nn.LSTM(channels, hidden, num_layers=2, batch_first=True)
         self.head = nn.Linear(hidden, 3 * len(SEGMENTS))
@@ -335,7 +404,7 @@ class AlignmentNet(nn.Module):
         if R_c is not None:
             q = quat_multiply(q, quat_from_matrix(R_c)[:, None, :])
         q = q * torch.where(q[..., :1] < 0, -1.0, 1.0)
-        return q if self.flexion_axis is None else self.flexion_axis(q, imu[..., 3:])
+        return q if self.functional_axes is None else self.functional_axes(q, imu)
 
 
 def stereographic_to_quat(p: torch.Tensor) -> torch.Tensor:

@@ -110,7 +110,7 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
         }
         # the classes that take the average over turns about gravity; absent: all of them
         | ({"gravity_turn_segments": cfg.train.gravity_turn_segments} if cfg.train.gravity_turn_segments else {})
-        | ({"flexion_axis_segments": cfg.train.flexion_axis_segments} if cfg.train.flexion_axis_segments else {}),
+        | ({"functional_axes": cfg.train.functional_axes} if cfg.train.functional_axes else {}),
         parity_atol=PARITY_ATOL,
     )
 

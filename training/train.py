@@ -43,15 +43,15 @@ def build_model(cfg: ExperimentConfig) -> nn.Module:
             gravity_turns=t.gravity_turns,
             gravity_turn_segments=t.gravity_turn_segments,
         )
-    if t.flexion_axis_segments is not None and cfg.task != "alignment":
-        raise ValueError("flexion_axis_segments turns alignment predictions; the assignment task has none")
+    if t.functional_axes is not None and cfg.task != "alignment":
+        raise ValueError("functional_axes turns alignment predictions; the assignment task has none")
     return AlignmentNet(
         t.hidden,
         t.channels,
         t.kernel,
         t.keep_prob,
         canonical=t.canonical_frame,
-        flexion_axis_segments=t.flexion_axis_segments,
+        functional_axes=t.functional_axes,
     )
 
 
@@ -224,8 +224,11 @@ def train(
     if init_state is not None:
         # The warm-start weights compete as epoch 0: fine-tuning that never beats them returns them unchanged
         # (and max_epochs 0 wraps them as they are, e.g. in a new turn average).
-        best = _validation(model, cfg.task, val_batches, real_batches, device)["val_loss"]
-        log.info("epoch 0 (warm start) val_loss %.4f", best)
+        start_metrics = _validation(model, cfg.task, val_batches, real_batches, device)
+        best = start_metrics["val_loss"]
+        if log_metrics:  # step 0 of the learning curves: what the warm start scored
+            log_metrics(start_metrics, 0)
+        log.info("epoch 0 (warm start) %s", {k: round(v, 5) for k, v in start_metrics.items()})
     batches = _training_batches(sampler, real, cfg, rng)
     for epoch in range(1, t.max_epochs + 1):
         model.train()

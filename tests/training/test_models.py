@@ -14,7 +14,7 @@ from training.data.catalog import mocap_entries
 from training.data.mocap import build_kinematics
 from training.data.windows import Augmentation, WindowSampler
 from training.export import export_onnx, golden_pair, onnx_parity
-from training.models import AlignmentNet, AssignmentNet, CanonicalFrame, FlexionAxis, quat_from_matrix, rotate_imu
+from training.models import AlignmentNet, AssignmentNet, CanonicalFrame, FunctionalAxes, quat_from_matrix, rotate_imu
 
 
 def _moving_windows(n: int, seed: int = 0) -> torch.Tensor:
@@ -142,57 +142,97 @@ def _turned_about_z(q: np.ndarray, deg: np.ndarray) -> np.ndarray:
     return out * np.where(out[:, :1] < 0, -1.0, 1.0)
 
 
+LEGS_AND_FEET = ("LeftFoot", "LeftLowerLeg", "LeftUpperLeg", "RightUpperLeg", "RightLowerLeg", "RightFoot")
+
+
+def _random_hypotheses(n: int, seed: int) -> np.ndarray:
+    q = Rotation.random(n * 7, random_state=seed).as_quat(scalar_first=True).reshape(n, 7, 4)
+    return q * np.where(q[..., :1] < 0, -1.0, 1.0)
+
+
+def _turn_about_own_z_deg(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Rotation vectors (degrees) of R_after · R_before⁻¹: (0, 0, ψ) for a turn about the frame's own z."""
+    r = Rotation.from_quat(after, scalar_first=True) * Rotation.from_quat(before, scalar_first=True).inv()
+    return np.degrees(r.as_rotvec())
+
+
 def test_flexion_axis_turns_y_onto_the_windows_dominant_axis_and_keeps_z() -> None:
-    """A hypothesis whose y is 20° off the window's rotation axis is turned about its z onto that axis (z and the
-    other hypotheses unchanged); a still window, an axis more than 45° from y and an unnamed segment are not."""
-    n, t = 6, torch.linspace(0, 4 * torch.pi, 128)
-    q = Rotation.random(n * 7, random_state=3).as_quat(scalar_first=True).reshape(n, 7, 4)
-    q *= np.where(q[..., :1] < 0, -1.0, 1.0)
+    """A leg hypothesis whose y is 20° off the window's rotation axis is turned about its z onto that axis; a
+    still window, an axis more than 45° from y and an unnamed segment are left as the network gave them."""
+    n, t = 6, np.linspace(0, 4 * np.pi, 128)
+    q = _random_hypotheses(n, seed=3)
     k = SEGMENTS.index("LeftLowerLeg")
     R = Rotation.from_quat(q[:, k], scalar_first=True).as_matrix()  # rows: segment axes in sensor coordinates
     axis_deg = np.array([20.0, -20.0, 20.0, 60.0, 20.0, 20.0])  # 60°: further from y than the half of 90°
     axis_seg = np.stack([np.sin(np.radians(axis_deg)), np.cos(np.radians(axis_deg)), np.full(n, 0.1)], 1)
     axis_imu = np.einsum("nji,nj->ni", R, axis_seg)  # Rᵀ · axis
     rate = np.array([3.0, 3.0, 3.0, 3.0, 0.05, 3.0])  # window 4 is nearly still
-    gyr = torch.tensor(rate[:, None, None] * np.sin(t.numpy())[None, :, None] * axis_imu[:, None], dtype=torch.float32)
-    gyr += 0.02 * torch.randn(n, 128, 3, generator=torch.Generator().manual_seed(0))
-    names = [s for s in SEGMENTS if s != "RightFoot"]
+    imu = np.zeros((n, 128, 6))
+    imu[..., 2] = 9.81
+    imu[..., 3:] = rate[:, None, None] * np.sin(t)[None, :, None] * axis_imu[:, None]
+    imu[..., 3:] += 0.02 * np.random.default_rng(0).normal(size=(n, 128, 3))
+    names = [s for s in LEGS_AND_FEET if s != "RightFoot"]
     with torch.no_grad():
-        out = FlexionAxis(names)(torch.tensor(q, dtype=torch.float32), gyr).numpy()
-    turn = Rotation.from_quat(out[:, k], scalar_first=True) * Rotation.from_quat(q[:, k], scalar_first=True).inv()
-    angle = np.degrees(turn.as_rotvec())  # R_new · R⁻¹ = R_z(ψ): a turn about the segment's z
-    np.testing.assert_allclose(angle[[0, 1, 2, 5], 2], [20.0, -20.0, 20.0, 20.0], atol=1.0)
-    np.testing.assert_allclose(angle[[0, 1, 2, 5], :2], 0.0, atol=1e-3)  # about z only: z is kept
+        out = FunctionalAxes(names)(torch.tensor(q, dtype=torch.float32), torch.tensor(imu, dtype=torch.float32))
+    turn = _turn_about_own_z_deg(q[:, k], out[:, k].numpy())
+    np.testing.assert_allclose(turn[[0, 1, 2, 5], 2], [20.0, -20.0, 20.0, 20.0], atol=1.0)
+    np.testing.assert_allclose(turn[[0, 1, 2, 5], :2], 0.0, atol=1e-3)  # about z only: z is kept
     np.testing.assert_allclose(out[[3, 4], k], q[[3, 4], k], atol=1e-6)  # axis > 45° off, or still: as given
-    unnamed = SEGMENTS.index("RightFoot")
-    np.testing.assert_allclose(out[:, unnamed], q[:, unnamed], atol=1e-6)
+    for unnamed in ("RightFoot", "Pelvis"):
+        np.testing.assert_allclose(out[:, SEGMENTS.index(unnamed)], q[:, SEGMENTS.index(unnamed)], atol=1e-6)
     with pytest.raises(ValueError, match="Pelvic"):
-        FlexionAxis(["Pelvic"])
+        FunctionalAxes(["Pelvic"])
 
 
-def test_flexion_axis_recovers_the_functional_frames_of_simulated_walking(walk_clips) -> None:
+def test_pelvis_x_is_turned_onto_the_direction_of_travel_of_a_gait_like_window() -> None:
+    """A pelvis that accelerates forwards once per step (0.55 s) and sideways once per stride, and tilts once
+    per step and rolls once per stride: a hypothesis whose x is 20° off the forward axis is turned onto it;
+    a still window and a window with no step rhythm are left alone."""
+    n, t = 5, np.arange(128) / 60.0
+    q = _random_hypotheses(n, seed=4)
+    p = SEGMENTS.index("Pelvis")
+    off = np.array([20.0, -20.0, 20.0, 0.0, 20.0])
+    true = _turned_about_z(q[:, p], -off)  # the frame the motion below is expressed in
+    step, stride = 2 * np.pi * t / 0.55, np.pi * t / 0.55
+    seg = np.zeros((n, 128, 6))  # in the true pelvis frame: forward x, left y, up z
+    seg[..., 0], seg[..., 1], seg[..., 2] = 1.5 * np.sin(step), 1.0 * np.sin(stride), 9.81 + 2.0 * np.cos(step)
+    seg[..., 3], seg[..., 4], seg[..., 5] = 0.5 * np.sin(stride + 0.3), 0.3 * np.sin(step), 0.4 * np.cos(stride)
+    seg[3, :, [0, 1, 3, 4, 5]] = 0.0  # window 3: standing still
+    seg[3, :, 2] = 9.81
+    seg[4, :, 2] = 9.81 + 2.0 * np.random.default_rng(1).normal(size=128)  # window 4: no step rhythm
+    R_true = Rotation.from_quat(true, scalar_first=True).as_matrix()
+    to_sensor = [np.einsum("nji,ntj->nti", R_true, seg[..., k : k + 3]) for k in (0, 3)]  # Rᵀ · v
+    imu = np.concatenate(to_sensor, -1)
+    with torch.no_grad():
+        out = FunctionalAxes(["Pelvis"])(torch.tensor(q, dtype=torch.float32), torch.tensor(imu, dtype=torch.float32))
+    turn = _turn_about_own_z_deg(q[:, p], out[:, p].numpy())
+    np.testing.assert_allclose(turn[:3, 2], -off[:3], atol=1.0)
+    np.testing.assert_allclose(turn[:3, :2], 0.0, atol=1e-3)
+    np.testing.assert_allclose(out[3:, p], q[3:, p], atol=1e-6)
+    others = [i for i in range(7) if i != p]
+    np.testing.assert_allclose(out[:, others], q[:, others], atol=1e-6)
+
+
+def test_functional_axes_recover_the_functional_frames_of_simulated_walking(walk_clips) -> None:
     """On sensors simulated from real walking mocap, the true alignment turned 10° or -10° about the segment z
-    is turned back to within the clip-versus-window difference of the functional frame's y (median < 1°)."""
+    is turned back to within the clip-versus-window difference of the functional frames' axes."""
     batch = WindowSampler(walk_clips, Augmentation(alignment="grid")).sample(np.random.default_rng(1), 2048)
-    legs = ("LeftFoot", "LeftLowerLeg", "LeftUpperLeg", "RightUpperLeg", "RightLowerLeg", "RightFoot")
     off = np.where(np.arange(len(batch.segment)) % 2 == 0, 10.0, -10.0)
     q = np.repeat(_turned_about_z(batch.q_segment_imu.astype(np.float64), off)[:, None], 7, axis=1)
     with torch.no_grad():
-        out = FlexionAxis(legs)(torch.tensor(q, dtype=torch.float32), torch.from_numpy(batch.imu[..., 3:])).numpy()
+        out = FunctionalAxes(SEGMENTS)(torch.tensor(q, dtype=torch.float32), torch.from_numpy(batch.imu)).numpy()
     picked = out[np.arange(len(out)), batch.segment]
     truth = Rotation.from_quat(batch.q_segment_imu, scalar_first=True)
     before = np.abs((truth * Rotation.from_quat(q[:, 0], scalar_first=True).inv()).as_euler("XYZ", degrees=True))
     after = np.abs((truth * Rotation.from_quat(picked, scalar_first=True).inv()).as_euler("XYZ", degrees=True))
-    for name in legs:
+    for name, bound in [(n, 1.5) for n in LEGS_AND_FEET] + [("Pelvis", 4.0)]:  # measured: ≤ 0.94°, 2.7°
         m = batch.segment == SEGMENTS.index(name)
         assert np.median(before[m, 2]) > 9.0
-        assert np.median(after[m, 2]) < 1.0, (name, np.median(after[m, 2]))
-    pelvis = batch.segment == SEGMENTS.index("Pelvis")
-    np.testing.assert_allclose(after[pelvis], before[pelvis], atol=1e-3)  # not named: left as it was
+        assert np.median(after[m, 2]) < bound, (name, np.median(after[m, 2]))
 
 
-def test_flexion_axis_alignment_net_onnx_parity(tmp_path: Path) -> None:
-    net = AlignmentNet(hidden=16, channels=8, kernel=4, canonical=True, flexion_axis_segments=SEGMENTS[:3]).eval()
+def test_functional_axes_alignment_net_onnx_parity(tmp_path: Path) -> None:
+    net = AlignmentNet(hidden=16, channels=8, kernel=4, canonical=True, functional_axes=SEGMENTS).eval()
     path = export_onnx(net, "alignment", tmp_path / "model.onnx")
     assert onnx_parity(path, golden_pair(net, _moving_windows(8, seed=3).numpy())) < 1e-4
 

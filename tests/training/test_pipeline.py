@@ -114,7 +114,8 @@ def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
 def test_alignment_job_runs_and_exports_unit_quaternions(
     mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path
 ) -> None:
-    cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", TINY + ["tracking.experiment=test-i2s"])
+    flexion = ["tracking.experiment=test-i2s", "train.functional_axes=[LeftLowerLeg,RightLowerLeg]"]
+    cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", TINY + flexion)
     run_id = run_training(cfg, data_dir, kinematics_cache, register=False, eval_max_windows=1500)
     run = MlflowClient().get_run(run_id)
     assert run.data.metrics["test_mean_angle_error_deg"] > 0.0
@@ -128,6 +129,7 @@ def test_alignment_job_runs_and_exports_unit_quaternions(
     manifest = read_manifest(shipped / "manifest.json")
     assert manifest.output_kind == "quaternion_per_segment"
     assert manifest.exporter["kinematics_version"] == int(KINEMATICS_VERSION) == 2  # functional segment frames
+    assert manifest.exporter["functional_axes"] == ["LeftLowerLeg", "RightLowerLeg"]
 
 
 def test_a_training_fitted_elsewhere_is_tracked_here_and_only_with_its_own_config_and_clips(
