@@ -31,16 +31,10 @@ from benchmarks.servers import REPO, start_mlflow_serve, start_service, stop
 from service.api.protocol import encode_binary
 from service.core.manifest import read_manifest
 from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES
-from service.inference.registry import version_key
 
 RESULTS = REPO / "benchmarks" / "results"
 WARMUP_REQUESTS = 200  # steady-state latency: the first requests after start-up pay allocator and cache warm-up
 PACKET_SAMPLES = HOP_SAMPLES  # one packet per model hop: every packet completes a window once 128 samples are buffered
-
-
-def _latest(task_dir: Path) -> Path:
-    """The version the service serves by default."""
-    return max((p.parent for p in task_dir.glob("*/manifest.json")), key=lambda d: version_key(d.name))
 
 
 def _windows(n: int, seed: int = 0) -> np.ndarray:
@@ -257,12 +251,11 @@ def main() -> None:
         f"--streams {' '.join(map(str, args.streams))} --stream-seconds {args.stream_seconds} "
         f"--repeats {args.repeats} --batch {args.batch} --parts {' '.join(args.parts)}",
         "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
-        "models": {
-            p.parent.name: p.name for p in (_latest(models / "i2s_assignment"), _latest(models / "i2s_alignment"))
-        },
     }
     proc, base = start_service(models)
     try:
+        # what the server serves (the newest files, or the WEARMOCAP_MODEL_VERSIONS pins of this environment)
+        result["models"] = {name: m["version"] for name, m in httpx.get(f"{base}/v1/models").json().items()}
         if "rest" in args.parts:
             result["rest"] = bench_rest(base, args.single, args.batch, args.batches)
             print(json.dumps(result["rest"], indent=2))
