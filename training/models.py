@@ -63,6 +63,14 @@ def _sign(x: torch.Tensor) -> torch.Tensor:
     return torch.where(x >= 0, 1.0, -1.0)
 
 
+def _half_angle(cos2: torch.Tensor, sin2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(cos θ, sin θ) from the doubled angle (cos 2θ, sin 2θ), with θ in (−90°, 90°]: the direction of a 2 × 2
+    covariance's principal axis, whose sign is free, from its doubled-angle form (exportable: no atan2)."""
+    cos = torch.sqrt(((1.0 + cos2) / 2.0).clamp(min=0.0))
+    sin = _sign(sin2) * torch.sqrt(((1.0 - cos2) / 2.0).clamp(min=0.0))
+    return cos, sin
+
+
 def quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
     """Unit quaternions ``(..., 4)`` (w, x, y, z) of rotation matrices ``(..., 3, 3)``, exportable to ONNX.
 
@@ -123,8 +131,7 @@ class CanonicalFrame(nn.Module):
         u, v = (gyr * e1[:, None]).sum(-1), (gyr * e2[:, None]).sum(-1)  # (B, T) in-plane components
         # Principal axis of the in-plane 2 × 2 covariance: direction of the doubled angle, then halved.
         d = _unit(torch.stack([(u * u - v * v).mean(1), 2.0 * (u * v).mean(1)], -1))
-        cos = torch.sqrt(((1.0 + d[:, 0]) / 2.0).clamp(min=0.0))
-        sin = _sign(d[:, 1]) * torch.sqrt(((1.0 - d[:, 0]) / 2.0).clamp(min=0.0))
+        cos, sin = _half_angle(d[:, 0], d[:, 1])
         y = cos[:, None] * e1 + sin[:, None] * e2
         y = y * _sign((((gyr * y[:, None]).sum(-1)) ** 3).mean(1))[:, None]
         return torch.stack([_cross(y, z), y, z], dim=1)
@@ -241,9 +248,8 @@ def turned_about_gravity(imu: torch.Tensor, n: int) -> list[torch.Tensor]:
 
 def _turn_about_z(cos2: torch.Tensor, sin2: torch.Tensor) -> torch.Tensor:
     """Quaternions ``(..., 4)`` of R_z(ψ) from the doubled angle (cos 2ψ, sin 2ψ) with cos 2ψ ≥ 0 (|ψ| ≤ 45°),
-    by the half-angle formulas (no atan2 in the graph)."""
-    cos = torch.sqrt(((1 + cos2) / 2).clamp(min=0.0))
-    sin = _sign(sin2) * torch.sqrt(((1 - cos2) / 2).clamp(min=0.0))
+    by the half-angle formulas twice (no atan2 in the graph)."""
+    cos, sin = _half_angle(cos2, sin2)
     half_cos = torch.sqrt(((1 + cos) / 2).clamp(min=1e-12))
     zero = torch.zeros_like(cos)
     return torch.stack([half_cos, zero, zero, sin / (2 * half_cos)], -1)
