@@ -20,7 +20,15 @@ from service.core.manifest import Evaluation, Manifest, TensorSpec, read_manifes
 from service.core.segments import SEGMENTS
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
 from training.config import ExperimentConfig
-from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
+from training.data.mocap import Clip, KinematicsParams, stiff_knee_variants
+from training.evaluate import (
+    EVAL_SEED,
+    evaluate_braced_knees,
+    evaluate_real,
+    evaluate_real_alignment,
+    evaluate_simulated,
+    onnx_predictor,
+)
 from training.export import OPSET, OUTPUT_NAMES, PARITY_ATOL, onnx_parity
 from training.plots import confusion_matrix_png
 from training.tracking import record_evaluation
@@ -181,6 +189,20 @@ def evaluate_shipped(
         metric, _ = PRIMARY_METRIC[cfg.task]
         record_evaluation(cfg.registered_model, manifest.mlflow["run_id"], metric, sim.metrics[metric], sim.digest)
     metrics_to_log = {f"{prefix}sim_{k}": v for k, v in sim.metrics.items()}
+    if cfg.task == "assignment" and (braced := braced_knee_clips(cfg, test, data_dir, cache_dir)):
+        knees = evaluate_braced_knees(predict, braced, cfg.augmentation, max_windows)
+        shown = {k: v for k, v in knees.metrics.items() if k.startswith(("accuracy", "n_windows", "recall_"))}
+        evaluations.append(
+            Evaluation(
+                name="loso_simulated_braced_knee",
+                command=command,
+                data=f"simulated, held-out subjects {cfg.data.test_subjects}: each walking clip with the left and "
+                f"with the right knee braced (flexion kept uniform in [0, {BRACED_KEEP_MAX}]); the braced leg's "
+                f"shank and foot, eq. 8 grid (64 alignments), every window; digest {knees.digest}",
+                metrics=_headline({k: v for k, v in shown.items() if v or not k.startswith("recall_")}),
+            )
+        )
+        metrics_to_log.update({f"{prefix}braced_knee_{k}": v for k, v in knees.metrics.items()})
     if cfg.task == "assignment":
         held_out = held_out_recordings(cfg, data_dir)
         real_metrics, cm = evaluate_real(predict, held_out)
@@ -216,6 +238,18 @@ def evaluate_shipped(
     manifest.evaluations = evaluations
     write_manifest(manifest, model_dir / "manifest.json")
     return manifest
+
+
+# The braced-knee evaluation does not depend on how (or whether) a model was trained on braced knees.
+BRACED_KEEP_MAX = 0.4
+
+
+def braced_knee_clips(cfg: ExperimentConfig, test: list[Clip], data_dir: Path, cache_dir: Path) -> list[Clip]:
+    """Stiff-knee variants of the held-out walking clips, the same for every model (``EVAL_SEED``)."""
+    if not any(c.entry.activity == "walk" for c in test):
+        return []
+    params = KinematicsParams(cfg.data.sample_rate_hz, cfg.data.cutoff_hz, cfg.data.filter_order)
+    return stiff_knee_variants(data_dir, test, cache_dir, BRACED_KEEP_MAX, EVAL_SEED, params)
 
 
 def _headline(metrics: dict[str, float]) -> dict[str, float]:

@@ -203,7 +203,12 @@ def train(
     optimiser = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     sampler = WindowSampler(train_clips, cfg.augmentation)
     # Validation: the training distribution of alignments, with only the paper's noise (no other augmentation).
-    val_aug = Augmentation(alignment=cfg.augmentation.alignment, acc_noise_std_mps2=cfg.augmentation.acc_noise_std_mps2)
+    # The clips' variants keep their share, so that validation sees the gaits training does.
+    val_aug = Augmentation(
+        alignment=cfg.augmentation.alignment,
+        acc_noise_std_mps2=cfg.augmentation.acc_noise_std_mps2,
+        stiff_knee_share=cfg.augmentation.stiff_knee_share,
+    )
     val_sampler = WindowSampler(val_clips, val_aug)
     val_rng = np.random.default_rng(cfg.seed + 1)
     val_batches = [val_sampler.sample(val_rng, t.batch_size) for _ in range(max(1, t.val_windows // t.batch_size))]

@@ -96,3 +96,30 @@ def test_population_offset_baseline_is_small_on_its_own_subject_and_across_subje
         assert max(same[f"{leg}_ax{ax}_mean_deg"] for ax in range(3)) < 3.0, leg
     across = population_offset_baseline(other, own, Augmentation(alignment="grid"), n_fit_windows=7_000)
     assert same["mean_angle_error_deg"] < across["mean_angle_error_deg"] < 3.5, across["mean_angle_error_deg"]
+
+
+def test_the_braced_knee_evaluation_scores_the_braced_shank_and_foot_only(data_dir: Path, kinematics_cache) -> None:
+    """A model that answers LeftLowerLeg for everything is right on exactly the left-braced shanks: a quarter of
+    the scored windows (shank and foot of each braced leg, both legs braced once per clip)."""
+    from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES
+    from training.data.mocap import stiff_knee_variants
+    from training.data.windows import Augmentation
+    from training.evaluate import evaluate_braced_knees
+
+    entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"][:1]
+    variants = stiff_knee_variants(
+        data_dir, build_kinematics(data_dir, entries, kinematics_cache), kinematics_cache, 0.4, 0
+    )
+    left_shank = SEGMENTS.index("LeftLowerLeg")
+
+    def always_left_shank(imu: np.ndarray) -> np.ndarray:
+        return np.eye(len(SEGMENTS), dtype=np.float32)[np.full(len(imu), left_shank)]
+
+    result = evaluate_braced_knees(always_left_shank, variants, Augmentation())
+    n_windows = len(range(0, variants[0].n_samples - WINDOW_SAMPLES + 1, HOP_SAMPLES))
+    assert result.metrics["n_windows"] == 2 * 2 * 64 * n_windows
+    assert result.metrics["accuracy"] == pytest.approx(0.25)
+    assert result.metrics["recall_LeftLowerLeg"] == 1.0 and result.metrics["recall_LeftFoot"] == 0.0
+    assert set(np.unique(result.segment)) == {
+        SEGMENTS.index(n) for n in ("LeftFoot", "LeftLowerLeg", "RightLowerLeg", "RightFoot")
+    }

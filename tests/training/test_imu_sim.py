@@ -1,6 +1,7 @@
 """Property tests of the paper 000 simulation that can fail: rest, known spin, gyro integration."""
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -116,3 +117,46 @@ def test_mirrored_kinematics_are_those_of_the_mirrored_mocap(data_dir) -> None:
         np.testing.assert_allclose(getattr(got, name), getattr(expected, name), atol=1e-6, err_msg=name)
     # and it is not the identity: the left foot's angular velocity changed
     assert not np.allclose(expected.gyr_rads[:, 0], original.gyr_rads[:, 0], atol=0.1)
+
+
+def _walk_trajectory(data_dir, frames: int = 600):
+    from service.core.skeleton import functional_frames
+    from training.data.catalog import mocap_entries
+    from training.data.mocap import geometric_trajectories
+
+    entry = next(e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07")
+    traj, _ = functional_frames(geometric_trajectories(data_dir / entry.path, entry))
+    return SegmentTrajectories(
+        traj.R_world_segment[:frames], traj.origin_m[:frames], traj.midpoint_m[:frames], traj.sample_rate_hz
+    )
+
+
+def test_a_braced_knee_keeps_the_leg_rigid_and_the_rest_of_the_body_as_recorded(data_dir) -> None:
+    """``stiffened_knee``: with keep 0 the shank turns with the thigh, the foot stays rigid on the shank, the bone
+    lengths hold and the other segments are untouched; with keep 1 nothing changes."""
+    from training.data.imu_sim import stiffened_knee
+
+    traj = _walk_trajectory(data_dir)
+    same = stiffened_knee(traj, "left", 1.0)
+    for name in ("R_world_segment", "origin_m", "midpoint_m"):
+        np.testing.assert_allclose(getattr(same, name), getattr(traj, name), atol=1e-9, err_msg=name)
+
+    braced = stiffened_knee(traj, "left", 0.0)
+    R, R0 = braced.R_world_segment, traj.R_world_segment
+    rel = np.einsum("tji,tjk->tik", R[:, 2], R[:, 1])  # thigh → shank: the identity when braced
+    np.testing.assert_allclose(rel, np.broadcast_to(np.eye(3), rel.shape), atol=1e-9)
+    foot_on_shank = np.einsum("tji,tjk->tik", R[:, 1], R[:, 0])
+    np.testing.assert_allclose(foot_on_shank, np.einsum("tji,tjk->tik", R0[:, 1], R0[:, 0]), atol=1e-9)
+    knee = traj.origin_m[:, 1]
+    for new, old in ((braced.midpoint_m[:, 1], traj.midpoint_m[:, 1]), (braced.origin_m[:, 0], traj.origin_m[:, 0])):
+        np.testing.assert_allclose(np.linalg.norm(new - knee, axis=1), np.linalg.norm(old - knee, axis=1), atol=1e-9)
+    untouched = [2, 3, 4, 5, 6]
+    np.testing.assert_array_equal(R[:, untouched], R0[:, untouched])
+    np.testing.assert_array_equal(braced.midpoint_m[:, untouched], traj.midpoint_m[:, untouched])
+    # and walking really bends the knee: the recorded shank turns away from its thigh by tens of degrees
+    knee_angle = Rotation.from_matrix(np.einsum("tji,tjk->tik", R0[:, 2], R0[:, 1])).magnitude()
+    assert np.degrees(knee_angle.max()) > 40.0
+    with pytest.raises(ValueError, match="side must be"):
+        stiffened_knee(traj, "middle", 0.0)
+    with pytest.raises(ValueError, match="keep must be"):
+        stiffened_knee(traj, "right", 1.5)

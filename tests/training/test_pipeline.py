@@ -60,9 +60,10 @@ def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
     assert champion.run_id == run_id
 
     # A second run on the same evaluation: champion moves iff its accuracy is strictly higher. It averages over
-    # turns (about gravity for the leg classes only), which its manifest records.
+    # turns (about gravity for the leg classes only), which its manifest records, and trains on braced knees too.
     legs = "[LeftLowerLeg,LeftUpperLeg,RightUpperLeg,RightLowerLeg]"
     averaged = ["train.quarter_turns=true", "train.gravity_turns=2", f"train.gravity_turn_segments={legs}"]
+    averaged.append("augmentation.stiff_knee_share=0.2")
     cfg2 = load_config(
         REPO / "training/configs/i2s_assignment.yaml", TINY + ["tracking.experiment=test-i2s", *averaged]
     )
@@ -72,6 +73,15 @@ def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
     acc2 = client.get_run(run2).data.metrics["test_accuracy"]
     now = client.get_model_version_by_alias(cfg.registered_model, "champion").run_id
     assert now == (run2 if acc2 > acc1 else run_id)
+
+    def datasets(run_id: str) -> dict[str, str]:
+        inputs = client.get_run(run_id).inputs.dataset_inputs
+        return {i.tags[0].value: i.dataset.name for i in inputs}
+
+    # the braced-knee variants joined training and validation; the test set is the recorded clips, as before
+    first, second = datasets(run_id), datasets(run2)
+    assert first["test"] == second["test"]
+    assert first["training"] != second["training"] and first["validation"] != second["validation"]
     exporter = read_manifest(export_run(run2, tmp_path / "averaged", version="0.0.2") / "manifest.json").exporter
     assert exporter["gravity_turn_segments"] == legs.strip("[]").split(",") and exporter["gravity_turns"] == 2
     # `evaluate` on a shipped float32 file re-tags its registered version with the newer evaluation

@@ -93,3 +93,48 @@ def test_training_mixes_real_windows_and_refuses_them_for_alignment(walk_clips, 
     align = cfg.model_copy(update={"task": "alignment"})
     with pytest.raises(ValueError, match="alignment labels"):
         train(align, walk_clips[2:], walk_clips[:2], real=real)
+
+
+def test_stiff_knee_variants_follow_their_clip_and_take_their_share(
+    data_dir: Path, kinematics_cache: Path, tmp_path: Path
+) -> None:
+    """Two variants per walking clip (left and right knee braced), rebuilt identically from the cache; in the
+    LOSO split they go where their recorded clip goes and never into the test set; draws give them their share."""
+    from training.data.mocap import stiff_knee_variants
+    from training.data.split import load_pack, save_pack, split_clips
+    from training.data.windows import _draw_probabilities
+
+    entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group in ("cmu_07", "cmu_05", "cmu_02")]
+    clips = build_kinematics(data_dir, entries, kinematics_cache)
+    variants = stiff_knee_variants(data_dir, clips, kinematics_cache, keep_max=0.4, seed=0)
+    assert len(variants) == 2 * len(clips)
+    assert {v.variant.split("-")[1] for v in variants} == {"left", "right"}
+    assert all(0.0 <= float(v.variant.split("-")[2]) <= 0.4 for v in variants)
+    again = stiff_knee_variants(data_dir, clips, kinematics_cache, keep_max=0.4, seed=0)
+    assert [v.digest for v in again] == [v.digest for v in variants]
+    np.testing.assert_array_equal(again[0].kin.gyr_rads, variants[0].kin.gyr_rads)
+    packed = load_pack(save_pack(variants[:2], tmp_path / "variants.npz"))  # a pack carries them to `fit`
+    assert [(c.digest, c.variant, c.source_digest) for c in packed] == [
+        (c.digest, c.variant, c.source_digest) for c in variants[:2]
+    ]
+    # a braced left knee changes the left shank, not the right one
+    source = next(c for c in clips if c.digest == variants[0].source_digest)
+    assert not np.allclose(variants[0].kin.gyr_rads[:, 1], source.kin.gyr_rads[:, 1], atol=0.1)
+    np.testing.assert_allclose(variants[0].kin.gyr_rads[:, 5], source.kin.gyr_rads[:, 5], atol=1e-9)
+
+    train_clips, val_clips, test_clips = split_clips(clips + variants, ["cmu_07"], 0.3, seed=0)
+    recorded_train, recorded_val, recorded_test = split_clips(clips, ["cmu_07"], 0.3, seed=0)
+    assert [c.digest for c in test_clips] == [c.digest for c in recorded_test]  # the test set is as recorded
+    for part, recorded in ((train_clips, recorded_train), (val_clips, recorded_val)):
+        sources = {c.digest for c in recorded}
+        assert [c.digest for c in part if not c.variant] == [c.digest for c in recorded]
+        assert {c.source_digest for c in part if c.variant} == sources
+        assert sum(bool(c.variant) for c in part) == 2 * len(recorded)
+
+    p = _draw_probabilities(train_clips, 0.2)
+    assert p.sum() == pytest.approx(1.0)
+    assert p[[bool(c.variant) for c in train_clips]].sum() == pytest.approx(0.2)
+    with pytest.raises(ValueError, match="share in"):
+        _draw_probabilities(train_clips, 0.0)
+    sampler = WindowSampler(train_clips, Augmentation(stiff_knee_share=0.2))
+    assert sampler.sample(np.random.default_rng(0), 32).imu.shape == (32, 128, 6)

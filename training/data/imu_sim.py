@@ -114,6 +114,37 @@ def mirrored(kin: SegmentKinematics) -> SegmentKinematics:
     )
 
 
+# Foot, shank and thigh of each leg, in ``SEGMENTS`` order.
+LEG_SEGMENTS = {"left": (0, 1, 2), "right": (6, 5, 4)}
+
+
+def stiffened_knee(traj: SegmentTrajectories, side: str, keep: float) -> SegmentTrajectories:
+    """The clip with one knee braced: only ``keep`` (0–1) of its flexion is left (our addition, not paper 000).
+
+    Rehabilitation users walk with braced or stiff knees (the capacitive data set's ``walk_stiffknee`` trials);
+    no CMU clip shows it. The shank's rotation relative to the thigh is scaled along its geodesic,
+    R_shank' = R_thigh · exp(keep · log(R_thighᵀ R_shank)), about the knee, and the foot is carried rigidly
+    with the shank. The pelvis, the thigh and the other leg are untouched, so each sensor's motion is
+    self-consistent while the body's contact with the ground is not (no hip hiking or circumduction: the
+    swing foot may pass below the floor).
+    """
+    if side not in LEG_SEGMENTS:
+        raise ValueError(f"side must be one of {sorted(LEG_SEGMENTS)}, got {side!r}")
+    if not 0.0 <= keep <= 1.0:
+        raise ValueError(f"keep must be in [0, 1], got {keep}")
+    foot, shank, thigh = LEG_SEGMENTS[side]
+    R, origin, mid = traj.R_world_segment.copy(), traj.origin_m.copy(), traj.midpoint_m.copy()
+    relative = np.einsum("tji,tjk->tik", R[:, thigh], R[:, shank])
+    scaled = Rotation.from_rotvec(keep * Rotation.from_matrix(relative).as_rotvec()).as_matrix()
+    new_shank = R[:, thigh] @ scaled
+    turn = new_shank @ np.transpose(R[:, shank], (0, 2, 1))  # world-frame change of the shank's orientation
+    knee = origin[:, shank]
+    for points in (mid[:, shank], origin[:, foot], mid[:, foot]):
+        points[:] = knee + np.einsum("tij,tj->ti", turn, points - knee)
+    R[:, shank], R[:, foot] = new_shank, turn @ R[:, foot]
+    return SegmentTrajectories(R, origin, mid, traj.sample_rate_hz)
+
+
 # ---- alignments, eq. 8 ------------------------------------------------------------------------------
 
 

@@ -19,7 +19,7 @@ from service.core.bvh import read_bvh
 from service.core.kinematics import forward_kinematics
 from service.core.skeleton import SegmentTrajectories, functional_frames, segment_trajectories, skeleton_map_for
 from training.data.catalog import METRES_PER_UNIT, CatalogEntry
-from training.data.imu_sim import SegmentKinematics, segment_kinematics
+from training.data.imu_sim import LEG_SEGMENTS, SegmentKinematics, segment_kinematics, stiffened_knee
 
 log = logging.getLogger(__name__)
 
@@ -40,10 +40,16 @@ class Clip:
     entry: CatalogEntry
     kin: SegmentKinematics
     digest: str
+    variant: str = ""  # "" for the clip as recorded; else how it was altered (``stiff_knee_variants``)
 
     @property
     def n_samples(self) -> int:
         return self.kin.gyr_rads.shape[0]
+
+    @property
+    def source_digest(self) -> str:
+        """The digest of the recorded clip this one comes from (its own digest if it is not a variant)."""
+        return self.digest.removesuffix(f"-{self.variant}") if self.variant else self.digest
 
 
 def clip_digest(bvh_path: Path, params: KinematicsParams) -> str:
@@ -67,23 +73,75 @@ def compute_kinematics(bvh_path: Path, entry: CatalogEntry, params: KinematicsPa
     return segment_kinematics(traj, params.sample_rate_hz, params.cutoff_hz, params.filter_order)
 
 
+def compute_variant_kinematics(
+    bvh_path: Path, entry: CatalogEntry, params: KinematicsParams, side: str, keep: float
+) -> SegmentKinematics:
+    """``compute_kinematics`` of the clip with one knee braced (``stiffened_knee``)."""
+    traj, _ = functional_frames(geometric_trajectories(bvh_path, entry), foot_flat=entry.activity != "run")
+    traj = stiffened_knee(traj, side, keep)
+    return segment_kinematics(traj, params.sample_rate_hz, params.cutoff_hz, params.filter_order)
+
+
+def _cached(path: Path, compute) -> SegmentKinematics:
+    if path.exists():
+        with np.load(path) as z:
+            return SegmentKinematics(
+                **{k: z[k] for k in z.files if k != "sample_rate_hz"}, sample_rate_hz=float(z["sample_rate_hz"])
+            )
+    kin = compute()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **{k: v for k, v in kin.__dict__.items()})
+    tmp.rename(path)
+    return kin
+
+
 def _load_or_compute(args: tuple[Path, CatalogEntry, KinematicsParams, Path]) -> Clip:
     data_dir, entry, params, cache_dir = args
     bvh_path = data_dir / entry.path
     digest = clip_digest(bvh_path, params)
-    cached = cache_dir / f"{digest}.npz"
-    if cached.exists():
-        with np.load(cached) as z:
-            kin = SegmentKinematics(
-                **{k: z[k] for k in z.files if k != "sample_rate_hz"}, sample_rate_hz=float(z["sample_rate_hz"])
-            )
-    else:
-        kin = compute_kinematics(bvh_path, entry, params)
-        cache_dir.mkdir(parents=True, exist_ok=True)
-        tmp = cached.with_suffix(".tmp.npz")
-        np.savez(tmp, **{k: v for k, v in kin.__dict__.items()})
-        tmp.rename(cached)
+    kin = _cached(cache_dir / f"{digest}.npz", lambda: compute_kinematics(bvh_path, entry, params))
     return Clip(entry, kin, digest)
+
+
+def _load_or_compute_variant(args: tuple[Path, Clip, KinematicsParams, Path, str, float]) -> Clip:
+    data_dir, clip, params, cache_dir, side, keep = args
+    variant = f"stiffknee-{side}-{keep:.3f}"
+    digest = f"{clip.digest}-{variant}"
+    kin = _cached(
+        cache_dir / f"{digest}.npz",
+        lambda: compute_variant_kinematics(data_dir / clip.entry.path, clip.entry, params, side, keep),
+    )
+    return Clip(clip.entry, kin, digest, variant)
+
+
+def stiff_knee_variants(
+    data_dir: Path,
+    clips: list[Clip],
+    cache_dir: Path,
+    keep_max: float,
+    seed: int,
+    params: KinematicsParams = KinematicsParams(),
+    workers: int = 2,
+) -> list[Clip]:
+    """Each walking clip twice more, once with the left and once with the right knee braced, cached.
+
+    The share of flexion kept is uniform in [0, ``keep_max``], drawn per clip and side from ``seed`` and the
+    clip's digest, so the same config always builds the same variants.
+    """
+    jobs = []
+    for clip in clips:
+        if clip.entry.activity != "walk" or clip.variant:
+            continue
+        rng = np.random.default_rng([seed, int(clip.digest[:12], 16)])
+        for side in LEG_SEGMENTS:
+            jobs.append((data_dir, clip, params, cache_dir, side, round(float(rng.uniform(0.0, keep_max)), 3)))
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        variants = list(
+            tqdm(pool.map(_load_or_compute_variant, jobs), total=len(jobs), desc="stiff-knee variants", unit="clip")
+        )
+    log.info("%d stiff-knee variants of %d walking clips", len(variants), len(jobs) // 2)
+    return variants
 
 
 def build_kinematics(

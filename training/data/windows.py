@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
 from service.core.assignment import is_moving
@@ -41,6 +41,10 @@ class Augmentation(BaseModel):
     acc_noise_std_mps2: float = 1.0  # paper 000 §2.4.2: variance 1 m²/s⁴
     gyr_noise_std_rads: float = 0.0
     mirror: bool = False  # also draw from every clip's mirror image, left and right swapped (``mirrored``)
+    # Share of windows drawn from the walking clips' stiff-knee variants (``stiffened_knee``; 0: none built),
+    # and the most knee flexion such a variant keeps.
+    stiff_knee_share: float = Field(0.0, ge=0.0, lt=1.0)
+    stiff_knee_keep_max: float = Field(0.4, ge=0.0, le=1.0)
 
 
 @dataclass(frozen=True)
@@ -53,9 +57,10 @@ class Batch:
 class _Stacked:
     """All clips' kinematics concatenated along time, ``(N, 7, 3)`` each, with clip offsets."""
 
-    def __init__(self, clips: list[Clip]) -> None:
+    def __init__(self, clips: list[Clip], variant_share: float = 0.0) -> None:
         if not clips:
             raise ValueError("no clips to draw windows from")
+        self.draw_p = _draw_probabilities(clips, variant_share)
         self.lin_acc = np.concatenate([c.kin.lin_acc_mps2 for c in clips])
         self.up = np.concatenate([c.kin.up_mps2 for c in clips])
         self.gyr = np.concatenate([c.kin.gyr_rads for c in clips])
@@ -72,6 +77,22 @@ class _Stacked:
         return tuple((1 - w) * a[i0, s] + w * a[i1, s] for a in (self.lin_acc, self.up, self.gyr, self.ang_acc))
 
 
+def _draw_probabilities(clips: list[Clip], variant_share: float) -> np.ndarray:
+    """Per-clip draw probabilities: by length, with the variants together taking ``variant_share`` of draws."""
+    lengths = np.array([c.n_samples for c in clips], dtype=np.float64)
+    is_variant = np.array([bool(c.variant) for c in clips])
+    if not is_variant.any():
+        return lengths / lengths.sum()
+    if is_variant.all() or variant_share <= 0.0:
+        raise ValueError(
+            f"clip variants need recorded clips beside them and a share in (0, 1); got {int(is_variant.sum())} "
+            f"variants of {len(clips)} clips and share {variant_share}"
+        )
+    share = np.where(is_variant, variant_share, 1.0 - variant_share)
+    group_total = np.where(is_variant, lengths[is_variant].sum(), lengths[~is_variant].sum())
+    return lengths / group_total * share
+
+
 def _random_tilt(rng: np.random.Generator, n: int, tilt_deg: float) -> np.ndarray:
     axis = rng.normal(size=(n, 3))
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)
@@ -85,8 +106,8 @@ class WindowSampler:
     def __init__(self, clips: list[Clip], aug: Augmentation, spec: SensorSpec = SensorSpec()) -> None:
         self.clips = [c for c in clips if c.n_samples >= WINDOW_SAMPLES + 1]
         if aug.mirror:
-            self.clips += [Clip(c.entry, mirrored(c.kin), f"{c.digest}-mirror") for c in self.clips]
-        self.stack = _Stacked(self.clips)
+            self.clips += [Clip(c.entry, mirrored(c.kin), f"{c.digest}-mirror", c.variant) for c in self.clips]
+        self.stack = _Stacked(self.clips, aug.stiff_knee_share)
         self.aug, self.spec = aug, spec
 
     def _alignments(self, rng: np.random.Generator, seg: np.ndarray) -> np.ndarray:
@@ -102,7 +123,7 @@ class WindowSampler:
 
     def sample(self, rng: np.random.Generator, batch_size: int) -> Batch:
         aug, st = self.aug, self.stack
-        clip = rng.choice(len(st.lengths), size=batch_size, p=st.lengths / st.lengths.sum())
+        clip = rng.choice(len(st.lengths), size=batch_size, p=st.draw_p)
         speed = rng.uniform(aug.speed_min, aug.speed_max, batch_size)
         speed = np.minimum(speed, (st.lengths[clip] - 1) / (WINDOW_SAMPLES - 1))  # short clips: slower only
         span = (WINDOW_SAMPLES - 1) * speed
@@ -135,18 +156,21 @@ def grid_batches(
     batch_size: int = 2048,
     n_angles: int = 8,
     spec: SensorSpec = SensorSpec(),
+    segments: list[tuple[int, ...]] | None = None,
 ) -> Iterator[tuple[Batch, np.ndarray]]:
     """Every window (hop 16) × segment × eq. 8 alignment of ``clips``; yields (batch, clip index per row).
 
     Only the paper's accelerometer noise (``aug.acc_noise_std_mps2``) and quantisation are applied.
+    ``segments`` (one tuple per clip) scores only those segments of each clip.
     """
     rng = np.random.default_rng(seed)
     grids = [alignment_grid(s, n_angles) for s in range(N_SEGMENTS)]
     quats = [quat_from_matrix(g).astype(np.float32) for g in grids]
     rows: list[tuple[int, int, int, int]] = []  # (clip, start, segment, alignment)
     for ci, clip in enumerate(clips):
+        scored = range(N_SEGMENTS) if segments is None else segments[ci]
         for start in range(0, clip.n_samples - WINDOW_SAMPLES + 1, HOP_SAMPLES):
-            rows += [(ci, start, s, a) for s in range(N_SEGMENTS) for a in range(n_angles**2)]
+            rows += [(ci, start, s, a) for s in scored for a in range(n_angles**2)]
     table = np.array(rows, dtype=np.int64).reshape(-1, 4)
     for lo in range(0, len(table), batch_size):
         part = table[lo : lo + batch_size]
