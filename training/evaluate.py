@@ -18,7 +18,8 @@ from service.core.assignment import is_moving, joint_assignment, turns_about_ver
 from service.core.recordings import RealRecording
 from service.core.segments import SEGMENTS
 from service.core.windowing import sliding_windows
-from training.data.mocap import Clip
+from training.data.imu_sim import LEG_CHAIN
+from training.data.mocap import Clip, braced_side
 from training.data.windows import Augmentation, Batch, grid_batches
 from training.metrics import alignment_metrics, assignment_metrics, confusion_matrix
 
@@ -94,9 +95,10 @@ def evaluate_braced_knees(
     """Assignment of the braced leg's shank and foot in stiff-knee variants (``stiff_knee_variants``) of held-out
     clips: whether a model tells a shank that swings like a thigh from the thigh. Only those two segments
     change in a variant, so only they are scored, in every grid window and alignment as ``evaluate_simulated``."""
-    braced = {"left": (SEGMENTS.index("LeftLowerLeg"), SEGMENTS.index("LeftFoot"))}
-    braced["right"] = (SEGMENTS.index("RightLowerLeg"), SEGMENTS.index("RightFoot"))
-    segments = [braced[c.variant.split("-")[1]] for c in clips]
+    segments = []
+    for clip in clips:
+        foot, shank, _ = LEG_CHAIN[braced_side(clip)]
+        segments.append((shank, foot))
     return evaluate_simulated(predict, "assignment", clips, aug, max_windows, segments)
 
 

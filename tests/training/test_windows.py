@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -100,7 +101,7 @@ def test_stiff_knee_variants_follow_their_clip_and_take_their_share(
 ) -> None:
     """Two variants per walking clip (left and right knee braced), rebuilt identically from the cache; in the
     LOSO split they go where their recorded clip goes and never into the test set; draws give them their share."""
-    from training.data.mocap import stiff_knee_variants
+    from training.data.mocap import braced_side, stiff_knee_variants
     from training.data.split import load_pack, save_pack, split_clips
     from training.data.windows import _draw_probabilities
 
@@ -108,7 +109,9 @@ def test_stiff_knee_variants_follow_their_clip_and_take_their_share(
     clips = build_kinematics(data_dir, entries, kinematics_cache)
     variants = stiff_knee_variants(data_dir, clips, kinematics_cache, keep_max=0.4, seed=0)
     assert len(variants) == 2 * len(clips)
-    assert {v.variant.split("-")[1] for v in variants} == {"left", "right"}
+    assert {braced_side(v) for v in variants} == {"left", "right"}
+    with pytest.raises(ValueError, match="not a stiff-knee variant"):
+        braced_side(dataclasses.replace(variants[0], variant="mirror-left-0.1"))
     assert all(0.0 <= float(v.variant.split("-")[2]) <= 0.4 for v in variants)
     again = stiff_knee_variants(data_dir, clips, kinematics_cache, keep_max=0.4, seed=0)
     assert [v.digest for v in again] == [v.digest for v in variants]

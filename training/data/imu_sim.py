@@ -115,7 +115,7 @@ def mirrored(kin: SegmentKinematics) -> SegmentKinematics:
 
 
 # Foot, shank and thigh of each leg, in ``SEGMENTS`` order.
-LEG_SEGMENTS = {"left": (0, 1, 2), "right": (6, 5, 4)}
+LEG_CHAIN = {"left": (0, 1, 2), "right": (6, 5, 4)}
 
 
 def stiffened_knee(traj: SegmentTrajectories, side: str, keep: float) -> SegmentTrajectories:
@@ -128,11 +128,11 @@ def stiffened_knee(traj: SegmentTrajectories, side: str, keep: float) -> Segment
     self-consistent while the body's contact with the ground is not (no hip hiking or circumduction: the
     swing foot may pass below the floor).
     """
-    if side not in LEG_SEGMENTS:
-        raise ValueError(f"side must be one of {sorted(LEG_SEGMENTS)}, got {side!r}")
+    if side not in LEG_CHAIN:
+        raise ValueError(f"side must be one of {sorted(LEG_CHAIN)}, got {side!r}")
     if not 0.0 <= keep <= 1.0:
         raise ValueError(f"keep must be in [0, 1], got {keep}")
-    foot, shank, thigh = LEG_SEGMENTS[side]
+    foot, shank, thigh = LEG_CHAIN[side]
     R, origin, mid = traj.R_world_segment.copy(), traj.origin_m.copy(), traj.midpoint_m.copy()
     relative = np.einsum("tji,tjk->tik", R[:, thigh], R[:, shank])
     scaled = Rotation.from_rotvec(keep * Rotation.from_matrix(relative).as_rotvec()).as_matrix()

@@ -19,7 +19,7 @@ from service.core.bvh import read_bvh
 from service.core.kinematics import forward_kinematics
 from service.core.skeleton import SegmentTrajectories, functional_frames, segment_trajectories, skeleton_map_for
 from training.data.catalog import METRES_PER_UNIT, CatalogEntry
-from training.data.imu_sim import LEG_SEGMENTS, SegmentKinematics, segment_kinematics, stiffened_knee
+from training.data.imu_sim import LEG_CHAIN, SegmentKinematics, segment_kinematics, stiffened_knee
 
 log = logging.getLogger(__name__)
 
@@ -104,9 +104,20 @@ def _load_or_compute(args: tuple[Path, CatalogEntry, KinematicsParams, Path]) ->
     return Clip(entry, kin, digest)
 
 
+_STIFF_KNEE = "stiffknee"
+
+
+def braced_side(clip: Clip) -> str:
+    """The leg ("left" or "right") whose knee a ``stiff_knee_variants`` clip braces."""
+    kind, side, _ = clip.variant.split("-")
+    if kind != _STIFF_KNEE:
+        raise ValueError(f"{clip.entry.path} is not a stiff-knee variant: {clip.variant!r}")
+    return side
+
+
 def _load_or_compute_variant(args: tuple[Path, Clip, KinematicsParams, Path, str, float]) -> Clip:
     data_dir, clip, params, cache_dir, side, keep = args
-    variant = f"stiffknee-{side}-{keep:.3f}"
+    variant = f"{_STIFF_KNEE}-{side}-{keep:.3f}"
     digest = f"{clip.digest}-{variant}"
     kin = _cached(
         cache_dir / f"{digest}.npz",
@@ -134,7 +145,7 @@ def stiff_knee_variants(
         if clip.entry.activity != "walk" or clip.variant:
             continue
         rng = np.random.default_rng([seed, int(clip.digest[:12], 16)])
-        for side in LEG_SEGMENTS:
+        for side in LEG_CHAIN:
             jobs.append((data_dir, clip, params, cache_dir, side, round(float(rng.uniform(0.0, keep_max)), 3)))
     with ProcessPoolExecutor(max_workers=workers) as pool:
         variants = list(
