@@ -19,7 +19,7 @@ from service.core.recordings import RealRecording
 from service.core.segments import SEGMENTS
 from service.core.windowing import sliding_windows
 from training.data.imu_sim import LEG_CHAIN
-from training.data.mocap import Clip, braced_side
+from training.data.mocap import Clip, as_recorded, braced_side
 from training.data.windows import Augmentation, Batch, grid_batches
 from training.metrics import alignment_metrics, assignment_metrics, confusion_matrix
 
@@ -227,8 +227,8 @@ def population_offset_baseline(
         return CanonicalFrame()(torch.from_numpy(batch.imu).double()).numpy()
 
     fit_aug = Augmentation(alignment="grid", acc_noise_std_mps2=aug.acc_noise_std_mps2)
-    recorded = [c for c in train_clips if not c.variant]  # the reference is fitted on gait as recorded
-    fit = WindowSampler(recorded, fit_aug).sample(np.random.default_rng(EVAL_SEED), n_fit_windows)
+    # the reference is fitted on gait as recorded
+    fit = WindowSampler(as_recorded(train_clips), fit_aug).sample(np.random.default_rng(EVAL_SEED), n_fit_windows)
     R_si = Rotation.from_quat(fit.q_segment_imu, scalar_first=True).as_matrix()
     r_fit = Rotation.from_matrix(R_si @ np.transpose(canonical(fit), (0, 2, 1)))  # R_segment_canonical
     centres = [_folded_mean(r_fit[fit.segment == k]).as_matrix() for k in range(len(SEGMENTS))]

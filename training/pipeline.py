@@ -18,7 +18,7 @@ from mlflow.tracking import MlflowClient
 
 from service.core.recordings import RealRecording, read_all_real, read_recording
 from training.config import ExperimentConfig, flatten
-from training.data.mocap import KINEMATICS_VERSION, Clip, dataset_digest
+from training.data.mocap import KINEMATICS_VERSION, Clip, as_recorded, dataset_digest
 from training.data.split import load_clips, split_clips
 from training.data.windows import Augmentation, RealWindowSampler, WindowSampler
 from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
@@ -110,8 +110,7 @@ def run_training(
         mlflow.log_metrics({"best_epoch": result.best_epoch, "train_wall_time_s": result.wall_time_s})
         mlflow.log_artifact(str(learning_curves_png(result.history, tmp / "learning_curves.png", cfg.name)), "plots")
         onnx_path = export_onnx(result.model, cfg.task, tmp / "model.onnx")
-        recorded = [c for c in val_clips if not c.variant]
-        golden_imu = WindowSampler(recorded, Augmentation()).sample(np.random.default_rng(123), 8).imu
+        golden_imu = WindowSampler(as_recorded(val_clips), Augmentation()).sample(np.random.default_rng(123), 8).imu
         golden = golden_pair(result.model, golden_imu)
         np.savez(tmp / "golden.npz", **golden)
         parity = onnx_parity(onnx_path, golden)

@@ -52,6 +52,11 @@ class Clip:
         return self.digest.removesuffix(f"-{self.variant}") if self.variant else self.digest
 
 
+def as_recorded(clips: list[Clip]) -> list[Clip]:
+    """The clips as recorded, without their variants."""
+    return [c for c in clips if not c.variant]
+
+
 def clip_digest(bvh_path: Path, params: KinematicsParams) -> str:
     h = hashlib.sha256(bvh_path.read_bytes())
     h.update(f"{params}|v{KINEMATICS_VERSION}".encode())

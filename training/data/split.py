@@ -16,7 +16,7 @@ import numpy as np
 from training.config import ExperimentConfig
 from training.data.catalog import CatalogEntry, mocap_entries
 from training.data.imu_sim import SegmentKinematics
-from training.data.mocap import Clip, KinematicsParams, build_kinematics, stiff_knee_variants
+from training.data.mocap import Clip, KinematicsParams, as_recorded, build_kinematics, stiff_knee_variants
 
 _KIN_FIELDS = [f.name for f in dataclasses.fields(SegmentKinematics) if f.name != "sample_rate_hz"]
 
@@ -40,8 +40,7 @@ def split_clips(
     the test set, which is scored on the clips as recorded.
     """
     variants = [c for c in clips if c.variant]
-    clips = [c for c in clips if not c.variant]
-    train, val, test = _split_recorded(clips, test_subjects, val_fraction, seed)
+    train, val, test = _split_recorded(as_recorded(clips), test_subjects, val_fraction, seed)
     val_sources = {c.digest for c in val}
     test_sources = {c.digest for c in test}
     train += [v for v in variants if v.source_digest not in val_sources | test_sources]
