@@ -14,9 +14,9 @@ import onnxruntime as ort
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from service.core.assignment import is_moving, joint_assignment, turns_about_vertical
+from service.core.assignment import is_moving, joint_assignment, turns_about_vertical, window_joint_assignment
 from service.core.recordings import RealRecording
-from service.core.segments import SEGMENTS
+from service.core.segments import BODY_PART, SEGMENTS
 from service.core.windowing import sliding_windows
 from training.data.imu_sim import LEG_CHAIN
 from training.data.mocap import Clip, as_recorded, braced_side
@@ -64,14 +64,16 @@ def evaluate_simulated(
 ) -> SimEvaluation:
     """All grid windows of ``clips`` (optionally the first ``max_windows``, for quick tests; ``segments``: only
     those segments of each clip)."""
-    segs, preds, quats = [], [], []
+    segs, preds, quats, bodies, log_probs = [], [], [], [], []
     total = 0
     batches = grid_batches(clips, aug, EVAL_SEED, segments=segments)
-    for batch, _ in tqdm(batches, desc=f"evaluate {task}", unit="batch", leave=False):
+    for batch, body in tqdm(batches, desc=f"evaluate {task}", unit="batch", leave=False):
         out = predict(batch.imu)
         segs.append(batch.segment)
         if task == "assignment":
             preds.append(out.argmax(-1))
+            bodies.append(body)
+            log_probs.append(np.log(np.clip(out, 1e-12, 1.0)))
         else:
             preds.append(out[np.arange(len(batch.segment)), batch.segment])
             quats.append(batch.q_segment_imu)
@@ -84,9 +86,33 @@ def evaluate_simulated(
         digest += "-segments" + hashlib.sha256(repr(segments).encode()).hexdigest()[:8]
     if task == "assignment":
         pred = np.concatenate(preds)
-        return SimEvaluation(assignment_metrics(seg, pred), seg, pred, confusion_matrix(seg, pred), digest)
+        metrics = assignment_metrics(seg, pred)
+        if segments is None:  # every segment of a body is scored: one-to-one per body, as on real recordings
+            joint = body_joint_assignment(np.concatenate(bodies), np.concatenate(log_probs))
+            whole = joint >= -1  # -2: the body was cut short by max_windows
+            metrics["window_joint_accuracy"] = float(np.mean(joint[whole] == seg[whole]))
+        return SimEvaluation(metrics, seg, pred, confusion_matrix(seg, pred), digest)
     metrics, err = alignment_metrics(seg, np.concatenate(quats), np.concatenate(preds))
     return SimEvaluation(metrics, seg, err, None, digest)
+
+
+def body_joint_assignment(body: np.ndarray, log_probs: np.ndarray) -> np.ndarray:
+    """Per row, its class in the one-to-one assignment of its body's rows (``grid_batches``); -2 for the rows of
+    a body that has fewer than all segments (cut short by ``max_windows``).
+
+    A body's rows come in class order; they are shuffled first, so that rows with tied log-probabilities (one
+    saturated favourite, clipped at 1e-12) are not resolved in the truth's favour.
+    """
+    out = np.full(len(body), -2, dtype=np.int64)
+    order = np.argsort(body, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(body[order]) != 0])
+    rng = np.random.default_rng(EVAL_SEED)
+    for rows in np.split(order, starts[1:]):
+        if len(rows) == log_probs.shape[1]:
+            rows = rows[rng.permutation(len(rows))]
+            moment = window_joint_assignment([log_probs[r][None] for r in rows], [np.ones(1, bool)] * len(rows))
+            out[rows] = np.concatenate(moment)
+    return out
 
 
 def evaluate_braced_knees(
@@ -111,40 +137,55 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     Windows whose gyroscope is still (``is_moving``) are counted, not scored: they carry no gait
     information (DESIGN.md §5). Per recording and per sensor (``accuracy/<recording>/<segment>``) too, and per
     recording the share of moving leg windows that turn about the vertical (``turns_about_vertical``).
-    Returns metrics and the confusion matrix of moving windows.
+    Two answers per moving window: the window's own (``real_accuracy``, paper 000's per-window figure) and the
+    one-to-one answer of the windows the recording's sensors took at that moment (``real_window_joint_*``,
+    ``window_joint_assignment``), which is what ``/v1/imu/assign`` returns per window.
+    Returns metrics and the confusion matrix of moving windows (the windows' own answers).
     """
-    y_true, y_pred, metrics = [], [], {}
+    y_true, y_pred, y_joint, metrics = [], [], [], {}
     joint_correct = joint_total = still = 0
     for rec in recordings:
         sensors = [s for s in rec.sensors if s.segment is not None]
-        log_probs, twisting = [], []
+        log_probs, moving, twisting = [], [], []
         for s in sensors:
             windows = sliding_windows(s.imu.astype(np.float32))
-            moving = is_moving(windows)
-            still += int((~moving).sum())
+            moving.append(is_moving(windows))
+            still += int((~moving[-1]).sum())
             if s.segment in LEG_SEGMENTS:
-                twisting.append(turns_about_vertical(windows[moving]))
-            probs = predict(np.ascontiguousarray(windows[moving]))
-            y_true.append(np.full(len(probs), s.segment))
-            y_pred.append(probs.argmax(-1))
-            if len(probs):
-                metrics[f"accuracy/{rec.name}/{SEGMENTS[s.segment]}"] = float(np.mean(y_pred[-1] == s.segment))
+                twisting.append(turns_about_vertical(windows[moving[-1]]))
+            probs = np.zeros((len(windows), len(SEGMENTS)), dtype=np.float32)
+            probs[moving[-1]] = predict(np.ascontiguousarray(windows[moving[-1]]))
             log_probs.append(np.log(np.clip(probs, 1e-12, 1.0)))
-        if not all(len(lp) for lp in log_probs):
+            y_true.append(np.full(int(moving[-1].sum()), s.segment))
+            y_pred.append(probs[moving[-1]].argmax(-1))
+            if len(y_pred[-1]):
+                metrics[f"accuracy/{rec.name}/{SEGMENTS[s.segment]}"] = float(np.mean(y_pred[-1] == s.segment))
+        # In a random sensor order, so that tied windows are not resolved by the order the reader lists sensors in.
+        order = np.random.default_rng(EVAL_SEED).permutation(len(sensors))
+        at_moment = window_joint_assignment([log_probs[k] for k in order], [moving[k] for k in order])
+        at_moment = [at_moment[k] for k in np.argsort(order)]
+        y_joint += [a[m] for a, m in zip(at_moment, moving, strict=True)]
+        if not all(m.any() for m in moving):
             continue
-        joint = joint_assignment(log_probs)
+        joint = joint_assignment([lp[m] for lp, m in zip(log_probs, moving, strict=True)])
         truth = np.array([s.segment for s in sensors])
         joint_correct += int((joint.segment == truth).sum())
         joint_total += len(sensors)
         metrics[f"joint_correct_fraction/{rec.name}"] = float(np.mean(joint.segment == truth))
         rec_true, rec_pred = np.concatenate(y_true[-len(sensors) :]), np.concatenate(y_pred[-len(sensors) :])
         metrics[f"accuracy/{rec.name}"] = float(np.mean(rec_true == rec_pred))
+        metrics[f"window_joint_accuracy/{rec.name}"] = float(
+            np.mean(rec_true == np.concatenate(y_joint[-len(sensors) :]))
+        )
         if twisting:
             metrics[f"leg_windows_turning_about_vertical/{rec.name}"] = float(np.mean(np.concatenate(twisting)))
         metrics[f"n_windows/{rec.name}"] = float(len(rec_true))
-    yt, yp = np.concatenate(y_true), np.concatenate(y_pred)
+    yt, yp, yj = np.concatenate(y_true), np.concatenate(y_pred), np.concatenate(y_joint)
     overall = assignment_metrics(yt, yp)
     metrics.update({f"real_{k}": v for k, v in overall.items()})
+    part = np.array(BODY_PART + ("unassigned",))  # index -1 (unassigned) reads as the last entry: never right
+    metrics["real_window_joint_accuracy"] = float(np.mean(yt == yj))
+    metrics["real_window_joint_accuracy_ignoring_side"] = float(np.mean(part[yt] == part[yj]))
     metrics["real_joint_assignment_correct_fraction"] = joint_correct / max(joint_total, 1)
     metrics["real_still_windows_skipped"] = float(still)
     return metrics, confusion_matrix(yt, yp)

@@ -212,7 +212,8 @@ def evaluate_shipped(
                 name="real_recordings",
                 command=command,
                 data=f"imu_real recordings not used for training: "
-                f"{', '.join(r.name for r in held_out)}; still windows skipped",
+                f"{', '.join(r.name for r in held_out)}; still windows skipped; real_accuracy: each window on its "
+                "own, real_window_joint_*: one-to-one over the recording's windows at the same moment",
                 metrics=real_metrics,
             )
         )

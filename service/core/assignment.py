@@ -2,7 +2,8 @@
 
 Evidence of a sensor is the sum of log-probabilities over its windows; the one-to-one assignment
 maximising the total is ``scipy.optimize.linear_sum_assignment`` (DESIGN.md §5: per-trial joint
-assignment is right more often than single windows).
+assignment is right more often than single windows). ``window_joint_assignment`` applies the same
+constraint to each moment on its own: the windows that sensors worn together recorded at the same time.
 """
 
 from __future__ import annotations
@@ -71,3 +72,27 @@ def joint_assignment(log_probs: list[np.ndarray], allow_shared: bool = False) ->
     margin = evidence[rows, chosen] - others.max(axis=1) if n_classes > 1 else np.full(n_sensors, np.inf)
     margin = np.where(segment >= 0, margin, 0.0)
     return JointAssignment(segment, evidence, confidence, margin)
+
+
+def window_joint_assignment(log_probs: list[np.ndarray], moving: list[np.ndarray]) -> list[np.ndarray]:
+    """One-to-one assignment per moment: window ``t`` of every sensor is assigned from those windows alone.
+
+    ``log_probs[s]`` is ``(N_s, K)`` for sensor ``s`` and ``moving[s]`` its ``(N_s,)`` mask (``is_moving``);
+    windows with the same index are taken as recorded at the same time. At each index the sensors whose window
+    there moves share out the K segments one-to-one (the answer that maximises their summed log-probability);
+    a still window, or one left over when more than K windows move, gets -1. Paper 000 classifies every window
+    on its own (§2.2) and names the left/right switches that this leaves as future work (§5); the sensors of one
+    body cannot sit on the same segment, so at one moment their windows constrain each other.
+
+    Returns one ``(N_s,)`` int array per sensor.
+    """
+    out = [np.full(len(lp), -1, dtype=np.int64) for lp in log_probs]
+    for t in range(max((len(lp) for lp in log_probs), default=0)):
+        present = [s for s, lp in enumerate(log_probs) if t < len(lp) and moving[s][t]]
+        if not present:
+            continue
+        evidence = np.stack([log_probs[s][t] for s in present])
+        rows, cols = linear_sum_assignment(evidence, maximize=True)
+        for r, c in zip(rows, cols, strict=True):
+            out[present[r]][t] = c
+    return out

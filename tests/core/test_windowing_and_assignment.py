@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from service.core.assignment import is_moving, joint_assignment
+from service.core.assignment import is_moving, joint_assignment, window_joint_assignment
 from service.core.resample import resample_uniform
 from service.core.units import UnitError, to_contract_units
 from service.core.windowing import sliding_windows, window_starts
@@ -45,6 +45,20 @@ def test_joint_assignment_resolves_a_conflict() -> None:
 def test_more_sensors_than_segments_leaves_the_weakest_unassigned() -> None:
     lp = [np.log(np.array([[p, 1 - p]])) for p in (0.9, 0.2, 0.6)]
     assert joint_assignment(lp).segment.tolist() == [0, 1, -1]
+
+
+def test_window_joint_assignment_decides_each_moment_on_its_own() -> None:
+    # Moment 0: both sensors prefer class 0, the second less, so it takes class 1. Moment 1: the first sensor's
+    # window is still, so the second takes its own best class 0. Moment 2 exists for the second sensor only.
+    a = np.log(np.array([[0.9, 0.1], [0.9, 0.1]]))
+    b = np.log(np.array([[0.6, 0.4], [0.6, 0.4], [0.3, 0.7]]))
+    moving = [np.array([True, False]), np.array([True, True, True])]
+    out = window_joint_assignment([a, b], moving)
+    assert [o.tolist() for o in out] == [[0, -1], [1, 0, 1]]
+    # Three moving windows, two classes: the weakest window at that moment is left unassigned.
+    lp = [np.log(np.array([[p, 1 - p]])) for p in (0.9, 0.2, 0.6)]
+    assert [o.tolist() for o in window_joint_assignment(lp, [np.array([True])] * 3)] == [[0], [1], [-1]]
+    assert window_joint_assignment([], []) == []
 
 
 def test_is_moving() -> None:

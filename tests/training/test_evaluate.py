@@ -14,7 +14,7 @@ from service.core.segments import SEGMENTS
 from training.data.catalog import mocap_entries
 from training.data.imu_sim import alignment, imu_readings
 from training.data.mocap import build_kinematics
-from training.evaluate import evaluate_real_alignment
+from training.evaluate import evaluate_real, evaluate_real_alignment
 
 SEGMENT = SEGMENTS.index("LeftLowerLeg")
 
@@ -35,6 +35,61 @@ def recording(data_dir: Path, kinematics_cache: Path) -> tuple[RealRecording, np
 def _constant(R: np.ndarray):
     q = Rotation.from_matrix(R).as_quat(scalar_first=True).astype(np.float32)
     return lambda windows: np.broadcast_to(q, (len(windows), len(SEGMENTS), 4)).copy()
+
+
+def test_window_joint_answers_fix_a_shared_favourite_at_each_moment(recording) -> None:
+    """Two sensors both favour the shank; the one that favours it less is the thigh. Each window alone gets half
+    right; one-to-one at each moment and over the recording get all right."""
+    rec, _ = recording
+    shank = rec.sensors[0]
+    thigh = RealSensor("thigh", shank.imu * np.array([1, 1, 1, 0.5, 0.5, 0.5], dtype=np.float32), SEGMENT + 1)
+    typical = np.linalg.norm(shank.imu[:, 3:], axis=1).mean()
+
+    def predict(windows: np.ndarray) -> np.ndarray:  # the faster a window turns, the surer it is a shank
+        x = np.linalg.norm(windows[..., 3:], axis=-1).mean(axis=1)
+        probs = np.full((len(windows), len(SEGMENTS)), 0.01, dtype=np.float32)
+        probs[:, SEGMENT] = 0.5 + 0.4 * x / (x + typical)
+        probs[:, SEGMENT + 1] = 0.95 - probs[:, SEGMENT]
+        return probs
+
+    two = RealRecording("sim/two", "sim", "cmu_07", "walk", [shank, thigh])
+    m, cm = evaluate_real(predict, [two])
+    assert m["real_n_windows"] > 10
+    assert m["real_accuracy"] == pytest.approx(0.5, abs=0.05)
+    assert m["real_window_joint_accuracy"] == 1.0
+    assert m["window_joint_accuracy/sim/two"] == m["real_window_joint_accuracy"]
+    assert m["real_joint_assignment_correct_fraction"] == 1.0
+    assert cm[SEGMENT + 1, SEGMENT] > 0  # the confusion matrix keeps the windows' own answers
+
+
+def test_body_joint_assignment_resolves_each_body_and_skips_a_cut_one() -> None:
+    from training.evaluate import body_joint_assignment
+
+    eye = np.eye(len(SEGMENTS))
+    favourite = np.log(np.clip(0.5 * eye + 0.5 / len(SEGMENTS), 1e-12, 1))  # row k favours class k
+    body_a = favourite.copy()
+    body_a[1] = np.log(np.full(len(SEGMENTS), 0.1) + 0.3 * eye[0])  # favours class 0, which row 0 favours more
+    log_probs = np.concatenate([body_a, favourite[:3]])
+    body = np.array([5] * 7 + [9] * 3)
+    out = body_joint_assignment(body, log_probs)
+    assert out[:7].tolist() == list(range(7)) and out[7:].tolist() == [-2] * 3
+
+
+def test_simulated_window_joint_accuracy_gets_no_help_from_row_order(data_dir: Path, kinematics_cache) -> None:
+    """A model that answers the same for every window gives one-to-one answers decided by ties: a body's rows are
+    shuffled before they are assigned, so about one in seven is right, as for a guess."""
+    from training.data.windows import Augmentation
+    from training.evaluate import evaluate_simulated
+
+    entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"][:1]
+    clips = build_kinematics(data_dir, entries, kinematics_cache)
+
+    def always_left_shank(imu: np.ndarray) -> np.ndarray:
+        return np.eye(len(SEGMENTS), dtype=np.float32)[np.full(len(imu), SEGMENT)]
+
+    result = evaluate_simulated(always_left_shank, "assignment", clips, Augmentation(), max_windows=7 * 64 * 20 + 5)
+    assert result.metrics["accuracy"] == pytest.approx(1 / 7, abs=1e-3)
+    assert result.metrics["window_joint_accuracy"] == pytest.approx(1 / 7, abs=0.03)
 
 
 def test_the_true_alignment_is_stable_and_upright(recording) -> None:

@@ -42,11 +42,16 @@ def test_sampled_labels_match_the_readings(walk_clips, mirror: bool) -> None:
 
 def test_grid_evaluation_is_deterministic_and_complete(walk_clips) -> None:
     clip = walk_clips[:1]
-    a = [b for b, _ in grid_batches(clip, Augmentation(), seed=3, batch_size=4096)]
+    a = list(grid_batches(clip, Augmentation(), seed=3, batch_size=4096))
     b = [b for b, _ in grid_batches(clip, Augmentation(), seed=3, batch_size=4096)]
     n_windows = len(range(0, clip[0].n_samples - 127, 16))
-    assert sum(len(x.segment) for x in a) == n_windows * 7 * 64
-    np.testing.assert_array_equal(a[0].imu, b[0].imu)
+    assert sum(len(x.segment) for x, _ in a) == n_windows * 7 * 64
+    np.testing.assert_array_equal(a[0][0].imu, b[0].imu)
+    # A body is the seven segments' windows at one moment with one alignment index.
+    segment, body = (np.concatenate(x) for x in zip(*((x.segment, y) for x, y in a), strict=True))
+    assert len(np.unique(body)) == n_windows * 64
+    for k in np.unique(body)[[0, 1, 64, -1]]:
+        assert sorted(segment[body == k].tolist()) == list(range(7))
 
 
 def test_real_windows_are_moving_and_labelled(data_dir: Path) -> None:

@@ -158,20 +158,24 @@ def grid_batches(
     spec: SensorSpec = SensorSpec(),
     segments: list[tuple[int, ...]] | None = None,
 ) -> Iterator[tuple[Batch, np.ndarray]]:
-    """Every window (hop 16) × segment × eq. 8 alignment of ``clips``; yields (batch, clip index per row).
+    """Every window (hop 16) × segment × eq. 8 alignment of ``clips``; yields (batch, body per row).
 
     Only the paper's accelerometer noise (``aug.acc_noise_std_mps2``) and quantisation are applied.
-    ``segments`` (one tuple per clip) scores only those segments of each clip.
+    ``segments`` (one tuple per clip) scores only those segments of each clip. The rows of one body are the
+    windows of a clip's segments at the same moment with the same alignment index: a set of sensors worn
+    together (for ``window_joint_assignment``).
     """
     rng = np.random.default_rng(seed)
     grids = [alignment_grid(s, n_angles) for s in range(N_SEGMENTS)]
     quats = [quat_from_matrix(g).astype(np.float32) for g in grids]
-    rows: list[tuple[int, int, int, int]] = []  # (clip, start, segment, alignment)
+    rows: list[tuple[int, int, int, int, int]] = []  # (clip, start, segment, alignment, body)
+    n_bodies = 0
     for ci, clip in enumerate(clips):
         scored = range(N_SEGMENTS) if segments is None else segments[ci]
         for start in range(0, clip.n_samples - WINDOW_SAMPLES + 1, HOP_SAMPLES):
-            rows += [(ci, start, s, a) for s in scored for a in range(n_angles**2)]
-    table = np.array(rows, dtype=np.int64).reshape(-1, 4)
+            rows += [(ci, start, s, a, n_bodies + a) for s in scored for a in range(n_angles**2)]
+            n_bodies += n_angles**2
+    table = np.array(rows, dtype=np.int64).reshape(-1, 5)
     for lo in range(0, len(table), batch_size):
         part = table[lo : lo + batch_size]
         idx = part[:, 1:2] + np.arange(WINDOW_SAMPLES)
@@ -185,7 +189,7 @@ def grid_batches(
         imu = imu + rng.normal(size=imu.shape) * np.array([aug.acc_noise_std_mps2] * 3 + [0.0] * 3)
         imu = quantise(imu, spec)
         q = np.stack([quats[s][a] for s, a in zip(seg, part[:, 3], strict=True)])
-        yield Batch(imu.astype(np.float32), seg, q), part[:, 0]
+        yield Batch(imu.astype(np.float32), seg, q), part[:, 4]
 
 
 class RealWindowSampler:
