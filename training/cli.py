@@ -150,9 +150,12 @@ def evaluate(
     import mlflow
 
     from training.ship import evaluate_shipped
+    from training.snapshot import log_restore, restore_if_empty
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
+    if report := restore_if_empty(SNAPSHOT, Path("onnx_models")):  # a fresh clone: the runs the manifests name
+        log_restore(report)
     command = f"python -m training.cli evaluate {model_dir}" + (f" --max-windows {max_windows}" if max_windows else "")
     manifest = evaluate_shipped(model_dir, resolve_data_dir(data_dir), cache_dir, command, max_windows)
     for ev in manifest.evaluations:

@@ -31,6 +31,7 @@ from training.evaluate import (
 )
 from training.export import OPSET, OUTPUT_NAMES, PARITY_ATOL, onnx_parity
 from training.plots import confusion_matrix_png
+from training.snapshot import local_run_id
 from training.tracking import record_evaluation
 
 log = logging.getLogger(__name__)
@@ -168,7 +169,8 @@ def evaluate_shipped(
     from training.pipeline import PRIMARY_METRIC, held_out_recordings
 
     manifest = read_manifest(model_dir / "manifest.json")
-    cfg = ExperimentConfig.model_validate(load_run_config(manifest.mlflow["run_id"]))
+    run_id = local_run_id(manifest.mlflow["run_id"])  # the manifest keeps the id of the store it was trained in
+    cfg = ExperimentConfig.model_validate(load_run_config(run_id))
     predict = onnx_predictor(model_dir / "model.onnx")
     evaluations = []
     clips = load_clips(cfg, data_dir, cache_dir)
@@ -187,7 +189,7 @@ def evaluate_shipped(
     prefix = "shipped_int8_" if "quantization" in manifest.exporter else "shipped_"
     if "quantization" not in manifest.exporter:  # the registered model is the float32 one
         metric, _ = PRIMARY_METRIC[cfg.task]
-        record_evaluation(cfg.registered_model, manifest.mlflow["run_id"], metric, sim.metrics[metric], sim.digest)
+        record_evaluation(cfg.registered_model, run_id, metric, sim.metrics[metric], sim.digest)
     metrics_to_log = {f"{prefix}sim_{k}": v for k, v in sim.metrics.items()}
     if cfg.task == "assignment":
         if braced := braced_knee_clips(cfg, test, data_dir, cache_dir):
@@ -222,7 +224,7 @@ def evaluate_shipped(
             png = confusion_matrix_png(
                 cm, Path(tmp) / f"confusion_real_{manifest.version}.png", f"{cfg.name}: real recordings"
             )
-            _log_to_run(manifest.mlflow["run_id"], metrics_to_log, png)
+            _log_to_run(run_id, metrics_to_log, png)
     else:
         real_metrics = evaluate_real_alignment(predict, held_out_recordings(cfg, data_dir))
         evaluations.append(
@@ -236,7 +238,7 @@ def evaluate_shipped(
             )
         )
         metrics_to_log.update({f"{prefix}{k.replace('/', '.')}": v for k, v in real_metrics.items()})
-        _log_to_run(manifest.mlflow["run_id"], metrics_to_log, None)
+        _log_to_run(run_id, metrics_to_log, None)
     manifest.evaluations = evaluations
     write_manifest(manifest, model_dir / "manifest.json")
     return manifest

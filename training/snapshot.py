@@ -22,6 +22,7 @@ import mlflow
 import numpy as np
 import onnx
 from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param
+from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from service.core.manifest import read_manifest
@@ -132,6 +133,27 @@ def restore_if_empty(snapshot_dir: Path, models_dir: Path) -> RestoreReport | No
     if not (snapshot_dir / "runs.json").is_file() or client.search_runs(experiments, max_results=1):
         return None
     return restore_snapshot(snapshot_dir, models_dir)
+
+
+def local_run_id(run_id: str) -> str:
+    """The run a manifest names, in this store: the run itself if it is here, else the run restored from it.
+
+    Manifests name the run ids of the store they were trained in; a store restored from the snapshot holds the same
+    runs under new ids (``restored_from_run_id``).
+    """
+    client = MlflowClient()
+    try:
+        return client.get_run(run_id).info.run_id
+    except MlflowException:
+        pass
+    restored = _restored_runs(client)
+    if run_id not in restored:
+        raise LookupError(
+            f"run {run_id} is not in the tracking store {mlflow.get_tracking_uri()}, and no run here was restored "
+            "from it: restore the committed runs with `python -m training.cli snapshot-restore`, or point "
+            "MLFLOW_TRACKING_URI at the store it was trained in"
+        )
+    return restored[run_id]
 
 
 def _artifact_dir(snapshot_dir: Path, run_id: str) -> Path:

@@ -32,7 +32,7 @@ from service.api.schemas import (
     WindowsResponse,
     error_responses,
 )
-from service.core.assignment import is_moving, joint_assignment, turns_about_vertical
+from service.core.assignment import is_moving, joint_assignment, turns_about_vertical, window_joint_assignment
 from service.core.segments import SEGMENTS, segment_index
 from service.inference.predict import (
     alignment_answer,
@@ -215,6 +215,11 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
         moving.append(mask)
         log_probs.append(np.log(np.clip(p[mask] if mask.any() else p, 1e-12, 1.0)))
     joint = joint_assignment(log_probs, allow_shared=body.allow_shared)
+    every = [np.log(np.clip(probs[bounds[k] : bounds[k + 1]], 1e-12, 1.0)) for k in range(len(per_sensor))]
+    if body.allow_shared:  # each window's own answer
+        at_moment = [np.where(m, lp.argmax(axis=1), -1) for lp, m in zip(every, moving, strict=True)]
+    else:
+        at_moment = window_joint_assignment(every, moving)
     out = []
     for k, sensor in enumerate(body.sensors):
         seg = int(joint.segment[k])
@@ -235,6 +240,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
                 moving_windows_turning_about_vertical=int((moving[k] & turns_about_vertical(per_sensor[k])).sum()),
                 alignment=alignment,
                 alignment_spread_deg=spread,
+                window_segments=[SEGMENTS[g] if g >= 0 else None for g in at_moment[k].tolist()],
             )
         )
     return _json(AssignResponse(sensors=out, model_versions=versions))

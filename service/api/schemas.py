@@ -136,6 +136,12 @@ class SensorAssignment(BaseModel):
     alignment_spread_deg: float | None = Field(
         None, description="median angle of those windows' alignments from the mean; large: they disagree"
     )
+    window_segments: list[SegmentName | None] = Field(
+        description="per window, in order: the one-to-one answer of the windows that the request's sensors took at "
+        "that moment (window k of every sensor that has one); null for a still window or one left over when more "
+        "than seven windows move; with `allow_shared`, each moving window's own answer. `segment` above is the "
+        "answer from all windows together"
+    )
 
 
 class AssignResponse(BaseModel):
@@ -154,6 +160,7 @@ class AssignResponse(BaseModel):
                             "moving_windows_turning_about_vertical": 0,
                             "alignment": EXAMPLE_ALIGNMENT,
                             "alignment_spread_deg": 3.1,
+                            "window_segments": ["Pelvis"] * 11 + [None],
                         }
                     ],
                     "model_versions": EXAMPLE_VERSIONS,

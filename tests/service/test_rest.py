@@ -103,6 +103,28 @@ def test_joint_assignment_endpoint(client: TestClient) -> None:
     nine = [{"sensor_id": f"s{k}", "windows": [_window()]} for k in range(9)]
     out = client.post("/v1/imu/assign", json={"sensors": nine}).json()["sensors"]
     assert sum(s["segment"] is None for s in out) == 2  # more sensors than segments
+    assert sum(s["window_segments"] == [None] for s in out) == 2  # and at the one moment
+
+
+def test_assign_answers_each_moment_one_to_one(client: TestClient) -> None:
+    """Window k of every sensor is one moment: its windows share out the segments, whatever the sensors' totals say;
+    a still window gets null, and a sensor's extra windows are assigned among the sensors that have them."""
+    moving = _window()
+    still = {"samples": (np.array(moving["samples"]) * [1, 1, 1, 0.01, 0.01, 0.01]).tolist()}
+    sensors = [
+        {"sensor_id": "a", "windows": [moving, moving, moving]},
+        {"sensor_id": "b", "windows": [moving, still]},
+        {"sensor_id": "c", "windows": [moving]},
+    ]
+    out = client.post("/v1/imu/assign", json={"sensors": sensors}).json()["sensors"]
+    per_window = [s["window_segments"] for s in out]
+    assert [len(w) for w in per_window] == [3, 2, 1]
+    assert len({per_window[0][0], per_window[1][0], per_window[2][0]}) == 3  # one-to-one at moment 0
+    assert per_window[1][1] is None  # still
+    alone = client.post("/v1/imu/windows", json={"windows": [moving]}).json()["results"][0]["segment"]
+    assert per_window[0][1] == per_window[0][2] == alone  # a window with no rival keeps its own answer
+    shared = client.post("/v1/imu/assign", json={"sensors": sensors, "allow_shared": True}).json()["sensors"]
+    assert [s["window_segments"] for s in shared] == [[alone] * 3, [alone, None], [alone]]
 
 
 def test_windows_that_turn_about_the_vertical_are_flagged(client: TestClient) -> None:
