@@ -13,7 +13,7 @@ from mlflow.tracking import MlflowClient
 
 from service.core.manifest import read_manifest
 from service.inference.registry import version_key
-from training.snapshot import RESTORED_TAG, export_snapshot, restore_if_empty, restore_snapshot
+from training.snapshot import RESTORED_TAG, export_snapshot, local_run_id, restore_if_empty, restore_snapshot
 from training.tracking import default_tracking_uri
 
 REPO = Path(__file__).resolve().parents[2]
@@ -60,6 +60,11 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
         assert champion.tags["model_dir"].endswith(f"{name}/{newest.name}")
         assert champion.run_id == by_origin[read_manifest(newest / "manifest.json").mlflow["run_id"]].info.run_id
     assert report.versions_without_model == ["i2s_assignment_finetune v1"]  # its file does not ship: left out
+    # a manifest's run id finds its restored run (what `evaluate` needs on a fresh clone), a run here finds itself
+    assert local_run_id(manifest.mlflow["run_id"]) == by_origin[manifest.mlflow["run_id"]].info.run_id
+    assert local_run_id(trained.info.run_id) == trained.info.run_id
+    with pytest.raises(LookupError, match="snapshot-restore"):
+        local_run_id("0" * 32)
 
     assert restore_if_empty(SNAPSHOT, MODELS) is None  # the store has runs now
     again = restore_snapshot(SNAPSHOT, MODELS)
