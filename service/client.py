@@ -38,6 +38,7 @@ class ClientSensor:
 @dataclass
 class StreamOutcome:
     results: list[dict] = field(default_factory=list)
+    moments: list[dict] = field(default_factory=list)  # one-to-one answers per window end time
     assignment: dict | None = None
     events: list[dict] = field(default_factory=list)  # started, gap, late, error
     close_code: int | None = None
@@ -111,6 +112,8 @@ async def _receive(ws: websockets.ClientConnection, outcome: StreamOutcome) -> N
             message = json.loads(raw)
             if message["type"] == "result":
                 outcome.results.append(message)
+            elif message["type"] == "moment":
+                outcome.moments.append(message)
             elif message["type"] == "assignment":
                 outcome.assignment = message
             else:
@@ -136,7 +139,7 @@ def main() -> None:
     parser.add_argument("--skip-columns", type=int, default=0)
     parser.add_argument("--speed", type=float, default=1.0, help="1 = real time, 0 = as fast as possible")
     parser.add_argument("--json", action="store_true", help="send JSON packets instead of binary")
-    parser.add_argument("--out", type=Path, help="write every result message to this JSON-lines file")
+    parser.add_argument("--out", type=Path, help="write every result and moment message to this JSON-lines file")
     parser.add_argument("--api-key", default=os.environ.get("WEARMOCAP_API_KEY"))
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -153,10 +156,10 @@ def main() -> None:
         parser.error("give --recording or at least one --csv")
     outcome = asyncio.run(stream_sensors(args.url, sensors, args.speed, binary=not args.json, api_key=args.api_key))
     if args.out:
-        args.out.write_text("".join(json.dumps(r) + "\n" for r in outcome.results))
+        args.out.write_text("".join(json.dumps(r) + "\n" for r in outcome.results + outcome.moments))
     for event in outcome.events:
         log.info("%s", event)
-    log.info("%d window results", len(outcome.results))
+    log.info("%d window results, %d moments", len(outcome.results), len(outcome.moments))
     for s in (outcome.assignment or {}).get("sensors", []):
         alignment = s.get("alignment")
         q = "" if alignment is None else " ".join(f"{v:+.3f}" for v in alignment["q_segment_imu"])

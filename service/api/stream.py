@@ -1,8 +1,8 @@
 """WebSocket ``/v1/stream`` (protocol in ``service.api.protocol``).
 
 A slow consumer never grows server memory without bound: outgoing messages go through a bounded
-queue; when it is full the oldest queued *result* is dropped (assignment, gap and error messages are
-kept), the drop is counted in ``wearmocap_stream_results_dropped_total`` and reported to the client
+queue; when it is full the oldest queued *result* or *moment* is dropped (assignment, gap and error messages
+are kept), the drop is counted in ``wearmocap_stream_results_dropped_total`` and reported to the client
 in the next assignment message as ``results_dropped``.
 """
 
@@ -28,7 +28,7 @@ from service.api.protocol import (
     check_samples,
     decode_binary,
 )
-from service.core.assignment import is_moving, joint_assignment, turns_about_vertical
+from service.core.assignment import MomentAssembler, is_moving, joint_assignment, turns_about_vertical
 from service.core.segments import SEGMENTS
 from service.core.stream import SensorStream
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
@@ -50,7 +50,7 @@ class Outbox:
         dropped = False
         if len(self.items) >= self.limit:
             for k, item in enumerate(self.items):
-                if item["type"] == "result":
+                if item["type"] in ("result", "moment"):
                     del self.items[k]
                     self.dropped += 1
                     dropped = True
@@ -104,6 +104,7 @@ class Session:
         self.index = {s.sensor_id: k for k, s in enumerate(self.streams)}
         self.allow_shared = start.allow_shared
         self.evidence = np.zeros((len(self.streams), len(SEGMENTS)))
+        self.moments = MomentAssembler(len(self.streams), start.allow_shared)
         self.windows = np.zeros(len(self.streams), dtype=np.int64)
         self.alignments = [RunningAlignment(alignment_windows) for _ in self.streams]
         self.max_pending = max_pending
@@ -130,6 +131,18 @@ class Session:
     def raise_failure(self) -> None:
         if self.failure is not None:
             raise ProtocolError(f"inference failed on the server: {self.failure}", 1011)
+
+    def moment_messages(self, final: bool = False) -> list[dict]:
+        """The per-moment one-to-one answers that are ready (all of them at the end of the stream)."""
+        answered = self.moments.flush() if final else self.moments.ready()
+        return [
+            {
+                "type": "moment",
+                "window_end_s": end_s,
+                "segments": {self.streams[k].sensor_id: SEGMENTS[g] if g >= 0 else None for k, g in answer.items()},
+            }
+            for end_s, answer in answered
+        ]
 
     def assignment_message(self, dropped: int) -> dict:
         joint = joint_assignment([e[None] for e in self.evidence], allow_shared=self.allow_shared)
@@ -213,6 +226,7 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
         for end_s in item.window_end_s:
             message = {"type": "result", "sensor_id": sensor_id, "window_end_s": round(end_s, 6)}
             message.update(results[row])
+            session.moments.add(item.sensor, end_s, log_probs[row], bool(moving[row]))
             if moving[row]:
                 session.evidence[item.sensor] += log_probs[row]
                 session.windows[item.sensor] += 1
@@ -223,6 +237,9 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
             row += 1
         if item.windows:
             app.state.metrics.stream_result.observe(time.perf_counter() - item.received)
+    for moment in session.moment_messages():
+        if outbox.put(moment):
+            app.state.metrics.dropped.inc()
     if windows:
         outbox.put(session.assignment_message(outbox.dropped))
 
@@ -267,6 +284,9 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
             data = _parse_text(message["text"])
             if data["type"] == "stop":
                 await session.flush()
+                for moment in session.moment_messages(final=True):
+                    if outbox.put(moment):
+                        ws.app.state.metrics.dropped.inc()
                 outbox.put(session.assignment_message(outbox.dropped))
                 return
             try:

@@ -96,3 +96,49 @@ def window_joint_assignment(log_probs: list[np.ndarray], moving: list[np.ndarray
         for r, c in zip(rows, cols, strict=True):
             out[present[r]][t] = c
     return out
+
+
+class MomentAssembler:
+    """``window_joint_assignment`` for a live session, whose sensors' windows arrive one packet at a time.
+
+    A moment is a window end time (seconds on the sensors' shared clock, rounded to the microsecond). Its windows
+    wait until every sensor of the session has produced a window at or after that time, then the moment is
+    answered from the windows it holds; a sensor that stalls, or never sends, holds up at most ``max_open``
+    moments, after which the oldest are answered without it. ``flush`` answers all that wait (end of stream).
+    With ``allow_shared`` each moving window keeps its own answer.
+    """
+
+    def __init__(self, n_sensors: int, allow_shared: bool = False, max_open: int = 32) -> None:
+        self.allow_shared = allow_shared
+        self.max_open = max_open
+        self.latest = np.full(n_sensors, -np.inf)  # newest window end per sensor
+        self.open: dict[float, dict[int, tuple[np.ndarray, bool]]] = {}
+
+    def add(self, sensor: int, end_s: float, log_probs: np.ndarray, moving: bool) -> None:
+        """One window of ``sensor``: its ``(K,)`` log-probabilities and whether it moves (``is_moving``)."""
+        key = round(end_s, 6)
+        self.open.setdefault(key, {})[sensor] = (log_probs, moving)
+        self.latest[sensor] = max(self.latest[sensor], key)
+
+    def ready(self) -> list[tuple[float, dict[int, int]]]:
+        """The moments every sensor has reached (and the oldest beyond ``max_open``), oldest first:
+        (end time, sensor → class index, -1 for a still or left-over window)."""
+        horizon = self.latest.min()
+        keys = sorted(self.open)
+        n_done = sum(k <= horizon for k in keys)
+        n_done = max(n_done, len(keys) - self.max_open)
+        return [self._answer(k) for k in keys[:n_done]]
+
+    def flush(self) -> list[tuple[float, dict[int, int]]]:
+        return [self._answer(k) for k in sorted(self.open)]
+
+    def _answer(self, key: float) -> tuple[float, dict[int, int]]:
+        windows = self.open.pop(key)
+        sensors = list(windows)
+        log_probs = [windows[s][0][None] for s in sensors]
+        moving = [np.array([windows[s][1]]) for s in sensors]
+        if self.allow_shared:
+            answer = [int(lp[0].argmax()) if m[0] else -1 for lp, m in zip(log_probs, moving, strict=True)]
+        else:
+            answer = [int(a[0]) for a in window_joint_assignment(log_probs, moving)]
+        return key, dict(zip(sensors, answer, strict=True))

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from service.core.assignment import is_moving, joint_assignment, window_joint_assignment
+from service.core.assignment import MomentAssembler, is_moving, joint_assignment, window_joint_assignment
 from service.core.resample import resample_uniform
 from service.core.units import UnitError, to_contract_units
 from service.core.windowing import sliding_windows, window_starts
@@ -59,6 +59,26 @@ def test_window_joint_assignment_decides_each_moment_on_its_own() -> None:
     lp = [np.log(np.array([[p, 1 - p]])) for p in (0.9, 0.2, 0.6)]
     assert [o.tolist() for o in window_joint_assignment(lp, [np.array([True])] * 3)] == [[0], [1], [-1]]
     assert window_joint_assignment([], []) == []
+
+
+def test_live_moments_wait_for_every_sensor_and_give_the_batch_answer() -> None:
+    strong, weak = np.log(np.array([0.9, 0.1])), np.log(np.array([0.6, 0.4]))
+    live = MomentAssembler(2, max_open=2)
+    live.add(0, 2.1166667, strong, True)
+    live.add(0, 2.3833333, strong, True)
+    assert live.ready() == []  # sensor 1 has sent nothing yet
+    live.add(1, 2.1166667, weak, True)
+    assert live.ready() == [(2.116667, {0: 0, 1: 1})]  # one-to-one at the moment both reached
+    live.add(0, 2.65, weak, False)
+    live.add(0, 2.9166667, strong, True)
+    live.add(0, 3.1833333, strong, True)
+    # sensor 1 stalls: beyond two open moments the oldest are answered without it
+    assert live.ready() == [(2.383333, {0: 0}), (2.65, {0: -1})]
+    assert live.flush() == [(2.916667, {0: 0}), (3.183333, {0: 0})] and live.flush() == []
+    shared = MomentAssembler(2, allow_shared=True)
+    shared.add(0, 1.0, strong, True)
+    shared.add(1, 1.0, weak, True)
+    assert shared.ready() == [(1.0, {0: 0, 1: 0})]
 
 
 def test_is_moving() -> None:

@@ -71,6 +71,11 @@ def test_stream_equals_rest_and_reports_joint_assignment(server: str, data_dir: 
         ]
     }
     assigned = httpx.post(f"{server}/v1/imu/assign", json=body, timeout=60).json()["sensors"]
+    # One moment message per window end time, each the per-moment answer /v1/imu/assign gives the same windows.
+    n_windows = len(sliding_windows(sensors[0].samples))
+    assert [m["window_end_s"] for m in outcome.moments] == [round((127 + 16 * k) / 60.0, 6) for k in range(n_windows)]
+    for k, moment in enumerate(outcome.moments):
+        assert moment["segments"] == {s["sensor_id"]: s["window_segments"][k] for s in assigned}
     for got, want in zip(final, assigned, strict=True):
         assert (got["sensor_id"], got["segment"]) == (want["sensor_id"], want["segment"])
         assert got["alignment"]["segment"] == got["segment"]
