@@ -52,6 +52,32 @@ def test_stream_results_assignment_and_stop(client: TestClient) -> None:
     final = [m for m in messages if m["type"] == "assignment"][-1]
     assert {s["sensor_id"] for s in final["sensors"]} == {"a", "b"}
     assert messages[-1] == {"type": "close", "code": 1000, "reason": "stop"}
+    # One moment per window end time, both sensors where both have a window, one-to-one; all sent by the stop.
+    moments = [m for m in messages if m["type"] == "moment"]
+    assert [m["window_end_s"] for m in moments] == [round((127 + 16 * k) / 60, 6) for k in range(3)]
+    assert [sorted(m["segments"]) for m in moments] == [["a", "b"], ["a", "b"], ["a"]]
+    for m in moments[:2]:
+        both = list(m["segments"].values())
+        assert None in both or both[0] != both[1]
+    kinds = [m["type"] for m in messages]
+    assert len(kinds) - kinds[::-1].index("moment") < len(kinds) - kinds[::-1].index("assignment")  # moments first
+
+
+def test_a_sensor_that_never_sends_holds_up_moments_for_32_windows_only(client: TestClient) -> None:
+    n = 128 + 16 * 40  # 41 windows of sensor a; sensor b sends nothing
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps(START))
+        ws.receive_text()
+        ws.send_bytes(encode_binary(0, 0, _signal(n)))
+        moments = []
+        while len(moments) < 41 - 32:
+            message = json.loads(ws.receive_text())
+            if message["type"] == "moment":
+                moments.append(message)
+        assert all(m["segments"].keys() == {"a"} for m in moments)  # answered without b before the stop
+        ws.send_text(json.dumps({"type": "stop"}))
+        rest = [m for m in _collect(ws) if m["type"] == "moment"]
+    assert len(moments) + len(rest) == 41
 
 
 def test_gaps_and_late_packets_are_reported(client: TestClient) -> None:
