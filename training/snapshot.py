@@ -102,9 +102,27 @@ def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
                 for v in versions
             ],
         }
+    previous = out_dir / "registry.json"
+    if previous.is_file():
+        _keep_unrestored_versions(json.loads(previous.read_text()), registry, {r["run_id"] for r in records})
     (out_dir / "runs.json").write_text(json.dumps(records, indent=1, sort_keys=True) + "\n")
-    (out_dir / "registry.json").write_text(json.dumps(registry, indent=1, sort_keys=True) + "\n")
+    previous.write_text(json.dumps(registry, indent=1, sort_keys=True) + "\n")
     return len(records)
+
+
+def _keep_unrestored_versions(previous: dict, registry: dict, run_ids: set[str]) -> None:
+    """Carry over the versions of the snapshot being replaced that a restore leaves out (their model file does not
+    ship, ``RestoreReport.versions_without_model``) while their runs are still exported, with their aliases: so
+    exporting a restored store does not drop them from the snapshot."""
+    for name, old in previous.items():
+        new = registry.setdefault(name, {"aliases": {}, "versions": []})
+        present = {v["version"] for v in new["versions"]}
+        kept = [v for v in old["versions"] if v["version"] not in present and v["run_id"] in run_ids]
+        new["versions"] = sorted(new["versions"] + kept, key=lambda v: int(v["version"]))
+        kept_versions = {v["version"] for v in kept}
+        for alias, version in old["aliases"].items():
+            if version in kept_versions:
+                new["aliases"].setdefault(alias, version)
 
 
 def restore_snapshot(snapshot_dir: Path, models_dir: Path) -> RestoreReport:
