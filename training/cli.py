@@ -192,9 +192,8 @@ def evaluate_real_command(
             onnx_path = Path(source) / "model.onnx"
         metrics, _ = evaluate_real(onnx_predictor(onnx_path), held_out_recordings(cfg, resolve_data_dir(data_dir)))
     for key, value in metrics.items():
-        if key.startswith(
-            ("accuracy/", "joint", "window_joint", "real_accuracy", "real_joint", "real_window_joint")
-        ) or (key == "real_n_windows"):
+        shown = ("accuracy/", "joint", "window_joint", "real_accuracy", "real_joint", "real_window_joint")
+        if key.startswith((*shown, "real_n_windows")):
             typer.echo(f"{key}: {value:.4f}")
 
 
