@@ -150,12 +150,10 @@ def evaluate(
     import mlflow
 
     from training.ship import evaluate_shipped
-    from training.snapshot import log_restore, restore_if_empty
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
-    if report := restore_if_empty(SNAPSHOT, Path("onnx_models")):  # a fresh clone: the runs the manifests name
-        log_restore(report)
+    _restore_into_empty_store()  # a fresh clone: the runs the manifests name
     command = f"python -m training.cli evaluate {model_dir}" + (f" --max-windows {max_windows}" if max_windows else "")
     manifest = evaluate_shipped(model_dir, resolve_data_dir(data_dir), cache_dir, command, max_windows)
     for ev in manifest.evaluations:
@@ -220,6 +218,14 @@ def offset_baseline(
 SNAPSHOT = Path("mlflow_snapshot")
 
 
+def _restore_into_empty_store() -> None:
+    """Replay the committed snapshot into the current tracking store if it has no runs at all (a fresh clone)."""
+    from training.snapshot import log_restore, restore_if_empty
+
+    if (report := restore_if_empty(SNAPSHOT, Path("onnx_models"))) is not None:
+        log_restore(report)
+
+
 @app.command("snapshot-export")
 def snapshot_export(out_dir: Path = typer.Option(SNAPSHOT), experiment: list[str] = typer.Option(["i2s"])) -> None:
     """Write the finished runs of the tracking store and its registry to a folder (training.snapshot)."""
@@ -256,13 +262,12 @@ def ui(
     committed snapshot of the runs behind the shipped models (``snapshot-restore``)."""
     import mlflow
 
-    from training.snapshot import log_restore, restore_if_empty
     from training.tracking import default_tracking_uri
 
     uri = default_tracking_uri()
     mlflow.set_tracking_uri(uri)
-    if restore and (report := restore_if_empty(SNAPSHOT, Path("onnx_models"))) is not None:
-        log_restore(report)
+    if restore:
+        _restore_into_empty_store()
     cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", host, "--port", str(port)]
     typer.echo(f"MLflow UI on http://{host}:{port} (store {uri})")
     raise typer.Exit(subprocess.call(cmd))

@@ -208,18 +208,12 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     per_sensor = [_inputs(s.windows, f"sensors[{k}].windows") for k, s in enumerate(body.sensors)]
     probs, quats, versions = await _infer(request, np.concatenate(per_sensor))
     bounds = np.cumsum([0] + [len(x) for x in per_sensor])
-    log_probs, moving = [], []
-    for k, x in enumerate(per_sensor):
-        mask = is_moving(x)
-        p = probs[bounds[k] : bounds[k + 1]]
-        moving.append(mask)
-        log_probs.append(np.log(np.clip(p[mask] if mask.any() else p, 1e-12, 1.0)))
-    joint = joint_assignment(log_probs, allow_shared=body.allow_shared)
-    every = [np.log(np.clip(probs[bounds[k] : bounds[k + 1]], 1e-12, 1.0)) for k in range(len(per_sensor))]
-    if body.allow_shared:  # each window's own answer
-        at_moment = [np.where(m, lp.argmax(axis=1), -1) for lp, m in zip(every, moving, strict=True)]
-    else:
-        at_moment = window_joint_assignment(every, moving)
+    moving = [is_moving(x) for x in per_sensor]
+    log_probs = [np.log(np.clip(probs[bounds[k] : bounds[k + 1]], 1e-12, 1.0)) for k in range(len(per_sensor))]
+    # The sensor's moving windows are its evidence (all of them if none moves); each moment is answered on its own.
+    evidence = [lp[m] if m.any() else lp for lp, m in zip(log_probs, moving, strict=True)]
+    joint = joint_assignment(evidence, allow_shared=body.allow_shared)
+    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared)
     out = []
     for k, sensor in enumerate(body.sensors):
         seg = int(joint.segment[k])

@@ -74,7 +74,9 @@ def joint_assignment(log_probs: list[np.ndarray], allow_shared: bool = False) ->
     return JointAssignment(segment, evidence, confidence, margin)
 
 
-def window_joint_assignment(log_probs: list[np.ndarray], moving: list[np.ndarray]) -> list[np.ndarray]:
+def window_joint_assignment(
+    log_probs: list[np.ndarray], moving: list[np.ndarray], allow_shared: bool = False
+) -> list[np.ndarray]:
     """One-to-one assignment per moment: window ``t`` of every sensor is assigned from those windows alone.
 
     ``log_probs[s]`` is ``(N_s, K)`` for sensor ``s`` and ``moving[s]`` its ``(N_s,)`` mask (``is_moving``);
@@ -82,10 +84,13 @@ def window_joint_assignment(log_probs: list[np.ndarray], moving: list[np.ndarray
     there moves share out the K segments one-to-one (the answer that maximises their summed log-probability);
     a still window, or one left over when more than K windows move, gets -1. Paper 000 classifies every window
     on its own (§2.2) and names the left/right switches that this leaves as future work (§5); the sensors of one
-    body cannot sit on the same segment, so at one moment their windows constrain each other.
+    body cannot sit on the same segment, so at one moment their windows constrain each other. ``allow_shared``
+    (as in ``joint_assignment``) gives each moving window its own best class instead.
 
     Returns one ``(N_s,)`` int array per sensor.
     """
+    if allow_shared:
+        return [np.where(m, lp.argmax(axis=1), -1) for lp, m in zip(log_probs, moving, strict=True)]
     out = [np.full(len(lp), -1, dtype=np.int64) for lp in log_probs]
     for t in range(max((len(lp) for lp in log_probs), default=0)):
         present = [s for s, lp in enumerate(log_probs) if t < len(lp) and moving[s][t]]
@@ -137,8 +142,5 @@ class MomentAssembler:
         sensors = list(windows)
         log_probs = [windows[s][0][None] for s in sensors]
         moving = [np.array([windows[s][1]]) for s in sensors]
-        if self.allow_shared:
-            answer = [int(lp[0].argmax()) if m[0] else -1 for lp, m in zip(log_probs, moving, strict=True)]
-        else:
-            answer = [int(a[0]) for a in window_joint_assignment(log_probs, moving)]
-        return key, dict(zip(sensors, answer, strict=True))
+        answer = window_joint_assignment(log_probs, moving, self.allow_shared)
+        return key, {s: int(a[0]) for s, a in zip(sensors, answer, strict=True)}
