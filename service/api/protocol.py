@@ -10,10 +10,10 @@ Client → server
 ``seq`` is the sensor's sample counter of the packet's first sample (0, 1, 2, … per sample).
 
 Server → client
-  started · result (per window: class, probabilities, moving, turns_about_vertical, alignment) · moment (per window
-  end time: the one-to-one answer of the sensors' windows that end then, as /v1/imu/assign's window_segments; sent
-  once every sensor has reached that time, or when 32 moments wait on a stalled sensor, whose windows then come in
-  moments of their own) · assignment (joint,
+  started · result (per window: class, probabilities, moving, turns_about_vertical, alignment) · moment (sessions of
+  two or more sensors, per window end time: the one-to-one answer of the sensors' windows that end then, as
+  /v1/imu/assign's window_segments; sent once every sensor has reached that time, or when 32 moments wait on a
+  stalled sensor, whose windows then come in moments of their own) · assignment (joint,
   one-to-one over the session's evidence, and per sensor the robust mean alignment over its last
   WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread; after each group of results) · gap / late (sequence
   problems, in order with the results) · error (then close, after the results of every accepted packet).

@@ -104,7 +104,8 @@ class Session:
         self.index = {s.sensor_id: k for k, s in enumerate(self.streams)}
         self.allow_shared = start.allow_shared
         self.evidence = np.zeros((len(self.streams), len(SEGMENTS)))
-        self.moments = MomentAssembler(len(self.streams), start.allow_shared)
+        # A one-sensor session's moment is its window's own answer, already in the result: no moment messages.
+        self.moments = MomentAssembler(len(self.streams), start.allow_shared) if len(self.streams) > 1 else None
         self.windows = np.zeros(len(self.streams), dtype=np.int64)
         self.alignments = [RunningAlignment(alignment_windows) for _ in self.streams]
         self.max_pending = max_pending
@@ -134,6 +135,8 @@ class Session:
 
     def moment_messages(self, final: bool = False) -> list[dict]:
         """The per-moment one-to-one answers that are ready (all of them at the end of the stream)."""
+        if self.moments is None:
+            return []
         answered = self.moments.flush() if final else self.moments.ready()
         return [
             {
@@ -226,7 +229,8 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
         for end_s in item.window_end_s:
             message = {"type": "result", "sensor_id": sensor_id, "window_end_s": round(end_s, 6)}
             message.update(results[row])
-            session.moments.add(item.sensor, end_s, log_probs[row], bool(moving[row]))
+            if session.moments is not None:
+                session.moments.add(item.sensor, end_s, log_probs[row], bool(moving[row]))
             if moving[row]:
                 session.evidence[item.sensor] += log_probs[row]
                 session.windows[item.sensor] += 1

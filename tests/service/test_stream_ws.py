@@ -171,6 +171,7 @@ def test_a_burst_of_packets_is_answered_in_order_with_few_inference_calls(client
     assert ends == sorted(ends) and len(set(ends)) == len(ends)
     assert _metric(client, "wearmocap_inference_batch_windows_count") - calls_before < len(ends)
     assert messages[-1]["code"] == 1000
+    assert "moment" not in {m["type"] for m in messages}  # one sensor: its moments are its results
 
 
 def test_pending_window_limit_slows_reading_but_loses_nothing(tiny_models) -> None:
