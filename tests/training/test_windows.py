@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.core.assignment import is_moving
 from service.core.recordings import read_recording
 from service.core.rotations import matrix_from_quat
 from training.config import load_config
@@ -38,6 +39,20 @@ def test_sampled_labels_match_the_readings(walk_clips, mirror: bool) -> None:
     # averaged over ~2 s of walking, the specific force in the segment frame points mostly up (+z)
     for k in np.flatnonzero(np.isin(batch.segment, [1, 2, 3, 4, 5])):
         assert acc_segment[k, 2] > 5.0, (batch.segment[k], acc_segment[k])
+
+
+def test_moving_only_draws_the_windows_the_service_answers(data_dir: Path, kinematics_cache: Path) -> None:
+    """A clip with long still spells (CMU 'wash_self', a third moving) gives a full batch of moving windows; one that
+    is still throughout (li2018 'basketball_signal') is refused with a message, not looped on."""
+    washing = build_kinematics(data_dir, mocap_entries(data_dir, ["wash_self"]), kinematics_cache)
+    plain = WindowSampler(washing, Augmentation()).sample(np.random.default_rng(0), 256)
+    assert 0.1 < is_moving(plain.imu).mean() < 0.7
+    batch = WindowSampler(washing, Augmentation(moving_only=True)).sample(np.random.default_rng(0), 256)
+    assert batch.imu.shape == (256, 128, 6) and batch.segment.shape == (256,) and batch.q_segment_imu.shape == (256, 4)
+    assert is_moving(batch.imu).all()
+    signals = build_kinematics(data_dir, mocap_entries(data_dir, ["basketball_signal"]), kinematics_cache)
+    with pytest.raises(ValueError, match="nearly all still"):
+        WindowSampler(signals, Augmentation(moving_only=True)).sample(np.random.default_rng(0), 256)
 
 
 def test_grid_evaluation_is_deterministic_and_complete(walk_clips) -> None:

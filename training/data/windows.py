@@ -9,7 +9,7 @@ bias, noise, mirror image). Evaluation enumerates every window (hop 16) × segme
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal
 
 import numpy as np
@@ -24,6 +24,7 @@ from training.data.imu_sim import SensorSpec, alignment, alignment_grid, imu_rea
 from training.data.mocap import Clip
 
 N_SEGMENTS = 7
+_MAX_MOVING_ROUNDS = 20  # moving_only: batches drawn before giving up on a nearly still clip set
 
 
 class Augmentation(BaseModel):
@@ -45,6 +46,10 @@ class Augmentation(BaseModel):
     # and the most knee flexion such a variant keeps.
     stiff_knee_share: float = Field(0.0, ge=0.0, lt=1.0)
     stiff_knee_keep_max: float = Field(0.4, ge=0.0, le=1.0)
+    # Draw only windows the service answers (``is_moving``: the sensor's mean gyroscope norm above the still
+    # threshold); still windows carry no cue to a segment but gravity's direction, which the alignment hides.
+    # Matters for clips with long still spells (basketball signals, directing traffic); gait is nearly all moving.
+    moving_only: bool = False
 
 
 @dataclass(frozen=True)
@@ -52,6 +57,9 @@ class Batch:
     imu: np.ndarray  # (B, 128, 6) float32
     segment: np.ndarray  # (B,) int64
     q_segment_imu: np.ndarray  # (B, 4) float32, w >= 0
+
+
+_BATCH_FIELDS = [f.name for f in fields(Batch)]
 
 
 class _Stacked:
@@ -122,6 +130,22 @@ class WindowSampler:
         return R @ _random_tilt(rng, n, self.aug.tilt_deg) if self.aug.tilt_deg > 0 else R
 
     def sample(self, rng: np.random.Generator, batch_size: int) -> Batch:
+        if not self.aug.moving_only:
+            return self._draw(rng, batch_size)
+        parts, n = [], 0
+        for _ in range(_MAX_MOVING_ROUNDS):
+            b = self._draw(rng, batch_size)
+            keep = is_moving(b.imu)
+            parts.append(Batch(b.imu[keep], b.segment[keep], b.q_segment_imu[keep]))
+            n += int(keep.sum())
+            if n >= batch_size:
+                return Batch(*(np.concatenate([getattr(p, f) for p in parts])[:batch_size] for f in _BATCH_FIELDS))
+        raise ValueError(
+            f"augmentation.moving_only: {n} moving windows in {_MAX_MOVING_ROUNDS} draws of {batch_size}; "
+            "the clips are nearly all still"
+        )
+
+    def _draw(self, rng: np.random.Generator, batch_size: int) -> Batch:
         aug, st = self.aug, self.stack
         clip = rng.choice(len(st.lengths), size=batch_size, p=st.draw_p)
         speed = rng.uniform(aug.speed_min, aug.speed_max, batch_size)
