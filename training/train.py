@@ -203,11 +203,13 @@ def train(
     optimiser = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     sampler = WindowSampler(train_clips, cfg.augmentation)
     # Validation: the training distribution of alignments, with only the paper's noise (no other augmentation).
-    # The clips' variants keep their share, so that validation sees the gaits training does.
+    # The clips' variants keep their share, so that validation sees the gaits training does, and with
+    # ``moving_only`` it is scored on the windows the service answers, as training draws them.
     val_aug = Augmentation(
         alignment=cfg.augmentation.alignment,
         acc_noise_std_mps2=cfg.augmentation.acc_noise_std_mps2,
         stiff_knee_share=cfg.augmentation.stiff_knee_share,
+        moving_only=cfg.augmentation.moving_only,
     )
     val_sampler = WindowSampler(val_clips, val_aug)
     val_rng = np.random.default_rng(cfg.seed + 1)
