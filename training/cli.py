@@ -86,8 +86,10 @@ def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -
     from training.train import train as train_model
 
     cfg = load_config(config, overrides)
-    if cfg.train.init_from_run or cfg.train.init_from_onnx or cfg.data.real_train_recordings:
-        raise typer.BadParameter("fit trains from scratch on simulated clips only (no init_from_*, no real data)")
+    if cfg.train.init_from_run or cfg.train.init_from_onnx or cfg.train.ensemble_of or cfg.data.real_train_recordings:
+        raise typer.BadParameter(
+            "fit trains from scratch on simulated clips only (no init_from_*, no ensemble_of, no real data)"
+        )
     train_clips, val_clips, _ = split_clips(load_pack(clips), cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
     result = train_model(cfg, train_clips, val_clips)
     save_fitted(out, cfg, result, dataset_digest(train_clips), dataset_digest(val_clips))

@@ -70,6 +70,10 @@ class TrainConfig(_Strict):
     loader_workers: int = 0
     init_from_run: str | None = None  # MLflow run id whose checkpoint warm-starts training (pre-training)
     init_from_onnx: str | None = None  # or a shipped assignment model dir (onnx_models/<name>/<version>)
+    # assignment: average the class probabilities of these shipped float32 models (onnx_models/<name>/<version>),
+    # each with its own turn averages (training.models.AssignmentEnsemble; not in the paper); assembled, not
+    # trained: needs max_epochs 0, and takes no init_from_* and no turn averages of its own
+    ensemble_of: list[str] | None = None
     max_minutes: float | None = None  # wall-time budget; stops after the epoch that crosses it
     # exponential moving average of the weights (and batch-norm statistics) after every step, decay per step;
     # validation, early stopping and the returned model use the average (None: the raw weights, as before)
@@ -80,6 +84,26 @@ class TrainConfig(_Strict):
         if self.canonical_frame and self.alignment_loss == "stereographic_l2":
             raise ValueError(
                 "alignment_loss stereographic_l2 regresses p in the sensor frame; it needs canonical_frame false"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _an_ensemble_is_assembled(self) -> TrainConfig:
+        if self.ensemble_of is None:
+            return self
+        own = {
+            "max_epochs": self.max_epochs != 0,
+            "init_from_run": self.init_from_run is not None,
+            "init_from_onnx": self.init_from_onnx is not None,
+            "quarter_turns": self.quarter_turns,
+            "gravity_turns": self.gravity_turns != 1,
+            "canonical_frame": self.canonical_frame,
+        }
+        if len(self.ensemble_of) < 2 or any(own.values()):
+            raise ValueError(
+                "ensemble_of assembles two or more shipped models as they are: it needs max_epochs 0 and no "
+                f"init_from_*, turn averages or canonical frame of its own; got {len(self.ensemble_of)} members "
+                f"and {[k for k, v in own.items() if v]}"
             )
         return self
 

@@ -10,7 +10,7 @@ import onnxruntime as ort
 import torch
 from torch import nn
 
-from training.models import AlignmentNet, AssignmentExport, AssignmentNet
+from training.models import AlignmentNet, AssignmentEnsemble, AssignmentExport, AssignmentNet
 
 log = logging.getLogger(__name__)
 
@@ -22,11 +22,11 @@ OUTPUT_NAMES = {"assignment": "probabilities", "alignment": "q_segment_imu"}
 def export_module(model: nn.Module) -> nn.Module:
     """The exported graph of a trained net: softmax added for assignment; the alignment net already ends in
     unit quaternions (stereographic → quaternion, and the canonical frame if it has one)."""
-    if isinstance(model, AssignmentNet):
+    if isinstance(model, AssignmentNet | AssignmentEnsemble):
         return AssignmentExport(model).eval()
     if isinstance(model, AlignmentNet):
         return model.eval()
-    raise TypeError(f"expected AssignmentNet or AlignmentNet, got {type(model).__name__}")
+    raise TypeError(f"expected AssignmentNet, AssignmentEnsemble or AlignmentNet, got {type(model).__name__}")
 
 
 def export_onnx(model: nn.Module, task: str, path: Path) -> Path:

@@ -219,6 +219,26 @@ class AssignmentNet(nn.Module):
         return self.head(features[:, -1])
 
 
+class AssignmentEnsemble(nn.Module):
+    """Trained assignment networks whose class probabilities are averaged with equal weights (our addition, not
+    in paper 000). ``forward`` returns the log of the mean probability, as an averaged ``AssignmentNet`` does.
+
+    Each member keeps its own turn averages, so the passes are the sum of the members'. It is assembled from
+    shipped members (``train.ensemble_of``, ``training.warmstart``), not trained as a whole: members that learnt
+    different motions (the gait-only 1.6.0, the all-activity 1.8.0) err on different real windows (README "Method").
+    """
+
+    def __init__(self, members: Sequence[AssignmentNet]) -> None:
+        super().__init__()
+        if len(members) < 2:
+            raise ValueError(f"an ensemble needs at least two members, got {len(members)}")
+        self.members = nn.ModuleList(members)
+
+    def forward(self, imu: torch.Tensor) -> torch.Tensor:
+        log_p = torch.stack([torch.log_softmax(member(imu), -1) for member in self.members])
+        return torch.logsumexp(log_p, dim=0) - math.log(len(self.members))  # log of the mean probability
+
+
 def _quarter_turn(imu: torch.Tensor, k: int) -> torch.Tensor:
     """Readings of the same motion with the sensor turned by k · 90° about its z axis: v' = R_z(k · 90°)ᵀ v, an
     exact permutation and sign change of the x and y channels of both the accelerometer and the gyroscope."""
@@ -423,7 +443,7 @@ def stereographic_to_quat(p: torch.Tensor) -> torch.Tensor:
 class AssignmentExport(nn.Module):
     """Exported assignment graph: imu ``(B, 128, 6)`` → class probabilities ``(B, 7)`` (softmax inside)."""
 
-    def __init__(self, net: AssignmentNet) -> None:
+    def __init__(self, net: AssignmentNet | AssignmentEnsemble) -> None:
         super().__init__()
         self.net = net
 

@@ -27,7 +27,7 @@ from training.plots import confusion_matrix_png, error_boxplot_png, learning_cur
 from training.ship import build_manifest, run_version
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 from training.train import TrainResult, build_model, load_fitted, train
-from training.warmstart import warm_start_from_shipped
+from training.warmstart import ensemble_state, warm_start_from_shipped
 
 log = logging.getLogger(__name__)
 
@@ -152,6 +152,11 @@ def _fitted_elsewhere(
 
 
 def _initial_state(cfg: ExperimentConfig, tmp: Path) -> dict | None:
+    if cfg.train.ensemble_of:
+        if cfg.task != "assignment":
+            raise ValueError("ensemble_of assembles assignment models")
+        mlflow.set_tag("ensemble_of", ",".join(cfg.train.ensemble_of))
+        return ensemble_state(cfg.train.ensemble_of, build_model(cfg))  # type: ignore[arg-type]
     if cfg.train.init_from_run:
         return _checkpoint(cfg.train.init_from_run, tmp)
     if cfg.train.init_from_onnx:

@@ -119,9 +119,21 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
         }
         # the classes that take the average over turns about gravity; absent: all of them
         | ({"gravity_turn_segments": cfg.train.gravity_turn_segments} if cfg.train.gravity_turn_segments else {})
-        | ({"functional_axes": cfg.train.functional_axes} if cfg.train.functional_axes else {}),
+        | ({"functional_axes": cfg.train.functional_axes} if cfg.train.functional_axes else {})
+        | (_ensemble(cfg.train.ensemble_of) if cfg.train.ensemble_of else {}),
         parity_atol=PARITY_ATOL,
     )
+
+
+def _ensemble(member_dirs: list[str]) -> dict[str, list[str]]:
+    """What an ensemble's manifest records of its members: where each ships, its file and its MLflow run (each
+    member's own manifest gives its turn averages)."""
+    manifests = [read_manifest(Path(d) / "manifest.json") for d in member_dirs]
+    return {
+        "ensemble_of": [f"{m.name}/{m.version}" for m in manifests],
+        "ensemble_sha256": [m.sha256 for m in manifests],
+        "ensemble_run_ids": [str(m.mlflow.get("run_id")) for m in manifests],
+    }
 
 
 def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:

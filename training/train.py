@@ -24,6 +24,7 @@ from training.config import ExperimentConfig, flatten
 from training.data.mocap import Clip
 from training.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, concat_batches
 from training.models import AlignmentNet, AssignmentNet
+from training.warmstart import assignment_ensemble
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +33,8 @@ MetricLogger = Callable[[dict[str, float], int], None]
 
 def build_model(cfg: ExperimentConfig) -> nn.Module:
     t = cfg.train
+    if cfg.task == "assignment" and t.ensemble_of:
+        return assignment_ensemble(t.ensemble_of, t.hidden, t.channels, t.kernel, t.keep_prob)
     if cfg.task == "assignment":
         return AssignmentNet(
             t.hidden,

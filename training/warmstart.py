@@ -1,4 +1,5 @@
-"""Warm-start an ``AssignmentNet`` from a shipped ONNX model (paper 000 §4.3 fine-tuning from any release).
+"""Warm-start an ``AssignmentNet`` from a shipped ONNX model (paper 000 §4.3 fine-tuning from any release), and
+assemble an ``AssignmentEnsemble`` from shipped members.
 
 The TorchScript exporter folds each BatchNorm into its Conv and stores the GRU in ONNX gate order
 (z, r, h) where torch uses (r, z, n). The state dict is rebuilt accordingly (BatchNorm set to the
@@ -16,7 +17,7 @@ import torch
 from onnx import numpy_helper
 
 from service.core.manifest import read_manifest
-from training.models import AssignmentNet
+from training.models import AssignmentEnsemble, AssignmentNet
 
 
 def _reorder_gates(w: np.ndarray, hidden: int) -> np.ndarray:
@@ -73,6 +74,9 @@ def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1
     if "quantization" in manifest.exporter:
         source = model_dir.parent / str(manifest.exporter.get("quantized_from", "?"))
         raise ValueError(f"{model_dir} is an int8 model; warm start needs the float32 file it came from: {source}")
+    if "ensemble_of" in manifest.exporter:
+        members = manifest.exporter["ensemble_of"]
+        raise ValueError(f"{model_dir} is an ensemble; warm start from one of its members: {members}")
     state = assignment_state_from_onnx(model_dir / "model.onnx", net)
     probe = AssignmentNet(
         net.rnn.hidden_size,
@@ -89,3 +93,32 @@ def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1
     if err > atol:
         raise ValueError(f"weights rebuilt from {model_dir} differ from its golden output by {err:.2e} > {atol}")
     return state
+
+
+def shipped_assignment_net(model_dir: Path, hidden: int, channels: int, kernel: int, keep_prob: float) -> AssignmentNet:
+    """An untrained ``AssignmentNet`` with the turn averages a shipped float32 model was exported with."""
+    exporter = read_manifest(model_dir / "manifest.json").exporter
+    return AssignmentNet(hidden, channels, kernel, keep_prob, **averaging_options(exporter))
+
+
+def assignment_ensemble(
+    member_dirs: list[str], hidden: int, channels: int, kernel: int, keep_prob: float
+) -> AssignmentEnsemble:
+    """The architecture of an ensemble of shipped float32 assignment models (weights: ``ensemble_state``)."""
+    return AssignmentEnsemble(
+        [shipped_assignment_net(Path(d), hidden, channels, kernel, keep_prob) for d in member_dirs]
+    )
+
+
+def ensemble_state(member_dirs: list[str], ensemble: AssignmentEnsemble) -> dict[str, torch.Tensor]:
+    """The ensemble's state dict: each member's weights rebuilt and checked by ``warm_start_from_shipped``."""
+    state = {}
+    for i, (model_dir, member) in enumerate(zip(member_dirs, ensemble.members, strict=True)):
+        member_state = warm_start_from_shipped(Path(model_dir), member)  # type: ignore[arg-type]
+        state.update({f"members.{i}.{key}": value for key, value in member_state.items()})
+    return state
+
+
+def ensemble_members(exporter: dict, models_root: Path) -> list[str]:
+    """The member model dirs an ensemble's manifest names (``models_root/<name>/<version>``)."""
+    return [str(models_root / str(member)) for member in exporter.get("ensemble_of", [])]

@@ -293,10 +293,10 @@ _add_pose_route("/v1/pose/flex", "flex_pose", "flex-sensor readings")
                     "example": {
                         "i2s_assignment": {
                             "name": "i2s_assignment",
-                            "version": "1.7.0",
+                            "version": "1.9.0",
                             "classes": list(SEGMENTS),
                             "evaluations": [{"name": "loso_simulated", "metrics": {"accuracy": 0.997}}],
-                            "source": "onnx_models/i2s_assignment/1.7.0",
+                            "source": "onnx_models/i2s_assignment/1.9.0",
                         }
                     }
                 }

@@ -54,7 +54,7 @@ EXAMPLE_RESULT = {
     "turns_about_vertical": False,
     "alignment": EXAMPLE_ALIGNMENT,
 }
-EXAMPLE_VERSIONS = {"i2s_assignment": "1.7.0", "i2s_alignment": "3.3.0"}
+EXAMPLE_VERSIONS = {"i2s_assignment": "1.9.0", "i2s_alignment": "3.3.0"}
 
 
 class Alignment(BaseModel):

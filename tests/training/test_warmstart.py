@@ -9,15 +9,22 @@ import torch
 from service.core.manifest import read_manifest
 from service.inference.registry import version_key
 from training.models import AssignmentNet
-from training.warmstart import averaging_options, warm_start_from_shipped
+from training.warmstart import (
+    assignment_ensemble,
+    averaging_options,
+    ensemble_members,
+    ensemble_state,
+    warm_start_from_shipped,
+)
 
 SHIPPED = Path(__file__).resolve().parents[2] / "onnx_models" / "i2s_assignment"
 
 
 def _float32(quantized: bool = False) -> Path:
-    """The newest shipped float32 (or int8) assignment model."""
+    """The newest shipped float32 (or int8) assignment model that is one network (not an ensemble)."""
     dirs = [p.parent for p in SHIPPED.glob("*/manifest.json")]
-    chosen = [d for d in dirs if ("quantization" in read_manifest(d / "manifest.json").exporter) == quantized]
+    exporters = {d: read_manifest(d / "manifest.json").exporter for d in dirs}
+    chosen = [d for d in dirs if ("quantization" in exporters[d]) == quantized and "ensemble_of" not in exporters[d]]
     return max(chosen, key=lambda d: version_key(d.name))
 
 
@@ -27,10 +34,17 @@ def _float32(quantized: bool = False) -> Path:
     ids=lambda d: d.name,
 )
 def test_rebuilt_weights_match_the_shipped_model(model_dir: Path) -> None:
-    """Every shipped float32 file, plain (1.0.0) or averaged over turns (1.2.0 quarter turns, 1.4.0 also about
-    gravity, 1.6.0 about gravity for the leg classes only)."""
-    net = AssignmentNet(**averaging_options(read_manifest(model_dir / "manifest.json").exporter))
-    net.load_state_dict(warm_start_from_shipped(model_dir, net))
+    """Every shipped float32 file, plain (1.0.0, 1.8.0) or averaged over turns (1.2.0 quarter turns, 1.4.0 also
+    about gravity, 1.6.0 about gravity for the leg classes only), or an ensemble rebuilt from its members' files
+    (1.9.0: the mean of 1.6.0's and 1.8.0's probabilities)."""
+    exporter = read_manifest(model_dir / "manifest.json").exporter
+    if "ensemble_of" in exporter:
+        members = ensemble_members(exporter, SHIPPED.parent)
+        net = assignment_ensemble(members, 128, 64, 16, 0.8)
+        net.load_state_dict(ensemble_state(members, net))
+    else:
+        net = AssignmentNet(**averaging_options(exporter))
+        net.load_state_dict(warm_start_from_shipped(model_dir, net))
     net.eval()
     with np.load(model_dir / "golden.npz") as golden, torch.no_grad():
         got = torch.softmax(net(torch.from_numpy(golden["imu"])), -1).numpy()
@@ -50,6 +64,28 @@ def test_a_wrong_golden_is_refused(tmp_path: Path) -> None:
 def test_an_int8_model_is_refused_with_its_float32_source_named() -> None:
     with pytest.raises(ValueError, match="int8 model; warm start needs the float32 file"):
         warm_start_from_shipped(_float32(quantized=True), AssignmentNet())
+
+
+def test_an_ensemble_is_refused_with_its_members_named() -> None:
+    ensembles = [d.parent for d in SHIPPED.glob("*/manifest.json") if "ensemble_of" in read_manifest(d).exporter]
+    assert ensembles  # the served default is one
+    for model_dir in ensembles:
+        if "quantization" not in read_manifest(model_dir / "manifest.json").exporter:
+            with pytest.raises(ValueError, match="is an ensemble; warm start from one of its members"):
+                warm_start_from_shipped(model_dir, AssignmentNet())
+
+
+def test_an_ensemble_is_assembled_not_trained() -> None:
+    from training.config import load_config
+
+    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_assignment.yaml"
+    members = "train.ensemble_of=[onnx_models/i2s_assignment/1.6.0,onnx_models/i2s_assignment/1.8.0]"
+    assert load_config(config, [members, "train.max_epochs=0"]).train.ensemble_of
+    for extra in ("train.max_epochs=3", "train.quarter_turns=true", "train.init_from_run=abc"):
+        with pytest.raises(ValueError, match="ensemble_of assembles two or more shipped models"):
+            load_config(config, [members, "train.max_epochs=0", extra])
+    with pytest.raises(ValueError, match="got 1 members"):
+        load_config(config, ["train.ensemble_of=[onnx_models/i2s_assignment/1.6.0]", "train.max_epochs=0"])
 
 
 def test_the_warm_start_competes_as_epoch_zero(data_dir: Path, kinematics_cache: Path) -> None:
