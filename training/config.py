@@ -69,7 +69,7 @@ class TrainConfig(_Strict):
     # reproducible for a given worker count, but differs between counts.
     loader_workers: int = 0
     init_from_run: str | None = None  # MLflow run id whose checkpoint warm-starts training (pre-training)
-    init_from_onnx: str | None = None  # or a shipped assignment model dir (onnx_models/<name>/<version>)
+    init_from_onnx: str | None = None  # or a shipped float32 model dir (onnx_models/<name>/<version>)
     # assignment: average the class probabilities of these shipped float32 models (onnx_models/<name>/<version>),
     # each with its own turn averages (training.models.AssignmentEnsemble; not in the paper); assembled, not
     # trained: needs max_epochs 0, and takes no init_from_* and no turn averages of its own

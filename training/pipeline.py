@@ -25,6 +25,7 @@ from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_s
 from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
 from training.plots import confusion_matrix_png, error_boxplot_png, learning_curves_png
 from training.ship import build_manifest, run_version
+from training.snapshot import number_as_in_snapshot
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 from training.train import TrainResult, build_model, load_fitted, train
 from training.warmstart import ensemble_state, warm_start_from_shipped
@@ -160,8 +161,6 @@ def _initial_state(cfg: ExperimentConfig, tmp: Path) -> dict | None:
     if cfg.train.init_from_run:
         return _checkpoint(cfg.train.init_from_run, tmp)
     if cfg.train.init_from_onnx:
-        if cfg.task != "assignment":
-            raise ValueError("init_from_onnx supports assignment models; use init_from_run for alignment")
         mlflow.set_tag("init_from_onnx", cfg.train.init_from_onnx)
         return warm_start_from_shipped(Path(cfg.train.init_from_onnx), build_model(cfg))  # type: ignore[arg-type]
     return None
@@ -229,6 +228,7 @@ def register_run(run_id: str, name: str, task: str) -> tuple[str, bool]:
     client = MlflowClient()
     run = client.get_run(run_id)
     version = mlflow.register_model(run.data.tags.get("model_uri", f"runs:/{run_id}/model"), name).version
+    number_as_in_snapshot(client, name, str(version))
     metric, higher = PRIMARY_METRIC[task]
     value = run.data.metrics.get(f"test_{metric}")
     promoted = False

@@ -272,6 +272,21 @@ def _restore_registered_model(
             client.set_registered_model_alias(name, alias, new_version[original])
 
 
+def number_as_in_snapshot(client: MlflowClient, name: str, version: str) -> None:
+    """Give a version just registered in a restored store the snapshot's next number (``original_version``).
+
+    A restore leaves out the versions whose model file does not ship, so the store numbers its versions 1, 2, …
+    while the snapshot keeps the original numbers (1, 3, 4, …). Without the tag a new store version 5 would be
+    exported as version 5, which the snapshot may already hold, and a later restore would point aliases at the
+    wrong model.
+    """
+    versions = client.search_model_versions(f"name='{name}'")
+    if not any("original_version" in v.tags for v in versions):
+        return  # not a restored store: its numbers are the snapshot's
+    taken = [int(v.tags.get("original_version", v.version)) for v in versions if str(v.version) != str(version)]
+    client.set_model_version_tag(name, version, "original_version", str(max(taken) + 1))
+
+
 def log_restore(report: RestoreReport) -> None:
     log.info(
         "tracking snapshot: %d runs restored (%d already there), registered %s; no shipped model file for %s",

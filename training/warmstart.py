@@ -1,10 +1,11 @@
-"""Warm-start an ``AssignmentNet`` from a shipped ONNX model (paper 000 §4.3 fine-tuning from any release), and
-assemble an ``AssignmentEnsemble`` from shipped members.
+"""Warm-start an ``AssignmentNet`` or ``AlignmentNet`` from a shipped ONNX model (paper 000 §4.3 fine-tuning from
+any release, on a fresh clone whose restored runs carry no checkpoints), and assemble an ``AssignmentEnsemble`` from
+shipped members.
 
-The TorchScript exporter folds each BatchNorm into its Conv and stores the GRU in ONNX gate order
-(z, r, h) where torch uses (r, z, n). The state dict is rebuilt accordingly (BatchNorm set to the
-identity, so the fused convolutions carry the whole affine map), and the result must reproduce the
-model's ``golden.npz`` before it is used.
+The TorchScript exporter folds each BatchNorm into its Conv and stores the recurrent weights in ONNX gate order:
+GRU (z, r, h) where torch uses (r, z, n), LSTM (i, o, f, c) where torch uses (i, f, g, o), one LSTM node per
+layer. The state dict is rebuilt accordingly (BatchNorm set to the identity, so the fused convolutions carry the
+whole affine map), and the result must reproduce the model's ``golden.npz`` before it is used.
 """
 
 from __future__ import annotations
@@ -17,22 +18,25 @@ import torch
 from onnx import numpy_helper
 
 from service.core.manifest import read_manifest
-from training.models import AssignmentEnsemble, AssignmentNet
+from training.models import AlignmentNet, AssignmentEnsemble, AssignmentNet
+
+# Gate blocks along axis 0: where each torch gate sits in the ONNX layout (torch order, ONNX positions).
+_GRU_GATES = (1, 0, 2)  # ONNX (z, r, h) → torch (r, z, n)
+_LSTM_GATES = (0, 2, 3, 1)  # ONNX (i, o, f, c) → torch (i, f, g, o)
 
 
-def _reorder_gates(w: np.ndarray, hidden: int) -> np.ndarray:
-    """ONNX (z, r, h) blocks along axis 0 → torch (r, z, n)."""
-    z, r, h = w[:hidden], w[hidden : 2 * hidden], w[2 * hidden :]
-    return np.concatenate([r, z, h])
+def _reorder_gates(w: np.ndarray, hidden: int, order: tuple[int, ...]) -> np.ndarray:
+    """ONNX gate blocks along axis 0 → torch's order (``_GRU_GATES``, ``_LSTM_GATES``)."""
+    return np.concatenate([w[g * hidden : (g + 1) * hidden] for g in order])
 
 
-def assignment_state_from_onnx(onnx_path: Path, net: AssignmentNet) -> dict[str, torch.Tensor]:
-    """``net``'s state dict filled from an exported assignment graph, plain or averaged over turns (every pass
-    runs the same weights; the first is the window as it came, which the golden check covers)."""
+def state_from_onnx(onnx_path: Path, net: AssignmentNet | AlignmentNet) -> dict[str, torch.Tensor]:
+    """``net``'s state dict filled from an exported graph of the same architecture: an assignment graph (GRU),
+    plain or averaged over turns (every pass runs the same weights; the first is the window as it came, which the
+    golden check covers), or an alignment graph (one ONNX LSTM node per layer of the 2-layer LSTM)."""
     model = onnx.load(str(onnx_path))
     inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
     convs = [n for n in model.graph.node if n.op_type == "Conv"]
-    gru = next(n for n in model.graph.node if n.op_type == "GRU")
     state = {k: v.clone() for k, v in net.state_dict().items()}
     conv_layers = [k for k in state if k.startswith("cnn.net.") and k.endswith(".weight") and state[k].dim() == 3]
     if not convs or len(convs) % len(conv_layers):
@@ -47,14 +51,20 @@ def assignment_state_from_onnx(onnx_path: Path, net: AssignmentNet) -> dict[str,
         state[f"{bn}.bias"] = torch.zeros_like(state[f"{bn}.bias"])
         state[f"{bn}.running_mean"] = torch.zeros_like(state[f"{bn}.running_mean"])
         state[f"{bn}.running_var"] = torch.full_like(state[f"{bn}.running_var"], 1.0 - eps)
-    hidden = net.rnn.hidden_size
-    W, R, B = (inits[name][0] for name in gru.input[1:4])
-    state["rnn.weight_ih_l0"] = torch.from_numpy(_reorder_gates(W, hidden))
-    state["rnn.weight_hh_l0"] = torch.from_numpy(_reorder_gates(R, hidden))
-    state["rnn.bias_ih_l0"] = torch.from_numpy(_reorder_gates(B[: 3 * hidden], hidden))
-    state["rnn.bias_hh_l0"] = torch.from_numpy(_reorder_gates(B[3 * hidden :], hidden))
-    state["head.weight"] = torch.from_numpy(inits["net.head.weight"].copy())
-    state["head.bias"] = torch.from_numpy(inits["net.head.bias"].copy())
+    op, order = ("GRU", _GRU_GATES) if isinstance(net.rnn, torch.nn.GRU) else ("LSTM", _LSTM_GATES)
+    layers = [n for n in model.graph.node if n.op_type == op]
+    if len(layers) < net.rnn.num_layers or len(layers) % net.rnn.num_layers:
+        raise ValueError(f"expected {net.rnn.num_layers} {op} node(s) per pass, the ONNX graph has {len(layers)}")
+    hidden, gates = net.rnn.hidden_size, len(order)
+    for layer, node in enumerate(layers[: net.rnn.num_layers]):
+        W, R, B = (inits[name][0] for name in node.input[1:4])
+        state[f"rnn.weight_ih_l{layer}"] = torch.from_numpy(_reorder_gates(W, hidden, order))
+        state[f"rnn.weight_hh_l{layer}"] = torch.from_numpy(_reorder_gates(R, hidden, order))
+        state[f"rnn.bias_ih_l{layer}"] = torch.from_numpy(_reorder_gates(B[: gates * hidden], hidden, order))
+        state[f"rnn.bias_hh_l{layer}"] = torch.from_numpy(_reorder_gates(B[gates * hidden :], hidden, order))
+    head = next(name[: -len("weight")] for name in inits if name.endswith("head.weight"))
+    state["head.weight"] = torch.from_numpy(inits[f"{head}weight"].copy())
+    state["head.bias"] = torch.from_numpy(inits[f"{head}bias"].copy())
     return state
 
 
@@ -68,8 +78,15 @@ def averaging_options(exporter: dict) -> dict:
     }
 
 
-def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1e-4) -> dict[str, torch.Tensor]:
-    """State dict rebuilt from ``model_dir/model.onnx``, verified against ``model_dir/golden.npz``."""
+def warm_start_from_shipped(
+    model_dir: Path, net: AssignmentNet | AlignmentNet, atol: float = 1e-4
+) -> dict[str, torch.Tensor]:
+    """State dict rebuilt from ``model_dir/model.onnx``, verified against ``model_dir/golden.npz``.
+
+    The check runs a copy of the shipped graph (its turn averages, canonical frame and functional axes, from the
+    manifest's ``exporter``); ``net`` itself may differ in those weight-free parts, e.g. an alignment network
+    trained without the functional axes its warm start was shipped with.
+    """
     manifest = read_manifest(model_dir / "manifest.json")
     if "quantization" in manifest.exporter:
         source = model_dir.parent / str(manifest.exporter.get("quantized_from", "?"))
@@ -77,22 +94,37 @@ def warm_start_from_shipped(model_dir: Path, net: AssignmentNet, atol: float = 1
     if "ensemble_of" in manifest.exporter:
         members = manifest.exporter["ensemble_of"]
         raise ValueError(f"{model_dir} is an ensemble; warm start from one of its members: {members}")
-    state = assignment_state_from_onnx(model_dir / "model.onnx", net)
-    probe = AssignmentNet(
-        net.rnn.hidden_size,
-        net.cnn.net[0].out_channels,
-        net.cnn.net[0].kernel_size[0],
-        canonical=net.canonical is not None,
-        **averaging_options(manifest.exporter),
-    )
+    task = "alignment" if isinstance(net, AlignmentNet) else "assignment"
+    if manifest.task != f"i2s_{task}":
+        raise ValueError(f"{model_dir} is an {manifest.task} model; this run trains i2s_{task}")
+    state = state_from_onnx(model_dir / "model.onnx", net)
+    probe = _shipped_graph(manifest.exporter, _has_canonical_frame(model_dir / "model.onnx"), net)
     probe.load_state_dict(state)
     probe.eval()
     with np.load(model_dir / "golden.npz") as golden, torch.no_grad():
-        got = torch.softmax(probe(torch.from_numpy(golden["imu"])), -1).numpy()
-        err = float(np.max(np.abs(got - golden["expected"])))
+        out = probe(torch.from_numpy(golden["imu"]))
+        expected = golden["expected"]
+        if task == "assignment":
+            err = float(np.max(np.abs(torch.softmax(out, -1).numpy() - expected)))
+        else:  # unit quaternions: q and −q are one rotation
+            got = out.numpy()
+            err = float(np.max(np.minimum(np.abs(got - expected), np.abs(got + expected))))
     if err > atol:
         raise ValueError(f"weights rebuilt from {model_dir} differ from its golden output by {err:.2e} > {atol}")
     return state
+
+
+def _has_canonical_frame(onnx_path: Path) -> bool:
+    """Whether an exported graph starts with the ``CanonicalFrame`` (older manifests do not record it)."""
+    return any(node.name.startswith("/canonical/") for node in onnx.load(str(onnx_path)).graph.node)
+
+
+def _shipped_graph(exporter: dict, canonical: bool, net: AssignmentNet | AlignmentNet) -> AssignmentNet | AlignmentNet:
+    """An untrained network of ``net``'s size with the weight-free parts of a shipped graph (manifest ``exporter``)."""
+    sizes = (net.rnn.hidden_size, net.cnn.net[0].out_channels, net.cnn.net[0].kernel_size[0])
+    if isinstance(net, AlignmentNet):
+        return AlignmentNet(*sizes, canonical=canonical, functional_axes=exporter.get("functional_axes"))
+    return AssignmentNet(*sizes, canonical=canonical, **averaging_options(exporter))
 
 
 def shipped_assignment_net(model_dir: Path, hidden: int, channels: int, kernel: int, keep_prob: float) -> AssignmentNet:

@@ -14,6 +14,7 @@ from mlflow.tracking import MlflowClient
 
 from service.core.manifest import read_manifest
 from service.inference.registry import version_key
+from training.pipeline import register_run
 from training.snapshot import RESTORED_TAG, export_snapshot, local_run_id, restore_if_empty, restore_snapshot
 from training.tracking import default_tracking_uri
 
@@ -88,3 +89,16 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
         )
     registry, registry_again = (json.loads((d / "registry.json").read_text()) for d in (SNAPSHOT, tmp_path / "again"))
     assert registry_again == registry
+
+    # a version registered in the restored store is exported under the snapshot's next number, not under a number
+    # the snapshot already gives another model (the store numbers 1, 2, … what the snapshot numbers 1, 3, 4, …)
+    newest = by_origin[read_manifest(_newest_float32("i2s_assignment") / "manifest.json").mlflow["run_id"]]
+    added, _ = register_run(newest.info.run_id, "i2s_assignment", "assignment")
+    (tmp_path / "third").mkdir()
+    shutil.copy(SNAPSHOT / "registry.json", tmp_path / "third/registry.json")
+    export_snapshot(tmp_path / "third", ["i2s"])
+    numbers = [
+        v["version"] for v in json.loads((tmp_path / "third/registry.json").read_text())["i2s_assignment"]["versions"]
+    ]
+    expected = max(int(v["version"]) for v in registry["i2s_assignment"]["versions"]) + 1
+    assert len(numbers) == len(set(numbers)) and numbers[-1] == str(expected) != added

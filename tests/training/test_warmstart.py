@@ -1,14 +1,16 @@
-"""Warm start from a shipped ONNX model: the rebuilt torch weights reproduce the model's golden output."""
+"""Warm start from a shipped ONNX model, assignment or alignment: the rebuilt torch weights reproduce the model's
+golden output."""
 
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 import torch
 
 from service.core.manifest import read_manifest
 from service.inference.registry import version_key
-from training.models import AssignmentNet
+from training.models import AlignmentNet, AssignmentNet
 from training.warmstart import (
     assignment_ensemble,
     averaging_options,
@@ -18,6 +20,7 @@ from training.warmstart import (
 )
 
 SHIPPED = Path(__file__).resolve().parents[2] / "onnx_models" / "i2s_assignment"
+SHIPPED_ALIGNMENT = SHIPPED.parent / "i2s_alignment"
 
 
 def _float32(quantized: bool = False) -> Path:
@@ -49,6 +52,37 @@ def test_rebuilt_weights_match_the_shipped_model(model_dir: Path) -> None:
     with np.load(model_dir / "golden.npz") as golden, torch.no_grad():
         got = torch.softmax(net(torch.from_numpy(golden["imu"])), -1).numpy()
         np.testing.assert_allclose(got, golden["expected"], atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "model_dir",
+    sorted(
+        d.parent for d in SHIPPED_ALIGNMENT.glob("*/manifest.json") if "quantization" not in read_manifest(d).exporter
+    ),
+    ids=lambda d: d.name,
+)
+def test_rebuilt_alignment_weights_match_the_shipped_model(model_dir: Path) -> None:
+    """Every shipped float32 alignment file (1.0.0 the paper's input, 2.0.0 / 3.0.0 with the canonical frame, 3.2.0
+    also with the functional axes): the 2-layer LSTM comes back from two ONNX LSTM nodes in torch's gate order, so a
+    fresh clone, whose restored runs carry no checkpoints, can fine-tune the shipped alignment."""
+    exporter = read_manifest(model_dir / "manifest.json").exporter
+    graph = onnx.load(str(model_dir / "model.onnx")).graph
+    canonical = any(node.name.startswith("/canonical/") for node in graph.node)
+    assert canonical == exporter.get("canonical_frame", canonical)
+    net = AlignmentNet(canonical=canonical, functional_axes=exporter.get("functional_axes"))
+    net.load_state_dict(warm_start_from_shipped(model_dir, AlignmentNet(canonical=canonical)))
+    net.eval()
+    with np.load(model_dir / "golden.npz") as golden, torch.no_grad():
+        got = net(torch.from_numpy(golden["imu"])).numpy()
+        dot = np.abs(np.sum(got * golden["expected"], axis=-1))  # q and -q are one rotation
+        np.testing.assert_allclose(dot, 1.0, atol=1e-5)
+
+
+def test_a_model_of_the_other_task_is_refused() -> None:
+    with pytest.raises(ValueError, match="is an i2s_alignment model; this run trains i2s_assignment"):
+        warm_start_from_shipped(SHIPPED_ALIGNMENT / "3.0.0", AssignmentNet())
+    with pytest.raises(ValueError, match="is an i2s_assignment model; this run trains i2s_alignment"):
+        warm_start_from_shipped(_float32(), AlignmentNet(canonical=True))
 
 
 def test_a_wrong_golden_is_refused(tmp_path: Path) -> None:
