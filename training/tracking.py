@@ -54,6 +54,7 @@ def maybe_promote(
     is not comparable, so the alias stays where it is (and the caller logs why).
     """
     client = MlflowClient()
+    value = float(_score_tag(value))  # compared at the precision the champion's score is kept in (its tag)
     _tag_evaluation(client, name, version, metric, value, evaluation_digest)
     try:
         champion = client.get_model_version_by_alias(name, CHAMPION)
@@ -85,4 +86,10 @@ def record_evaluation(name: str, run_id: str, metric: str, value: float, evaluat
 def _tag_evaluation(client: MlflowClient, name: str, version: str, metric: str, value: float, digest: str) -> None:
     """The tags ``maybe_promote`` compares versions by: which evaluation, and the score on it."""
     client.set_model_version_tag(name, version, "eval_digest", digest)
-    client.set_model_version_tag(name, version, f"eval_{metric}", f"{value:.6f}")
+    client.set_model_version_tag(name, version, f"eval_{metric}", _score_tag(value))
+
+
+def _score_tag(value: float) -> str:
+    """A score as tagged on a version. A tie must stay a tie: 0.99995536 is not a win over a champion tagged
+    0.999955 with the same score."""
+    return f"{value:.6f}"

@@ -1,0 +1,50 @@
+"""``champion`` moves only on a win on the same evaluation, with scores compared as the registry keeps them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mlflow
+import pytest
+from mlflow.tracking import MlflowClient
+
+from training.tracking import CHAMPION, maybe_promote
+
+NAME = "promotion_test"
+DIGEST = "118c8db71bae1df1f9a1"
+
+
+@pytest.fixture
+def registry(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> MlflowClient:
+    """An embedded sqlite store with one registered model and four versions."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    client = MlflowClient()
+    client.create_registered_model(NAME)
+    for _ in range(4):
+        client.create_model_version(NAME, source=str(tmp_path))
+    return client
+
+
+def _champion(client: MlflowClient) -> str:
+    return str(client.get_model_version_by_alias(NAME, CHAMPION).version)
+
+
+def test_a_tie_does_not_move_champion_even_when_the_tag_rounds_down(registry: MlflowClient) -> None:
+    """1.9.0 tied 1.6.0 at 22,399 of 22,400 windows (0.99995536); the champion's tag keeps 0.999955, and the
+    unrounded score used to beat it."""
+    tie = 22_399 / 22_400
+    assert maybe_promote(NAME, "1", "accuracy", tie, True, DIGEST)
+    assert not maybe_promote(NAME, "2", "accuracy", tie, True, DIGEST)
+    assert _champion(registry) == "1"
+    assert not maybe_promote(NAME, "3", "accuracy", 1.0, True, "another evaluation")  # not comparable
+    assert _champion(registry) == "1"
+    assert maybe_promote(NAME, "4", "accuracy", 1.0, True, DIGEST)
+    assert _champion(registry) == "4"
+
+
+def test_lower_is_better_for_angle_errors(registry: MlflowClient) -> None:
+    assert maybe_promote(NAME, "1", "mean_angle_error_deg", 1.7176161, False, DIGEST)
+    assert not maybe_promote(NAME, "2", "mean_angle_error_deg", 1.7176159, False, DIGEST)  # equal at 6 decimals
+    assert maybe_promote(NAME, "3", "mean_angle_error_deg", 1.70, False, DIGEST)
+    assert _champion(registry) == "3"
