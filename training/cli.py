@@ -78,6 +78,8 @@ def pack(
 def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -> None:
     """Train only (no MLflow, no data directory) on a `pack` file; `train --fitted OUT` then tracks the result.
 
+    From scratch, or fine-tuning a shipped float32 file (`-s train.init_from_onnx=onnx_models/<name>/<version>`).
+
     For a GPU machine: `-s train.device=cuda -s train.loader_workers=3` (README "Training on another machine").
     """
     from training.data.mocap import dataset_digest
@@ -86,12 +88,19 @@ def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -
     from training.train import train as train_model
 
     cfg = load_config(config, overrides)
-    if cfg.train.init_from_run or cfg.train.init_from_onnx or cfg.train.ensemble_of or cfg.data.real_train_recordings:
+    if cfg.train.init_from_run or cfg.train.ensemble_of or cfg.data.real_train_recordings:
         raise typer.BadParameter(
-            "fit trains from scratch on simulated clips only (no init_from_*, no ensemble_of, no real data)"
+            "fit trains on simulated clips only, from scratch or from a shipped file (init_from_onnx); "
+            "no init_from_run, no ensemble_of, no real data"
         )
+    init_state = None
+    if cfg.train.init_from_onnx:  # the shipped files travel with the working tree; needs onnx, not MLflow
+        from training.train import build_model
+        from training.warmstart import warm_start_from_shipped
+
+        init_state = warm_start_from_shipped(Path(cfg.train.init_from_onnx), build_model(cfg))  # type: ignore[arg-type]
     train_clips, val_clips, _ = split_clips(load_pack(clips), cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
-    result = train_model(cfg, train_clips, val_clips)
+    result = train_model(cfg, train_clips, val_clips, init_state=init_state)
     save_fitted(out, cfg, result, dataset_digest(train_clips), dataset_digest(val_clips))
     typer.echo(f"best epoch {result.best_epoch} of {len(result.history)}, {result.wall_time_s / 60:.1f} min → {out}")
 

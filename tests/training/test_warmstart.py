@@ -142,3 +142,36 @@ def test_the_warm_start_competes_as_epoch_zero(data_dir: Path, kinematics_cache:
         torch.testing.assert_close(value, init[key], msg=key)
     from_scratch = train(load_config(config, [*tiny, "train.max_epochs=1"]), clips, clips)
     assert from_scratch.best_epoch == 1  # without a warm start, the first epoch is the first candidate
+
+
+def test_fit_fine_tunes_a_shipped_alignment_file(data_dir: Path, kinematics_cache: Path, tmp_path: Path) -> None:
+    """`fit` (the trainer for another machine: no MLflow, no data directory) starts from a shipped float32 file.
+    A learning rate of 1 wrecks the weights in two steps, so the warm start, epoch 0, is what it keeps."""
+    from typer.testing import CliRunner
+
+    from training.cli import app
+    from training.config import load_config
+    from training.data.split import load_clips, save_pack
+
+    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_alignment.yaml"
+    shipped = SHIPPED_ALIGNMENT / "3.0.0"
+    overrides = [
+        "data.activities=[walk]",
+        "train.steps_per_epoch=2",
+        "train.max_epochs=1",
+        "train.val_windows=256",
+        "train.batch_size=64",
+        "train.threads=2",
+        "train.lr=1.0",
+        f"train.init_from_onnx={shipped}",
+    ]
+    save_pack(load_clips(load_config(config, overrides), data_dir, kinematics_cache), tmp_path / "clips.npz")
+    args = ["fit", str(config), str(tmp_path / "clips.npz"), str(tmp_path / "fitted.pt")]
+    for item in overrides:
+        args += ["-s", item]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "best epoch 0 of 1" in result.output
+    saved = torch.load(tmp_path / "fitted.pt", weights_only=True)["state"]
+    for key, value in warm_start_from_shipped(shipped, AlignmentNet(canonical=True)).items():
+        torch.testing.assert_close(saved[key], value, msg=key)
