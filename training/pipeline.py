@@ -140,6 +140,8 @@ def _fitted_elsewhere(
     fitted: Path, cfg: ExperimentConfig, train_clips: list[Clip], val_clips: list[Clip]
 ) -> TrainResult:
     result, where = load_fitted(fitted, cfg, dataset_digest(train_clips), dataset_digest(val_clips))
+    if result.warm_start is not None:  # step 0 of the learning curves, as in a run trained here
+        mlflow.log_metrics(result.warm_start, step=0)
     for epoch, metrics in enumerate(result.history, start=1):
         mlflow.log_metrics(metrics, step=epoch)
     mlflow.set_tags(

@@ -141,6 +141,7 @@ class TrainResult:
     best_epoch: int
     history: list[dict[str, float]] = field(default_factory=list)
     wall_time_s: float = 0.0
+    warm_start: dict[str, float] | None = None  # the warm-start weights' validation (epoch 0), if there were any
 
 
 @torch.no_grad()
@@ -235,7 +236,7 @@ def train(
         # The warm-start weights compete as epoch 0: fine-tuning that never beats them returns them unchanged
         # (and max_epochs 0 wraps them as they are, e.g. in a new turn average).
         start_metrics = _validation(model, cfg.task, val_batches, real_batches, device)
-        best = start_metrics["val_loss"]
+        best, result.warm_start = start_metrics["val_loss"], start_metrics
         if log_metrics:  # step 0 of the learning curves: what the warm start scored
             log_metrics(start_metrics, 0)
         log.info("epoch 0 (warm start) %s", {k: round(v, 5) for k, v in start_metrics.items()})
@@ -291,6 +292,7 @@ def save_fitted(path: Path, cfg: ExperimentConfig, result: TrainResult, train_di
     payload = {
         "state": result.model.state_dict(),
         "history": result.history,
+        "warm_start": result.warm_start,
         "best_epoch": result.best_epoch,
         "wall_time_s": result.wall_time_s,
         "config": cfg.model_dump(mode="json"),
@@ -336,5 +338,7 @@ def load_fitted(
     model = build_model(cfg)
     model.load_state_dict(payload["state"])
     model.eval()
-    result = TrainResult(model, payload["best_epoch"], payload["history"], payload["wall_time_s"])
+    result = TrainResult(
+        model, payload["best_epoch"], payload["history"], payload["wall_time_s"], payload.get("warm_start")
+    )
     return result, {"device": payload["device"], **payload["config"]["train"]}

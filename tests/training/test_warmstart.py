@@ -172,6 +172,9 @@ def test_fit_fine_tunes_a_shipped_alignment_file(data_dir: Path, kinematics_cach
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "best epoch 0 of 1" in result.output
-    saved = torch.load(tmp_path / "fitted.pt", weights_only=True)["state"]
+    payload = torch.load(tmp_path / "fitted.pt", weights_only=True)
     for key, value in warm_start_from_shipped(shipped, AlignmentNet(canonical=True)).items():
-        torch.testing.assert_close(saved[key], value, msg=key)
+        torch.testing.assert_close(payload["state"][key], value, msg=key)
+    # the warm start's validation travels with the weights: step 0 of the tracked run's learning curves
+    warm, first = payload["warm_start"], payload["history"][0]
+    assert set(warm) == {k for k in first if k.startswith("val_")} and warm["val_loss"] < first["val_loss"]
