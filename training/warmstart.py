@@ -98,7 +98,8 @@ def warm_start_from_shipped(
     if manifest.task != f"i2s_{task}":
         raise ValueError(f"{model_dir} is an {manifest.task} model; this run trains i2s_{task}")
     state = state_from_onnx(model_dir / "model.onnx", net)
-    probe = _shipped_graph(manifest.exporter, _has_canonical_frame(model_dir / "model.onnx"), net)
+    sizes = (net.rnn.hidden_size, net.cnn.net[0].out_channels, net.cnn.net[0].kernel_size[0])
+    probe = shipped_graph(model_dir, task, *sizes)
     probe.load_state_dict(state)
     probe.eval()
     with np.load(model_dir / "golden.npz") as golden, torch.no_grad():
@@ -106,31 +107,28 @@ def warm_start_from_shipped(
         expected = golden["expected"]
         if task == "assignment":
             err = float(np.max(np.abs(torch.softmax(out, -1).numpy() - expected)))
-        else:  # unit quaternions: q and −q are one rotation
+        else:  # unit quaternions: q and −q are one rotation, so each is compared with the nearer sign
             got = out.numpy()
-            err = float(np.max(np.minimum(np.abs(got - expected), np.abs(got + expected))))
+            same, flipped = (np.abs(got - sign * expected).max(-1) for sign in (1.0, -1.0))
+            err = float(np.max(np.minimum(same, flipped)))
     if err > atol:
         raise ValueError(f"weights rebuilt from {model_dir} differ from its golden output by {err:.2e} > {atol}")
     return state
 
 
-def _has_canonical_frame(onnx_path: Path) -> bool:
-    """Whether an exported graph starts with the ``CanonicalFrame`` (older manifests do not record it)."""
-    return any(node.name.startswith("/canonical/") for node in onnx.load(str(onnx_path)).graph.node)
-
-
-def _shipped_graph(exporter: dict, canonical: bool, net: AssignmentNet | AlignmentNet) -> AssignmentNet | AlignmentNet:
-    """An untrained network of ``net``'s size with the weight-free parts of a shipped graph (manifest ``exporter``)."""
-    sizes = (net.rnn.hidden_size, net.cnn.net[0].out_channels, net.cnn.net[0].kernel_size[0])
-    if isinstance(net, AlignmentNet):
-        return AlignmentNet(*sizes, canonical=canonical, functional_axes=exporter.get("functional_axes"))
-    return AssignmentNet(*sizes, canonical=canonical, **averaging_options(exporter))
-
-
-def shipped_assignment_net(model_dir: Path, hidden: int, channels: int, kernel: int, keep_prob: float) -> AssignmentNet:
-    """An untrained ``AssignmentNet`` with the turn averages a shipped float32 model was exported with."""
+def shipped_graph(
+    model_dir: Path, task: str, hidden: int, channels: int, kernel: int, keep_prob: float = 0.8
+) -> AssignmentNet | AlignmentNet:
+    """An untrained network with the weight-free parts of a shipped float32 graph: its turn averages or functional
+    axes (manifest ``exporter``) and its canonical frame (read from the graph: older manifests do not record it)."""
     exporter = read_manifest(model_dir / "manifest.json").exporter
-    return AssignmentNet(hidden, channels, kernel, keep_prob, **averaging_options(exporter))
+    graph = onnx.load(str(model_dir / "model.onnx")).graph
+    canonical = any(node.name.startswith("/canonical/") for node in graph.node)
+    if task == "alignment":
+        return AlignmentNet(
+            hidden, channels, kernel, keep_prob, canonical=canonical, functional_axes=exporter.get("functional_axes")
+        )
+    return AssignmentNet(hidden, channels, kernel, keep_prob, canonical=canonical, **averaging_options(exporter))
 
 
 def assignment_ensemble(
@@ -138,7 +136,7 @@ def assignment_ensemble(
 ) -> AssignmentEnsemble:
     """The architecture of an ensemble of shipped float32 assignment models (weights: ``ensemble_state``)."""
     return AssignmentEnsemble(
-        [shipped_assignment_net(Path(d), hidden, channels, kernel, keep_prob) for d in member_dirs]
+        [shipped_graph(Path(d), "assignment", hidden, channels, kernel, keep_prob) for d in member_dirs]  # type: ignore[misc]
     )
 
 
