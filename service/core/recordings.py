@@ -55,8 +55,12 @@ GAITMAP_FILES = {  # file: (rate Hz, subject, activity)
     "imu_sample_not_rotated.csv": (204.8, "spc2019_5047", "walk"),
     "imu_sample_healthy_stair_up.csv": (204.8, "madstair_11", "stairs_up"),
     "imu_sample_healthy_stair_down.csv": (204.8, "madstair_11", "stairs_down"),
+    # 4 x 10 m gait test, sensor frames as recorded (both feet stand tilted ~40° about y); the data README gives
+    # no subject, so it is its own group.
+    "imu_sample_ic_stride.csv": (102.4, "gaitmap_ic_stride_unknown", "walk"),
 }
-# Not read: imu_sample_ms_left/right.csv. Their accelerometer norm has a median of about 19 m/s² over a
+# Not read: imu_sample.csv, the not-rotated recording again with its axes turned onto gaitmap's foot frame (the
+# same motion twice would count twice), and imu_sample_ms_left/right.csv. Their accelerometer norm has a median of about 19 m/s² over a
 # long walk (2 g, against 9.7–11.5 in every other recording), so their units are not the documented ones.
 
 

@@ -1,0 +1,77 @@
+"""The readers of the real recordings (service/core/recordings.py) against the data README's index: every
+recording read, at the model rate for its whole length, in contract units, with the segments it is labelled with."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.core.recordings import RECORDING_NAMES, read_all_real
+from service.core.segments import SEGMENTS
+from service.core.windowing import MODEL_RATE_HZ
+
+
+# Sensors whose accelerometer is off in the data as published: the capacitive subject's left-foot Xsens reads
+# 12.1-12.2 m/s² standing still, in all four trials (its z about 10.8 where the right foot's reads 8.2). Kept as
+# recorded: a real sensor error the models meet.
+GRAVITY_AS_READ = {("capacitive_sub01", "toes_l_imu"): 12.15}
+
+
+@pytest.fixture(scope="module")
+def recordings(data_dir: Path):
+    return {r.name: r for r in read_all_real(data_dir)}
+
+
+def _index_duration_s(data_dir: Path, name: str) -> float:
+    """The IMU file's duration as index.csv gives it (x-IMU3: the shortest device, the readers keep the overlap)."""
+    with open(data_dir / "index.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if name == "ximu3_lowerbody":
+        return min(float(r["duration_s"]) for r in rows if r["path"].endswith("Inertial.csv"))
+    source, item = name.split("/")
+    suffix = f"{item}_Accel.trc" if source == "capacitive_sub01" else f"{item}.csv"
+    return next(float(r["duration_s"]) for r in rows if r["source"] == source and r["path"].endswith(suffix))
+
+
+def test_every_named_recording_is_read_once(recordings) -> None:
+    assert sorted(recordings) == sorted(RECORDING_NAMES)
+    assert "gaitmap_foot/imu_sample_ic_stride" in recordings
+
+
+@pytest.mark.parametrize("name", RECORDING_NAMES)
+def test_recording_is_at_the_model_rate_for_its_whole_length(recordings, data_dir: Path, name: str) -> None:
+    expected = _index_duration_s(data_dir, name)
+    for sensor in recordings[name].sensors:
+        assert abs(len(sensor.imu) / MODEL_RATE_HZ - expected) < 0.3, (sensor.sensor_id, len(sensor.imu), expected)
+
+
+@pytest.mark.parametrize("name", RECORDING_NAMES)
+def test_recording_is_in_contract_units(recordings, name: str) -> None:
+    """Specific force in m/s² (a median norm near 1 g, not 1 or 2 g-units) and rates in rad/s (walking swings a
+    leg at a few rad/s; deg/s would read ~57 times more; the pelvis turns slowest)."""
+    fastest = 0.0
+    for sensor in recordings[name].sensors:
+        if sensor.segment is None:
+            continue
+        acc_norm = np.linalg.norm(sensor.imu[:, :3], axis=1)
+        gyr_norm = np.linalg.norm(sensor.imu[:, 3:], axis=1)
+        assert 9.0 < np.median(acc_norm) < 13.0, (sensor.sensor_id, np.median(acc_norm))
+        assert np.percentile(gyr_norm, 95) < 12.0, (sensor.sensor_id, np.percentile(gyr_norm, 95))
+        fastest = max(fastest, float(np.percentile(gyr_norm, 95)))
+        still = gyr_norm < 0.1
+        if still.sum() > MODEL_RATE_HZ:  # a second or more of standing: gravity alone
+            at_rest = GRAVITY_AS_READ.get((recordings[name].source, sensor.sensor_id), 9.81)
+            assert abs(np.median(acc_norm[still]) - at_rest) < 0.7, (sensor.sensor_id, np.median(acc_norm[still]))
+    assert fastest > 2.0, fastest
+
+
+@pytest.mark.parametrize("name", RECORDING_NAMES)
+def test_recording_carries_its_segment_labels(recordings, name: str) -> None:
+    labelled = sorted(s.segment for s in recordings[name].sensors if s.segment is not None)
+    if name.startswith("gaitmap_foot/"):
+        assert labelled == [SEGMENTS.index("LeftFoot"), SEGMENTS.index("RightFoot")]
+    else:
+        assert labelled == list(range(len(SEGMENTS)))
