@@ -26,6 +26,10 @@ class DataConfig(_Strict):
     # the last part of every real training recording (in time) is kept for validation: early stopping and the
     # warm start's epoch 0 are then judged on real windows too, not on simulated ones alone (0: train on all)
     real_val_fraction: float = Field(0.2, ge=0.0, lt=1.0)
+    # the real windows' share of the validation loss that selects the epoch; None weighs by window count, where
+    # the 4,096 simulated windows outweigh a few hundred real ones and a fine-tune that gains on real data but
+    # grows less sure on simulated data returns its warm start unchanged
+    real_val_weight: float | None = Field(None, gt=0.0, lt=1.0)
     sample_rate_hz: float = 60.0
     cutoff_hz: float = 10.0
     filter_order: int = 8

@@ -167,16 +167,24 @@ def _validate(model: nn.Module, task: str, batches: list[Batch], device: torch.d
 
 
 def _validation(
-    model: nn.Module, task: str, simulated: list[Batch], real: list[Batch], device: torch.device
+    model: nn.Module,
+    task: str,
+    simulated: list[Batch],
+    real: list[Batch],
+    device: torch.device,
+    real_weight: float | None = None,
 ) -> dict[str, float]:
     """Validation over the simulated and real batches together (what selects the epoch), and the real ones alone.
-    Each set runs once; the joint figures are their means weighted by window count."""
+    Each set runs once; the joint figures are their means weighted by window count, or with ``real_weight`` on
+    the real set's (``data.real_val_weight``)."""
     metrics = _validate(model, task, simulated, device)
     if not real:
         return metrics
     alone = _validate(model, task, real, device)
-    n_sim, n_real = (sum(len(b.segment) for b in batches) for batches in (simulated, real))
-    joint = {k: (metrics[k] * n_sim + alone[k] * n_real) / (n_sim + n_real) for k in metrics}
+    if real_weight is None:
+        n_sim, n_real = (sum(len(b.segment) for b in batches) for batches in (simulated, real))
+        real_weight = n_real / (n_sim + n_real)
+    joint = {k: metrics[k] * (1.0 - real_weight) + alone[k] * real_weight for k in metrics}
     return joint | {k.replace("val_", "val_real_", 1): v for k, v in alone.items()}
 
 
@@ -235,7 +243,7 @@ def train(
     if init_state is not None:
         # The warm-start weights compete as epoch 0: fine-tuning that never beats them returns them unchanged
         # (and max_epochs 0 wraps them as they are, e.g. in a new turn average).
-        start_metrics = _validation(model, cfg.task, val_batches, real_batches, device)
+        start_metrics = _validation(model, cfg.task, val_batches, real_batches, device, cfg.data.real_val_weight)
         best, result.warm_start = start_metrics["val_loss"], start_metrics
         if log_metrics:  # step 0 of the learning curves: what the warm start scored
             log_metrics(start_metrics, 0)
@@ -262,7 +270,7 @@ def train(
             bar.set_postfix(loss=f"{running / (bar.n + 1):.4f}")
         metrics = {
             "train_loss": running / t.steps_per_epoch,
-            **_validation(scored, cfg.task, val_batches, real_batches, device),
+            **_validation(scored, cfg.task, val_batches, real_batches, device, cfg.data.real_val_weight),
         }
         metrics["wall_time_s"] = time.monotonic() - start
         result.history.append(metrics)

@@ -14,7 +14,7 @@ from service.core.rotations import matrix_from_quat
 from training.config import load_config
 from training.data.catalog import mocap_entries
 from training.data.mocap import build_kinematics
-from training.data.windows import Augmentation, RealWindowSampler, WindowSampler, grid_batches
+from training.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, grid_batches
 from training.train import train
 
 REPO = Path(__file__).resolve().parents[2]
@@ -161,3 +161,32 @@ def test_stiff_knee_variants_follow_their_clip_and_take_their_share(
         _draw_probabilities(train_clips, 0.0)
     sampler = WindowSampler(train_clips, Augmentation(stiff_knee_share=0.2))
     assert sampler.sample(np.random.default_rng(0), 32).imu.shape == (32, 128, 6)
+
+
+def test_real_val_weight_sets_the_real_share_of_the_loss_that_selects_the_epoch() -> None:
+    """By window count the 4,096 simulated windows outweigh the real ones; ``data.real_val_weight`` gives the real
+    set a fixed share. A network that always answers class 0 is right on the simulated batch and wrong on the
+    real one, so the two losses differ and each weighting has one answer."""
+    import torch
+
+    from training.train import _validation
+
+    class AlwaysFirst(torch.nn.Module):
+        def forward(self, imu: torch.Tensor) -> torch.Tensor:
+            logits = torch.zeros(len(imu), 7)
+            logits[:, 0] = 2.0
+            return logits
+
+    def batch(n: int, segment: int) -> Batch:
+        return Batch(np.zeros((n, 128, 6), np.float32), np.full(n, segment, np.int64), np.zeros((n, 4), np.float32))
+
+    sim, real = [batch(300, 0)], [batch(100, 3)]
+    cpu = torch.device("cpu")
+    alone_sim = _validation(AlwaysFirst(), "assignment", sim, [], cpu)["val_loss"]
+    by_count = _validation(AlwaysFirst(), "assignment", sim, real, cpu)
+    halves = _validation(AlwaysFirst(), "assignment", sim, real, cpu, real_weight=0.5)
+    real_loss = by_count["val_real_loss"]
+    assert real_loss > alone_sim + 1.0
+    assert by_count["val_loss"] == pytest.approx(0.75 * alone_sim + 0.25 * real_loss)
+    assert halves["val_loss"] == pytest.approx(0.5 * alone_sim + 0.5 * real_loss)
+    assert halves["val_accuracy"] == pytest.approx(0.5)
