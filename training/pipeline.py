@@ -16,6 +16,7 @@ import torch
 import yaml
 from mlflow.tracking import MlflowClient
 
+from service.core.manifest import read_manifest
 from service.core.recordings import RealRecording, read_all_real, read_recording
 from training.config import ExperimentConfig, flatten
 from training.data.mocap import KINEMATICS_VERSION, Clip, as_recorded, dataset_digest
@@ -154,10 +155,23 @@ def _fitted_elsewhere(
     return result
 
 
+def _members_real_recordings_are_held_out_of_evaluation(cfg: ExperimentConfig) -> None:
+    """An ensemble is evaluated on the real recordings its config did not train on; a member that trained on
+    real recordings makes them training data of the ensemble too, so the config must name them."""
+    for member in cfg.train.ensemble_of or []:
+        seen = read_manifest(Path(member) / "manifest.json").training_data.get("real_train_recordings", [])
+        if missing := sorted(set(seen) - set(cfg.data.real_train_recordings)):
+            raise ValueError(
+                f"ensemble member {member} trained on the real recordings {missing}; add them to "
+                f"data.real_train_recordings (now {cfg.data.real_train_recordings}) so that no evaluation uses them"
+            )
+
+
 def _initial_state(cfg: ExperimentConfig, tmp: Path) -> dict | None:
     if cfg.train.ensemble_of:
         if cfg.task != "assignment":
             raise ValueError("ensemble_of assembles assignment models")
+        _members_real_recordings_are_held_out_of_evaluation(cfg)
         mlflow.set_tag("ensemble_of", ",".join(cfg.train.ensemble_of))
         return ensemble_state(cfg.train.ensemble_of, build_model(cfg))  # type: ignore[arg-type]
     if cfg.train.init_from_run:

@@ -122,6 +122,29 @@ def test_an_ensemble_is_assembled_not_trained() -> None:
         load_config(config, ["train.ensemble_of=[onnx_models/i2s_assignment/1.6.0]", "train.max_epochs=0"])
 
 
+def test_an_ensemble_must_hold_its_members_real_training_recordings_out_of_evaluation(tmp_path: Path) -> None:
+    """A member fine-tuned on real recordings (manifest ``training_data.real_train_recordings``) makes them the
+    ensemble's training data too: the ensemble's config must name them, or its real-data evaluation would score
+    windows a member learnt from."""
+    import json
+    import shutil
+
+    from training.config import load_config
+    from training.pipeline import _members_real_recordings_are_held_out_of_evaluation
+
+    member = tmp_path / "i2s_assignment" / "9.9.9"
+    shutil.copytree(SHIPPED / "1.8.0", member)
+    manifest = json.loads((member / "manifest.json").read_text())
+    manifest["training_data"]["real_train_recordings"] = ["ximu3_lowerbody"]
+    (member / "manifest.json").write_text(json.dumps(manifest))
+    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_assignment.yaml"
+    members = f"train.ensemble_of=[onnx_models/i2s_assignment/1.6.0,{member}]"
+    with pytest.raises(ValueError, match=r"trained on the real recordings \['ximu3_lowerbody'\]"):
+        _members_real_recordings_are_held_out_of_evaluation(load_config(config, [members, "train.max_epochs=0"]))
+    named = load_config(config, [members, "train.max_epochs=0", "data.real_train_recordings=[ximu3_lowerbody]"])
+    _members_real_recordings_are_held_out_of_evaluation(named)
+
+
 def test_the_warm_start_competes_as_epoch_zero(data_dir: Path, kinematics_cache: Path) -> None:
     """Fine-tuning that never beats the warm-start weights on validation returns them unchanged (best epoch 0);
     an epoch that does beat them is kept. A learning rate of 1 wrecks the shipped weights in two steps."""
