@@ -24,7 +24,7 @@ from training.data.split import load_clips, split_clips
 from training.data.windows import Augmentation, RealWindowSampler, WindowSampler
 from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
 from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
-from training.plots import confusion_matrix_png, error_boxplot_png, learning_curves_png
+from training.plots import confusion_matrix_png, error_boxplot_png, held_out_bars_png, learning_curves_png
 from training.ship import build_manifest, run_version
 from training.snapshot import number_as_in_snapshot
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
@@ -71,6 +71,7 @@ def run_training(
     register: bool = True,
     eval_max_windows: int | None = None,
     fitted: Path | None = None,
+    tags: dict[str, str] | None = None,
 ) -> str:
     """One tracked training run; returns the MLflow run id.
 
@@ -90,6 +91,7 @@ def run_training(
                 "test_subjects": ",".join(cfg.data.test_subjects),
                 "kinematics_version": KINEMATICS_VERSION,
             }
+            | (tags or {})
         )
         for context, part in (("training", train_clips), ("validation", val_clips), ("test", test_clips)):
             if part:
@@ -122,8 +124,7 @@ def run_training(
         mlflow.log_artifact(str(tmp / "golden.npz"), "export")
         if test_clips:
             _log_simulated_evaluation(cfg, onnx_path, test_clips, tmp, eval_max_windows)
-        if eval_max_windows is None:
-            _log_real_evaluation(cfg, onnx_path, data_dir, tmp)
+        _log_real_evaluation(cfg, onnx_path, data_dir, tmp)
         proto = onnx.load(str(onnx_path))
         # mlflow.onnx writes the proto's serialisation, whose sha256 the manifest states.
         current = MlflowClient().get_run(run.info.run_id)
@@ -135,6 +136,67 @@ def run_training(
     if register:
         register_run(run_id, cfg.registered_model, cfg.task)
     return run_id
+
+
+# What a real-data fold reports of its held-out windows, pooled over folds by window count.
+HELD_OUT_METRICS = (
+    "real_accuracy",
+    "real_accuracy_ignoring_side",
+    "real_window_joint_accuracy",
+    "real_window_joint_accuracy_ignoring_side",
+)
+
+
+def run_real_loso(
+    cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, eval_max_windows: int | None = None
+) -> tuple[str, dict[str, dict[str, float]]]:
+    """Paper 000 §4.3 on the real recordings: leave one source out. A source is one sensor system of one lab
+    (``RealRecording.source``: the capacitive subject, the x-IMU3 person, gaitmap's feet), so each fold is scored on
+    people and sensors it never trained on. Each fold is a full tracked run of ``cfg`` (simulated data plus the
+    other sources' recordings, ``data.real_fraction`` of each batch), tagged ``real_loso_held_out``; a summary run
+    pools the held-out windows (``pooled_*``, weighted by window count) and logs the per-source bars. Returns the
+    summary run id and the per-source figures (key ``pooled`` for all)."""
+    if cfg.task != "assignment" or cfg.data.real_fraction <= 0.0:
+        raise ValueError(
+            f"real-data folds train assignment with data.real_fraction > 0; got task {cfg.task}, "
+            f"real_fraction {cfg.data.real_fraction}"
+        )
+    sources: dict[str, list[str]] = {}
+    for recording in read_all_real(data_dir):
+        sources.setdefault(recording.source, []).append(recording.name)
+    folds: dict[str, dict[str, float]] = {}
+    for held_out, names in sources.items():
+        others = [name for source, group in sources.items() if source != held_out for name in group]
+        fold_cfg = ExperimentConfig.model_validate(
+            cfg.model_dump() | {"data": cfg.data.model_dump() | {"real_train_recordings": others}}
+        )
+        log.info("real-data fold %d/%d: %s held out", len(folds) + 1, len(sources), held_out)
+        run_id = run_training(
+            fold_cfg, data_dir, cache_dir, False, eval_max_windows, tags={"real_loso_held_out": held_out}
+        )
+        metrics = MlflowClient().get_run(run_id).data.metrics
+        n_windows = sum(metrics[f"n_windows.{name.replace('/', '.')}"] for name in names)
+        folds[held_out] = {"n_windows": n_windows} | {k: metrics[k] for k in HELD_OUT_METRICS}
+        folds[held_out]["run_id"] = run_id  # type: ignore[assignment]
+    total = sum(f["n_windows"] for f in folds.values())
+    pooled = {k: sum(f[k] * f["n_windows"] for f in folds.values()) / total for k in HELD_OUT_METRICS}
+    with mlflow.start_run(run_name=f"{cfg.name}_real_loso") as run, tempfile.TemporaryDirectory() as tmp_dir:
+        mlflow.log_params(
+            {k: str(v) for k, v in flatten(cfg.model_dump()).items() if k != "data.real_train_recordings"}
+        )
+        mlflow.set_tags(
+            {"task": cfg.task, "real_loso": "summary"} | {f"fold_run.{s}": str(f["run_id"]) for s, f in folds.items()}
+        )
+        mlflow.log_metrics({f"pooled_{k}": v for k, v in pooled.items()} | {"pooled_n_windows": total})
+        for source, fold in folds.items():
+            mlflow.log_metrics({f"{source}.{k}": fold[k] for k in (*HELD_OUT_METRICS, "n_windows")})
+        mlflow.log_dict(folds, "evaluation/real_loso.json")
+        png = held_out_bars_png(
+            folds, Path(tmp_dir) / "real_loso.png", f"{cfg.name}: real recordings, one source held out"
+        )
+        mlflow.log_artifact(str(png), "plots")
+        summary_id = run.info.run_id
+    return summary_id, folds | {"pooled": pooled | {"n_windows": total}}
 
 
 def _fitted_elsewhere(

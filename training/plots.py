@@ -72,3 +72,29 @@ def learning_curves_png(history: list[dict[str, float]], path: Path, title: str)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def held_out_bars_png(folds: dict[str, dict[str, float]], path: Path, title: str) -> Path:
+    """Real-data leave-one-source-out: per held-out source, accuracy per window and one-to-one per moment, each
+    with and without left/right (``training.pipeline.run_real_loso``)."""
+    keys = [
+        ("real_accuracy", "per window"),
+        ("real_accuracy_ignoring_side", "per window, ignoring left/right"),
+        ("real_window_joint_accuracy", "per moment"),
+        ("real_window_joint_accuracy_ignoring_side", "per moment, ignoring left/right"),
+    ]
+    names = list(folds)
+    fig, ax = plt.subplots(figsize=(1.8 + 1.6 * len(names), 4.5))
+    width = 0.8 / len(keys)
+    for k, (key, label) in enumerate(keys):
+        x = np.arange(len(names)) + (k - (len(keys) - 1) / 2) * width
+        ax.bar(x, [100 * folds[n][key] for n in names], width, label=label)
+    ax.set_xticks(range(len(names)), [f"{n}\n(n={int(folds[n]['n_windows'])})" for n in names])
+    ax.set_ylim(0, 100)
+    ax.set_ylabel("held-out accuracy (%)")
+    ax.set_title(title)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

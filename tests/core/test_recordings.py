@@ -13,7 +13,6 @@ from service.core.recordings import RECORDING_NAMES, read_all_real
 from service.core.segments import SEGMENTS
 from service.core.windowing import MODEL_RATE_HZ
 
-
 # Sensors whose accelerometer is off in the data as published: the capacitive subject's left-foot Xsens reads
 # 12.1-12.2 m/s² standing still, in all four trials (its z about 10.8 where the right foot's reads 8.2). Kept as
 # recorded: a real sensor error the models meet.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 from pathlib import Path
 
 import httpx
@@ -186,3 +187,40 @@ def test_a_training_fitted_elsewhere_is_tracked_here_and_only_with_its_own_confi
         load_fitted(fitted, other, *digests)
     with pytest.raises(ValueError, match="fitted on other clips"):
         load_fitted(fitted, cfg, digests[0], "0" * 20)
+
+
+def test_real_loso_holds_each_source_out_once_and_pools_its_windows(
+    mlflow_server: str, data_dir: Path, kinematics_cache: Path
+) -> None:
+    """Three real sources, three fold runs: each trains on the other sources' recordings only and is scored on
+    its own; the summary's pooled figures are the window-weighted means of the folds' held-out figures."""
+    from service.core.recordings import read_all_real
+    from training.pipeline import HELD_OUT_METRICS, run_real_loso
+
+    cfg = load_config(
+        REPO / "training/configs/i2s_assignment.yaml",
+        TINY + ["tracking.experiment=test-i2s", "data.real_fraction=0.25", "train.max_epochs=1"],
+    )
+    summary_id, folds = run_real_loso(cfg, data_dir, kinematics_cache, eval_max_windows=300)
+    sources: dict[str, set[str]] = {}
+    for recording in read_all_real(data_dir):
+        sources.setdefault(recording.source, set()).add(recording.name)
+    assert set(folds) == set(sources) | {"pooled"} and len(sources) == 3
+    client = MlflowClient()
+    for source, names in sources.items():
+        run = client.get_run(str(folds[source]["run_id"]))
+        assert run.data.tags["real_loso_held_out"] == source
+        trained_on = set(ast.literal_eval(run.data.params["data.real_train_recordings"]))
+        assert trained_on == set().union(*sources.values()) - names  # every other source, none of its own
+        held_out = {k.removeprefix("n_windows.") for k in run.data.metrics if k.startswith("n_windows.")}
+        assert held_out == {name.replace("/", ".") for name in names}  # scored on its own recordings only
+    total = sum(folds[s]["n_windows"] for s in sources)
+    assert folds["pooled"]["n_windows"] == total > 7000
+    summary = client.get_run(summary_id)
+    for key in HELD_OUT_METRICS:
+        expected = sum(folds[s][key] * folds[s]["n_windows"] for s in sources) / total
+        assert summary.data.metrics[f"pooled_{key}"] == pytest.approx(expected)
+        assert 0.0 <= expected <= 1.0
+    assert "plots/real_loso.png" in {a.path for a in client.list_artifacts(summary_id, "plots")}
+    with pytest.raises(ValueError, match="real_fraction > 0"):
+        run_real_loso(load_config(REPO / "training/configs/i2s_assignment.yaml", TINY), data_dir, kinematics_cache)
