@@ -60,8 +60,9 @@ GAITMAP_FILES = {  # file: (rate Hz, subject, activity)
     "imu_sample_ic_stride.csv": (102.4, "gaitmap_ic_stride_unknown", "walk"),
 }
 # Not read: imu_sample.csv, the not-rotated recording again with its axes turned onto gaitmap's foot frame (the
-# same motion twice would count twice), and imu_sample_ms_left/right.csv. Their accelerometer norm has a median of about 19 m/s² over a
-# long walk (2 g, against 9.7–11.5 in every other recording), so their units are not the documented ones.
+# same motion twice would count twice), and imu_sample_ms_left/right.csv, whose accelerometer norm has a median of
+# about 19 m/s² over a long walk (2 g, against 9.7–11.5 in every other recording): their units are not the
+# documented ones.
 
 
 def read_ximu3(data_dir: Path) -> RealRecording:
