@@ -84,7 +84,7 @@ def held_out_bars_png(folds: dict[str, dict[str, float]], path: Path, title: str
         ("real_window_joint_accuracy_ignoring_side", "per moment, ignoring left/right"),
     ]
     names = list(folds)
-    fig, ax = plt.subplots(figsize=(1.8 + 1.6 * len(names), 4.5))
+    fig, ax = plt.subplots(figsize=(1.8 + 1.6 * len(names), 5.0))
     width = 0.8 / len(keys)
     for k, (key, label) in enumerate(keys):
         x = np.arange(len(names)) + (k - (len(keys) - 1) / 2) * width
@@ -93,7 +93,7 @@ def held_out_bars_png(folds: dict[str, dict[str, float]], path: Path, title: str
     ax.set_ylim(0, 100)
     ax.set_ylabel("held-out accuracy (%)")
     ax.set_title(title)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=2)  # below: bars reach 100 %
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
