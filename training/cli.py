@@ -86,33 +86,48 @@ def pack(
     cache_dir: Path = DEFAULT_CACHE,
     overrides: list[str] = Override,
 ) -> None:
-    """Write a config's clips (segment kinematics, entries, digests) to one file for `fit` on another machine."""
+    """Write a config's clips (segment kinematics, entries, digests) and its real training recordings
+    (`data.real_train_recordings`) to one file for `fit` on another machine."""
+    from service.core.recordings import read_recording
     from training.data.split import load_clips, save_pack
 
     cfg = load_config(config, overrides)
-    clips = load_clips(cfg, resolve_data_dir(data_dir), cache_dir)
-    typer.echo(f"{len(clips)} clips → {save_pack(clips, out)} ({out.stat().st_size / 1e6:.1f} MB)")
+    root = resolve_data_dir(data_dir)
+    clips = load_clips(cfg, root, cache_dir)
+    recordings = [read_recording(root, name) for name in cfg.data.real_train_recordings]
+    save_pack(clips, out, recordings)
+    typer.echo(f"{len(clips)} clips, {len(recordings)} real recordings → {out} ({out.stat().st_size / 1e6:.1f} MB)")
 
 
 @app.command()
 def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -> None:
     """Train only (no MLflow, no data directory) on a `pack` file; `train --fitted OUT` then tracks the result.
 
-    From scratch, or fine-tuning a shipped float32 file (`-s train.init_from_onnx=onnx_models/<name>/<version>`).
+    From scratch, or fine-tuning a shipped float32 file (`-s train.init_from_onnx=onnx_models/<name>/<version>`),
+    on simulated data alone or mixed with the real recordings the pack carries (`data.real_train_recordings`,
+    `data.real_fraction`: paper 000 §4.3).
 
     For a GPU machine: `-s train.device=cuda -s train.loader_workers=3` (README "Training on another machine").
     """
     from training.data.mocap import dataset_digest
-    from training.data.split import load_pack, split_clips
+    from training.data.split import load_pack, load_pack_recordings, recordings_digest, split_clips
+    from training.data.windows import real_window_samplers
     from training.train import save_fitted
     from training.train import train as train_model
 
     cfg = load_config(config, overrides)
-    if cfg.train.init_from_run or cfg.train.ensemble_of or cfg.data.real_train_recordings:
+    if cfg.train.init_from_run or cfg.train.ensemble_of:
         raise typer.BadParameter(
-            "fit trains on simulated clips only, from scratch or from a shipped file (init_from_onnx); "
-            "no init_from_run, no ensemble_of, no real data"
+            "fit trains from scratch or from a shipped file (init_from_onnx); no init_from_run, no ensemble_of"
         )
+    packed = {r.name: r for r in load_pack_recordings(clips)}
+    if missing := sorted(set(cfg.data.real_train_recordings) - set(packed)):
+        raise typer.BadParameter(
+            f"data.real_train_recordings names {missing}, which {clips} does not carry (it has {sorted(packed)}); "
+            "write the pack with this configuration"
+        )
+    recordings = [packed[name] for name in cfg.data.real_train_recordings]
+    real, real_val = real_window_samplers(cfg, recordings)
     init_state = None
     if cfg.train.init_from_onnx:  # the shipped files travel with the working tree; needs onnx, not MLflow
         from training.train import build_model
@@ -120,8 +135,9 @@ def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -
 
         init_state = warm_start_from_shipped(Path(cfg.train.init_from_onnx), build_model(cfg))  # type: ignore[arg-type]
     train_clips, val_clips, _ = split_clips(load_pack(clips), cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
-    result = train_model(cfg, train_clips, val_clips, init_state=init_state)
-    save_fitted(out, cfg, result, dataset_digest(train_clips), dataset_digest(val_clips))
+    result = train_model(cfg, train_clips, val_clips, init_state=init_state, real=real, real_val=real_val)
+    digests = dataset_digest(train_clips), dataset_digest(val_clips), recordings_digest(recordings)
+    save_fitted(out, cfg, result, *digests)
     typer.echo(f"best epoch {result.best_epoch} of {len(result.history)}, {result.wall_time_s / 60:.1f} min → {out}")
 
 

@@ -20,8 +20,8 @@ from service.core.manifest import read_manifest
 from service.core.recordings import RealRecording, read_all_real, read_recording
 from training.config import ExperimentConfig, flatten
 from training.data.mocap import KINEMATICS_VERSION, Clip, as_recorded, dataset_digest
-from training.data.split import load_clips, split_clips
-from training.data.windows import Augmentation, RealWindowSampler, WindowSampler
+from training.data.split import load_clips, recordings_digest, split_clips
+from training.data.windows import Augmentation, RealWindowSampler, WindowSampler, real_window_samplers
 from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
 from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
 from training.plots import confusion_matrix_png, error_boxplot_png, held_out_bars_png, learning_curves_png
@@ -96,10 +96,11 @@ def run_training(
         for context, part in (("training", train_clips), ("validation", val_clips), ("test", test_clips)):
             if part:
                 _log_dataset(part, data_dir, context)
+        real_recordings = [read_recording(data_dir, name) for name in cfg.data.real_train_recordings]
+        real, real_val = _real_samplers(cfg, real_recordings)
         if fitted is not None:
-            result = _fitted_elsewhere(fitted, cfg, train_clips, val_clips)
+            result = _fitted_elsewhere(fitted, cfg, train_clips, val_clips, real_recordings)
         else:
-            real, real_val = _real_samplers(cfg, data_dir)
             result = train(
                 cfg,
                 train_clips,
@@ -200,9 +201,10 @@ def run_real_loso(
 
 
 def _fitted_elsewhere(
-    fitted: Path, cfg: ExperimentConfig, train_clips: list[Clip], val_clips: list[Clip]
+    fitted: Path, cfg: ExperimentConfig, train_clips: list[Clip], val_clips: list[Clip], real: list[RealRecording]
 ) -> TrainResult:
-    result, where = load_fitted(fitted, cfg, dataset_digest(train_clips), dataset_digest(val_clips))
+    digests = dataset_digest(train_clips), dataset_digest(val_clips), recordings_digest(real)
+    result, where = load_fitted(fitted, cfg, *digests)
     if result.warm_start is not None:  # step 0 of the learning curves, as in a run trained here
         mlflow.log_metrics(result.warm_start, step=0)
     for epoch, metrics in enumerate(result.history, start=1):
@@ -251,21 +253,17 @@ def _checkpoint(run_id: str, tmp: Path) -> dict:
     return torch.load(path, weights_only=True)
 
 
-def _real_samplers(cfg: ExperimentConfig, data_dir: Path) -> tuple[RealWindowSampler | None, RealWindowSampler | None]:
-    """Training and validation windows of the real training recordings (paper 000 §4.3 fine-tuning), split in
-    time by ``data.real_val_fraction``; (None, None) without real data."""
-    if not cfg.data.real_train_recordings or cfg.data.real_fraction == 0:
-        return None, None
-    recordings = [read_recording(data_dir, name) for name in cfg.data.real_train_recordings]
-    fraction = cfg.data.real_val_fraction
-    if fraction == 0:
-        train_part, val_part = RealWindowSampler(recordings), None
-    else:
-        train_part = RealWindowSampler(recordings, "train", fraction)
-        val_part = RealWindowSampler(recordings, "validation", fraction)
-        mlflow.log_param("real_val_windows", len(val_part.segment))
-    mlflow.log_param("real_train_windows", len(train_part.segment))
-    return train_part, val_part
+def _real_samplers(
+    cfg: ExperimentConfig, recordings: list[RealRecording]
+) -> tuple[RealWindowSampler | None, RealWindowSampler | None]:
+    """``real_window_samplers`` of the real training recordings, with their window counts logged as params;
+    (None, None) without real data."""
+    real, real_val = real_window_samplers(cfg, recordings)
+    if real is not None:
+        mlflow.log_param("real_train_windows", len(real.segment))
+    if real_val is not None:
+        mlflow.log_param("real_val_windows", len(real_val.segment))
+    return real, real_val
 
 
 def _log_simulated_evaluation(

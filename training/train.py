@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from training.config import ExperimentConfig, flatten
 from training.data.mocap import Clip
+from training.data.split import recordings_digest
 from training.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, concat_batches
 from training.models import AlignmentNet, AssignmentNet
 from training.warmstart import assignment_ensemble
@@ -294,8 +295,11 @@ def train(
     return result
 
 
-def save_fitted(path: Path, cfg: ExperimentConfig, result: TrainResult, train_digest: str, val_digest: str) -> Path:
-    """A finished training (weights, per-epoch history, the config and the digests of the clips it used)."""
+def save_fitted(
+    path: Path, cfg: ExperimentConfig, result: TrainResult, train_digest: str, val_digest: str, real_digest: str
+) -> Path:
+    """A finished training (weights, per-epoch history, the config and the digests of the clips and of the real
+    training recordings it used, ``recordings_digest``)."""
     device = torch.cuda.get_device_name() if cfg.train.device.startswith("cuda") else "cpu"
     payload = {
         "state": result.model.state_dict(),
@@ -306,6 +310,7 @@ def save_fitted(path: Path, cfg: ExperimentConfig, result: TrainResult, train_di
         "config": cfg.model_dump(mode="json"),
         "train_digest": train_digest,
         "val_digest": val_digest,
+        "real_digest": real_digest,
         "device": device,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -322,12 +327,13 @@ def _settings(config: dict) -> dict[str, object]:
 
 
 def load_fitted(
-    path: Path, cfg: ExperimentConfig, train_digest: str, val_digest: str
+    path: Path, cfg: ExperimentConfig, train_digest: str, val_digest: str, real_digest: str
 ) -> tuple[TrainResult, dict[str, object]]:
     """The training saved by ``save_fitted``, checked against the run that will track it.
 
     The configs must agree except for where it ran (``train.device``, ``loader_workers``, ``threads``), and the
-    training and validation clips must be the same by digest; otherwise the tracked run would misdescribe it.
+    training and validation clips and the real training recordings must be the same by digest; otherwise the
+    tracked run would misdescribe it.
     Returns the result and the fitted config (for the run's record of where it trained).
     """
     payload = torch.load(path, weights_only=True)
@@ -342,6 +348,12 @@ def load_fitted(
         raise ValueError(
             f"{path} was fitted on other clips (train/val digests {payload['train_digest']}/{payload['val_digest']}, "
             f"here {train_digest}/{val_digest}): the kinematics or the data directory differ"
+        )
+    fitted_real = payload.get("real_digest", recordings_digest([]))  # files from before real data could travel
+    if fitted_real != real_digest:
+        raise ValueError(
+            f"{path} was fitted on other real recordings (digest {fitted_real}, here {real_digest}; "
+            f"data.real_train_recordings: {cfg.data.real_train_recordings}): the readers or the data directory differ"
         )
     model = build_model(cfg)
     model.load_state_dict(payload["state"])

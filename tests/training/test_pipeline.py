@@ -154,7 +154,7 @@ def test_a_training_fitted_elsewhere_is_tracked_here_and_only_with_its_own_confi
 
     from training.cli import app
     from training.data.mocap import dataset_digest
-    from training.data.split import load_clips, load_pack, save_pack, split_clips
+    from training.data.split import load_clips, load_pack, recordings_digest, save_pack, split_clips
     from training.train import load_fitted
 
     overrides = TINY + ["tracking.experiment=test-fitted"]
@@ -181,12 +181,76 @@ def test_a_training_fitted_elsewhere_is_tracked_here_and_only_with_its_own_confi
     assert history[-1].value == pytest.approx(saved["history"][-1]["val_angle_error_deg"])
 
     train_clips, val_clips, _ = split_clips(clips, cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
-    digests = dataset_digest(train_clips), dataset_digest(val_clips)
+    digests = dataset_digest(train_clips), dataset_digest(val_clips), recordings_digest([])
     other = load_config(REPO / "training/configs/i2s_alignment.yaml", overrides + ["train.lr=5e-4"])
     with pytest.raises(ValueError, match=r"train.lr 0.001 there, 0.0005 here"):
         load_fitted(fitted, other, *digests)
     with pytest.raises(ValueError, match="fitted on other clips"):
-        load_fitted(fitted, cfg, digests[0], "0" * 20)
+        load_fitted(fitted, cfg, digests[0], "0" * 20, digests[2])
+
+
+def test_fit_mixes_in_the_real_recordings_its_pack_carries_and_is_tracked_only_with_the_same_ones(
+    mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path
+) -> None:
+    """Paper 000 §4.3 on another machine: `pack` carries the config's real training recordings, `fit` mixes them
+    into its batches and validates on their held-back part (``val_real_*``), and `train --fitted` tracks the
+    result with the real windows it used, refusing other real data; a pack without the recordings is refused."""
+    import torch
+    from typer.testing import CliRunner
+
+    from service.core.recordings import read_recording
+    from training.cli import app
+    from training.data.mocap import dataset_digest
+    from training.data.split import load_clips, load_pack_recordings, recordings_digest, split_clips
+    from training.data.windows import RealWindowSampler
+    from training.train import load_fitted
+
+    config = REPO / "training/configs/i2s_assignment.yaml"
+    name = "capacitive_sub01/CSBaseline"
+    real = [f"data.real_train_recordings=[{name}]", "data.real_fraction=0.25", "data.real_val_weight=0.5"]
+    overrides = TINY + ["tracking.experiment=test-fitted-real"] + real
+    runner = CliRunner()
+
+    def cli(*args: str, sets: list[str]) -> str:
+        result = runner.invoke(app, [*args, *(x for item in sets for x in ("-s", item))])
+        assert result.exit_code == 0, result.output
+        return result.output
+
+    common = ["--data-dir", str(data_dir), "--cache-dir", str(kinematics_cache)]
+    cli("pack", str(config), str(tmp_path / "clips.npz"), *common, sets=overrides)
+    recorded = read_recording(data_dir, name)
+    packed = load_pack_recordings(tmp_path / "clips.npz")
+    assert [r.name for r in packed] == [name]
+    assert recordings_digest(packed) == recordings_digest([recorded])  # float32 on both sides, as windowed
+    cli("pack", str(config), str(tmp_path / "sim_only.npz"), *common, sets=TINY)
+    refused = runner.invoke(
+        app,
+        ["fit", str(config), str(tmp_path / "sim_only.npz"), str(tmp_path / "x.pt")]
+        + [x for item in overrides for x in ("-s", item)],
+    )
+    assert refused.exit_code != 0 and "does not carry" in refused.output
+
+    fitted = tmp_path / "fitted.pt"
+    cli("fit", str(config), str(tmp_path / "clips.npz"), str(fitted), sets=overrides)
+    saved = torch.load(fitted, weights_only=True)
+    assert all("val_real_loss" in epoch for epoch in saved["history"])  # validated on the real held-back part
+
+    cfg = load_config(config, overrides)
+    run_id = run_training(cfg, data_dir, kinematics_cache, register=False, eval_max_windows=500, fitted=fitted)
+    run = MlflowClient().get_run(run_id)
+    windows = RealWindowSampler([recorded], "train", cfg.data.real_val_fraction).segment
+    assert run.data.params["real_train_windows"] == str(len(windows))
+    history = MlflowClient().get_metric_history(run_id, "val_real_loss")
+    assert [m.value for m in history] == pytest.approx([e["val_real_loss"] for e in saved["history"]])
+    # the run scores every real recording but the one it trained on
+    assert f"n_windows.{name.replace('/', '.')}" not in run.data.metrics
+    assert "n_windows.capacitive_sub01.EMGBaseline" in run.data.metrics
+
+    train_clips, val_clips, _ = split_clips(
+        load_clips(cfg, data_dir, kinematics_cache), cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed
+    )
+    with pytest.raises(ValueError, match="other real recordings"):
+        load_fitted(fitted, cfg, dataset_digest(train_clips), dataset_digest(val_clips), recordings_digest([]))
 
 
 def test_real_loso_holds_each_source_out_once_and_pools_its_windows(

@@ -1,18 +1,21 @@
 """Which clips a configuration uses, its leave-one-subject-out split, and the clip pack for training elsewhere.
 
-A pack holds the segment kinematics of a configuration's clips with their catalogue entries and digests, so a
-machine without the data directory (a GPU box, say) can run ``training.cli fit`` on exactly the clips, and the
-split, that the tracked run will record.
+A pack holds the segment kinematics of a configuration's clips with their catalogue entries and digests, and the
+real recordings it trains on (``data.real_train_recordings``, paper 000 §4.3), so a machine without the data
+directory (a GPU box, say) can run ``training.cli fit`` on exactly the clips, the split and the real windows that
+the tracked run will record.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 from pathlib import Path
 
 import numpy as np
 
+from service.core.recordings import RealRecording, RealSensor
 from training.config import ExperimentConfig
 from training.data.catalog import CatalogEntry, mocap_entries
 from training.data.imu_sim import SegmentKinematics
@@ -64,8 +67,9 @@ def _split_recorded(
     return [rest[i] for i in order[n_val:]], val, test
 
 
-def save_pack(clips: list[Clip], path: Path) -> Path:
-    """Write clips (kinematics as float32, entries and digests) to one ``.npz``."""
+def save_pack(clips: list[Clip], path: Path, recordings: list[RealRecording] | None = None) -> Path:
+    """Write clips (kinematics as float32, entries and digests) and real recordings (readings as float32, the
+    precision ``RealWindowSampler`` windows them at) to one ``.npz``."""
     arrays: dict[str, np.ndarray] = {}
     for i, c in enumerate(clips):
         for name in _KIN_FIELDS:
@@ -73,6 +77,20 @@ def save_pack(clips: list[Clip], path: Path) -> Path:
         arrays[f"{i}/sample_rate_hz"] = np.float64(c.kin.sample_rate_hz)
     meta = [{"entry": dataclasses.asdict(c.entry), "digest": c.digest, "variant": c.variant} for c in clips]
     arrays["meta"] = np.array(json.dumps(meta))
+    real = []
+    for j, rec in enumerate(recordings or []):
+        for k, sensor in enumerate(rec.sensors):
+            arrays[f"real/{j}/{k}"] = sensor.imu.astype(np.float32)
+        real.append(
+            {
+                "name": rec.name,
+                "source": rec.source,
+                "subject": rec.subject,
+                "activity": rec.activity,
+                "sensors": [{"sensor_id": s.sensor_id, "segment": s.segment} for s in rec.sensors],
+            }
+        )
+    arrays["real_meta"] = np.array(json.dumps(real))
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, **arrays)
     return path
@@ -94,3 +112,33 @@ def load_pack(path: Path) -> list[Clip]:
             )
             for i, m in enumerate(meta)
         ]
+
+
+def load_pack_recordings(path: Path) -> list[RealRecording]:
+    """The real recordings of ``save_pack`` (readings float32), in the same order; none in an older pack."""
+    with np.load(path) as z:
+        if "real_meta" not in z.files:
+            return []
+        return [
+            RealRecording(
+                m["name"],
+                m["source"],
+                m["subject"],
+                m["activity"],
+                [RealSensor(s["sensor_id"], z[f"real/{j}/{k}"], s["segment"]) for k, s in enumerate(m["sensors"])],
+            )
+            for j, m in enumerate(json.loads(str(z["real_meta"])))
+        ]
+
+
+def recordings_digest(recordings: list[RealRecording]) -> str:
+    """Digest of real training recordings as the training windows them (names, labels, float32 readings);
+    order-independent. The empty list has a digest too."""
+    parts = []
+    for rec in recordings:
+        h = hashlib.sha256(rec.name.encode())
+        for sensor in rec.sensors:
+            h.update(f"|{sensor.sensor_id}|{sensor.segment}|".encode())
+            h.update(np.ascontiguousarray(sensor.imu, dtype=np.float32).tobytes())
+        parts.append(h.hexdigest())
+    return hashlib.sha256("|".join(sorted(parts)).encode()).hexdigest()[:20]

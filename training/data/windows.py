@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass, fields
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -22,6 +22,9 @@ from service.core.rotations import quat_from_matrix
 from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES, sliding_windows
 from training.data.imu_sim import SensorSpec, alignment, alignment_grid, imu_readings, mirrored, quantise
 from training.data.mocap import Clip
+
+if TYPE_CHECKING:  # training.config imports this module (Augmentation)
+    from training.config import ExperimentConfig
 
 N_SEGMENTS = 7
 _MAX_MOVING_ROUNDS = 20  # moving_only: batches drawn before giving up on a nearly still clip set
@@ -251,6 +254,24 @@ class RealWindowSampler:
         idx = rng.integers(0, len(self.imu), batch_size)
         nan_q = np.full((batch_size, 4), np.nan, dtype=np.float32)  # alignment unknown on real data
         return Batch(np.ascontiguousarray(self.imu[idx]), self.segment[idx].astype(np.int64), nan_q)
+
+
+def real_window_samplers(
+    cfg: ExperimentConfig, recordings: list[RealRecording]
+) -> tuple[RealWindowSampler | None, RealWindowSampler | None]:
+    """Training and validation windows of the real training recordings (paper 000 §4.3 fine-tuning), split in
+    time by ``data.real_val_fraction``; (None, None) when ``data.real_fraction`` is 0 or no recording is named."""
+    if not cfg.data.real_train_recordings or cfg.data.real_fraction == 0:
+        return None, None
+    names = sorted(r.name for r in recordings)
+    if names != sorted(cfg.data.real_train_recordings):
+        raise ValueError(
+            f"data.real_train_recordings names {sorted(cfg.data.real_train_recordings)}; got the recordings {names}"
+        )
+    fraction = cfg.data.real_val_fraction
+    if fraction == 0:
+        return RealWindowSampler(recordings), None
+    return RealWindowSampler(recordings, "train", fraction), RealWindowSampler(recordings, "validation", fraction)
 
 
 def concat_batches(a: Batch, b: Batch) -> Batch:
