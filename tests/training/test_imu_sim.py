@@ -160,3 +160,64 @@ def test_a_braced_knee_keeps_the_leg_rigid_and_the_rest_of_the_body_as_recorded(
         stiffened_knee(traj, "middle", 0.0)
     with pytest.raises(ValueError, match="keep must be"):
         stiffened_knee(traj, "right", 1.5)
+
+
+def test_soft_tissue_motion_has_the_asked_size_and_its_rate_is_its_derivative() -> None:
+    from training.data.imu_sim import SoftTissue, soft_tissue_motion
+
+    rng = np.random.default_rng(0)
+    t = (np.arange(128) / RATE)[None, :, None]
+    waves = lambda f: np.sin(2 * np.pi * f * t + rng.uniform(0, 6, (4, 1, 3)))  # noqa: E731
+    lin_acc, ang_acc = 3 * waves(1.1) + waves(2.7), 5 * waves(1.9)
+    sta = SoftTissue(
+        freq_hz=np.array([4.0, 6.0, 9.0, 12.0]),
+        damping=np.full(4, 0.3),
+        mix=rng.normal(size=(4, 6, 6)),
+        rot_rms_rad=np.radians([0.5, 1.0, 2.0, 3.0]),
+        disp_rms_m=np.full(4, 2e-3),
+    )
+    theta, theta_rate, u_acc = soft_tissue_motion(lin_acc, ang_acc, sta, RATE)
+    rms = np.sqrt(np.mean(np.sum(theta**2, axis=-1), axis=1))
+    np.testing.assert_allclose(rms, sta.rot_rms_rad, rtol=1e-9)
+    inner = slice(16, -16)  # the mirrored extension bends the ends
+    numeric = np.gradient(theta, 1 / RATE, axis=1)[:, inner]
+    scale = np.sqrt(np.mean(theta_rate[:, inner] ** 2))
+    assert np.max(np.abs(numeric - theta_rate[:, inner])) < 0.1 * scale
+    assert np.all(np.isfinite(u_acc)) and np.sqrt(np.mean(u_acc**2)) > 0
+
+
+def test_a_sensor_turned_on_its_segment_reads_the_turned_vectors_and_the_added_rate() -> None:
+    from training.data.imu_sim import with_soft_tissue
+
+    rng = np.random.default_rng(1)
+    acc_s, gyr_s = rng.normal(size=(2, 5, 3)), rng.normal(size=(2, 5, 3))
+    theta = np.zeros((2, 5, 3))
+    theta[..., 2] = np.radians(30)
+    acc, gyr = with_soft_tissue(acc_s, gyr_s, theta, np.zeros_like(theta), np.zeros_like(theta))
+    turn = Rotation.from_rotvec([0, 0, np.radians(30)]).as_matrix()
+    np.testing.assert_allclose(acc, acc_s @ turn, atol=1e-12)  # R^T v, row vectors
+    extra = rng.normal(size=(2, 5, 3))
+    _, gyr = with_soft_tissue(acc_s, gyr_s, np.zeros_like(theta), extra, np.zeros_like(theta))
+    np.testing.assert_allclose(gyr, gyr_s + extra, atol=1e-12)
+
+
+def test_the_sampler_turns_thigh_sensors_on_their_segment_more_than_foot_sensors(data_dir, kinematics_cache) -> None:
+    """The same windows with and without the soft-tissue artefact (no noise, no displacement): the specific
+    force keeps its size, turns by up to the configured angle, and turns more on the thighs than on the feet."""
+    from training.data.catalog import mocap_entries
+    from training.data.mocap import build_kinematics
+    from training.data.windows import Augmentation, WindowSampler
+
+    clips = build_kinematics(data_dir, mocap_entries(data_dir, ["walk"])[:3], kinematics_cache)
+    quiet = dict(acc_noise_std_mps2=0.0)
+    off = WindowSampler(clips, Augmentation(**quiet)).sample(np.random.default_rng(5), 512)
+    on = WindowSampler(clips, Augmentation(soft_tissue_rot_deg=6.0, **quiet)).sample(np.random.default_rng(5), 512)
+    np.testing.assert_array_equal(on.segment, off.segment)
+    a_on, a_off = on.imu[..., :3].astype(np.float64), off.imu[..., :3].astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(a_on, axis=-1), np.linalg.norm(a_off, axis=-1), atol=0.02)
+    cos = np.sum(a_on * a_off, axis=-1) / np.linalg.norm(a_on, axis=-1) / np.linalg.norm(a_off, axis=-1)
+    turned = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    assert np.max(np.abs(on.imu[..., 3:] - off.imu[..., 3:])) > 0.01  # the rate of the turning adds to the gyro
+    thigh, foot = np.isin(on.segment, [2, 4]), np.isin(on.segment, [0, 6])
+    assert np.median(turned[thigh]) > 2 * np.median(turned[foot])
+    assert np.percentile(turned, 99) < 6.0 * 3  # RMS up to 6°: peaks stay within a few times that

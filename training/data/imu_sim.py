@@ -223,6 +223,74 @@ def imu_readings(
     return np.concatenate([acc_i, gyr_i], axis=-1)
 
 
+# ---- soft-tissue artefact (our addition, not in paper 000) --------------------------------------------
+
+# Share of the configured artefact each segment gets: skin and muscle move most over the thigh, less over the
+# shank and pelvis, least over the foot (the pattern of the soft-tissue-artefact literature, e.g. Leardini et al.
+# 2005, Gait & Posture 21, the review of soft-tissue artefacts: the thigh's is the largest of the lower limb).
+# Class order of ``SEGMENTS``.
+SOFT_TISSUE_SHARE = np.array([0.3, 0.6, 1.0, 0.6, 1.0, 0.6, 0.3])
+
+
+@dataclass(frozen=True)
+class SoftTissue:
+    """One soft-tissue artefact per window: the sensor rides on tissue that a second-order resonance (natural
+    frequency ``freq_hz``, damping ratio ``damping``) couples to the segment's own accelerations, mixed by a random
+    ``mix`` ``(B, 6, 6)`` from (linear, angular) acceleration to (rotation, displacement) of the sensor on the
+    segment; ``rot_rms_rad`` and ``disp_rms_m`` set each window's root-mean-square rotation and displacement."""
+
+    freq_hz: np.ndarray  # (B,)
+    damping: np.ndarray  # (B,)
+    mix: np.ndarray  # (B, 6, 6)
+    rot_rms_rad: np.ndarray  # (B,)
+    disp_rms_m: np.ndarray  # (B,)
+
+
+def soft_tissue_motion(
+    lin_acc: np.ndarray, ang_acc: np.ndarray, sta: SoftTissue, rate_hz: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sensor's small rotation θ ``(B, T, 3)`` (rad), its rate θ̇ and its extra acceleration ü ``(B, T, 3)``
+    relative to the segment (segment frame), driven by the segment's accelerations ``(B, T, 3)``.
+
+    Each drive channel is scaled to unit RMS, mixed, and filtered by H(f) = f₀² / (f₀² − f² + 2iζf₀f) in the
+    frequency domain (the window and its mirror image, so that the circular transform sees no jump); the time
+    derivatives are the same filter times 2πif. θ and u are then scaled to the window's RMS targets.
+    """
+    drive = np.concatenate([lin_acc, ang_acc], axis=-1)
+    drive = drive - drive.mean(axis=1, keepdims=True)
+    drive = drive / (np.sqrt(np.mean(drive**2, axis=1, keepdims=True)) + 1e-9)
+    mixed = np.einsum("bij,btj->bti", sta.mix, drive)
+    n = mixed.shape[1]
+    spectrum = np.fft.rfft(np.concatenate([mixed, mixed[:, ::-1]], axis=1), axis=1)
+    f = np.fft.rfftfreq(2 * n, 1.0 / rate_hz)[None, :, None]
+    f0, zeta = sta.freq_hz[:, None, None], sta.damping[:, None, None]
+    response = spectrum * f0**2 / (f0**2 - f**2 + 2j * zeta * f0 * f)
+    omega = 2j * np.pi * f
+
+    def back(x: np.ndarray) -> np.ndarray:
+        return np.fft.irfft(x, n=2 * n, axis=1)[:, :n]
+
+    pos, vel, acc = back(response), back(response * omega), back(response * omega**2)
+
+    def scale(x: np.ndarray, target: np.ndarray) -> np.ndarray:
+        return target[:, None, None] / (np.sqrt(np.mean(np.sum(x**2, axis=-1), axis=1))[:, None, None] + 1e-12)
+
+    k_rot, k_disp = scale(pos[..., :3], sta.rot_rms_rad), scale(pos[..., 3:], sta.disp_rms_m)
+    return pos[..., :3] * k_rot, vel[..., :3] * k_rot, acc[..., 3:] * k_disp
+
+
+def with_soft_tissue(
+    acc_s: np.ndarray, gyr_s: np.ndarray, theta: np.ndarray, theta_rate: np.ndarray, u_acc: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Segment-frame readings ``(B, T, 3)`` of a sensor that turns by θ(t) and moves by u(t) on its segment:
+    the frame of the readings is exp(θ)·(segment frame), the body rate gains θ̇ (small angles), the specific force
+    gains ü."""
+    R = Rotation.from_rotvec(theta.reshape(-1, 3)).as_matrix().reshape(*theta.shape, 3)
+    acc = np.einsum("btji,btj->bti", R, acc_s + u_acc)
+    gyr = np.einsum("btji,btj->bti", R, gyr_s + theta_rate)
+    return acc, gyr
+
+
 def quantise(imu: np.ndarray, spec: SensorSpec) -> np.ndarray:
     """Clip to the sensor's range and round to its resolution; ``(..., 6)``."""
     ranges = np.array([spec.acc_range_mps2] * 3 + [spec.gyr_range_rads] * 3)

@@ -19,8 +19,19 @@ from scipy.spatial.transform import Rotation
 from service.core.assignment import is_moving
 from service.core.recordings import RealRecording
 from service.core.rotations import quat_from_matrix
-from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES, sliding_windows
-from training.data.imu_sim import SensorSpec, alignment, alignment_grid, imu_readings, mirrored, quantise
+from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES, sliding_windows
+from training.data.imu_sim import (
+    SOFT_TISSUE_SHARE,
+    SensorSpec,
+    SoftTissue,
+    alignment,
+    alignment_grid,
+    imu_readings,
+    mirrored,
+    quantise,
+    soft_tissue_motion,
+    with_soft_tissue,
+)
 from training.data.mocap import Clip
 
 if TYPE_CHECKING:  # training.config imports this module (Augmentation)
@@ -49,6 +60,12 @@ class Augmentation(BaseModel):
     # and the most knee flexion such a variant keeps.
     stiff_knee_share: float = Field(0.0, ge=0.0, lt=1.0)
     stiff_knee_keep_max: float = Field(0.4, ge=0.0, le=1.0)
+    # Soft-tissue artefact (``soft_tissue_motion``; our addition, not in paper 000): per window the sensor turns and
+    # moves on its segment with the segment's own accelerations through a resonance of 4–12 Hz; the RMS rotation
+    # and displacement are uniform up to these values for the thigh, scaled down for the other segments
+    # (``SOFT_TISSUE_SHARE``). 0: off.
+    soft_tissue_rot_deg: float = Field(0.0, ge=0.0)
+    soft_tissue_disp_mm: float = Field(0.0, ge=0.0)
     # Draw only windows the service answers (``is_moving``: the sensor's mean gyroscope norm above the still
     # threshold); still windows carry no cue to a segment but gravity's direction, which the alignment hides.
     # Matters for clips with long still spells (basketball signals, directing traffic); gait is nearly all moving.
@@ -162,9 +179,29 @@ class WindowSampler:
         s = speed[:, None, None]  # time scaling: velocities × s, accelerations × s²
         R = self._alignments(rng, seg)
         offset = rng.normal(0.0, aug.offset_std_m, (batch_size, 3)) if aug.offset_std_m > 0 else None
-        imu = imu_readings(lin_acc * s**2, up, gyr * s, ang_acc * s**2, R, offset)
+        lin_acc, gyr, ang_acc = lin_acc * s**2, gyr * s, ang_acc * s**2
+        if aug.soft_tissue_rot_deg > 0 or aug.soft_tissue_disp_mm > 0:
+            seg_frame = imu_readings(lin_acc, up, gyr, ang_acc, np.broadcast_to(np.eye(3), R.shape), offset)
+            acc_s, gyr_s = with_soft_tissue(
+                seg_frame[..., :3],
+                seg_frame[..., 3:],
+                *soft_tissue_motion(lin_acc, ang_acc, self._soft_tissue(rng, seg), MODEL_RATE_HZ),
+            )
+            imu = np.concatenate([np.einsum("bji,btj->bti", R, acc_s), np.einsum("bji,btj->bti", R, gyr_s)], axis=-1)
+        else:
+            imu = imu_readings(lin_acc, up, gyr, ang_acc, R, offset)
         imu = self._sensor_errors(rng, imu)
         return Batch(imu.astype(np.float32), seg.astype(np.int64), quat_from_matrix(R).astype(np.float32))
+
+    def _soft_tissue(self, rng: np.random.Generator, seg: np.ndarray) -> SoftTissue:
+        b, share = len(seg), SOFT_TISSUE_SHARE[seg]
+        return SoftTissue(
+            freq_hz=rng.uniform(4.0, 12.0, b),
+            damping=rng.uniform(0.2, 0.5, b),
+            mix=rng.normal(size=(b, 6, 6)),
+            rot_rms_rad=np.radians(self.aug.soft_tissue_rot_deg) * rng.uniform(0.0, 1.0, b) * share,
+            disp_rms_m=1e-3 * self.aug.soft_tissue_disp_mm * rng.uniform(0.0, 1.0, b) * share,
+        )
 
     def _sensor_errors(self, rng: np.random.Generator, imu: np.ndarray) -> np.ndarray:
         aug, b = self.aug, imu.shape[0]
