@@ -79,6 +79,11 @@ class TrainConfig(_Strict):
     # trained: needs max_epochs 0, and takes no init_from_* and no turn averages of its own
     ensemble_of: list[str] | None = None
     max_minutes: float | None = None  # wall-time budget; stops after the epoch that crosses it
+    # which weights a run returns: "best", those of the epoch with the lowest validation loss (the warm start counts
+    # as epoch 0) with early stopping after ``patience`` epochs; "last", those of the final epoch, for a fixed budget
+    # (max_epochs or max_minutes): to compare augmentations that the validation set, drawn without them, would
+    # judge against (a warm start never sees them and so wins on it)
+    keep: Literal["best", "last"] = "best"
     # exponential moving average of the weights (and batch-norm statistics) after every step, decay per step;
     # validation, early stopping and the returned model use the average (None: the raw weights, as before)
     ema_decay: float | None = Field(default=None, ge=0.0, lt=1.0)

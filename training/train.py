@@ -282,7 +282,9 @@ def train(
             best, best_state, best_epoch, stale = metrics["val_loss"], copy.deepcopy(scored.state_dict()), epoch, 0
         else:
             stale += 1
-        if stale >= t.patience:
+        if t.keep == "last":
+            best_state, best_epoch = copy.deepcopy(scored.state_dict()), epoch
+        elif stale >= t.patience:
             log.info("early stopping after epoch %d (best %d)", epoch, best_epoch)
             break
         if t.max_minutes is not None and metrics["wall_time_s"] > 60 * t.max_minutes:
