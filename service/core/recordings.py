@@ -134,11 +134,16 @@ def _gaitmap_convert(raw: np.ndarray, rate_hz: float) -> np.ndarray:
 
 
 def read_recording(data_dir: Path, name: str) -> RealRecording:
-    """One recording by its name (``ximu3_lowerbody``, ``capacitive_sub01/<trial>``, ``gaitmap_foot/<file>``)."""
-    for recording in read_all_real(data_dir):
-        if recording.name == name:
-            return recording
-    raise KeyError(f"no recording {name!r}; known: {RECORDING_NAMES}")
+    """One recording by its name (``ximu3_lowerbody``, ``capacitive_sub01/<trial>``, ``gaitmap_foot/<file>``),
+    reading only its own files."""
+    if name not in RECORDING_NAMES:
+        raise KeyError(f"no recording {name!r}; known: {RECORDING_NAMES}")
+    source, _, part = name.partition("/")
+    if source == "ximu3_lowerbody":
+        return read_ximu3(data_dir)
+    if source == "capacitive_sub01":
+        return read_capacitive(data_dir, part)
+    return read_gaitmap(data_dir, f"{part}.csv")
 
 
 RECORDING_NAMES = (

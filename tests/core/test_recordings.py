@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.core.recordings import RECORDING_NAMES, read_all_real
+from service.core.recordings import RECORDING_NAMES, read_all_real, read_recording
 from service.core.segments import SEGMENTS
 from service.core.windowing import MODEL_RATE_HZ
 
@@ -38,6 +38,20 @@ def _index_duration_s(data_dir: Path, name: str) -> float:
 def test_every_named_recording_is_read_once(recordings) -> None:
     assert sorted(recordings) == sorted(RECORDING_NAMES)
     assert "gaitmap_foot/imu_sample_ic_stride" in recordings
+
+
+@pytest.mark.parametrize("name", RECORDING_NAMES)
+def test_one_recording_read_by_name_is_the_one_read_with_all(recordings, data_dir: Path, name: str) -> None:
+    one = read_recording(data_dir, name)
+    assert one.name == name and [s.sensor_id for s in one.sensors] == [s.sensor_id for s in recordings[name].sensors]
+    for mine, theirs in zip(one.sensors, recordings[name].sensors, strict=True):
+        np.testing.assert_array_equal(mine.imu, theirs.imu)
+        assert mine.segment == theirs.segment
+
+
+def test_an_unknown_recording_name_says_which_exist(data_dir: Path) -> None:
+    with pytest.raises(KeyError, match="known:.*ximu3_lowerbody"):
+        read_recording(data_dir, "capacitive_sub01/CSRunning")
 
 
 @pytest.mark.parametrize("name", RECORDING_NAMES)
