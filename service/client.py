@@ -2,9 +2,11 @@
 
     python -m service.client --recording ximu3_lowerbody --data-dir ../shared/data
     python -m service.client --csv thigh.csv --csv shank.csv --rate 100 --acc-unit g --gyr-unit deg/s
+    python -m service.client --recording gaitmap_foot/imu_sample_ic_stride --worn LeftFoot --worn RightFoot
 
 A CSV holds one sensor: a header row, then rows of acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z (extra
-leading columns such as time are allowed with ``--skip-columns``).
+leading columns such as time are allowed with ``--skip-columns``). ``--worn`` (repeated) declares the segments the
+sensors are on, when known but not which is which; the joint and per-moment answers then come from those only.
 """
 
 from __future__ import annotations
@@ -61,8 +63,10 @@ async def stream_sensors(
     packet_samples: int = 16,
     binary: bool = True,
     api_key: str | None = None,
+    worn_segments: list[str] | None = None,
 ) -> StreamOutcome:
-    """Stream all sensors concurrently; ``speed`` 1 is real time, 0 as fast as possible."""
+    """Stream all sensors concurrently; ``speed`` 1 is real time, 0 as fast as possible. ``worn_segments``: the
+    start message's (the segments the sensors are known to be on)."""
     outcome = StreamOutcome()
     headers = {"X-API-Key": api_key} if api_key else None
     async with websockets.connect(url, additional_headers=headers, max_size=2**24) as ws:
@@ -78,6 +82,8 @@ async def stream_sensors(
                 for s in sensors
             ],
         }
+        if worn_segments is not None:
+            start["worn_segments"] = worn_segments
         await ws.send(json.dumps(start))
         receiver = asyncio.create_task(_receive(ws, outcome))
         t0 = time.monotonic()
@@ -141,6 +147,9 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="send JSON packets instead of binary")
     parser.add_argument("--out", type=Path, help="write every result and moment message to this JSON-lines file")
     parser.add_argument("--api-key", default=os.environ.get("WEARMOCAP_API_KEY"))
+    parser.add_argument(
+        "--worn", action="append", metavar="SEGMENT", help="a segment the sensors are on (repeat; default: any)"
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.recording:
@@ -154,7 +163,11 @@ def main() -> None:
         sensors = [_csv_sensor(p, args.rate, args.acc_unit, args.gyr_unit, args.skip_columns) for p in args.csv]
     else:
         parser.error("give --recording or at least one --csv")
-    outcome = asyncio.run(stream_sensors(args.url, sensors, args.speed, binary=not args.json, api_key=args.api_key))
+    outcome = asyncio.run(
+        stream_sensors(
+            args.url, sensors, args.speed, binary=not args.json, api_key=args.api_key, worn_segments=args.worn
+        )
+    )
     if args.out:
         args.out.write_text("".join(json.dumps(r) + "\n" for r in outcome.results + outcome.moments))
     for event in outcome.events:

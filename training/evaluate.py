@@ -139,10 +139,13 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     recording the share of moving leg windows that turn about the vertical (``turns_about_vertical``).
     Two answers per moving window: the window's own (``real_accuracy``, paper 000's per-window figure) and the
     one-to-one answer of the windows the recording's sensors took at that moment (``real_window_joint_*``,
-    ``window_joint_assignment``), which is what ``/v1/imu/assign`` returns per window.
+    ``window_joint_assignment``), which is what ``/v1/imu/assign`` returns per window. A third,
+    ``real_window_joint_worn_*``, is that answer when the user declares which segments carry the sensors (the
+    service's ``worn_segments``) but not which sensor is where: it differs from the second only for recordings
+    with sensors on fewer than seven segments (gaitmap's two feet).
     Returns metrics and the confusion matrix of moving windows (the windows' own answers).
     """
-    y_true, y_pred, y_joint, metrics = [], [], [], {}
+    y_true, y_pred, y_joint, y_worn, metrics = [], [], [], [], {}
     joint_correct = joint_total = still = 0
     for rec in recordings:
         sensors = [s for s in rec.sensors if s.segment is not None]
@@ -165,6 +168,10 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
         at_moment = window_joint_assignment([log_probs[k] for k in order], [moving[k] for k in order])
         at_moment = [at_moment[k] for k in np.argsort(order)]
         y_joint += [a[m] for a, m in zip(at_moment, moving, strict=True)]
+        worn = sorted({s.segment for s in sensors})
+        declared = window_joint_assignment([log_probs[k] for k in order], [moving[k] for k in order], worn=worn)
+        declared = [declared[k] for k in np.argsort(order)]
+        y_worn += [a[m] for a, m in zip(declared, moving, strict=True)]
         if not all(m.any() for m in moving):
             continue
         joint = joint_assignment([lp[m] for lp, m in zip(log_probs, moving, strict=True)])
@@ -177,15 +184,20 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
         metrics[f"window_joint_accuracy/{rec.name}"] = float(
             np.mean(rec_true == np.concatenate(y_joint[-len(sensors) :]))
         )
+        metrics[f"window_joint_worn_accuracy/{rec.name}"] = float(
+            np.mean(rec_true == np.concatenate(y_worn[-len(sensors) :]))
+        )
         if twisting:
             metrics[f"leg_windows_turning_about_vertical/{rec.name}"] = float(np.mean(np.concatenate(twisting)))
         metrics[f"n_windows/{rec.name}"] = float(len(rec_true))
-    yt, yp, yj = np.concatenate(y_true), np.concatenate(y_pred), np.concatenate(y_joint)
+    yt, yp, yj, yw = (np.concatenate(y) for y in (y_true, y_pred, y_joint, y_worn))
     overall = assignment_metrics(yt, yp)
     metrics.update({f"real_{k}": v for k, v in overall.items()})
     part = np.array(BODY_PART + ("unassigned",))  # index -1 (unassigned) reads as the last entry: never right
     metrics["real_window_joint_accuracy"] = float(np.mean(yt == yj))
     metrics["real_window_joint_accuracy_ignoring_side"] = float(np.mean(part[yt] == part[yj]))
+    metrics["real_window_joint_worn_accuracy"] = float(np.mean(yt == yw))
+    metrics["real_window_joint_worn_accuracy_ignoring_side"] = float(np.mean(part[yt] == part[yw]))
     metrics["real_joint_assignment_correct_fraction"] = joint_correct / max(joint_total, 1)
     metrics["real_still_windows_skipped"] = float(still)
     return metrics, confusion_matrix(yt, yp)

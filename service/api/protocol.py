@@ -2,7 +2,9 @@
 
 Client → server
   {"type": "start", "sensors": [{"sensor_id": "a", "sample_rate_hz": 60, "acc_unit": "m/s^2",
-   "gyr_unit": "rad/s"}, ...], "allow_shared": false}                      (first message, once)
+   "gyr_unit": "rad/s"}, ...], "allow_shared": false,
+   "worn_segments": ["LeftFoot", "RightFoot"]}         (first message, once; worn_segments optional: the joint and
+                                                       moment answers are drawn from those segments only)
   {"type": "samples", "sensor_id": "a", "seq": 0, "samples": [[ax, ay, az, gx, gy, gz], ...]}
   binary packet (little-endian): uint16 sensor index (order of "start"), uint16 n, uint32 seq,
   then n × 6 float32 (acc xyz, gyr xyz in the declared units)                 8 + 24 n bytes
@@ -10,13 +12,14 @@ Client → server
 ``seq`` is the sensor's sample counter of the packet's first sample (0, 1, 2, … per sample).
 
 Server → client
-  started · result (per window: class, probabilities, moving, turns_about_vertical, alignment) · moment (sessions of
-  two or more sensors, per window end time: the one-to-one answer of the sensors' windows that end then, as
-  /v1/imu/assign's window_segments; sent once every sensor has reached that time, or when 32 moments wait on a
-  stalled sensor, whose windows then come in moments of their own) · assignment (joint,
-  one-to-one over the session's evidence, and per sensor the robust mean alignment over its last
-  WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread; after each group of results) · gap / late (sequence
-  problems, in order with the results) · error (then close, after the results of every accepted packet).
+  started · result (per window: class, probabilities, moving, turns_about_vertical, alignment: the window's own
+  answer over all seven segments) · moment (sessions of two or more sensors or with worn_segments, per window end
+  time: the one-to-one answer of the sensors' windows that end then, as /v1/imu/assign's window_segments; sent
+  once every sensor has reached that time, or when 32 moments wait on a stalled sensor, whose windows then come
+  in moments of their own) · assignment (joint, one-to-one over the session's evidence, and per sensor the robust
+  mean alignment over its last WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread; after each group
+  of results) · gap / late (sequence problems, in order with the results) · error (then close, after the results
+  of every accepted packet).
 Close codes: 1003 unsupported data, 1008 protocol violation, 1009 message too big, 1000 after stop.
 """
 
@@ -28,7 +31,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.api.schemas import AccUnit, GyrUnit
+from service.api.schemas import WORN_SEGMENTS_DESCRIPTION, AccUnit, GyrUnit, WornSegments
 
 HEADER = struct.Struct("<HHI")
 
@@ -54,6 +57,7 @@ class StartMessage(BaseModel):
     type: Literal["start"]
     sensors: list[StreamSensor] = Field(min_length=1, max_length=64)
     allow_shared: bool = False
+    worn_segments: WornSegments | None = Field(None, description=WORN_SEGMENTS_DESCRIPTION)
 
 
 class SamplesMessage(BaseModel):

@@ -212,8 +212,9 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     log_probs = [np.log(np.clip(probs[bounds[k] : bounds[k + 1]], 1e-12, 1.0)) for k in range(len(per_sensor))]
     # The sensor's moving windows are its evidence (all of them if none moves); each moment is answered on its own.
     evidence = [lp[m] if m.any() else lp for lp, m in zip(log_probs, moving, strict=True)]
-    joint = joint_assignment(evidence, allow_shared=body.allow_shared)
-    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared)
+    worn = None if body.worn_segments is None else [segment_index(name) for name in body.worn_segments]
+    joint = joint_assignment(evidence, allow_shared=body.allow_shared, worn=worn)
+    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn)
     out = []
     for k, sensor in enumerate(body.sensors):
         seg = int(joint.segment[k])

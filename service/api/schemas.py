@@ -2,15 +2,29 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from service.core.segments import SEGMENTS
 
 SegmentName = Literal[SEGMENTS]  # type: ignore[valid-type]
 AccUnit = Literal["m/s^2", "g"]
 GyrUnit = Literal["rad/s", "deg/s"]
+
+
+def _each_once(names: list[str]) -> list[str]:
+    if len(set(names)) != len(names):
+        raise ValueError(f"name each segment once, got {names}")
+    return names
+
+
+WornSegments = Annotated[list[SegmentName], Field(min_length=1, max_length=len(SEGMENTS)), AfterValidator(_each_once)]
+WORN_SEGMENTS_DESCRIPTION = (
+    "the segments the sensors are known to be on, when the user knows that but not which sensor is where (e.g. "
+    '["LeftFoot", "RightFoot"]): the joint and per-moment answers are then drawn from these segments only. '
+    "Default: any of the seven"
+)
 
 EXAMPLE_WINDOW = {
     "samples": [[0.0, 0.0, 9.81, 0.0, 0.0, 0.0]] * 128,
@@ -96,7 +110,8 @@ class AssignRequest(BaseModel):
     """Sensors recorded at the same time; each is assigned one segment.
 
     One-to-one by default (more sensors than segments: the weakest stay unassigned; fewer: some
-    segments stay empty). ``allow_shared`` lets several sensors share a segment.
+    segments stay empty). ``allow_shared`` lets several sensors share a segment. ``worn_segments`` narrows the
+    segments to choose from.
     """
 
     model_config = ConfigDict(
@@ -115,6 +130,7 @@ class AssignRequest(BaseModel):
     )
     sensors: list[SensorWindows] = Field(min_length=1, max_length=64)
     allow_shared: bool = False
+    worn_segments: WornSegments | None = Field(None, description=WORN_SEGMENTS_DESCRIPTION)
 
 
 class SensorAssignment(BaseModel):

@@ -29,7 +29,7 @@ from service.api.protocol import (
     decode_binary,
 )
 from service.core.assignment import MomentAssembler, is_moving, joint_assignment, turns_about_vertical
-from service.core.segments import SEGMENTS
+from service.core.segments import SEGMENTS, segment_index
 from service.core.stream import SensorStream
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
 
@@ -103,9 +103,11 @@ class Session:
         self.streams = [SensorStream(s.sensor_id, s.sample_rate_hz, s.acc_unit, s.gyr_unit) for s in start.sensors]
         self.index = {s.sensor_id: k for k, s in enumerate(self.streams)}
         self.allow_shared = start.allow_shared
+        self.worn = None if start.worn_segments is None else [segment_index(name) for name in start.worn_segments]
         self.evidence = np.zeros((len(self.streams), len(SEGMENTS)))
-        # A one-sensor session's moment is its window's own answer, already in the result: no moment messages.
-        self.moments = MomentAssembler(len(self.streams), start.allow_shared) if len(self.streams) > 1 else None
+        # A one-sensor session without worn_segments: its moment is its window's own answer, already in the result.
+        many = len(self.streams) > 1 or self.worn is not None
+        self.moments = MomentAssembler(len(self.streams), start.allow_shared, worn=self.worn) if many else None
         self.windows = np.zeros(len(self.streams), dtype=np.int64)
         self.alignments = [RunningAlignment(alignment_windows) for _ in self.streams]
         self.max_pending = max_pending
@@ -148,7 +150,7 @@ class Session:
         ]
 
     def assignment_message(self, dropped: int) -> dict:
-        joint = joint_assignment([e[None] for e in self.evidence], allow_shared=self.allow_shared)
+        joint = joint_assignment([e[None] for e in self.evidence], allow_shared=self.allow_shared, worn=self.worn)
         sensors = []
         for k, (s, g, n) in enumerate(zip(self.streams, joint.segment.tolist(), self.windows, strict=True)):
             mean = self.alignments[k].mean(g) if g >= 0 and n else None
@@ -335,6 +337,7 @@ async def stream(ws: WebSocket) -> None:
                 "window_samples": 128,
                 "hop_samples": 16,
                 "model_rate_hz": 60.0,
+                "worn_segments": None if session.worn is None else [SEGMENTS[k] for k in sorted(session.worn)],
             }
         )
         await _serve(ws, session, outbox)

@@ -4,10 +4,17 @@ Evidence of a sensor is the sum of log-probabilities over its windows; the one-t
 maximising the total is ``scipy.optimize.linear_sum_assignment`` (DESIGN.md §5: per-trial joint
 assignment is right more often than single windows). ``window_joint_assignment`` applies the same
 constraint to each moment on its own: the windows that sensors worn together recorded at the same time.
+
+Both take ``worn``, the segments a user declares the sensors to be on (say both feet, not saying which is
+which): the answers are then drawn from those segments only. That is the assignment conditioned on the
+declaration: renormalising each window's probabilities over the declared segments adds a per-sensor constant to
+every candidate's evidence, which changes neither the one-to-one optimum nor the margins, so restricting the
+columns is enough.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,58 +55,85 @@ class JointAssignment:
     margin: np.ndarray  # (S,) evidence of the assigned class minus the best other class (< 0: constraint overrode it)
 
 
-def joint_assignment(log_probs: list[np.ndarray], allow_shared: bool = False) -> JointAssignment:
-    """Assign S sensors (each ``(N_s, K)`` window log-probabilities) to K segments.
+def worn_classes(worn: Sequence[int] | None, n_classes: int) -> np.ndarray:
+    """The declared segments as sorted class indices (all ``n_classes`` when ``worn`` is None)."""
+    if worn is None:
+        return np.arange(n_classes)
+    classes = np.asarray(sorted(worn), dtype=np.int64)
+    if not len(classes) or len(set(classes.tolist())) != len(classes) or classes[0] < 0 or classes[-1] >= n_classes:
+        raise ValueError(f"worn must be distinct class indices in [0, {n_classes}), at least one; got {list(worn)}")
+    return classes
+
+
+def _best(evidence: np.ndarray, classes: np.ndarray, allow_shared: bool) -> np.ndarray:
+    """Per row of ``evidence`` ``(S, K)``, its class among ``classes``: the one-to-one optimum of the summed
+    evidence (-1 for rows left over when there are more rows than classes), or each row's own best."""
+    among = evidence[:, classes]
+    if allow_shared or len(evidence) == 1:  # one row: the one-to-one optimum is its own best class
+        return classes[among.argmax(axis=1)]
+    rows, cols = linear_sum_assignment(among, maximize=True)
+    segment = np.full(len(evidence), -1, dtype=np.int64)
+    segment[rows] = classes[cols]
+    return segment
+
+
+def joint_assignment(
+    log_probs: list[np.ndarray], allow_shared: bool = False, worn: Sequence[int] | None = None
+) -> JointAssignment:
+    """Assign S sensors (each ``(N_s, K)`` window log-probabilities) to K segments, or to the ``worn`` ones.
 
     One-to-one by default: with more sensors than segments the weakest are left unassigned (-1);
     with fewer, segments stay empty. ``allow_shared`` lets sensors share a segment (per-sensor argmax).
+    With ``worn``, the evidence of the other segments is -inf and confidence and margin are over the worn ones.
     """
     evidence = np.stack([lp.sum(axis=0) for lp in log_probs])
     n_sensors, n_classes = evidence.shape
-    if allow_shared or n_sensors == 1:  # one sensor: the one-to-one optimum is its own best segment
-        segment = evidence.argmax(axis=1)
-    else:
-        rows, cols = linear_sum_assignment(evidence, maximize=True)
-        segment = np.full(n_sensors, -1)
-        segment[rows] = cols
-    post = np.exp(evidence - evidence.max(axis=1, keepdims=True))
+    classes = worn_classes(worn, n_classes)
+    evidence[:, np.setdiff1d(np.arange(n_classes), classes)] = -np.inf
+    segment = _best(evidence, classes, allow_shared)
+    rows, chosen = np.arange(n_sensors), np.maximum(segment, 0)
+    post = np.exp(evidence - evidence[:, classes].max(axis=1, keepdims=True))
     post /= post.sum(axis=1, keepdims=True)
-    confidence = np.where(segment >= 0, post[np.arange(n_sensors), np.maximum(segment, 0)], 0.0)
-    rows = np.arange(n_sensors)
-    chosen = np.maximum(segment, 0)
+    confidence = np.where(segment >= 0, post[rows, chosen], 0.0)
     others = evidence.copy()
     others[rows, chosen] = -np.inf
-    margin = evidence[rows, chosen] - others.max(axis=1) if n_classes > 1 else np.full(n_sensors, np.inf)
+    margin = evidence[rows, chosen] - others.max(axis=1) if len(classes) > 1 else np.full(n_sensors, np.inf)
     margin = np.where(segment >= 0, margin, 0.0)
     return JointAssignment(segment, evidence, confidence, margin)
 
 
 def window_joint_assignment(
-    log_probs: list[np.ndarray], moving: list[np.ndarray], allow_shared: bool = False
+    log_probs: list[np.ndarray],
+    moving: list[np.ndarray],
+    allow_shared: bool = False,
+    worn: Sequence[int] | None = None,
 ) -> list[np.ndarray]:
     """One-to-one assignment per moment: window ``t`` of every sensor is assigned from those windows alone.
 
     ``log_probs[s]`` is ``(N_s, K)`` for sensor ``s`` and ``moving[s]`` its ``(N_s,)`` mask (``is_moving``);
     windows with the same index are taken as recorded at the same time. At each index the sensors whose window
-    there moves share out the K segments one-to-one (the answer that maximises their summed log-probability);
-    a still window, or one left over when more than K windows move, gets -1. Paper 000 classifies every window
-    on its own (§2.2) and names the left/right switches that this leaves as future work (§5); the sensors of one
-    body cannot sit on the same segment, so at one moment their windows constrain each other. ``allow_shared``
-    (as in ``joint_assignment``) gives each moving window its own best class instead.
+    there moves share out the K segments (or the ``worn`` ones) one-to-one (the answer that maximises their
+    summed log-probability); a still window, or one left over when more windows move than there are segments,
+    gets -1. Paper 000 classifies every window on its own (§2.2) and names the left/right switches that this
+    leaves as future work (§5); the sensors of one body cannot sit on the same segment, so at one moment their
+    windows constrain each other. ``allow_shared`` (as in ``joint_assignment``) gives each moving window its own
+    best class instead.
 
     Returns one ``(N_s,)`` int array per sensor.
     """
+    classes = worn_classes(worn, log_probs[0].shape[1]) if log_probs else np.zeros(0, dtype=np.int64)
     if allow_shared:
-        return [np.where(m, lp.argmax(axis=1), -1) for lp, m in zip(log_probs, moving, strict=True)]
+        return [
+            np.where(m, classes[lp[:, classes].argmax(axis=1)], -1) for lp, m in zip(log_probs, moving, strict=True)
+        ]
     out = [np.full(len(lp), -1, dtype=np.int64) for lp in log_probs]
     for t in range(max((len(lp) for lp in log_probs), default=0)):
         present = [s for s, lp in enumerate(log_probs) if t < len(lp) and moving[s][t]]
         if not present:
             continue
-        evidence = np.stack([log_probs[s][t] for s in present])
-        rows, cols = linear_sum_assignment(evidence, maximize=True)
-        for r, c in zip(rows, cols, strict=True):
-            out[present[r]][t] = c
+        answer = _best(np.stack([log_probs[s][t] for s in present]), classes, allow_shared=False)
+        for s, c in zip(present, answer.tolist(), strict=True):
+            out[s][t] = c
     return out
 
 
@@ -110,11 +144,15 @@ class MomentAssembler:
     wait until every sensor of the session has produced a window at or after that time, then the moment is
     answered from the windows it holds; a sensor that stalls, or never sends, holds up at most ``max_open``
     moments, after which the oldest are answered without it. ``flush`` answers all that wait (end of stream).
-    With ``allow_shared`` each moving window keeps its own answer.
+    With ``allow_shared`` each moving window keeps its own answer; with ``worn`` the answers are drawn from those
+    segments only.
     """
 
-    def __init__(self, n_sensors: int, allow_shared: bool = False, max_open: int = 32) -> None:
+    def __init__(
+        self, n_sensors: int, allow_shared: bool = False, max_open: int = 32, worn: Sequence[int] | None = None
+    ) -> None:
         self.allow_shared = allow_shared
+        self.worn = None if worn is None else tuple(worn)
         self.max_open = max_open
         self.latest = np.full(n_sensors, -np.inf)  # newest window end per sensor
         self.open: dict[float, dict[int, tuple[np.ndarray, bool]]] = {}
@@ -142,5 +180,5 @@ class MomentAssembler:
         sensors = list(windows)
         log_probs = [windows[s][0][None] for s in sensors]
         moving = [np.array([windows[s][1]]) for s in sensors]
-        answer = window_joint_assignment(log_probs, moving, self.allow_shared)
+        answer = window_joint_assignment(log_probs, moving, self.allow_shared, self.worn)
         return key, {s: int(a[0]) for s, a in zip(sensors, answer, strict=True)}

@@ -61,6 +61,38 @@ def test_window_joint_assignment_decides_each_moment_on_its_own() -> None:
     assert window_joint_assignment([], []) == []
 
 
+def test_declared_worn_segments_restrict_every_answer() -> None:
+    # Two foot sensors (classes 0 and 6 of seven). Both favour shank classes; declared as feet, the one with the
+    # stronger left-foot evidence takes class 0 and the other class 6, per recording and per moment.
+    probs = np.full((2, 2, 7), 0.01)
+    probs[0, :, [0, 1]] = [[0.30, 0.30], [0.64, 0.64]]  # sensor 0: LeftFoot 0.30, LeftLowerLeg 0.64
+    probs[1, :, [0, 5, 6]] = [[0.20, 0.20], [0.64, 0.64], [0.10, 0.10]]  # sensor 1: RightLowerLeg 0.64
+    lp = list(np.log(probs))
+    free = joint_assignment(lp)
+    assert free.segment.tolist() == [1, 5]
+    feet = joint_assignment(lp, worn=[6, 0])
+    assert feet.segment.tolist() == [0, 6]
+    # Margins and confidences are over the worn segments: 2 × (log 0.30 − log 0.01) and 2 × (log 0.10 − log 0.20).
+    np.testing.assert_allclose(feet.margin, [2 * np.log(30.0), 2 * np.log(0.5)])
+    np.testing.assert_allclose(feet.confidence, [30**2 / (30**2 + 1), 1 / (1 + 2**2)])
+    assert np.isneginf(feet.evidence[:, [1, 2, 3, 4, 5]]).all()
+    moving = [np.array([True, False]), np.array([True, True])]
+    assert [o.tolist() for o in window_joint_assignment(lp, moving, worn=[0, 6])] == [[0, -1], [6, 0]]
+    assert [o.tolist() for o in window_joint_assignment(lp, moving, allow_shared=True, worn=[0, 6])] == [
+        [0, -1],
+        [0, 0],
+    ]
+    # One declared segment, two sensors: the weaker is left over.
+    assert joint_assignment(lp, worn=[0]).segment.tolist() == [0, -1]
+    live = MomentAssembler(2, worn=[0, 6])
+    live.add(0, 1.0, lp[0][0], True)
+    live.add(1, 1.0, lp[1][0], True)
+    assert live.ready() == [(1.0, {0: 0, 1: 6})]
+    for bad in ([], [0, 0], [7], [-1]):
+        with pytest.raises(ValueError, match="distinct class indices"):
+            joint_assignment(lp, worn=bad)
+
+
 def test_live_moments_wait_for_every_sensor_and_give_the_batch_answer() -> None:
     strong, weak = np.log(np.array([0.9, 0.1])), np.log(np.array([0.6, 0.4]))
     live = MomentAssembler(2, max_open=2)

@@ -124,6 +124,42 @@ def test_assign_answers_each_moment_of_a_real_recording_one_to_one(server: str, 
     assert np.mean(at_moment) >= 0.97 and np.mean(at_moment) >= np.mean(own) + 0.05
 
 
+def test_declaring_the_feet_settles_which_foot_is_which(server: str, data_dir: Path) -> None:
+    """gaitmap's 4 × 10 m walk, two foot sensors (a person and sensors never trained on). Over all seven segments
+    the served model takes the right foot for a shank at most moments (1.9.0: 64 % of moving windows right per
+    moment); told that the sensors are on the feet, it only has to say which foot, and is right at almost every
+    moment (99.6 % measured), over REST and over a real WebSocket stream alike."""
+    rec = read_recording(data_dir, "gaitmap_foot/imu_sample_ic_stride")
+    feet = ["LeftFoot", "RightFoot"]
+    truth = {s.sensor_id: SEGMENTS[s.segment] for s in rec.sensors}
+    body = {
+        "sensors": [
+            {"sensor_id": s.sensor_id, "windows": [{"samples": w.tolist()} for w in sliding_windows(s.imu)]}
+            for s in rec.sensors
+        ]
+    }
+
+    def per_moment(answer: list[dict]) -> float:
+        right = [g == truth[s["sensor_id"]] for s in answer for g in s["window_segments"] if g is not None]
+        return float(np.mean(right))
+
+    free = httpx.post(f"{server}/v1/imu/assign", json=body, timeout=120).json()["sensors"]
+    declared = httpx.post(f"{server}/v1/imu/assign", json=body | {"worn_segments": feet}, timeout=120).json()
+    declared = declared["sensors"]
+    print(f"per moment: {per_moment(free):.3f} over seven segments, {per_moment(declared):.3f} declared as feet")
+    assert {g for s in declared for g in s["window_segments"]} <= set(feet) | {None}
+    assert all(s["segment"] == truth[s["sensor_id"]] for s in declared)
+    assert per_moment(declared) >= 0.98 and per_moment(declared) >= per_moment(free) + 0.2
+    sensors = [ClientSensor(s.sensor_id, s.imu) for s in rec.sensors]
+    url = server.replace("http", "ws") + "/v1/stream"
+    outcome = asyncio.run(stream_sensors(url, sensors, speed=0, worn_segments=feet))
+    assert outcome.close_code == 1000
+    assert next(e for e in outcome.events if e["type"] == "started")["worn_segments"] == feet
+    for k, moment in enumerate(outcome.moments):
+        assert moment["segments"] == {s["sensor_id"]: s["window_segments"][k] for s in declared}
+    assert {s["sensor_id"]: s["segment"] for s in outcome.assignment["sensors"]} == truth
+
+
 def test_clients_that_vanish_mid_stream_leave_no_server_errors(server: str) -> None:
     """One client aborts its TCP connection and one closes cleanly while results are still being computed;
     the server logs no application error, closes both sessions and goes on serving."""

@@ -9,6 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
+from service.core.segments import SEGMENTS
 from service.settings import Settings
 from tests.service.conftest import write_tiny_model
 
@@ -104,6 +105,28 @@ def test_joint_assignment_endpoint(client: TestClient) -> None:
     out = client.post("/v1/imu/assign", json={"sensors": nine}).json()["sensors"]
     assert sum(s["segment"] is None for s in out) == 2  # more sensors than segments
     assert sum(s["window_segments"] == [None] for s in out) == 2  # and at the one moment
+
+
+def test_declared_worn_segments_narrow_the_answers(client: TestClient) -> None:
+    """With ``worn_segments`` the joint answer and every per-moment answer are among the declared segments; each
+    window's own answer (/v1/imu/windows) is untouched. Bad declarations are 422s that say what was wrong."""
+    sensors = [{"sensor_id": f"s{k}", "windows": [_window(), _window()]} for k in range(3)]
+    free = client.post("/v1/imu/assign", json={"sensors": sensors}).json()["sensors"]
+    worn = [name for name in SEGMENTS if name not in {s["segment"] for s in free}][:2]
+    out = client.post("/v1/imu/assign", json={"sensors": sensors, "worn_segments": worn})
+    assert out.status_code == 200, out.text
+    got = out.json()["sensors"]
+    assert sorted(s["segment"] for s in got if s["segment"]) == sorted(worn)
+    assert sum(s["segment"] is None for s in got) == 1  # three sensors, two declared segments
+    assert {g for s in got for g in s["window_segments"]} <= set(worn) | {None}
+    assert all(s["alignment"]["segment"] == s["segment"] for s in got if s["segment"])
+    for bad, fragment in (
+        (["LeftFoot", "LeftFoot"], "name each segment once"),
+        (["Head"], "Input should be 'LeftFoot'"),
+        ([], "at least 1 item"),
+    ):
+        r = client.post("/v1/imu/assign", json={"sensors": sensors, "worn_segments": bad})
+        assert r.status_code == 422 and fragment in r.text and "worn_segments" in r.text, r.text
 
 
 def test_assign_answers_each_moment_one_to_one(client: TestClient) -> None:

@@ -62,6 +62,30 @@ def test_window_joint_answers_fix_a_shared_favourite_at_each_moment(recording) -
     assert cm[SEGMENT + 1, SEGMENT] > 0  # the confusion matrix keeps the windows' own answers
 
 
+def test_declared_worn_segments_keep_a_favourite_that_no_sensor_wears_out(recording) -> None:
+    """Both sensors favour the thigh of the other leg, which neither wears. Per moment over seven segments one of
+    them takes it; declared (the recording's own segments, ``real_window_joint_worn_*``) both are right."""
+    rec, _ = recording
+    shank = rec.sensors[0]
+    thigh = RealSensor("thigh", shank.imu * np.array([1, 1, 1, 0.5, 0.5, 0.5], dtype=np.float32), SEGMENT + 1)
+    typical = np.linalg.norm(shank.imu[:, 3:], axis=1).mean()
+    elsewhere = SEGMENTS.index("RightUpperLeg")
+
+    def predict(windows: np.ndarray) -> np.ndarray:
+        x = np.linalg.norm(windows[..., 3:], axis=-1).mean(axis=1)
+        probs = np.full((len(windows), len(SEGMENTS)), 0.01, dtype=np.float32)
+        probs[:, elsewhere] = 0.5
+        probs[:, SEGMENT] = 0.2 + 0.2 * x / (x + typical)
+        probs[:, SEGMENT + 1] = 0.45 - probs[:, SEGMENT]
+        return probs
+
+    m, _ = evaluate_real(predict, [RealRecording("sim/two", "sim", "cmu_07", "walk", [shank, thigh])])
+    assert m["real_window_joint_accuracy"] == pytest.approx(0.5, abs=0.05)
+    assert m["real_window_joint_worn_accuracy"] == 1.0
+    assert m["window_joint_worn_accuracy/sim/two"] == 1.0
+    assert m["real_window_joint_worn_accuracy_ignoring_side"] == 1.0
+
+
 def test_body_joint_assignment_resolves_each_body_and_skips_a_cut_one() -> None:
     from training.evaluate import body_joint_assignment
 
