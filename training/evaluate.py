@@ -129,6 +129,7 @@ def evaluate_braced_knees(
 
 
 LEG_SEGMENTS = frozenset(SEGMENTS.index(n) for n in ("LeftUpperLeg", "LeftLowerLeg", "RightUpperLeg", "RightLowerLeg"))
+FOOT_SEGMENTS = frozenset(SEGMENTS.index(n) for n in ("LeftFoot", "RightFoot"))
 
 
 def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[dict[str, float], np.ndarray]:
@@ -213,10 +214,15 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
       from +z. The true alignment of a sensor simulated from CMU walking reads about 19° (the shank leans
       during gait; tests/training/test_evaluate.py), one 90° off about x reads about 97°. Rotation about z
       (the long axis) does not show here.
-    Both are necessary, not sufficient (a constant output is perfectly stable); the simulated LOSO is the
+    - Foot flat (feet): the functional foot frame's z is "up" while the foot is flat (``functional_correction``:
+      the slowest quarter of its samples, pitch only). The sensor's own up over its slowest quarter of samples
+      (``foot_flat_up``) is read off its accelerometer, so R_segment_imu · that direction should be the segment's
+      +z up to the flat foot's roll, which the frame ignores. Reported: its angle from +z, per moving window.
+      Rotation about z (the heading) does not show here either.
+    All are necessary, not sufficient (a constant output is perfectly stable); the simulated LOSO is the
     accuracy measure. Predictions are for the sensor's known segment.
     """
-    spreads, tilts, metrics = [], [], {}
+    spreads, tilts, feet, metrics = [], [], [], {}
     for rec in recordings:
         rec_spread = []
         for s in (s for s in rec.sensors if s.segment is not None):
@@ -229,20 +235,36 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
             if s.segment in LEG_SEGMENTS:
                 up = rot.apply(windows[..., :3].mean(axis=1).astype(np.float64))
                 tilts.append(np.degrees(np.arccos(np.clip(up[:, 2] / np.linalg.norm(up, axis=1), -1.0, 1.0))))
+            if s.segment in FOOT_SEGMENTS:
+                feet.append(np.degrees(np.arccos(np.clip(rot.apply(foot_flat_up(s.imu))[:, 2], -1.0, 1.0))))
         if rec_spread:
             spreads += rec_spread
             metrics[f"alignment_spread_median_deg/{rec.name}"] = float(np.median(np.concatenate(rec_spread)))
-    spread, tilt = np.concatenate(spreads), np.concatenate(tilts)
     metrics.update(
         {
-            "real_alignment_spread_median_deg": float(np.median(spread)),
-            "real_alignment_spread_p90_deg": float(np.percentile(spread, 90)),
-            "real_leg_up_axis_angle_median_deg": float(np.median(tilt)),
-            "real_leg_up_axis_angle_p90_deg": float(np.percentile(tilt, 90)),
-            "real_alignment_n_windows": float(len(spread)),
+            **_median_p90("real_alignment_spread", spreads),
+            **_median_p90("real_leg_up_axis_angle", tilts),
+            **_median_p90("real_foot_flat_up_angle", feet),
+            "real_alignment_n_windows": float(sum(len(x) for x in spreads)),
         }
     )
     return metrics
+
+
+def foot_flat_up(imu: np.ndarray) -> np.ndarray:
+    """A foot sensor's "up" while the foot is flat: the unit mean specific force over the slowest quarter of its
+    samples by gyroscope norm, as ``functional_correction`` picks the flat-foot samples of a mocap foot."""
+    speed = np.linalg.norm(imu[:, 3:], axis=1)
+    up = imu[speed <= np.quantile(speed, 0.25), :3].astype(np.float64).mean(axis=0)
+    return up / np.linalg.norm(up)
+
+
+def _median_p90(name: str, angles: list[np.ndarray]) -> dict[str, float]:
+    """``<name>_median_deg`` and ``<name>_p90_deg`` of the pooled angles; nothing if there are none."""
+    if not angles:
+        return {}
+    pooled = np.concatenate(angles)
+    return {f"{name}_median_deg": float(np.median(pooled)), f"{name}_p90_deg": float(np.percentile(pooled, 90))}
 
 
 _HALF_TURN_Z = Rotation.from_euler("z", 180.0, degrees=True)

@@ -19,17 +19,22 @@ from training.evaluate import evaluate_real, evaluate_real_alignment
 SEGMENT = SEGMENTS.index("LeftLowerLeg")
 
 
+def _simulated_recording(data_dir: Path, cache: Path, segment: int) -> tuple[RealRecording, np.ndarray]:
+    """A 'recording' of one sensor on ``segment`` at a known eq. 8 alignment over the cmu_07 walking clips."""
+    entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"]
+    R_true = alignment(segment, np.radians(135.0), np.radians(45.0))
+    readings = []
+    for clip in build_kinematics(data_dir, entries, cache):
+        parts = (clip.kin.lin_acc_mps2, clip.kin.up_mps2, clip.kin.gyr_rads, clip.kin.ang_acc_rads2)
+        readings.append(imu_readings(*(a[None, :, segment] for a in parts), R_true)[0])
+    sensor = RealSensor(SEGMENTS[segment], np.concatenate(readings).astype(np.float32), segment)
+    return RealRecording(f"sim/{SEGMENTS[segment]}", "sim", "cmu_07", "walk", [sensor]), R_true[0]
+
+
 @pytest.fixture(scope="module")
 def recording(data_dir: Path, kinematics_cache: Path) -> tuple[RealRecording, np.ndarray]:
     """A 'recording' of one lower-leg sensor at a known eq. 8 alignment over the cmu_07 walking clips, end to end."""
-    entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"]
-    R_true = alignment(SEGMENT, np.radians(135.0), np.radians(45.0))
-    readings = []
-    for clip in build_kinematics(data_dir, entries, kinematics_cache):
-        parts = (clip.kin.lin_acc_mps2, clip.kin.up_mps2, clip.kin.gyr_rads, clip.kin.ang_acc_rads2)
-        readings.append(imu_readings(*(a[None, :, SEGMENT] for a in parts), R_true)[0])
-    sensor = RealSensor("shank", np.concatenate(readings).astype(np.float32), SEGMENT)
-    return RealRecording("sim/shank", "sim", "cmu_07", "walk", [sensor]), R_true[0]
+    return _simulated_recording(data_dir, kinematics_cache, SEGMENT)
 
 
 def _constant(R: np.ndarray):
@@ -122,6 +127,19 @@ def test_the_true_alignment_is_stable_and_upright(recording) -> None:
     assert m["real_alignment_n_windows"] > 10
     assert m["real_alignment_spread_median_deg"] < 1e-3
     assert m["real_leg_up_axis_angle_median_deg"] < 25.0, m  # the shank leans in gait: 19° here
+
+
+def test_the_true_foot_alignment_is_flat_and_a_tilted_one_is_not(data_dir: Path, kinematics_cache: Path) -> None:
+    """The functional foot frame's z is up while the foot is flat, so the true alignment of a simulated foot
+    sensor maps the sensor's slowest-quarter specific force close to +z (3.3° here: the flat foot's roll is what is
+    left); 20° wrong about the segment's y (pitch) reads 18.4°."""
+    rec, R_true = _simulated_recording(data_dir, kinematics_cache, SEGMENTS.index("RightFoot"))
+    true = evaluate_real_alignment(_constant(R_true), [rec])
+    assert true["real_foot_flat_up_angle_median_deg"] < 6.0, true
+    assert "real_leg_up_axis_angle_median_deg" not in true  # no leg sensor: no leg figure
+    pitched = Rotation.from_euler("y", 20, degrees=True).as_matrix() @ R_true
+    off = evaluate_real_alignment(_constant(pitched), [rec])["real_foot_flat_up_angle_median_deg"]
+    assert off > 15.0, off
 
 
 def test_a_tilted_alignment_fails_the_up_axis_check(recording) -> None:
