@@ -24,6 +24,7 @@ import numpy as np
 import websockets
 
 from service.api.protocol import encode_binary
+from service.core.recordings import read_csv_imu, read_recording
 
 log = logging.getLogger(__name__)
 
@@ -129,8 +130,7 @@ async def _receive(ws: websockets.ClientConnection, outcome: StreamOutcome) -> N
 
 
 def _csv_sensor(path: Path, rate: float, acc_unit: str, gyr_unit: str, skip: int) -> ClientSensor:
-    data = np.loadtxt(path, delimiter=",", skiprows=1)[:, skip : skip + 6]
-    return ClientSensor(path.stem, data, rate, acc_unit, gyr_unit)
+    return ClientSensor(path.stem, read_csv_imu(path, skip), rate, acc_unit, gyr_unit)
 
 
 def main() -> None:
@@ -153,8 +153,6 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.recording:
-        from service.core.recordings import read_recording
-
         if not args.data_dir:
             parser.error("--recording needs --data-dir or WEARMOCAP_DATA_DIR")
         rec = read_recording(Path(args.data_dir), args.recording)

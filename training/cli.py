@@ -242,6 +242,68 @@ def evaluate_real_command(
             typer.echo(f"{key}: {value:.4f}")
 
 
+@app.command("evaluate-csv")
+def evaluate_csv(
+    sensor: list[str] = typer.Option(
+        ..., "--sensor", help="SEGMENT=PATH, one per sensor: a CSV file and the segment the sensor was on"
+    ),
+    rate: float = typer.Option(..., help="the files' sample rate, Hz"),
+    acc_unit: str = typer.Option("m/s^2", help="m/s^2 or g"),
+    gyr_unit: str = typer.Option("rad/s", help="rad/s or deg/s"),
+    skip_columns: int = typer.Option(0, help="leading columns before acc x, y, z, gyr x, y, z (e.g. 1 for time)"),
+    models: Path = typer.Option(Path("onnx_models"), help="the model tree; the newest version of each is used"),
+    assignment: str | None = typer.Option(None, help="an assignment version to use instead (e.g. 1.8.0)"),
+    alignment: str | None = typer.Option(None, help="an alignment version to use instead"),
+) -> None:
+    """Score the shipped models on a labelled recording of your own: one CSV file per sensor (a header row, then
+    acc and gyr columns), all recorded together. Prints the assignment per window, per moment (one-to-one over the
+    sensors, as the service answers), per moment with the worn segments declared, and over the whole recording,
+    and the label-free alignment checks (``evaluate_real``, ``evaluate_real_alignment``)."""
+    from service.core.assignment import is_moving
+    from service.core.recordings import csv_recording
+    from service.core.segments import SEGMENTS
+    from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES, sliding_windows
+    from service.inference.registry import version_key
+    from training.evaluate import evaluate_real, evaluate_real_alignment, onnx_predictor
+
+    files = []
+    for item in sensor:
+        segment, sep, path = item.partition("=")
+        if not sep or segment not in SEGMENTS:
+            raise typer.BadParameter(f"expected SEGMENT=PATH with SEGMENT one of {', '.join(SEGMENTS)}, got {item!r}")
+        files.append((segment, Path(path)))
+    if len({segment for segment, _ in files}) != len(files):
+        raise typer.BadParameter(f"one sensor per segment, got {[segment for segment, _ in files]}")
+    try:
+        rec = csv_recording("csv", files, rate, acc_unit, gyr_unit, skip_columns)
+    except (ValueError, OSError) as exc:
+        raise typer.BadParameter(str(exc)) from None
+
+    def model_dir(task: str, version: str | None) -> Path:
+        versions = sorted((d.name for d in (models / task).iterdir() if d.is_dir()), key=version_key)
+        return models / task / (version or versions[-1])
+
+    moving = [int(is_moving(sliding_windows(s.imu)).sum()) for s in rec.sensors]
+    if not all(moving):
+        raise typer.BadParameter(
+            f"every sensor needs a moving {WINDOW_SAMPLES}-sample window at {MODEL_RATE_HZ:g} Hz; moving windows "
+            f"per sensor: {dict(zip((s.sensor_id for s in rec.sensors), moving, strict=True))}"
+        )
+    assign_dir, align_dir = model_dir("i2s_assignment", assignment), model_dir("i2s_alignment", alignment)
+    metrics, _ = evaluate_real(onnx_predictor(assign_dir / "model.onnx"), [rec])
+    typer.echo(f"assignment {assign_dir}: {int(metrics['real_n_windows'])} moving windows")
+    for key in ("real_accuracy", "real_window_joint_accuracy", "real_window_joint_worn_accuracy"):
+        typer.echo(f"  {key}: {metrics[key]:.4f} (ignoring left/right {metrics[key + '_ignoring_side']:.4f})")
+    typer.echo(f"  joint assignment over the recording: {metrics['real_joint_assignment_correct_fraction']:.4f}")
+    for s in rec.sensors:
+        typer.echo(f"  {s.sensor_id}: {metrics.get(f'accuracy/csv/{SEGMENTS[s.segment]}', float('nan')):.4f}")
+    checks = evaluate_real_alignment(onnx_predictor(align_dir / "model.onnx"), [rec])
+    typer.echo(f"alignment {align_dir} (label-free checks):")
+    for key, value in checks.items():
+        if key.startswith("real_"):
+            typer.echo(f"  {key}: {value:.2f}")
+
+
 @app.command("offset-baseline")
 def offset_baseline(
     config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE, overrides: list[str] = Override

@@ -1,5 +1,6 @@
-"""Readers of the real IMU recordings in ``imu_real/`` (``../shared/data/README.md``), converted to the
-model contract: 60 Hz, acc in m/s² (specific force), gyr in rad/s, sensor frame, with the known segment.
+"""Readers of the real IMU recordings in ``imu_real/`` (``../shared/data/README.md``), and of a user's own
+recordings as one CSV file per sensor, converted to the model contract: 60 Hz, acc in m/s² (specific force),
+gyr in rad/s, sensor frame, with the known segment.
 """
 
 from __future__ import annotations
@@ -157,3 +158,38 @@ def read_all_real(data_dir: Path) -> list[RealRecording]:
     """Every real recording with known placement."""
     recs = [read_ximu3(data_dir)] + [read_capacitive(data_dir, t) for t in CAPACITIVE_TRIALS]
     return recs + [read_gaitmap(data_dir, f) for f in GAITMAP_FILES]
+
+
+def read_csv_imu(path: Path, skip_columns: int = 0) -> np.ndarray:
+    """One sensor's CSV file: a header row, then rows whose columns ``skip_columns`` … ``skip_columns + 5`` are
+    acc x, y, z and gyr x, y, z in the file's units (leading columns such as time are skipped)."""
+    try:
+        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as exc:
+        raise ValueError(f"{path}: expected a header row, then rows of comma-separated numbers ({exc})") from None
+    if data.shape[1] < skip_columns + 6:
+        raise ValueError(
+            f"{path}: expected {skip_columns} column(s) to skip then 6 (acc x y z, gyr x y z), "
+            f"got {data.shape[1]} column(s)"
+        )
+    if not np.isfinite(data[:, skip_columns : skip_columns + 6]).all():
+        raise ValueError(f"{path}: the six IMU columns must be finite numbers, found NaN or Inf")
+    return data[:, skip_columns : skip_columns + 6]
+
+
+def csv_recording(
+    name: str,
+    files: list[tuple[str, Path]],
+    rate_hz: float,
+    acc_unit: str = "m/s^2",
+    gyr_unit: str = "rad/s",
+    skip_columns: int = 0,
+) -> RealRecording:
+    """A labelled recording of one's own, from ``(segment name, CSV path)`` pairs sampled at ``rate_hz`` in the
+    given units (``read_csv_imu``), converted to the contract like the recordings above."""
+    sensors = []
+    for segment, path in files:
+        raw = to_contract_units(read_csv_imu(path, skip_columns), acc_unit, gyr_unit)
+        imu = resample_uniform(raw, rate_hz, MODEL_RATE_HZ) if rate_hz != MODEL_RATE_HZ else raw
+        sensors.append(RealSensor(f"{segment}:{path.name}", imu, segment_index(segment)))
+    return RealRecording(name, "csv", "unknown", "unknown", sensors)

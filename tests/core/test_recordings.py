@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.core.recordings import RECORDING_NAMES, read_all_real, read_recording
+from service.core.recordings import RECORDING_NAMES, csv_recording, read_all_real, read_csv_imu, read_recording
 from service.core.segments import SEGMENTS
 from service.core.windowing import MODEL_RATE_HZ
 
@@ -88,3 +88,23 @@ def test_recording_carries_its_segment_labels(recordings, name: str) -> None:
         assert labelled == [SEGMENTS.index("LeftFoot"), SEGMENTS.index("RightFoot")]
     else:
         assert labelled == list(range(len(SEGMENTS)))
+
+
+def test_csv_recordings_convert_units_and_rate_and_refuse_non_numbers(tmp_path: Path) -> None:
+    """One's own CSV files: a time column skipped, g and deg/s converted, 120 Hz resampled to 60 Hz; NaN refused."""
+    t = np.arange(1200) / 120.0
+    imu = np.column_stack([np.sin(t), np.cos(t), 1.0 + 0 * t, 90 * np.sin(2 * t), 0 * t, 0 * t])  # g, deg/s
+    path = tmp_path / "thigh.csv"
+    np.savetxt(path, np.column_stack([t, imu]), delimiter=",", header="t,ax,ay,az,gx,gy,gz", comments="")
+    rec = csv_recording("mine", [("LeftUpperLeg", path)], 120.0, "g", "deg/s", skip_columns=1)
+    (sensor,) = rec.sensors
+    assert sensor.segment == SEGMENTS.index("LeftUpperLeg") and sensor.imu.shape == (600, 6)
+    np.testing.assert_allclose(sensor.imu[100:500, 2], 9.80665, rtol=1e-6)
+    np.testing.assert_allclose(sensor.imu[100:500, 3], np.radians(90) * np.sin(2 * t[200:1000:2]), atol=1e-3)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("ax,ay,az,gx,gy,gz\n1,2,3,nan,5,6\n")
+    with pytest.raises(ValueError, match="finite"):
+        read_csv_imu(bad)
+    (tmp_path / "words.csv").write_text("ax,ay,az,gx,gy,gz\n1,2,three,4,5,6\n")
+    with pytest.raises(ValueError, match="comma-separated numbers"):
+        read_csv_imu(tmp_path / "words.csv")

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import httpx
@@ -158,6 +160,29 @@ def test_declaring_the_feet_settles_which_foot_is_which(server: str, data_dir: P
     for k, moment in enumerate(outcome.moments):
         assert moment["segments"] == {s["sensor_id"]: s["window_segments"][k] for s in declared}
     assert {s["sensor_id"]: s["segment"] for s in outcome.assignment["sensors"]} == truth
+
+
+def test_the_client_streams_csv_files_with_declared_feet(server: str, data_dir: Path, tmp_path: Path) -> None:
+    """`python -m service.client --csv … --worn …`, the README's "try your own IMUs" path, as a subprocess: the
+    gaitmap walk's two feet as CSV files in g and deg/s with a time column; every moment names only feet, and the
+    final assignment puts each file on its foot."""
+    rec = read_recording(data_dir, "gaitmap_foot/imu_sample_ic_stride")
+    args = [sys.executable, "-m", "service.client", "--url", server.replace("http", "ws") + "/v1/stream"]
+    args += ["--rate", "60", "--acc-unit", "g", "--gyr-unit", "deg/s", "--skip-columns", "1", "--speed", "0"]
+    args += ["--worn", "LeftFoot", "--worn", "RightFoot", "--out", str(tmp_path / "out.jsonl")]
+    for s in rec.sensors:
+        t = np.arange(len(s.imu)) / 60.0
+        rows = np.column_stack([t, s.imu[:, :3] / 9.80665, np.degrees(s.imu[:, 3:])])
+        path = tmp_path / f"{SEGMENTS[s.segment]}.csv"
+        np.savetxt(path, rows, delimiter=",", header="time,ax,ay,az,gx,gy,gz", comments="")
+        args += ["--csv", str(path)]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert done.returncode == 0, done.stderr
+    messages = [json.loads(line) for line in (tmp_path / "out.jsonl").read_text().splitlines()]
+    moments = [m for m in messages if m["type"] == "moment"]
+    assert moments and {g for m in moments for g in m["segments"].values()} <= {"LeftFoot", "RightFoot", None}
+    for name in ("LeftFoot", "RightFoot"):  # the log line of the final assignment: file name -> segment
+        assert any(line.split()[:3] == [name, "->", name] for line in done.stderr.splitlines()), done.stderr
 
 
 def test_clients_that_vanish_mid_stream_leave_no_server_errors(server: str) -> None:

@@ -220,3 +220,51 @@ def test_the_braced_knee_evaluation_scores_the_braced_shank_and_foot_only(data_d
     assert set(np.unique(result.segment)) == {
         SEGMENTS.index(n) for n in ("LeftFoot", "LeftLowerLeg", "RightLowerLeg", "RightFoot")
     }
+
+
+def _write_csv(path: Path, imu: np.ndarray) -> None:
+    """``imu`` (contract units, 60 Hz) as a user's file: a time column, acc in g, gyr in deg/s."""
+    t = np.arange(len(imu)) / 60.0
+    rows = np.column_stack([t, imu[:, :3] / 9.80665, np.degrees(imu[:, 3:])])
+    np.savetxt(path, rows, delimiter=",", header="time,ax,ay,az,gx,gy,gz", comments="")
+
+
+def test_evaluate_csv_scores_ones_own_files_as_the_reader_does(data_dir: Path, tmp_path: Path) -> None:
+    """`evaluate-csv` on gaitmap's 4 × 10 m walk written out as two CSV files in g and deg/s with a time column
+    prints what `evaluate_real` gives on the recording read from the data directory; bad arguments are refused
+    with a message naming what was expected."""
+    from typer.testing import CliRunner
+
+    from service.core.recordings import read_recording
+    from training.cli import app
+    from training.evaluate import onnx_predictor
+
+    models = Path(__file__).resolve().parents[2] / "onnx_models"
+    rec = read_recording(data_dir, "gaitmap_foot/imu_sample_ic_stride")
+    args = ["evaluate-csv", "--rate", "60", "--acc-unit", "g", "--gyr-unit", "deg/s", "--skip-columns", "1"]
+    args += ["--models", str(models), "--assignment", "1.8.0"]
+    for s in rec.sensors:
+        _write_csv(tmp_path / f"{s.sensor_id}.csv", s.imu)
+        args += ["--sensor", f"{SEGMENTS[s.segment]}={tmp_path / s.sensor_id}.csv"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    want, _ = evaluate_real(onnx_predictor(models / "i2s_assignment/1.8.0/model.onnx"), [rec])
+    for key in ("real_accuracy", "real_window_joint_accuracy", "real_window_joint_worn_accuracy"):
+        line = f"{key}: {want[key]:.4f} (ignoring left/right {want[key + '_ignoring_side']:.4f})"
+        assert line in result.output, (line, result.output)
+    assert "real_foot_flat_up_angle_median_deg" in result.output
+
+    short = tmp_path / "short.csv"
+    _write_csv(short, rec.sensors[0].imu[:100])
+    (tmp_path / "five.csv").write_text("a,b,c,d,e\n1,2,3,4,5\n")
+    for bad, fragment in (
+        (["--sensor", f"Head={short}"], "SEGMENT=PATH with SEGMENT one of"),
+        (["--sensor", f"LeftFoot={short}", "--sensor", f"LeftFoot={short}"], "one sensor per segment"),
+        (["--sensor", f"LeftFoot={tmp_path / 'five.csv'}"], "got 5 column(s)"),
+        (["--sensor", f"LeftFoot={short}"], "moving 128-sample window"),
+    ):
+        # a wide terminal, so that rich does not wrap the message inside its box
+        out = CliRunner().invoke(
+            app, ["evaluate-csv", "--rate", "60", "--skip-columns", "1", *bad], env={"COLUMNS": "400"}
+        )
+        assert out.exit_code == 2 and fragment in out.output, out.output
