@@ -164,15 +164,8 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
             y_pred.append(probs[moving[-1]].argmax(-1))
             if len(y_pred[-1]):
                 metrics[f"accuracy/{rec.name}/{SEGMENTS[s.segment]}"] = float(np.mean(y_pred[-1] == s.segment))
-        # In a random sensor order, so that tied windows are not resolved by the order the reader lists sensors in.
-        order = np.random.default_rng(EVAL_SEED).permutation(len(sensors))
-        at_moment = window_joint_assignment([log_probs[k] for k in order], [moving[k] for k in order])
-        at_moment = [at_moment[k] for k in np.argsort(order)]
-        y_joint += [a[m] for a, m in zip(at_moment, moving, strict=True)]
-        worn = sorted({s.segment for s in sensors})
-        declared = window_joint_assignment([log_probs[k] for k in order], [moving[k] for k in order], worn=worn)
-        declared = [declared[k] for k in np.argsort(order)]
-        y_worn += [a[m] for a, m in zip(declared, moving, strict=True)]
+        y_joint += _moving_per_moment(log_probs, moving)
+        y_worn += _moving_per_moment(log_probs, moving, worn=sorted({s.segment for s in sensors}))
         if not all(m.any() for m in moving):
             continue
         joint = joint_assignment([lp[m] for lp, m in zip(log_probs, moving, strict=True)])
@@ -202,6 +195,16 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     metrics["real_joint_assignment_correct_fraction"] = joint_correct / max(joint_total, 1)
     metrics["real_still_windows_skipped"] = float(still)
     return metrics, confusion_matrix(yt, yp)
+
+
+def _moving_per_moment(
+    log_probs: list[np.ndarray], moving: list[np.ndarray], worn: list[int] | None = None
+) -> list[np.ndarray]:
+    """Per sensor, the per-moment answers (``window_joint_assignment``) of its moving windows. The sensors go in a
+    random order, so that tied windows are not resolved by the order the reader lists them in."""
+    order = np.random.default_rng(EVAL_SEED).permutation(len(log_probs))
+    answer = window_joint_assignment([log_probs[k] for k in order], [moving[k] for k in order], worn=worn)
+    return [answer[k][moving[s]] for s, k in enumerate(np.argsort(order))]
 
 
 def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -> dict[str, float]:

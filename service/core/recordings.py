@@ -190,6 +190,6 @@ def csv_recording(
     sensors = []
     for segment, path in files:
         raw = to_contract_units(read_csv_imu(path, skip_columns), acc_unit, gyr_unit)
-        imu = resample_uniform(raw, rate_hz, MODEL_RATE_HZ) if rate_hz != MODEL_RATE_HZ else raw
+        imu = resample_uniform(raw, rate_hz, MODEL_RATE_HZ)  # unchanged at the model rate
         sensors.append(RealSensor(f"{segment}:{path.name}", imu, segment_index(segment)))
     return RealRecording(name, "csv", "unknown", "unknown", sensors)
