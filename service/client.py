@@ -3,10 +3,13 @@
     python -m service.client --recording ximu3_lowerbody --data-dir ../shared/data
     python -m service.client --csv thigh.csv --csv shank.csv --rate 100 --acc-unit g --gyr-unit deg/s
     python -m service.client --recording gaitmap_foot/imu_sample_ic_stride --worn LeftFoot --worn RightFoot
+    python -m service.client --csv a.csv --csv b.csv --candidates a=LeftFoot,RightFoot --candidates b=LeftFoot,RightFoot
 
 A CSV holds one sensor: a header row, then rows of acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z (extra
 leading columns such as time are allowed with ``--skip-columns``). ``--worn`` (repeated) declares the segments the
 sensors are on, when known but not which is which; the joint and per-moment answers then come from those only.
+``--candidates SENSOR=SEGMENT,SEGMENT`` (repeated) does the same for one sensor (a CSV's sensor id is its file
+name without the extension).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import json
 import logging
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +39,7 @@ class ClientSensor:
     sample_rate_hz: float = 60.0
     acc_unit: str = "m/s^2"
     gyr_unit: str = "rad/s"
+    candidate_segments: list[str] | None = None  # the segments this sensor may be on (default: any)
 
 
 @dataclass
@@ -80,6 +84,7 @@ async def stream_sensors(
                     "acc_unit": s.acc_unit,
                     "gyr_unit": s.gyr_unit,
                 }
+                | ({} if s.candidate_segments is None else {"candidate_segments": s.candidate_segments})
                 for s in sensors
             ],
         }
@@ -133,6 +138,20 @@ def _csv_sensor(path: Path, rate: float, acc_unit: str, gyr_unit: str, skip: int
     return ClientSensor(path.stem, read_csv_imu(path, skip), rate, acc_unit, gyr_unit)
 
 
+def _with_candidates(
+    sensors: list[ClientSensor], declared: list[str], parser: argparse.ArgumentParser
+) -> list[ClientSensor]:
+    """Attach each ``SENSOR=SEGMENT,SEGMENT`` of ``--candidates`` to its sensor (the server checks the names)."""
+    ids = [s.sensor_id for s in sensors]
+    candidates: dict[str, list[str]] = {}
+    for item in declared:
+        sensor_id, _, names = item.partition("=")
+        if sensor_id not in ids or not names:
+            parser.error(f"--candidates takes SENSOR=SEGMENT,SEGMENT with SENSOR one of {ids}; got {item!r}")
+        candidates[sensor_id] = names.split(",")
+    return [replace(s, candidate_segments=candidates.get(s.sensor_id)) for s in sensors]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--url", default="ws://127.0.0.1:8000/v1/stream")
@@ -150,6 +169,13 @@ def main() -> None:
     parser.add_argument(
         "--worn", action="append", metavar="SEGMENT", help="a segment the sensors are on (repeat; default: any)"
     )
+    parser.add_argument(
+        "--candidates",
+        action="append",
+        default=[],
+        metavar="SENSOR=SEGMENT,SEGMENT",
+        help="the segments one sensor may be on (repeat per sensor; default: any)",
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.recording:
@@ -161,6 +187,7 @@ def main() -> None:
         sensors = [_csv_sensor(p, args.rate, args.acc_unit, args.gyr_unit, args.skip_columns) for p in args.csv]
     else:
         parser.error("give --recording or at least one --csv")
+    sensors = _with_candidates(sensors, args.candidates, parser)
     outcome = asyncio.run(
         stream_sensors(
             args.url, sensors, args.speed, binary=not args.json, api_key=args.api_key, worn_segments=args.worn
@@ -175,15 +202,17 @@ def main() -> None:
         alignment = s.get("alignment")
         q = "" if alignment is None else " ".join(f"{v:+.3f}" for v in alignment["q_segment_imu"])
         log.info(
-            "%-32s -> %-14s confidence %.3f  margin %.1f  (%d moving windows)  q_segment_imu [%s] spread %s",
+            "%-32s -> %-14s confidence %.3f  margin %s  (%d moving windows)  q_segment_imu [%s] spread %s",
             s["sensor_id"],
             s["segment"],
             s["confidence"],
-            s["margin"],
+            "-" if s["margin"] is None else f"{s['margin']:.1f}",
             s["windows"],
             q,
             "-" if s.get("alignment_spread_deg") is None else f"{s['alignment_spread_deg']:.1f}°",
         )
+    if outcome.close_code != 1000:
+        raise SystemExit(f"the server closed the stream with code {outcome.close_code} (see the error above)")
 
 
 if __name__ == "__main__":

@@ -257,7 +257,8 @@ def evaluate_csv(
 ) -> None:
     """Score the shipped models on a labelled recording of your own: one CSV file per sensor (a header row, then
     acc and gyr columns), all recorded together. Prints the assignment per window, per moment (one-to-one over the
-    sensors, as the service answers), per moment with the worn segments declared, and over the whole recording,
+    sensors, as the service answers), per moment with the worn segments declared, per moment with each sensor's
+    body part declared (its side not), and over the whole recording,
     and the label-free alignment checks (``evaluate_real``, ``evaluate_real_alignment``)."""
     from service.core.assignment import is_moving
     from service.core.recordings import csv_recording
@@ -294,6 +295,9 @@ def evaluate_csv(
     typer.echo(f"assignment {assign_dir}: {int(metrics['real_n_windows'])} moving windows")
     for key in ("real_accuracy", "real_window_joint_accuracy", "real_window_joint_worn_accuracy"):
         typer.echo(f"  {key}: {metrics[key]:.4f} (ignoring left/right {metrics[key + '_ignoring_side']:.4f})")
+    typer.echo(
+        f"  real_window_joint_part_accuracy (body parts declared): {metrics['real_window_joint_part_accuracy']:.4f}"
+    )
     typer.echo(f"  joint assignment over the recording: {metrics['real_joint_assignment_correct_fraction']:.4f}")
     for s in rec.sensors:
         typer.echo(f"  {s.sensor_id}: {metrics.get(f'accuracy/csv/{SEGMENTS[s.segment]}', float('nan')):.4f}")

@@ -130,6 +130,8 @@ def evaluate_braced_knees(
 
 LEG_SEGMENTS = frozenset(SEGMENTS.index(n) for n in ("LeftUpperLeg", "LeftLowerLeg", "RightUpperLeg", "RightLowerLeg"))
 FOOT_SEGMENTS = frozenset(SEGMENTS.index(n) for n in ("LeftFoot", "RightFoot"))
+# Per class, the classes of its body part on either side (the pelvis: itself).
+SIDES_OF = tuple([k for k, p in enumerate(BODY_PART) if p == part] for part in BODY_PART)
 
 
 def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[dict[str, float], np.ndarray]:
@@ -143,10 +145,12 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     ``window_joint_assignment``), which is what ``/v1/imu/assign`` returns per window. A third,
     ``real_window_joint_worn_*``, is that answer when the user declares which segments carry the sensors (the
     service's ``worn_segments``) but not which sensor is where: it differs from the second only for recordings
-    with sensors on fewer than seven segments (gaitmap's two feet).
+    with sensors on fewer than seven segments (gaitmap's two feet). A fourth, ``real_window_joint_part_*``, is that
+    answer when each sensor declares its body part but not its side (the service's ``candidate_segments``: both
+    feet, both shanks, both thighs, or the pelvis): it scores how well the left/right question alone is answered.
     Returns metrics and the confusion matrix of moving windows (the windows' own answers).
     """
-    y_true, y_pred, y_joint, y_worn, metrics = [], [], [], [], {}
+    y_true, y_pred, y_joint, y_worn, y_part, metrics = [], [], [], [], [], {}
     joint_correct = joint_total = still = 0
     for rec in recordings:
         sensors = [s for s in rec.sensors if s.segment is not None]
@@ -166,6 +170,7 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
                 metrics[f"accuracy/{rec.name}/{SEGMENTS[s.segment]}"] = float(np.mean(y_pred[-1] == s.segment))
         y_joint += _moving_per_moment(log_probs, moving)
         y_worn += _moving_per_moment(log_probs, moving, worn=sorted({s.segment for s in sensors}))
+        y_part += _moving_per_moment(log_probs, moving, candidates=[SIDES_OF[s.segment] for s in sensors])
         if not all(m.any() for m in moving):
             continue
         joint = joint_assignment([lp[m] for lp, m in zip(log_probs, moving, strict=True)])
@@ -181,10 +186,13 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
         metrics[f"window_joint_worn_accuracy/{rec.name}"] = float(
             np.mean(rec_true == np.concatenate(y_worn[-len(sensors) :]))
         )
+        metrics[f"window_joint_part_accuracy/{rec.name}"] = float(
+            np.mean(rec_true == np.concatenate(y_part[-len(sensors) :]))
+        )
         if twisting:
             metrics[f"leg_windows_turning_about_vertical/{rec.name}"] = float(np.mean(np.concatenate(twisting)))
         metrics[f"n_windows/{rec.name}"] = float(len(rec_true))
-    yt, yp, yj, yw = (np.concatenate(y) for y in (y_true, y_pred, y_joint, y_worn))
+    yt, yp, yj, yw, ys = (np.concatenate(y) for y in (y_true, y_pred, y_joint, y_worn, y_part))
     overall = assignment_metrics(yt, yp)
     metrics.update({f"real_{k}": v for k, v in overall.items()})
     part = np.array(BODY_PART + ("unassigned",))  # index -1 (unassigned) reads as the last entry: never right
@@ -192,18 +200,27 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     metrics["real_window_joint_accuracy_ignoring_side"] = float(np.mean(part[yt] == part[yj]))
     metrics["real_window_joint_worn_accuracy"] = float(np.mean(yt == yw))
     metrics["real_window_joint_worn_accuracy_ignoring_side"] = float(np.mean(part[yt] == part[yw]))
+    metrics["real_window_joint_part_accuracy"] = float(np.mean(yt == ys))
     metrics["real_joint_assignment_correct_fraction"] = joint_correct / max(joint_total, 1)
     metrics["real_still_windows_skipped"] = float(still)
     return metrics, confusion_matrix(yt, yp)
 
 
 def _moving_per_moment(
-    log_probs: list[np.ndarray], moving: list[np.ndarray], worn: list[int] | None = None
+    log_probs: list[np.ndarray],
+    moving: list[np.ndarray],
+    worn: list[int] | None = None,
+    candidates: list[list[int]] | None = None,
 ) -> list[np.ndarray]:
     """Per sensor, the per-moment answers (``window_joint_assignment``) of its moving windows. The sensors go in a
     random order, so that tied windows are not resolved by the order the reader lists them in."""
     order = np.random.default_rng(EVAL_SEED).permutation(len(log_probs))
-    answer = window_joint_assignment([log_probs[k] for k in order], [moving[k] for k in order], worn=worn)
+    answer = window_joint_assignment(
+        [log_probs[k] for k in order],
+        [moving[k] for k in order],
+        worn=worn,
+        candidates=None if candidates is None else [candidates[k] for k in order],
+    )
     return [answer[k][moving[s]] for s, k in enumerate(np.argsort(order))]
 
 

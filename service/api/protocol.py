@@ -2,9 +2,11 @@
 
 Client → server
   {"type": "start", "sensors": [{"sensor_id": "a", "sample_rate_hz": 60, "acc_unit": "m/s^2",
-   "gyr_unit": "rad/s"}, ...], "allow_shared": false,
+   "gyr_unit": "rad/s", "candidate_segments": ["LeftFoot", "RightFoot"]}, ...], "allow_shared": false,
    "worn_segments": ["LeftFoot", "RightFoot"]}         (first message, once; worn_segments optional: the joint and
-                                                       moment answers are drawn from those segments only)
+                                                       moment answers are drawn from those segments only; a
+                                                       sensor's candidate_segments, optional: its answers are
+                                                       drawn from those only)
   {"type": "samples", "sensor_id": "a", "seq": 0, "samples": [[ax, ay, az, gx, gy, gz], ...]}
   binary packet (little-endian): uint16 sensor index (order of "start"), uint16 n, uint32 seq,
   then n × 6 float32 (acc xyz, gyr xyz in the declared units)                 8 + 24 n bytes
@@ -29,9 +31,16 @@ import struct
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.api.schemas import WORN_SEGMENTS_DESCRIPTION, AccUnit, GyrUnit, WornSegments
+from service.api.schemas import (
+    CANDIDATE_SEGMENTS_DESCRIPTION,
+    WORN_SEGMENTS_DESCRIPTION,
+    AccUnit,
+    GyrUnit,
+    WornSegments,
+    check_declarations,
+)
 
 HEADER = struct.Struct("<HHI")
 
@@ -50,6 +59,7 @@ class StreamSensor(BaseModel):
     sample_rate_hz: float = Field(60.0, ge=10.0, le=2000.0)
     acc_unit: AccUnit = "m/s^2"
     gyr_unit: GyrUnit = "rad/s"
+    candidate_segments: WornSegments | None = Field(None, description=CANDIDATE_SEGMENTS_DESCRIPTION)
 
 
 class StartMessage(BaseModel):
@@ -58,6 +68,11 @@ class StartMessage(BaseModel):
     sensors: list[StreamSensor] = Field(min_length=1, max_length=64)
     allow_shared: bool = False
     worn_segments: WornSegments | None = Field(None, description=WORN_SEGMENTS_DESCRIPTION)
+
+    @model_validator(mode="after")
+    def _declarations_agree(self) -> StartMessage:
+        check_declarations([s.candidate_segments for s in self.sensors], self.worn_segments, "sensors")
+        return self
 
 
 class SamplesMessage(BaseModel):

@@ -31,9 +31,10 @@ from service.api.schemas import (
     WindowsRequest,
     WindowsResponse,
     error_responses,
+    finite_or_none,
 )
 from service.core.assignment import is_moving, joint_assignment, turns_about_vertical, window_joint_assignment
-from service.core.segments import SEGMENTS, segment_index
+from service.core.segments import SEGMENTS, segment_index, segment_indices
 from service.inference.predict import (
     alignment_answer,
     mean_alignment,
@@ -212,9 +213,10 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     log_probs = [np.log(np.clip(probs[bounds[k] : bounds[k + 1]], 1e-12, 1.0)) for k in range(len(per_sensor))]
     # The sensor's moving windows are its evidence (all of them if none moves); each moment is answered on its own.
     evidence = [lp[m] if m.any() else lp for lp, m in zip(log_probs, moving, strict=True)]
-    worn = None if body.worn_segments is None else [segment_index(name) for name in body.worn_segments]
-    joint = joint_assignment(evidence, allow_shared=body.allow_shared, worn=worn)
-    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn)
+    worn = segment_indices(body.worn_segments)
+    candidates = [segment_indices(s.candidate_segments) for s in body.sensors]
+    joint = joint_assignment(evidence, body.allow_shared, worn, candidates)
+    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates)
     out = []
     for k, sensor in enumerate(body.sensors):
         seg = int(joint.segment[k])
@@ -229,7 +231,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
                 sensor_id=sensor.sensor_id,
                 segment=SEGMENTS[seg] if seg >= 0 else None,
                 confidence=float(joint.confidence[k]),
-                margin=float(joint.margin[k]),
+                margin=finite_or_none(joint.margin[k]),
                 windows=len(per_sensor[k]),
                 moving_windows=int(moving[k].sum()),
                 moving_windows_turning_about_vertical=int((moving[k] & turns_about_vertical(per_sensor[k])).sum()),

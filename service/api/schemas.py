@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+import numpy as np
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from service.core.segments import SEGMENTS
 
@@ -25,6 +26,28 @@ WORN_SEGMENTS_DESCRIPTION = (
     '["LeftFoot", "RightFoot"]): the joint and per-moment answers are then drawn from these segments only. '
     "Default: any of the seven"
 )
+
+CANDIDATE_SEGMENTS_DESCRIPTION = (
+    "the segments this sensor may be on, when the user knows that much of it (e.g. "
+    '["LeftFoot", "RightFoot"] for a foot sensor whose side is not known, ["Pelvis"] for the pelvis sensor): its '
+    "joint and per-moment answers are drawn from these only, and from `worn_segments` where both are given. "
+    "Default: any"
+)
+
+
+def finite_or_none(value: float) -> float | None:
+    """JSON has no infinity: a margin over no other segment is null."""
+    return float(value) if np.isfinite(value) else None
+
+
+def check_declarations(candidates: list[list[str] | None], worn: list[str] | None, field: str) -> None:
+    """``ValueError`` naming the first sensor whose candidate segments and the worn ones have none in common."""
+    if worn is None:
+        return
+    for k, own in enumerate(candidates):
+        if own is not None and not set(own) & set(worn):
+            raise ValueError(f"{field}[{k}].candidate_segments: none of {own} is among worn_segments {worn}")
+
 
 EXAMPLE_WINDOW = {
     "samples": [[0.0, 0.0, 9.81, 0.0, 0.0, 0.0]] * 128,
@@ -104,6 +127,7 @@ class SensorWindows(BaseModel):
     model_config = ConfigDict(extra="forbid")
     sensor_id: str = Field(min_length=1, max_length=128)
     windows: list[ImuWindow] = Field(min_length=1)
+    candidate_segments: WornSegments | None = Field(None, description=CANDIDATE_SEGMENTS_DESCRIPTION)
 
 
 class AssignRequest(BaseModel):
@@ -111,7 +135,7 @@ class AssignRequest(BaseModel):
 
     One-to-one by default (more sensors than segments: the weakest stay unassigned; fewer: some
     segments stay empty). ``allow_shared`` lets several sensors share a segment. ``worn_segments`` narrows the
-    segments to choose from.
+    segments to choose from for all sensors, a sensor's ``candidate_segments`` for that sensor.
     """
 
     model_config = ConfigDict(
@@ -132,14 +156,20 @@ class AssignRequest(BaseModel):
     allow_shared: bool = False
     worn_segments: WornSegments | None = Field(None, description=WORN_SEGMENTS_DESCRIPTION)
 
+    @model_validator(mode="after")
+    def _declarations_agree(self) -> AssignRequest:
+        check_declarations([s.candidate_segments for s in self.sensors], self.worn_segments, "sensors")
+        return self
+
 
 class SensorAssignment(BaseModel):
     sensor_id: str
     segment: SegmentName | None
     confidence: float
-    margin: float = Field(
-        description="summed log-probability lead of the assigned segment over the sensor's best other segment; "
-        "negative when the one-to-one constraint overrode the sensor's own preference"
+    margin: float | None = Field(
+        description="summed log-probability lead of the assigned segment over the sensor's best other segment "
+        "(among those declared for it); negative when the one-to-one constraint overrode the sensor's own "
+        "preference; null when the declarations leave the sensor one segment only"
     )
     windows: int
     moving_windows: int

@@ -28,8 +28,9 @@ from service.api.protocol import (
     check_samples,
     decode_binary,
 )
+from service.api.schemas import finite_or_none
 from service.core.assignment import MomentAssembler, is_moving, joint_assignment, turns_about_vertical
-from service.core.segments import SEGMENTS, segment_index
+from service.core.segments import SEGMENTS, segment_indices, segment_names
 from service.core.stream import SensorStream
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
 
@@ -103,11 +104,16 @@ class Session:
         self.streams = [SensorStream(s.sensor_id, s.sample_rate_hz, s.acc_unit, s.gyr_unit) for s in start.sensors]
         self.index = {s.sensor_id: k for k, s in enumerate(self.streams)}
         self.allow_shared = start.allow_shared
-        self.worn = None if start.worn_segments is None else [segment_index(name) for name in start.worn_segments]
+        self.worn = segment_indices(start.worn_segments)
+        self.candidates = [segment_indices(s.candidate_segments) for s in start.sensors]
         self.evidence = np.zeros((len(self.streams), len(SEGMENTS)))
-        # A one-sensor session without worn_segments: its moment is its window's own answer, already in the result.
-        many = len(self.streams) > 1 or self.worn is not None
-        self.moments = MomentAssembler(len(self.streams), start.allow_shared, worn=self.worn) if many else None
+        # A one-sensor session without declarations: its moment is its window's own answer, already in the result.
+        many = len(self.streams) > 1 or self.worn is not None or self.candidates[0] is not None
+        self.moments = (
+            MomentAssembler(len(self.streams), start.allow_shared, worn=self.worn, candidates=self.candidates)
+            if many
+            else None
+        )
         self.windows = np.zeros(len(self.streams), dtype=np.int64)
         self.alignments = [RunningAlignment(alignment_windows) for _ in self.streams]
         self.max_pending = max_pending
@@ -150,7 +156,9 @@ class Session:
         ]
 
     def assignment_message(self, dropped: int) -> dict:
-        joint = joint_assignment([e[None] for e in self.evidence], allow_shared=self.allow_shared, worn=self.worn)
+        joint = joint_assignment(
+            [e[None] for e in self.evidence], self.allow_shared, worn=self.worn, candidates=self.candidates
+        )
         sensors = []
         for k, (s, g, n) in enumerate(zip(self.streams, joint.segment.tolist(), self.windows, strict=True)):
             mean = self.alignments[k].mean(g) if g >= 0 and n else None
@@ -159,7 +167,7 @@ class Session:
                     "sensor_id": s.sensor_id,
                     "segment": SEGMENTS[g] if g >= 0 and n else None,
                     "confidence": float(joint.confidence[k]) if n else 0.0,
-                    "margin": float(joint.margin[k]) if n else 0.0,
+                    "margin": finite_or_none(joint.margin[k]) if n else 0.0,
                     "windows": int(n),
                     "alignment": None if mean is None else alignment_answer(g, mean[0]),
                     "alignment_spread_deg": None if mean is None else mean[1],
@@ -337,7 +345,10 @@ async def stream(ws: WebSocket) -> None:
                 "window_samples": 128,
                 "hop_samples": 16,
                 "model_rate_hz": 60.0,
-                "worn_segments": None if session.worn is None else [SEGMENTS[k] for k in sorted(session.worn)],
+                "worn_segments": segment_names(session.worn),
+                "candidate_segments": {
+                    s.sensor_id: segment_names(c) for s, c in zip(session.streams, session.candidates, strict=True)
+                },
             }
         )
         await _serve(ws, session, outbox)

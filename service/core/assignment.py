@@ -5,11 +5,12 @@ maximising the total is ``scipy.optimize.linear_sum_assignment`` (DESIGN.md §5:
 assignment is right more often than single windows). ``window_joint_assignment`` applies the same
 constraint to each moment on its own: the windows that sensors worn together recorded at the same time.
 
-Both take ``worn``, the segments a user declares the sensors to be on (say both feet, not saying which is
-which): the answers are then drawn from those segments only. That is the assignment conditioned on the
-declaration: renormalising each window's probabilities over the declared segments adds a per-sensor constant to
-every candidate's evidence, which changes neither the one-to-one optimum nor the margins, so restricting the
-columns is enough.
+Both take what a user declares about where the sensors are: ``worn``, the segments the sensors are on (say both
+feet, not saying which is which), and ``candidates``, per sensor the segments it may be on (say "a foot", not
+saying which). The answers are then drawn from the declared segments only. That is the assignment conditioned on
+the declaration: renormalising each window's probabilities over a sensor's allowed segments adds a per-sensor
+constant to each of its candidates' evidence, which changes neither the one-to-one optimum nor the margins, so
+forbidding the other cells is enough.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+from service.core.segments import SEGMENTS
 
 # A window whose gyroscope norm stays under this mean carries no gait information (DESIGN.md §5).
 STILL_GYR_MEAN_RADS = 0.35
@@ -65,39 +68,73 @@ def worn_classes(worn: Sequence[int] | None, n_classes: int) -> np.ndarray:
     return classes
 
 
-def _best(evidence: np.ndarray, classes: np.ndarray, allow_shared: bool) -> np.ndarray:
-    """Per row of ``evidence`` ``(S, K)``, its class among ``classes``: the one-to-one optimum of the summed
-    evidence (-1 for rows left over when there are more rows than classes), or each row's own best."""
-    among = evidence[:, classes]
+Candidates = Sequence[Sequence[int] | None]
+
+
+def allowed_segments(
+    n_sensors: int, n_classes: int, worn: Sequence[int] | None = None, candidates: Candidates | None = None
+) -> np.ndarray:
+    """``(n_sensors, n_classes)`` bool: the segments each sensor may be on, ``worn`` ∩ its ``candidates[s]``
+    (None: no restriction). Every sensor keeps at least one segment, or ``ValueError``."""
+    allowed = np.zeros((n_sensors, n_classes), dtype=bool)
+    allowed[:, worn_classes(worn, n_classes)] = True
+    if candidates is None:
+        return allowed
+    if len(candidates) != n_sensors:
+        raise ValueError(f"candidates must have one entry per sensor ({n_sensors}), got {len(candidates)}")
+    for s, own in enumerate(candidates):
+        if own is not None:
+            allowed[s] &= np.isin(np.arange(n_classes), worn_classes(own, n_classes))
+    if not allowed.any(axis=1).all():
+        empty = np.flatnonzero(~allowed.any(axis=1)).tolist()
+        raise ValueError(f"sensors {empty}: none of their candidate segments is among the worn ones {worn}")
+    return allowed
+
+
+def _best(evidence: np.ndarray, allowed: np.ndarray, allow_shared: bool) -> np.ndarray:
+    """Per row of ``evidence`` ``(S, K)``, its class among the row's ``allowed`` ones: the one-to-one optimum of the
+    summed evidence (-1 for rows left over: more rows than classes, or rows whose allowed classes others took), or
+    each row's own best."""
+    among = np.where(allowed, evidence, -np.inf)
     if allow_shared or len(evidence) == 1:  # one row: the one-to-one optimum is its own best class
-        return classes[among.argmax(axis=1)]
-    rows, cols = linear_sum_assignment(among, maximize=True)
+        return among.argmax(axis=1)
+    # A forbidden cell costs more than any matching of allowed cells can differ by, so the optimum fills as many
+    # rows as the declaration allows and is the best of those; rows that still land on a forbidden cell get -1.
+    finite = evidence[allowed]
+    floor = finite.min() - 2.0 * np.abs(finite).sum() - 1.0
+    rows, cols = linear_sum_assignment(np.where(allowed, evidence, floor), maximize=True)
     segment = np.full(len(evidence), -1, dtype=np.int64)
-    segment[rows] = classes[cols]
+    keep = allowed[rows, cols]
+    segment[rows[keep]] = cols[keep]
     return segment
 
 
 def joint_assignment(
-    log_probs: list[np.ndarray], allow_shared: bool = False, worn: Sequence[int] | None = None
+    log_probs: list[np.ndarray],
+    allow_shared: bool = False,
+    worn: Sequence[int] | None = None,
+    candidates: Candidates | None = None,
 ) -> JointAssignment:
-    """Assign S sensors (each ``(N_s, K)`` window log-probabilities) to K segments, or to the ``worn`` ones.
+    """Assign S sensors (each ``(N_s, K)`` window log-probabilities) to K segments, or to the declared ones.
 
     One-to-one by default: with more sensors than segments the weakest are left unassigned (-1);
     with fewer, segments stay empty. ``allow_shared`` lets sensors share a segment (per-sensor argmax).
-    With ``worn``, the evidence of the other segments is -inf and confidence and margin are over the worn ones.
+    With ``worn`` / ``candidates`` (``allowed_segments``), a sensor's evidence for the segments it may not be on is
+    -inf, and its confidence and margin are over those it may be on (margin +inf when it may be on one only).
     """
     evidence = np.stack([lp.sum(axis=0) for lp in log_probs])
     n_sensors, n_classes = evidence.shape
-    classes = worn_classes(worn, n_classes)
-    evidence[:, np.setdiff1d(np.arange(n_classes), classes)] = -np.inf
-    segment = _best(evidence, classes, allow_shared)
+    allowed = allowed_segments(n_sensors, n_classes, worn, candidates)
+    evidence[~allowed] = -np.inf
+    segment = _best(evidence, allowed, allow_shared)
     rows, chosen = np.arange(n_sensors), np.maximum(segment, 0)
-    post = np.exp(evidence - evidence[:, classes].max(axis=1, keepdims=True))
+    post = np.exp(evidence - evidence.max(axis=1, keepdims=True))
     post /= post.sum(axis=1, keepdims=True)
     confidence = np.where(segment >= 0, post[rows, chosen], 0.0)
     others = evidence.copy()
     others[rows, chosen] = -np.inf
-    margin = evidence[rows, chosen] - others.max(axis=1) if len(classes) > 1 else np.full(n_sensors, np.inf)
+    with np.errstate(invalid="ignore"):  # -inf - -inf never reaches the answer: those rows have one segment
+        margin = np.where(allowed.sum(axis=1) > 1, evidence[rows, chosen] - others.max(axis=1), np.inf)
     margin = np.where(segment >= 0, margin, 0.0)
     return JointAssignment(segment, evidence, confidence, margin)
 
@@ -107,31 +144,34 @@ def window_joint_assignment(
     moving: list[np.ndarray],
     allow_shared: bool = False,
     worn: Sequence[int] | None = None,
+    candidates: Candidates | None = None,
 ) -> list[np.ndarray]:
     """One-to-one assignment per moment: window ``t`` of every sensor is assigned from those windows alone.
 
     ``log_probs[s]`` is ``(N_s, K)`` for sensor ``s`` and ``moving[s]`` its ``(N_s,)`` mask (``is_moving``);
     windows with the same index are taken as recorded at the same time. At each index the sensors whose window
-    there moves share out the K segments (or the ``worn`` ones) one-to-one (the answer that maximises their
-    summed log-probability); a still window, or one left over when more windows move than there are segments,
-    gets -1. Paper 000 classifies every window on its own (§2.2) and names the left/right switches that this
-    leaves as future work (§5); the sensors of one body cannot sit on the same segment, so at one moment their
-    windows constrain each other. ``allow_shared`` (as in ``joint_assignment``) gives each moving window its own
-    best class instead.
+    there moves share out the K segments (or the declared ones, ``allowed_segments``) one-to-one (the answer that
+    maximises their summed log-probability); a still window, or one left over when more windows move than there
+    are segments for them, gets -1. Paper 000 classifies every window on its own (§2.2) and names the left/right
+    switches that this leaves as future work (§5); the sensors of one body cannot sit on the same segment, so at
+    one moment their windows constrain each other. ``allow_shared`` (as in ``joint_assignment``) gives each moving
+    window its own best allowed class instead.
 
     Returns one ``(N_s,)`` int array per sensor.
     """
-    classes = worn_classes(worn, log_probs[0].shape[1]) if log_probs else np.zeros(0, dtype=np.int64)
+    n_classes = log_probs[0].shape[1] if log_probs else 0
+    allowed = allowed_segments(len(log_probs), n_classes, worn, candidates)
     if allow_shared:
         return [
-            np.where(m, classes[lp[:, classes].argmax(axis=1)], -1) for lp, m in zip(log_probs, moving, strict=True)
+            np.where(m, np.where(a, lp, -np.inf).argmax(axis=1), -1)
+            for lp, m, a in zip(log_probs, moving, allowed, strict=True)
         ]
     out = [np.full(len(lp), -1, dtype=np.int64) for lp in log_probs]
     for t in range(max((len(lp) for lp in log_probs), default=0)):
         present = [s for s, lp in enumerate(log_probs) if t < len(lp) and moving[s][t]]
         if not present:
             continue
-        answer = _best(np.stack([log_probs[s][t] for s in present]), classes, allow_shared=False)
+        answer = _best(np.stack([log_probs[s][t] for s in present]), allowed[present], allow_shared=False)
         for s, c in zip(present, answer.tolist(), strict=True):
             out[s][t] = c
     return out
@@ -144,15 +184,22 @@ class MomentAssembler:
     wait until every sensor of the session has produced a window at or after that time, then the moment is
     answered from the windows it holds; a sensor that stalls, or never sends, holds up at most ``max_open``
     moments, after which the oldest are answered without it. ``flush`` answers all that wait (end of stream).
-    With ``allow_shared`` each moving window keeps its own answer; with ``worn`` the answers are drawn from those
-    segments only.
+    With ``allow_shared`` each moving window keeps its own answer; with ``worn`` / ``candidates`` the answers are
+    drawn from the declared segments only (``allowed_segments``).
     """
 
     def __init__(
-        self, n_sensors: int, allow_shared: bool = False, max_open: int = 32, worn: Sequence[int] | None = None
+        self,
+        n_sensors: int,
+        allow_shared: bool = False,
+        max_open: int = 32,
+        worn: Sequence[int] | None = None,
+        candidates: Candidates | None = None,
     ) -> None:
         self.allow_shared = allow_shared
+        allowed_segments(n_sensors, len(SEGMENTS), worn, candidates)  # a bad declaration fails here, not mid-stream
         self.worn = None if worn is None else tuple(worn)
+        self.candidates = [None] * n_sensors if candidates is None else list(candidates)
         self.max_open = max_open
         self.latest = np.full(n_sensors, -np.inf)  # newest window end per sensor
         self.open: dict[float, dict[int, tuple[np.ndarray, bool]]] = {}
@@ -180,5 +227,6 @@ class MomentAssembler:
         sensors = list(windows)
         log_probs = [windows[s][0][None] for s in sensors]
         moving = [np.array([windows[s][1]]) for s in sensors]
-        answer = window_joint_assignment(log_probs, moving, self.allow_shared, self.worn)
+        candidates = [self.candidates[s] for s in sensors]
+        answer = window_joint_assignment(log_probs, moving, self.allow_shared, self.worn, candidates)
         return key, {s: int(a[0]) for s, a in zip(sensors, answer, strict=True)}

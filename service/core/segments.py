@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 SEGMENTS: tuple[str, ...] = (
     "LeftFoot",
     "LeftLowerLeg",
@@ -25,3 +27,13 @@ def segment_index(name: str) -> int:
         return SEGMENTS.index(name)
     except ValueError:
         raise KeyError(f"unknown segment {name!r}; expected one of {', '.join(SEGMENTS)}") from None
+
+
+def segment_indices(names: Sequence[str] | None) -> list[int] | None:
+    """Class indices of segment names (None stays None: nothing declared)."""
+    return None if names is None else [segment_index(name) for name in names]
+
+
+def segment_names(indices: Sequence[int] | None) -> list[str] | None:
+    """Segment names of class indices, in class order (None stays None)."""
+    return None if indices is None else [SEGMENTS[k] for k in sorted(indices)]

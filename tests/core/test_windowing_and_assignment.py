@@ -1,7 +1,13 @@
 import numpy as np
 import pytest
 
-from service.core.assignment import MomentAssembler, is_moving, joint_assignment, window_joint_assignment
+from service.core.assignment import (
+    MomentAssembler,
+    allowed_segments,
+    is_moving,
+    joint_assignment,
+    window_joint_assignment,
+)
 from service.core.resample import resample_uniform
 from service.core.units import UnitError, to_contract_units
 from service.core.windowing import sliding_windows, window_starts
@@ -91,6 +97,39 @@ def test_declared_worn_segments_restrict_every_answer() -> None:
     for bad in ([], [0, 0], [7], [-1]):
         with pytest.raises(ValueError, match="distinct class indices"):
             joint_assignment(lp, worn=bad)
+
+
+def test_per_sensor_candidates_fill_every_sensor_the_declaration_allows() -> None:
+    # Sensor 0 is declared the pelvis; sensors 1 and 2 are "a foot" each (side unknown). Sensor 1 favours the left
+    # foot more strongly than sensor 2 does, sensor 2 favours a shank overall; sensor 0 favours the left thigh.
+    probs = np.full((3, 1, 7), 0.01)
+    probs[0, 0, [2, 3]] = [0.80, 0.14]
+    probs[1, 0, [0, 6]] = [0.90, 0.04]
+    probs[2, 0, [0, 5, 6]] = [0.50, 0.39, 0.05]
+    lp = list(np.log(probs))
+    feet = [0, 6]
+    answer = joint_assignment(lp, candidates=[[3], feet, feet])
+    assert answer.segment.tolist() == [3, 0, 6]
+    assert np.isinf(answer.margin[0]) and answer.confidence[0] == 1.0  # one candidate: no other to lead
+    np.testing.assert_allclose(answer.margin[1:], [np.log(0.90 / 0.04), np.log(0.05 / 0.50)])
+    moving = [np.array([True])] * 3
+    assert [o.tolist() for o in window_joint_assignment(lp, moving, candidates=[[3], feet, feet])] == [[3], [0], [6]]
+    # Sensor 2 may only be the left foot, sensor 1 either foot: both get one, though sensor 1 prefers the left.
+    assert joint_assignment(lp, candidates=[None, feet, [0]]).segment.tolist() == [2, 6, 0]
+    # Two sensors that may only be the left foot: the weaker is left over; the others keep their answers.
+    assert joint_assignment(lp, candidates=[None, [0], [0]]).segment.tolist() == [2, 0, -1]
+    # worn and candidates together: the intersection.
+    assert allowed_segments(2, 7, worn=[0, 3, 6], candidates=[feet, None]).nonzero()[1].tolist() == [0, 6, 0, 3, 6]
+    with pytest.raises(ValueError, match="none of their candidate segments is among the worn ones"):
+        joint_assignment(lp, worn=[0, 6], candidates=[[3], None, None])
+    with pytest.raises(ValueError, match="one entry per sensor"):
+        joint_assignment(lp, candidates=[feet])
+    with pytest.raises(ValueError, match="distinct class indices"):
+        MomentAssembler(3, candidates=[[0, 0], None, None])
+    live = MomentAssembler(3, candidates=[[3], feet, feet])
+    for s in range(3):
+        live.add(s, 1.0, lp[s][0], True)
+    assert live.ready() == [(1.0, {0: 3, 1: 0, 2: 6})]
 
 
 def test_live_moments_wait_for_every_sensor_and_give_the_batch_answer() -> None:

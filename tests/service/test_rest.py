@@ -129,6 +129,32 @@ def test_declared_worn_segments_narrow_the_answers(client: TestClient) -> None:
         assert r.status_code == 422 and fragment in r.text and "worn_segments" in r.text, r.text
 
 
+def test_per_sensor_candidate_segments_narrow_that_sensors_answers(client: TestClient) -> None:
+    """``candidate_segments``: one sensor declared the pelvis, two "a foot" each (side unknown), with the same data.
+    The pelvis sensor gets the pelvis with a null margin (nothing else to lead), the two others one foot each, in
+    the joint answer and at every moment; a declaration that contradicts ``worn_segments`` is a 422."""
+    feet = ["LeftFoot", "RightFoot"]
+    sensors = [{"sensor_id": f"s{k}", "windows": [_window(), _window()]} for k in range(3)]
+    sensors[0]["candidate_segments"] = ["Pelvis"]
+    sensors[1]["candidate_segments"] = sensors[2]["candidate_segments"] = feet
+    out = client.post("/v1/imu/assign", json={"sensors": sensors})
+    assert out.status_code == 200, out.text
+    got = out.json()["sensors"]
+    assert got[0]["segment"] == "Pelvis" and got[0]["margin"] is None and got[0]["confidence"] == 1.0
+    assert sorted(s["segment"] for s in got[1:]) == feet and all(s["margin"] is not None for s in got[1:])
+    assert got[0]["window_segments"] == ["Pelvis", "Pelvis"]
+    assert [sorted(pair) for pair in zip(got[1]["window_segments"], got[2]["window_segments"], strict=True)] == [
+        feet,
+        feet,
+    ]
+    clash = client.post("/v1/imu/assign", json={"sensors": sensors, "worn_segments": feet})
+    assert clash.status_code == 422, clash.text
+    assert "sensors[0].candidate_segments: none of ['Pelvis'] is among worn_segments" in clash.text
+    sensors[1]["candidate_segments"] = ["LeftFoot", "LeftFoot"]
+    repeated = client.post("/v1/imu/assign", json={"sensors": sensors})
+    assert repeated.status_code == 422 and "name each segment once" in repeated.text, repeated.text
+
+
 def test_assign_answers_each_moment_one_to_one(client: TestClient) -> None:
     """Window k of every sensor is one moment: its windows share out the segments, whatever the sensors' totals say;
     a still window gets null, and a sensor's extra windows are assigned among the sensors that have them."""

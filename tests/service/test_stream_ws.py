@@ -123,6 +123,21 @@ def test_gaps_and_late_packets_are_reported(client: TestClient) -> None:
         (json.dumps(START | {"worn_segments": ["LeftFoot", "LeftFoot"]}), None, 1008, "name each segment once"),
         (json.dumps(START | {"worn_segments": ["LeftHand"]}), None, 1008, "worn_segments.0"),
         (json.dumps(START | {"worn_segments": []}), None, 1008, "worn_segments"),
+        (
+            json.dumps(
+                START
+                | {"sensors": [{"sensor_id": "a", "candidate_segments": ["Pelvis"]}], "worn_segments": ["LeftFoot"]}
+            ),
+            None,
+            1008,
+            "sensors[0].candidate_segments: none of ['Pelvis'] is among worn_segments ['LeftFoot']",
+        ),
+        (
+            json.dumps({"type": "start", "sensors": [{"sensor_id": "a", "candidate_segments": ["Hip"]}]}),
+            None,
+            1008,
+            "candidate_segments.0",
+        ),
         (json.dumps(START), b"\x00\x00", 1003, "header"),
         (json.dumps(START), encode_binary(7, 0, np.zeros((1, 6))), 1008, "sensor index 7"),
         (json.dumps(START), encode_binary(0, 0, np.zeros((5000, 6))), 1009, "at most"),
@@ -159,6 +174,25 @@ def _stream_one_sensor(ws, x: np.ndarray, stop: bool = True) -> None:  # type: i
         ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
     if stop:
         ws.send_text(json.dumps({"type": "stop"}))
+
+
+def test_a_sensor_declared_on_one_segment_gets_it_at_every_moment(client: TestClient) -> None:
+    """A one-sensor session whose sensor may only be the pelvis: ``started`` echoes the declaration, every moving
+    moment answers Pelvis, and the joint answer is the pelvis with a null margin (JSON has no infinity)."""
+    x = _signal(16 * 12)
+    start = {"type": "start", "sensors": [{"sensor_id": "a", "candidate_segments": ["Pelvis"]}]}
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps(start))
+        started = json.loads(ws.receive_text())
+        for seq in range(0, len(x), 16):
+            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
+        ws.send_text(json.dumps({"type": "stop"}))
+        messages = _collect(ws)
+    assert started["candidate_segments"] == {"a": ["Pelvis"]} and started["worn_segments"] is None
+    moments = [m for m in messages if m["type"] == "moment"]
+    assert len(moments) == 12 - 7 and {m["segments"]["a"] for m in moments} == {"Pelvis"}
+    final = [m for m in messages if m["type"] == "assignment"][-1]["sensors"][0]
+    assert final["segment"] == "Pelvis" and final["margin"] is None and final["alignment"]["segment"] == "Pelvis"
 
 
 def test_a_burst_of_packets_is_answered_in_order_with_few_inference_calls(client: TestClient) -> None:

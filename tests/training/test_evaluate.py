@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core.assignment import turns_about_vertical
+from service.core.assignment import is_moving, turns_about_vertical
 from service.core.recordings import RealRecording, RealSensor
 from service.core.segments import SEGMENTS
+from service.core.windowing import sliding_windows
 from training.data.catalog import mocap_entries
 from training.data.imu_sim import alignment, imu_readings
 from training.data.mocap import build_kinematics
@@ -89,6 +90,11 @@ def test_declared_worn_segments_keep_a_favourite_that_no_sensor_wears_out(record
     assert m["real_window_joint_worn_accuracy"] == 1.0
     assert m["window_joint_worn_accuracy/sim/two"] == 1.0
     assert m["real_window_joint_worn_accuracy_ignoring_side"] == 1.0
+    # Body parts declared, sides not (``real_window_joint_part_*``): the thigh may be either thigh and takes the
+    # favourite; the shank has no such pull. So exactly the shank's moving windows are right.
+    n_moving = [int(is_moving(sliding_windows(s.imu)).sum()) for s in (shank, thigh)]
+    assert m["real_window_joint_part_accuracy"] == pytest.approx(n_moving[0] / sum(n_moving))
+    assert m["window_joint_part_accuracy/sim/two"] == m["real_window_joint_part_accuracy"]
 
 
 def test_body_joint_assignment_resolves_each_body_and_skips_a_cut_one() -> None:
@@ -252,6 +258,7 @@ def test_evaluate_csv_scores_ones_own_files_as_the_reader_does(data_dir: Path, t
     for key in ("real_accuracy", "real_window_joint_accuracy", "real_window_joint_worn_accuracy"):
         line = f"{key}: {want[key]:.4f} (ignoring left/right {want[key + '_ignoring_side']:.4f})"
         assert line in result.output, (line, result.output)
+    assert f"(body parts declared): {want['real_window_joint_part_accuracy']:.4f}" in result.output
     assert "real_foot_flat_up_angle_median_deg" in result.output
 
     short = tmp_path / "short.csv"
