@@ -282,7 +282,9 @@ async def _receive_start(ws: WebSocket) -> Session:
 
 def _first_error(exc: ValidationError) -> str:
     err = exc.errors()[0]
-    return f"{'.'.join(str(p) for p in err['loc'])}: {err['msg']}"
+    where = ".".join(str(p) for p in err["loc"])  # empty for a check of the whole message (the error names fields)
+    message = err["msg"].removeprefix("Value error, ")
+    return f"{where}: {message}" if where else message
 
 
 async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:

@@ -130,7 +130,7 @@ def test_gaps_and_late_packets_are_reported(client: TestClient) -> None:
             ),
             None,
             1008,
-            "sensors[0].candidate_segments: none of ['Pelvis'] is among worn_segments ['LeftFoot']",
+            "invalid start message: sensors[0].candidate_segments: none of ['Pelvis'] is among worn_segments ['LeftFoot']",
         ),
         (
             json.dumps({"type": "start", "sensors": [{"sensor_id": "a", "candidate_segments": ["Hip"]}]}),
