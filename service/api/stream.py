@@ -29,7 +29,13 @@ from service.api.protocol import (
     decode_binary,
 )
 from service.api.schemas import finite_or_none
-from service.core.assignment import MomentAssembler, is_moving, joint_assignment, turns_about_vertical
+from service.core.assignment import (
+    MomentAssembler,
+    allowed_segments,
+    is_moving,
+    joint_assignment,
+    turns_about_vertical,
+)
 from service.core.segments import SEGMENTS, segment_indices, segment_names
 from service.core.stream import SensorStream
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
@@ -106,6 +112,9 @@ class Session:
         self.allow_shared = start.allow_shared
         self.worn = segment_indices(start.worn_segments)
         self.candidates = [segment_indices(s.candidate_segments) for s in start.sensors]
+        # A sensor that the declarations leave on one segment: its windows' alignments are given for that segment.
+        allowed = allowed_segments(len(self.streams), len(SEGMENTS), self.worn, self.candidates)
+        self.known = [int(row.argmax()) if row.sum() == 1 else None for row in allowed]
         self.evidence = np.zeros((len(self.streams), len(SEGMENTS)))
         # A one-sensor session without declarations: its moment is its window's own answer, already in the result.
         many = len(self.streams) > 1 or self.worn is not None or self.candidates[0] is not None
@@ -229,7 +238,8 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
         imu = np.stack(windows)
         probs, quats = await app.state.batcher.infer(imu, wait_ms)
         moving = is_moving(imu)
-        results = window_results(probs, quats, moving, turns_about_vertical(imu))
+        known = [session.known[item.sensor] for item in items for _ in item.windows]
+        results = window_results(probs, quats, moving, turns_about_vertical(imu), known)
         log_probs = np.log(np.clip(probs, 1e-12, 1.0))
     row = 0
     for item in items:
