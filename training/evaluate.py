@@ -239,10 +239,16 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
       (``foot_flat_up``) is read off its accelerometer, so R_segment_imu · that direction should be the segment's
       +z up to the flat foot's roll, which the frame ignores. Reported: its angle from +z, per moving window.
       Rotation about z (the heading) does not show here either.
+    - Nominal frame (sensors whose dataset gives one, ``RealSensor.nominal_frame``: gaitmap's walk, both feet): the
+      angle of R_segment_imu from the dataset's rotation onto its nominal foot frame (x toward the toe, y left,
+      z up, fixed by the mounting), per moving window, and per sensor the mean difference's rotation about z (the
+      heading, which no other check sees). The nominal frame is the shoe's, not the functional foot frame, so
+      they differ by the toe-out angle and the mount's tilt even for a perfect model: this catches gross errors
+      (half and quarter turns), not degrees.
     All are necessary, not sufficient (a constant output is perfectly stable); the simulated LOSO is the
     accuracy measure. Predictions are for the sensor's known segment.
     """
-    spreads, tilts, feet, metrics = [], [], [], {}
+    spreads, tilts, feet, nominal, metrics = [], [], [], [], {}
     for rec in recordings:
         rec_spread = []
         for s in (s for s in rec.sensors if s.segment is not None):
@@ -257,6 +263,11 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
                 tilts.append(np.degrees(np.arccos(np.clip(up[:, 2] / np.linalg.norm(up, axis=1), -1.0, 1.0))))
             if s.segment in FOOT_SEGMENTS:
                 feet.append(np.degrees(np.arccos(np.clip(rot.apply(foot_flat_up(s.imu))[:, 2], -1.0, 1.0))))
+            if s.nominal_frame is not None:
+                off = rot * Rotation.from_matrix(s.nominal_frame).inv()  # R_segment_nominal per window
+                nominal.append(np.degrees(off.magnitude()))
+                heading = off.mean().as_euler("xyz", degrees=True)[2]
+                metrics[f"nominal_frame_heading_deg/{rec.name}/{SEGMENTS[s.segment]}"] = float(heading)
         if rec_spread:
             spreads += rec_spread
             metrics[f"alignment_spread_median_deg/{rec.name}"] = float(np.median(np.concatenate(rec_spread)))
@@ -265,6 +276,7 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
             **_median_p90("real_alignment_spread", spreads),
             **_median_p90("real_leg_up_axis_angle", tilts),
             **_median_p90("real_foot_flat_up_angle", feet),
+            **_median_p90("real_nominal_frame_angle", nominal),
             "real_alignment_n_windows": float(sum(len(x) for x in spreads)),
         }
     )

@@ -21,6 +21,9 @@ class RealSensor:
     sensor_id: str
     imu: np.ndarray  # (T, 6) at 60 Hz, contract units
     segment: int | None  # class index, None for sensors off the seven segments (e.g. torso)
+    # R_nominal_imu where the dataset itself gives one: its rotation of this sensor's frame onto a nominal segment
+    # frame (x forward, y left, z up) fixed by how the sensor was mounted, not measured on the body.
+    nominal_frame: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -60,8 +63,11 @@ GAITMAP_FILES = {  # file: (rate Hz, subject, activity)
     # no subject, so it is its own group.
     "imu_sample_ic_stride.csv": (102.4, "gaitmap_ic_stride_unknown", "walk"),
 }
-# Not read: imu_sample.csv, the not-rotated recording again with its axes turned onto gaitmap's foot frame (the
-# same motion twice would count twice), and imu_sample_ms_left/right.csv, whose accelerometer norm has a median of
+# gaitmap also ships the not-rotated recording with its axes turned onto gaitmap's foot sensor frame (x toward the
+# toe, y left, z up, by the sensor's mounting): it is read for that rotation only (the same motion twice would count
+# twice), which becomes the sensors' ``nominal_frame``.
+GAITMAP_ROTATED = {"imu_sample_not_rotated.csv": "imu_sample.csv"}
+# Not read: imu_sample_ms_left/right.csv, whose accelerometer norm has a median of
 # about 19 m/s² over a long walk (2 g, against 9.7–11.5 in every other recording): their units are not the
 # documented ones.
 
@@ -114,20 +120,39 @@ def read_capacitive(data_dir: Path, trial: str) -> RealRecording:
 def read_gaitmap(data_dir: Path, file: str) -> RealRecording:
     """Left and right foot IMUs (m/s², deg/s, raw sensor frame) of the gaitmap example data."""
     rate, subject, activity = GAITMAP_FILES[file]
-    path = data_dir / "imu_real" / "gaitmap_foot" / file
+    folder = data_dir / "imu_real" / "gaitmap_foot"
+    raw = _gaitmap_feet(folder / file)
+    rotated = _gaitmap_feet(folder / GAITMAP_ROTATED[file]) if file in GAITMAP_ROTATED else None
+    sensors = []
+    for side, seg in (("left_sensor", "LeftFoot"), ("right_sensor", "RightFoot")):
+        nominal = None if rotated is None else rotation_between(raw[side], rotated[side], GAITMAP_ROTATED[file])
+        sensors.append(RealSensor(side, _gaitmap_convert(raw[side], rate), segment_index(seg), nominal))
+    return RealRecording(f"gaitmap_foot/{file.removesuffix('.csv')}", "gaitmap_foot", subject, activity, sensors)
+
+
+def _gaitmap_feet(path: Path) -> dict[str, np.ndarray]:
+    """``left_sensor`` / ``right_sensor`` → ``(T, 6)`` acc, gyr as stored (two header rows: sensor, axis)."""
     with open(path) as fh:
         sensor_row, axis_row = fh.readline().strip().split(","), fh.readline().strip().split(",")
     table = np.loadtxt(path, delimiter=",", skiprows=2)
     columns = ["acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z"]
-    sensors = []
-    for side, seg in (("left_sensor", "LeftFoot"), ("right_sensor", "RightFoot")):
-        cols = [
-            next(i for i, (s_, a) in enumerate(zip(sensor_row, axis_row, strict=True)) if s_ == side and a == c)
-            for c in columns
-        ]
-        raw = table[:, cols]
-        sensors.append(RealSensor(side, _gaitmap_convert(raw, rate), segment_index(seg)))
-    return RealRecording(f"gaitmap_foot/{file.removesuffix('.csv')}", "gaitmap_foot", subject, activity, sensors)
+    where = {(s_, a): i for i, (s_, a) in enumerate(zip(sensor_row, axis_row, strict=True))}
+    return {side: table[:, [where[side, c] for c in columns]] for side in ("left_sensor", "right_sensor")}
+
+
+def rotation_between(raw: np.ndarray, turned: np.ndarray, what: str, tol: float = 1e-6) -> np.ndarray:
+    """The proper rotation R with ``turned ≈ raw @ R.T`` for the acc and gyr rows of ``(T, 6)`` arrays (Kabsch);
+    ``ValueError`` naming ``what`` unless it reproduces ``turned`` to ``tol`` (relative to the largest value)."""
+    if raw.shape != turned.shape:
+        raise ValueError(f"{what} has {len(turned)} rows of {turned.shape[1]}, the raw recording {raw.shape}")
+    a = np.concatenate([raw[:, :3], raw[:, 3:]])
+    b = np.concatenate([turned[:, :3], turned[:, 3:]])
+    u, _, vt = np.linalg.svd(a.T @ b)
+    R = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T  # proper: no reflection
+    residual = np.abs(b - a @ R.T).max() / np.abs(b).max()
+    if residual > tol:
+        raise ValueError(f"{what} is not a rotation of the raw recording (relative residual {residual:.2g})")
+    return R
 
 
 def _gaitmap_convert(raw: np.ndarray, rate_hz: float) -> np.ndarray:

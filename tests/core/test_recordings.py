@@ -108,3 +108,21 @@ def test_csv_recordings_convert_units_and_rate_and_refuse_non_numbers(tmp_path: 
     (tmp_path / "words.csv").write_text("ax,ay,az,gx,gy,gz\n1,2,three,4,5,6\n")
     with pytest.raises(ValueError, match="comma-separated numbers"):
         read_csv_imu(tmp_path / "words.csv")
+
+
+def test_the_gaitmap_walk_carries_gaitmap_s_own_foot_frames(data_dir: Path) -> None:
+    """gaitmap's rotated copy of its walk is an exact axis permutation of the raw one (the mounting): the reader
+    recovers it per foot as a proper rotation, and refuses a copy that is not a rotation of the raw data."""
+    from service.core.recordings import rotation_between
+
+    rec = read_recording(data_dir, "gaitmap_foot/imu_sample_not_rotated")
+    frames = {s.sensor_id: s.nominal_frame for s in rec.sensors}
+    np.testing.assert_allclose(frames["left_sensor"], [[0, 1, 0], [0, 0, 1], [1, 0, 0]], atol=1e-9)
+    np.testing.assert_allclose(frames["right_sensor"], [[0, -1, 0], [0, 0, -1], [1, 0, 0]], atol=1e-9)
+    assert all(s.nominal_frame is None for s in read_recording(data_dir, "gaitmap_foot/imu_sample_ic_stride").sensors)
+    raw = np.random.default_rng(0).normal(size=(50, 6))
+    mirrored = raw * np.array([1, 1, -1, 1, 1, -1])  # a reflection, not a rotation
+    with pytest.raises(ValueError, match="copy.csv is not a rotation of the raw recording"):
+        rotation_between(raw, mirrored, "copy.csv")
+    with pytest.raises(ValueError, match="copy.csv has 49 rows"):
+        rotation_between(raw, raw[:49], "copy.csv")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -146,6 +147,24 @@ def test_the_true_foot_alignment_is_flat_and_a_tilted_one_is_not(data_dir: Path,
     pitched = Rotation.from_euler("y", 20, degrees=True).as_matrix() @ R_true
     off = evaluate_real_alignment(_constant(pitched), [rec])["real_foot_flat_up_angle_median_deg"]
     assert off > 15.0, off
+
+
+def test_the_nominal_frame_check_reads_the_difference_and_its_heading(data_dir: Path, kinematics_cache: Path) -> None:
+    """A foot sensor whose dataset gives a nominal frame: a model that predicts exactly that frame reads 0°, one that
+    predicts it turned by 15° about z reads 15° with a heading of +15°, and a half turn about z reads 180°."""
+    rec, R_true = _simulated_recording(data_dir, kinematics_cache, SEGMENTS.index("LeftFoot"))
+    sensor = dataclasses.replace(rec.sensors[0], nominal_frame=R_true)
+    rec = dataclasses.replace(rec, sensors=[sensor])
+    key = f"nominal_frame_heading_deg/{rec.name}/LeftFoot"
+    exact = evaluate_real_alignment(_constant(R_true), [rec])
+    assert exact["real_nominal_frame_angle_median_deg"] < 1e-3 and abs(exact[key]) < 1e-3
+    for turn, angle in ((15.0, 15.0), (180.0, 180.0)):
+        turned = Rotation.from_euler("z", turn, degrees=True).as_matrix() @ R_true
+        m = evaluate_real_alignment(_constant(turned), [rec])
+        assert m["real_nominal_frame_angle_median_deg"] == pytest.approx(angle, abs=1e-3)
+        assert abs(m[key]) == pytest.approx(turn, abs=1e-3)
+    plain = dataclasses.replace(rec, sensors=[dataclasses.replace(sensor, nominal_frame=None)])
+    assert "real_nominal_frame_angle_median_deg" not in evaluate_real_alignment(_constant(R_true), [plain])
 
 
 def test_a_tilted_alignment_fails_the_up_axis_check(recording) -> None:
