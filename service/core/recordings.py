@@ -5,6 +5,7 @@ gyr in rad/s, sensor frame, with the known segment.
 
 from __future__ import annotations
 
+import csv
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,7 +45,6 @@ XIMU3_SEGMENTS = {
     "Right Lower Leg": "RightLowerLeg",
     "Right Foot": "RightFoot",
 }
-CAPACITIVE_SENSORS = ("torso", "pelvis", "tibia_r", "femur_r", "tibia_l", "femur_l", "toes_r", "toes_l")
 CAPACITIVE_SEGMENTS = {
     "pelvis": "Pelvis",
     "tibia_r": "RightLowerLeg",
@@ -70,56 +70,72 @@ GAITMAP_ROTATED = {"imu_sample_not_rotated.csv": "imu_sample.csv"}
 # Not read: imu_sample_ms_left/right.csv, whose accelerometer norm has a median of
 # about 19 m/s² over a long walk (2 g, against 9.7–11.5 in every other recording): their units are not the
 # documented ones.
+GAITMAP_SKIPPED = frozenset({"imu_sample_ms_left.csv", "imu_sample_ms_right.csv", *GAITMAP_ROTATED.values()})
 
 
-def read_ximu3(data_dir: Path) -> RealRecording:
-    """Seven x-IMU3 devices (about 50 Hz, irregular), resampled by timestamp onto one 60 Hz grid."""
-    root = data_dir / "imu_real" / "ximu3_lowerbody"
-    streams = {}
-    for folder in sorted(p for p in root.iterdir() if p.is_dir()):
+def read_ximu3(data_dir: Path, name: str = "ximu3_lowerbody") -> RealRecording:
+    """x-IMU3 devices (about 50 Hz, irregular), one folder each (``<label> <serial> (UDP)``, the label naming the
+    segment, ``XIMU3_SEGMENTS``; other labels are read with no segment), resampled by timestamp onto one 60 Hz grid
+    over the time all devices recorded."""
+    root = data_dir / "imu_real" / name
+    streams = []
+    for folder in sorted(p for p in root.iterdir() if (p / "Inertial.csv").is_file()):
         label = folder.name.rsplit(" ", 2)[0]
         table = np.loadtxt(folder / "Inertial.csv", delimiter=",", skiprows=1)
         t_s = table[:, 0] * 1e-6
         imu = to_contract_units(table[:, [4, 5, 6, 1, 2, 3]], "g", "deg/s")
-        streams[XIMU3_SEGMENTS[label]] = (t_s, imu, folder.name)
-    t0 = max(s[0][0] for s in streams.values())
-    t1 = min(s[0][-1] for s in streams.values())
+        seg = XIMU3_SEGMENTS.get(label)
+        streams.append((t_s, imu, folder.name, segment_index(seg) if seg else None))
+    t0 = max(s[0][0] for s in streams)
+    t1 = min(s[0][-1] for s in streams)
     sensors = []
-    for seg, (t_s, imu, name) in streams.items():
+    for t_s, imu, folder_name, seg in streams:
         keep = (t_s >= t0 - 0.05) & (t_s <= t1 + 0.05)
         grid, resampled = resample_timestamps(t_s[keep], imu[keep], MODEL_RATE_HZ)
         n = int(np.floor((t1 - t0) * MODEL_RATE_HZ))
         start = int(np.searchsorted(grid, t0))
-        sensors.append(RealSensor(name, resampled[start : start + n], segment_index(seg)))
-    return RealRecording("ximu3_lowerbody", "ximu3_lowerbody", "ximu3_unknown", "mixed_lower_body", sensors)
+        sensors.append(RealSensor(folder_name, resampled[start : start + n], seg))
+    subject = "ximu3_unknown" if name == "ximu3_lowerbody" else f"{name}_unknown"  # no subject ids are given
+    return RealRecording(name, name, subject, "mixed_lower_body", sensors)
 
 
-def _read_trc(path: Path) -> np.ndarray:
-    """Numeric rows of an OpenSim TRC file: ``(T, 2 + 3 * n_markers)`` (frame, time, xyz...)."""
-    rows = [line.split() for line in path.read_text().splitlines()[5:] if line.strip()]
-    return np.array(rows, dtype=np.float64)
+def _read_trc(path: Path) -> tuple[np.ndarray, list[str], float]:
+    """An OpenSim TRC file: numeric rows ``(T, 2 + 3 * n_markers)`` (frame, time, xyz...), the marker names and
+    the data rate (Hz) its header gives."""
+    lines = path.read_text().splitlines()
+    rate = float(dict(zip(lines[1].split("\t"), lines[2].split("\t"), strict=False))["DataRate"])
+    rows = [line.split() for line in lines[5:] if line.strip()]
+    return np.array(rows, dtype=np.float64), lines[3].split("\t")[2:], rate
 
 
-def read_capacitive(data_dir: Path, trial: str) -> RealRecording:
-    """Eight Xsens IMUs at 100 Hz (m/s², rad/s), treadmill walking of Sub01."""
-    folder = data_dir / "imu_real" / "capacitive_sub01" / trial
-    acc = _read_trc(folder / f"OpenSim_Sub01_{trial}_Accel.trc")[:, 2:]
-    gyr = _read_trc(folder / f"OpenSim_Sub01_{trial}_Gyro.trc")[:, 2:]
+def read_capacitive(data_dir: Path, trial: str, source: str = "capacitive_sub01") -> RealRecording:
+    """Xsens IMUs of the capacitive-sensing study (m/s², rad/s; Sub01: eight at 100 Hz), treadmill walking: the
+    ``OpenSim_<subject>_<trial>_Accel.trc`` / ``_Gyro.trc`` pair of one trial folder. Sensors are named by the
+    files' header (``CAPACITIVE_SEGMENTS``; others, such as the torso, are read with no segment)."""
+    folder = data_dir / "imu_real" / source / trial
+    (accel,) = folder.glob(f"OpenSim_*_{trial}_Accel.trc")
+    subject = accel.name.removeprefix("OpenSim_").removesuffix(f"_{trial}_Accel.trc")
+    acc, names, rate = _read_trc(accel)
+    gyr, gyr_names, gyr_rate = _read_trc(folder / accel.name.replace("_Accel.trc", "_Gyro.trc"))
+    if gyr_names != names or gyr_rate != rate:
+        raise ValueError(f"{folder}: Accel and Gyro files disagree on sensors or rate ({names}, {gyr_names})")
     n = min(len(acc), len(gyr))
     sensors = []
-    for k, name in enumerate(CAPACITIVE_SENSORS):
-        imu = np.concatenate([acc[:n, 3 * k : 3 * k + 3], gyr[:n, 3 * k : 3 * k + 3]], axis=1)
+    for k, column in enumerate(names):
+        name = column.removesuffix("_offset_imu").removesuffix("_imu")
+        imu = np.concatenate([acc[:n, 2 + 3 * k : 5 + 3 * k], gyr[:n, 2 + 3 * k : 5 + 3 * k]], axis=1)
         seg = CAPACITIVE_SEGMENTS.get(name)
         sensors.append(
-            RealSensor(f"{name}_imu", resample_uniform(imu, 100.0, MODEL_RATE_HZ), segment_index(seg) if seg else None)
+            RealSensor(f"{name}_imu", resample_uniform(imu, rate, MODEL_RATE_HZ), segment_index(seg) if seg else None)
         )
     activity = "walk_stiffknee" if "StiffKnee" in trial else "walk"
-    return RealRecording(f"capacitive_sub01/{trial}", "capacitive_sub01", "capacitive_Sub01", activity, sensors)
+    return RealRecording(f"{source}/{trial}", source, f"capacitive_{subject}", activity, sensors)
 
 
 def read_gaitmap(data_dir: Path, file: str) -> RealRecording:
-    """Left and right foot IMUs (m/s², deg/s, raw sensor frame) of the gaitmap example data."""
-    rate, subject, activity = GAITMAP_FILES[file]
+    """Left and right foot IMUs (m/s², deg/s, raw sensor frame) of the gaitmap example data; the rate, subject and
+    activity of a file not in ``GAITMAP_FILES`` come from the data directory's ``index.csv``."""
+    rate, subject, activity = GAITMAP_FILES.get(file) or _indexed(data_dir, f"imu_real/gaitmap_foot/{file}")
     folder = data_dir / "imu_real" / "gaitmap_foot"
     raw = _gaitmap_feet(folder / file)
     rotated = _gaitmap_feet(folder / GAITMAP_ROTATED[file]) if file in GAITMAP_ROTATED else None
@@ -159,19 +175,57 @@ def _gaitmap_convert(raw: np.ndarray, rate_hz: float) -> np.ndarray:
     return resample_uniform(to_contract_units(raw, "m/s^2", "deg/s"), rate_hz, MODEL_RATE_HZ)
 
 
+def _indexed(data_dir: Path, path: str) -> tuple[float, str, str]:
+    """(rate Hz, subject, activity) of a data file from ``index.csv`` (a blank subject: the file is its own)."""
+    with open(data_dir / "index.csv", newline="") as fh:
+        row = next((r for r in csv.DictReader(fh) if r["path"] == path), None)
+    if row is None or not row["fps"]:
+        raise ValueError(f"{path}: index.csv gives no sample rate for it")
+    return float(row["fps"]), row["subject"] or f"{Path(path).stem}_unknown", row["activity"] or "unknown"
+
+
+def _is_gaitmap_imu(path: Path) -> bool:
+    with open(path) as fh:
+        return "left_sensor" in fh.readline() and "acc_x" in fh.readline()
+
+
+def recording_names(data_dir: Path) -> list[str]:
+    """The recordings under ``imu_real/`` that these readers read, found by their files' layout rather than from a
+    fixed list, so that a recording added beside the published ones (another capacitive subject or trial, another
+    x-IMU3 session, another gaitmap-format walk listed in ``index.csv``) is read and scored like them:
+
+    - ``capacitive_*/<trial>/OpenSim_<subject>_<trial>_Accel.trc`` (with its ``_Gyro.trc``): ``capacitive_*/<trial>``
+    - ``ximu3_*/`` holding device folders with ``Inertial.csv``: ``ximu3_*``
+    - ``gaitmap_foot/<file>.csv`` in gaitmap's two-header-row IMU layout, but for ``GAITMAP_SKIPPED``:
+      ``gaitmap_foot/<file>`` (the published four first, in ``GAITMAP_FILES`` order)
+    """
+    root = data_dir / "imu_real"
+    names = [p.name for p in sorted(root.glob("ximu3_*")) if any(p.glob("*/Inertial.csv"))]
+    for source in sorted(root.glob("capacitive_*")):
+        trials = (t for t in sorted(source.iterdir()) if any(t.glob(f"OpenSim_*_{t.name}_Accel.trc")))
+        names += [f"{source.name}/{t.name}" for t in trials]
+    gaitmap = root / "gaitmap_foot"
+    extra = sorted(p.name for p in gaitmap.glob("*.csv") if p.name not in GAITMAP_FILES) if gaitmap.is_dir() else []
+    files = [f for f in GAITMAP_FILES if (gaitmap / f).is_file()]
+    files += [f for f in extra if f not in GAITMAP_SKIPPED and _is_gaitmap_imu(gaitmap / f)]
+    return names + [f"gaitmap_foot/{f.removesuffix('.csv')}" for f in files]
+
+
 def read_recording(data_dir: Path, name: str) -> RealRecording:
-    """One recording by its name (``ximu3_lowerbody``, ``capacitive_sub01/<trial>``, ``gaitmap_foot/<file>``),
-    reading only its own files."""
-    if name not in RECORDING_NAMES:
-        raise KeyError(f"no recording {name!r}; known: {RECORDING_NAMES}")
+    """One recording by its name (``recording_names``: ``ximu3_lowerbody``, ``capacitive_sub01/<trial>``,
+    ``gaitmap_foot/<file>``), reading only its own files."""
+    known = recording_names(data_dir)
+    if name not in known:
+        raise KeyError(f"no recording {name!r}; known: {known}")
     source, _, part = name.partition("/")
-    if source == "ximu3_lowerbody":
-        return read_ximu3(data_dir)
-    if source == "capacitive_sub01":
-        return read_capacitive(data_dir, part)
+    if source.startswith("ximu3_"):
+        return read_ximu3(data_dir, source)
+    if source.startswith("capacitive_"):
+        return read_capacitive(data_dir, part, source)
     return read_gaitmap(data_dir, f"{part}.csv")
 
 
+# The recordings of the published data directory (../shared/data/README.md); ``recording_names`` finds more.
 RECORDING_NAMES = (
     ["ximu3_lowerbody"]
     + [f"capacitive_sub01/{t}" for t in CAPACITIVE_TRIALS]
@@ -180,9 +234,8 @@ RECORDING_NAMES = (
 
 
 def read_all_real(data_dir: Path) -> list[RealRecording]:
-    """Every real recording with known placement."""
-    recs = [read_ximu3(data_dir)] + [read_capacitive(data_dir, t) for t in CAPACITIVE_TRIALS]
-    return recs + [read_gaitmap(data_dir, f) for f in GAITMAP_FILES]
+    """Every real recording with known placement that the data directory holds (``recording_names``)."""
+    return [read_recording(data_dir, name) for name in recording_names(data_dir)]
 
 
 def read_csv_imu(path: Path, skip_columns: int = 0) -> np.ndarray:

@@ -126,3 +126,44 @@ def test_the_gaitmap_walk_carries_gaitmap_s_own_foot_frames(data_dir: Path) -> N
         rotation_between(raw, mirrored, "copy.csv")
     with pytest.raises(ValueError, match="copy.csv has 49 rows"):
         rotation_between(raw, raw[:49], "copy.csv")
+
+
+def test_recordings_added_beside_the_published_ones_are_found_and_read(data_dir: Path, tmp_path: Path) -> None:
+    """A data directory with one more capacitive subject, one more x-IMU3 session and one more gaitmap-format walk
+    (files linked from the published ones, index.csv extended by the walk's row): ``recording_names`` finds them by
+    their layout, and they read as the recordings they were linked from, under their own names and subjects. A
+    gaitmap-format walk that index.csv gives no rate for is refused by name."""
+    real, fake = data_dir / "imu_real", tmp_path / "imu_real"
+    fake.mkdir()
+    for item in real.iterdir():
+        (fake / item.name).symlink_to(item.resolve())
+    (fake / "ximu3_session2").symlink_to((real / "ximu3_lowerbody").resolve())
+    trial = fake / "capacitive_sub02" / "CSBaseline"
+    trial.mkdir(parents=True)
+    for kind in ("Accel", "Gyro"):
+        (trial / f"OpenSim_Sub02_CSBaseline_{kind}.trc").symlink_to(
+            real / "capacitive_sub01" / "CSBaseline" / f"OpenSim_Sub01_CSBaseline_{kind}.trc"
+        )
+    (fake / "gaitmap_foot").unlink()
+    (fake / "gaitmap_foot").mkdir()
+    for item in (real / "gaitmap_foot").iterdir():
+        (fake / "gaitmap_foot" / item.name).symlink_to(item)
+    (fake / "gaitmap_foot" / "my_walk.csv").symlink_to(real / "gaitmap_foot" / "imu_sample_ic_stride.csv")
+    index = (data_dir / "index.csv").read_text()
+    (tmp_path / "index.csv").write_text(index + "imu_real/gaitmap_foot/my_walk.csv,gaitmap_foot,,walk,,102.4,,,,,\n")
+
+    from service.core.recordings import recording_names
+
+    added = ["ximu3_session2", "capacitive_sub02/CSBaseline", "gaitmap_foot/my_walk"]
+    assert sorted(recording_names(tmp_path)) == sorted([*RECORDING_NAMES, *added])
+    twins = ["ximu3_lowerbody", "capacitive_sub01/CSBaseline", "gaitmap_foot/imu_sample_ic_stride"]
+    for name, twin in zip(added, twins, strict=True):
+        new, old = read_recording(tmp_path, name), read_recording(data_dir, twin)
+        assert new.name == name and [s.segment for s in new.sensors] == [s.segment for s in old.sensors]
+        for a, b in zip(new.sensors, old.sensors, strict=True):
+            np.testing.assert_array_equal(a.imu, b.imu)
+    assert read_recording(tmp_path, "capacitive_sub02/CSBaseline").subject == "capacitive_Sub02"
+    assert read_recording(tmp_path, "gaitmap_foot/my_walk").subject == "my_walk_unknown"
+    (tmp_path / "index.csv").write_text(index)
+    with pytest.raises(ValueError, match="my_walk.csv: index.csv gives no sample rate"):
+        read_recording(tmp_path, "gaitmap_foot/my_walk")
