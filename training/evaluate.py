@@ -225,7 +225,7 @@ def _moving_per_moment(
 
 
 def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -> dict[str, float]:
-    """Alignment on real recordings, which carry no I2S ground truth: two label-free checks per sensor.
+    """Alignment on real recordings, which carry no I2S ground truth: checks per sensor that need no labels.
 
     - Stability: a strapped sensor does not turn on its segment, so every moving window should give the same
       q_segment_imu. Reported: the angle of each window's prediction from the sensor's mean rotation.

@@ -38,7 +38,7 @@ from service.api.schemas import (
     WORN_SEGMENTS_DESCRIPTION,
     AccUnit,
     GyrUnit,
-    WornSegments,
+    SegmentSet,
     check_declarations,
 )
 
@@ -59,7 +59,7 @@ class StreamSensor(BaseModel):
     sample_rate_hz: float = Field(60.0, ge=10.0, le=2000.0)
     acc_unit: AccUnit = "m/s^2"
     gyr_unit: GyrUnit = "rad/s"
-    candidate_segments: WornSegments | None = Field(None, description=CANDIDATE_SEGMENTS_DESCRIPTION)
+    candidate_segments: SegmentSet | None = Field(None, description=CANDIDATE_SEGMENTS_DESCRIPTION)
 
 
 class StartMessage(BaseModel):
@@ -67,7 +67,7 @@ class StartMessage(BaseModel):
     type: Literal["start"]
     sensors: list[StreamSensor] = Field(min_length=1, max_length=64)
     allow_shared: bool = False
-    worn_segments: WornSegments | None = Field(None, description=WORN_SEGMENTS_DESCRIPTION)
+    worn_segments: SegmentSet | None = Field(None, description=WORN_SEGMENTS_DESCRIPTION)
 
     @model_validator(mode="after")
     def _declarations_agree(self) -> StartMessage:

@@ -20,7 +20,7 @@ def _each_once(names: list[str]) -> list[str]:
     return names
 
 
-WornSegments = Annotated[list[SegmentName], Field(min_length=1, max_length=len(SEGMENTS)), AfterValidator(_each_once)]
+SegmentSet = Annotated[list[SegmentName], Field(min_length=1, max_length=len(SEGMENTS)), AfterValidator(_each_once)]
 WORN_SEGMENTS_DESCRIPTION = (
     "the segments the sensors are known to be on, when the user knows that but not which sensor is where (e.g. "
     '["LeftFoot", "RightFoot"]): the joint and per-moment answers are then drawn from these segments only. '
@@ -127,7 +127,7 @@ class SensorWindows(BaseModel):
     model_config = ConfigDict(extra="forbid")
     sensor_id: str = Field(min_length=1, max_length=128)
     windows: list[ImuWindow] = Field(min_length=1)
-    candidate_segments: WornSegments | None = Field(None, description=CANDIDATE_SEGMENTS_DESCRIPTION)
+    candidate_segments: SegmentSet | None = Field(None, description=CANDIDATE_SEGMENTS_DESCRIPTION)
 
 
 class AssignRequest(BaseModel):
@@ -154,7 +154,7 @@ class AssignRequest(BaseModel):
     )
     sensors: list[SensorWindows] = Field(min_length=1, max_length=64)
     allow_shared: bool = False
-    worn_segments: WornSegments | None = Field(None, description=WORN_SEGMENTS_DESCRIPTION)
+    worn_segments: SegmentSet | None = Field(None, description=WORN_SEGMENTS_DESCRIPTION)
 
     @model_validator(mode="after")
     def _declarations_agree(self) -> AssignRequest:

@@ -217,6 +217,11 @@ def read_recording(data_dir: Path, name: str) -> RealRecording:
     known = recording_names(data_dir)
     if name not in known:
         raise KeyError(f"no recording {name!r}; known: {known}")
+    return _read(data_dir, name)
+
+
+def _read(data_dir: Path, name: str) -> RealRecording:
+    """The reader of a name ``recording_names`` gave, by its source folder."""
     source, _, part = name.partition("/")
     if source.startswith("ximu3_"):
         return read_ximu3(data_dir, source)
@@ -235,7 +240,7 @@ RECORDING_NAMES = (
 
 def read_all_real(data_dir: Path) -> list[RealRecording]:
     """Every real recording with known placement that the data directory holds (``recording_names``)."""
-    return [read_recording(data_dir, name) for name in recording_names(data_dir)]
+    return [_read(data_dir, name) for name in recording_names(data_dir)]
 
 
 def read_csv_imu(path: Path, skip_columns: int = 0) -> np.ndarray:
