@@ -1,5 +1,5 @@
 """onnxruntime vs torch eager on the same shipped weights and the same batches, in one run:
-torch eager, onnxruntime on the float32 file, onnxruntime on the int8 file (``training.quantize``);
+torch eager, onnxruntime on the float32 file, onnxruntime on the int8 file (``training.i2s.quantize``);
 then the service's way of running both models (``service.inference.runner``) against one call per model
 with two intra-op threads.
 
@@ -22,11 +22,11 @@ from benchmarks.servers import REPO
 from service.core.manifest import read_manifest
 from service.inference.registry import load_model
 from service.inference.runner import ModelRunner
-from training.config import ExperimentConfig
-from training.export import export_module
-from training.ship import load_run_config
-from training.train import build_model
-from training.warmstart import warm_start_from_shipped
+from training.i2s.config import ExperimentConfig
+from training.i2s.export import export_module
+from training.i2s.ship import load_run_config
+from training.i2s.train import build_model
+from training.i2s.warmstart import warm_start_from_shipped
 
 
 def _time(fn, x: np.ndarray, repeats: int) -> float:

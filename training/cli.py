@@ -11,8 +11,8 @@ from pathlib import Path
 
 import typer
 
-from training.config import load_config
 from training.data.catalog import resolve_data_dir
+from training.i2s.config import load_config
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 DEFAULT_CACHE = Path(".cache/kinematics")
@@ -33,7 +33,7 @@ def simulate(
     config: Path, data_dir: Path | None = DataDir, cache_dir: Path = DEFAULT_CACHE, overrides: list[str] = Override
 ) -> None:
     """Compute (or reuse from the digest cache) the segment kinematics the simulation draws from."""
-    from training.data.split import load_clips
+    from training.i2s.data.split import load_clips
 
     cfg = load_config(config, overrides)
     clips = load_clips(cfg, resolve_data_dir(data_dir), cache_dir)
@@ -51,7 +51,7 @@ def train(
     fitted: Path | None = typer.Option(None, help="track a training done by `fit` instead of training here"),
 ) -> None:
     """Train, export ONNX, evaluate on the held-out subjects and log it all to MLflow."""
-    from training.pipeline import run_training
+    from training.i2s.pipeline import run_training
 
     cfg = load_config(config, overrides)
     run_id = run_training(cfg, resolve_data_dir(data_dir), cache_dir, register, eval_max_windows, fitted)
@@ -68,7 +68,7 @@ def real_loso(
 ) -> None:
     """Real-data leave-one-source-out (paper 000 §4.3): one tracked fine-tune per real source, trained on the
     others and scored on it; a summary run pools the held-out windows."""
-    from training.pipeline import run_real_loso
+    from training.i2s.pipeline import run_real_loso
 
     cfg = load_config(config, overrides)
     run_id, folds = run_real_loso(cfg, resolve_data_dir(data_dir), cache_dir, eval_max_windows)
@@ -89,7 +89,7 @@ def pack(
     """Write a config's clips (segment kinematics, entries, digests) and its real training recordings
     (`data.real_train_recordings`) to one file for `fit` on another machine."""
     from service.core.recordings import read_recording
-    from training.data.split import load_clips, save_pack
+    from training.i2s.data.split import load_clips, save_pack
 
     cfg = load_config(config, overrides)
     root = resolve_data_dir(data_dir)
@@ -109,11 +109,11 @@ def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -
 
     For a GPU machine: `-s train.device=cuda -s train.loader_workers=3` (README "Training on another machine").
     """
-    from training.data.mocap import dataset_digest
-    from training.data.split import load_pack, load_pack_recordings, recordings_digest, split_clips
-    from training.data.windows import real_window_samplers
-    from training.train import save_fitted
-    from training.train import train as train_model
+    from training.i2s.data.mocap import dataset_digest
+    from training.i2s.data.split import load_pack, load_pack_recordings, recordings_digest, split_clips
+    from training.i2s.data.windows import real_window_samplers
+    from training.i2s.train import save_fitted
+    from training.i2s.train import train as train_model
 
     cfg = load_config(config, overrides)
     if cfg.train.init_from_run or cfg.train.ensemble_of:
@@ -130,8 +130,8 @@ def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -
     real, real_val = real_window_samplers(cfg, recordings)
     init_state = None
     if cfg.train.init_from_onnx:  # the shipped files travel with the working tree; needs onnx, not MLflow
-        from training.train import build_model
-        from training.warmstart import warm_start_from_shipped
+        from training.i2s.train import build_model
+        from training.i2s.warmstart import warm_start_from_shipped
 
         init_state = warm_start_from_shipped(Path(cfg.train.init_from_onnx), build_model(cfg))  # type: ignore[arg-type]
     train_clips, val_clips, _ = split_clips(load_pack(clips), cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
@@ -146,7 +146,7 @@ def register(run_id: str, name: str, task: str = typer.Option(..., help="assignm
     """Register a run's model; the champion alias moves only if it wins on the same evaluation."""
     import mlflow
 
-    from training.pipeline import register_run
+    from training.i2s.pipeline import register_run
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
@@ -159,7 +159,7 @@ def export(run_id: str, out_root: Path = typer.Option(Path("onnx_models")), vers
     """Copy a run's ONNX model into onnx_models/<name>/<version>/ with manifest.json and golden.npz."""
     import mlflow
 
-    from training.ship import export_run
+    from training.i2s.ship import export_run
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
@@ -178,7 +178,7 @@ def quantize(
     """Write an int8 variant of a shipped model (static QDQ Conv, optionally int8 LSTM); evaluate it next."""
     import mlflow
 
-    from training.quantize import ship_int8
+    from training.i2s.quantize import ship_int8
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
@@ -196,7 +196,7 @@ def evaluate(
     """Evaluate a shipped model (LOSO fold on simulated data, real recordings) and record it in its manifest."""
     import mlflow
 
-    from training.ship import evaluate_shipped
+    from training.i2s.ship import evaluate_shipped
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
@@ -223,8 +223,8 @@ def evaluate_real_command(
 
     import mlflow
 
-    from training.evaluate import evaluate_real, onnx_predictor
-    from training.pipeline import held_out_recordings
+    from training.i2s.evaluate import evaluate_real, onnx_predictor
+    from training.i2s.pipeline import held_out_recordings
     from training.tracking import default_tracking_uri
 
     cfg = load_config(config)
@@ -265,7 +265,7 @@ def evaluate_csv(
     from service.core.segments import SEGMENTS
     from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES, sliding_windows
     from service.inference.registry import version_key
-    from training.evaluate import evaluate_real, evaluate_real_alignment, onnx_predictor
+    from training.i2s.evaluate import evaluate_real, evaluate_real_alignment, onnx_predictor
 
     files = []
     for item in sensor:
@@ -314,8 +314,8 @@ def offset_baseline(
 ) -> None:
     """Alignment error of the untrained population-offset reference on a config's LOSO fold (Table A10)."""
     from service.core.segments import SEGMENTS
-    from training.data.split import load_clips, split_clips
-    from training.evaluate import population_offset_baseline
+    from training.i2s.data.split import load_clips, split_clips
+    from training.i2s.evaluate import population_offset_baseline
 
     cfg = load_config(config, overrides)
     clips = load_clips(cfg, resolve_data_dir(data_dir), cache_dir)

@@ -1,142 +1,20 @@
-"""Experiment configuration: one YAML file per experiment, validated into ``ExperimentConfig``."""
+"""What every task's configuration shares: strict YAML models, dotted overrides, tracking, flattening for MLflow."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, model_validator
-
-from service.core.segments import SEGMENTS
-from training.data.windows import Augmentation
+from pydantic import BaseModel, ConfigDict
 
 
-class _Strict(BaseModel):
+class Strict(BaseModel):
+    """A config section that rejects unknown keys (a typo in a YAML file is an error, not a silent default)."""
+
     model_config = ConfigDict(extra="forbid")
 
 
-class DataConfig(_Strict):
-    activities: list[str] = Field(default_factory=lambda: ["walk"])
-    test_subjects: list[str] = Field(default_factory=list)  # LOSO: subject groups held out for testing
-    val_fraction: float = 0.05  # paper 000 §3.3: 95 % / 5 % training / validation split (by clip)
-    # Real recordings mixed into training (paper 000 §4.3, assignment only); never evaluated on.
-    real_train_recordings: list[str] = Field(default_factory=list)
-    real_fraction: float = Field(0.0, ge=0.0, lt=1.0)  # share of each batch drawn from them
-    # the last part of every real training recording (in time) is kept for validation: early stopping and the
-    # warm start's epoch 0 are then judged on real windows too, not on simulated ones alone (0: train on all)
-    real_val_fraction: float = Field(0.2, ge=0.0, lt=1.0)
-    # the real windows' share of the validation loss that selects the epoch; None weighs by window count, where
-    # the 4,096 simulated windows outweigh a few hundred real ones and a fine-tune that gains on real data but
-    # grows less sure on simulated data returns its warm start unchanged
-    real_val_weight: float | None = Field(None, gt=0.0, lt=1.0)
-    sample_rate_hz: float = 60.0
-    cutoff_hz: float = 10.0
-    filter_order: int = 8
-
-
-class TrainConfig(_Strict):
-    batch_size: int = 256  # Table A1
-    lr: float = 1e-3  # Table A1, Adam
-    weight_decay: float = 1e-4  # Table A1, L2 factor
-    keep_prob: float = 0.8  # Table A1, input dropout keep probability
-    hidden: int = 128
-    channels: int = 64
-    kernel: int = 16
-    # rotate each window into its own canonical frame first (training.models.CanonicalFrame; not in the paper)
-    canonical_frame: bool = False
-    # assignment: average the class probabilities over the window turned by 0/90/180/270° about the sensor's z
-    # axis (training.models.AssignmentNet; not in the paper): the same weights, 4× the compute
-    quarter_turns: bool = False
-    # assignment: also average over the window turned by 360°/n about its mean specific force (the limb's long
-    # axis, eq. 8's θ₂; training.models.AssignmentNet; not in the paper): n × the compute; 1 = off
-    gravity_turns: int = Field(default=1, ge=1)
-    # assignment: the classes that take their probability from the turns about gravity (None: all); the others use
-    # the window's own quarter turns (training.models.AssignmentNet; the legs, whose long axis is near gravity)
-    gravity_turn_segments: list[str] | None = None
-    # alignment: turn these segments' predicted frames about their z onto the axes the window's motion defines
-    # (training.models.FunctionalAxes; not in the paper): the flexion axis (y) of the legs and feet, the
-    # direction of travel (x) of the pelvis
-    functional_axes: list[str] | None = None
-    # alignment loss: sign-invariant quaternion distance, or the paper's L2 on the stereographic projection
-    alignment_loss: Literal["quaternion", "stereographic_l2"] = "quaternion"
-    grad_clip_norm: float | None = None  # clip the global gradient norm (stabilises the LSTM)
-    steps_per_epoch: int = 100  # windows are drawn fresh; an "epoch" is this many batches
-    max_epochs: int = 20
-    patience: int = 5  # early stopping on validation loss
-    val_windows: int = 4096
-    threads: int = 2
-    # where the network trains: "cpu", or "cuda" on a GPU machine (training.cli fit); the exported graph is the same
-    device: str = "cpu"
-    # processes that simulate batches ahead of the optimiser (torch DataLoader); 0 draws them in the training
-    # process, as every run before this option did. Each worker has its own seeded generator, so a run is
-    # reproducible for a given worker count, but differs between counts.
-    loader_workers: int = 0
-    init_from_run: str | None = None  # MLflow run id whose checkpoint warm-starts training (pre-training)
-    init_from_onnx: str | None = None  # or a shipped float32 model dir (onnx_models/<name>/<version>)
-    # assignment: average the class probabilities of these shipped float32 models (onnx_models/<name>/<version>),
-    # each with its own turn averages (training.models.AssignmentEnsemble; not in the paper); assembled, not
-    # trained: needs max_epochs 0, and takes no init_from_* and no turn averages of its own
-    ensemble_of: list[str] | None = None
-    max_minutes: float | None = None  # wall-time budget; stops after the epoch that crosses it
-    # which weights a run returns: "best", those of the epoch with the lowest validation loss (the warm start counts
-    # as epoch 0) with early stopping after ``patience`` epochs; "last", those of the final epoch, for a fixed budget
-    # (max_epochs or max_minutes): to compare augmentations that the validation set, drawn without them, would
-    # judge against (a warm start never sees them and so wins on it)
-    keep: Literal["best", "last"] = "best"
-    # exponential moving average of the weights (and batch-norm statistics) after every step, decay per step;
-    # validation, early stopping and the returned model use the average (None: the raw weights, as before)
-    ema_decay: float | None = Field(default=None, ge=0.0, lt=1.0)
-
-    @model_validator(mode="after")
-    def _loss_fits_the_net(self) -> TrainConfig:
-        if self.canonical_frame and self.alignment_loss == "stereographic_l2":
-            raise ValueError(
-                "alignment_loss stereographic_l2 regresses p in the sensor frame; it needs canonical_frame false"
-            )
-        return self
-
-    @model_validator(mode="after")
-    def _an_ensemble_is_assembled(self) -> TrainConfig:
-        if self.ensemble_of is None:
-            return self
-        own = {
-            "max_epochs": self.max_epochs != 0,
-            "init_from_run": self.init_from_run is not None,
-            "init_from_onnx": self.init_from_onnx is not None,
-            "quarter_turns": self.quarter_turns,
-            "gravity_turns": self.gravity_turns != 1,
-            "canonical_frame": self.canonical_frame,
-        }
-        if len(self.ensemble_of) < 2 or any(own.values()):
-            raise ValueError(
-                "ensemble_of assembles two or more shipped models as they are: it needs max_epochs 0 and no "
-                f"init_from_*, turn averages or canonical frame of its own; got {len(self.ensemble_of)} members "
-                f"and {[k for k, v in own.items() if v]}"
-            )
-        return self
-
-    @model_validator(mode="after")
-    def _quarter_turns_need_an_invariant_task(self) -> TrainConfig:
-        if self.quarter_turns and self.canonical_frame:
-            raise ValueError("quarter_turns averages over sensor rotations the canonical frame already removes")
-        if self.gravity_turns > 1 and self.canonical_frame:
-            raise ValueError("gravity_turns averages over turns about gravity that the canonical frame already removes")
-        if self.gravity_turn_segments is not None:
-            unknown = sorted(set(self.gravity_turn_segments) - set(SEGMENTS))
-            if unknown or not self.gravity_turn_segments or self.gravity_turns == 1:
-                raise ValueError(
-                    f"gravity_turn_segments needs gravity_turns > 1 and some of {list(SEGMENTS)}; "
-                    f"got gravity_turns={self.gravity_turns}, unknown names {unknown}"
-                )
-        if self.functional_axes is not None:
-            unknown = sorted(set(self.functional_axes) - set(SEGMENTS))
-            if unknown or not self.functional_axes:
-                raise ValueError(f"functional_axes must be some of {list(SEGMENTS)}; unknown names {unknown}")
-        return self
-
-
-class TrackingConfig(_Strict):
+class TrackingConfig(Strict):
     experiment: str = "i2s"
     registered_model: str | None = None  # defaults to the experiment name of the config
 
@@ -153,22 +31,8 @@ def flatten(d: dict, prefix: str = "") -> dict[str, object]:
     return out
 
 
-class ExperimentConfig(_Strict):
-    name: str
-    task: Literal["assignment", "alignment"]
-    seed: int = 0
-    data: DataConfig = Field(default_factory=DataConfig)
-    augmentation: Augmentation = Field(default_factory=Augmentation)
-    train: TrainConfig = Field(default_factory=TrainConfig)
-    tracking: TrackingConfig = Field(default_factory=TrackingConfig)
-
-    @property
-    def registered_model(self) -> str:
-        return self.tracking.registered_model or self.name
-
-
-def load_config(path: str | Path, overrides: list[str] | None = None) -> ExperimentConfig:
-    """Read a YAML config; ``overrides`` are ``dotted.key=yaml_value`` strings (e.g. ``train.max_epochs=2``)."""
+def read_yaml(path: str | Path, overrides: list[str] | None = None) -> dict:
+    """A YAML config as a dict; ``overrides`` are ``dotted.key=yaml_value`` strings (e.g. ``train.max_epochs=2``)."""
     raw = yaml.safe_load(Path(path).read_text())
     for item in overrides or []:
         key, _, value = item.partition("=")
@@ -177,4 +41,4 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> Experim
         for p in parents:
             node = node.setdefault(p, {})
         node[leaf] = yaml.safe_load(value)
-    return ExperimentConfig.model_validate(raw)
+    return raw

@@ -38,7 +38,7 @@ def turns_about_vertical(windows: np.ndarray, within_deg: float = 45.0) -> np.nd
 
     A label-free description of what a window contains: in gait the legs and feet swing about their flexion axis,
     which is horizontal, and the training clips are gait, so a leg or foot window that turns about the vertical is
-    outside what the models know. The service returns it per window; ``training.evaluate.evaluate_real`` reports
+    outside what the models know. The service returns it per window; ``training.i2s.evaluate.evaluate_real`` reports
     the share per recording. (The pelvis turns about the vertical in gait too.)
     """
     if not len(windows):

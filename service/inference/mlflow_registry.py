@@ -8,7 +8,7 @@ The service does not import mlflow: it speaks the tracking server's REST API (st
    (``mlflow-artifacts:/…`` locations, ``mlflow server`` with artifact serving, the default) or from disk
    (``file:`` or plain paths, a store on this machine or a shared volume).
 
-The manifest travels inside ``MLmodel`` (``metadata.wearmocap_manifest``, written by ``training.pipeline`` when
+The manifest travels inside ``MLmodel`` (``metadata.wearmocap_manifest``, written by ``training.i2s.pipeline`` when
 it logs the model). The files land in ``<cache>/<name>/<version>/`` and are then loaded like a shipped model,
 with the same sha256 and input/output checks.
 """

@@ -114,7 +114,7 @@ def test_functional_frames_on_real_walking_are_small_turns_and_a_fixed_point(dat
     """On real walking the functional frames sit within 25° of the geometric ones (measured 0-19°, the feet
     most), and computing them again from the corrected frames changes nothing for the legs and the pelvis."""
     from service.core.skeleton import functional_correction, functional_frames
-    from training.data.mocap import geometric_trajectories
+    from training.i2s.data.mocap import geometric_trajectories
 
     entry = next(e for e in read_catalog(data_dir) if e.path == path)
     corrected, corr = functional_frames(geometric_trajectories(data_dir / path, entry))

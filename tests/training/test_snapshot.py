@@ -14,7 +14,7 @@ from mlflow.tracking import MlflowClient
 
 from service.core.manifest import read_manifest
 from service.inference.registry import version_key
-from training.pipeline import register_run
+from training.i2s.pipeline import register_run
 from training.snapshot import RESTORED_TAG, export_snapshot, local_run_id, restore_if_empty, restore_snapshot
 from training.tracking import default_tracking_uri
 

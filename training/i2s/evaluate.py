@@ -18,10 +18,10 @@ from service.core.assignment import is_moving, joint_assignment, turns_about_ver
 from service.core.recordings import RealRecording
 from service.core.segments import BODY_PART, SEGMENTS
 from service.core.windowing import sliding_windows
-from training.data.imu_sim import LEG_CHAIN
-from training.data.mocap import Clip, as_recorded, braced_side
-from training.data.windows import Augmentation, Batch, grid_batches
-from training.metrics import alignment_metrics, assignment_metrics, confusion_matrix
+from training.i2s.data.imu_sim import LEG_CHAIN
+from training.i2s.data.mocap import Clip, as_recorded, braced_side
+from training.i2s.data.windows import Augmentation, Batch, grid_batches
+from training.i2s.metrics import alignment_metrics, assignment_metrics, confusion_matrix
 
 Predict = Callable[[np.ndarray], np.ndarray]
 
@@ -232,7 +232,7 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
     - Uprightness (upper and lower legs): over a 2 s window of gait the mean specific force is near the
       leg's long axis, so R_segment_imu · mean(acc) should point near the segment's +z. Reported: its angle
       from +z. The true alignment of a sensor simulated from CMU walking reads about 19° (the shank leans
-      during gait; tests/training/test_evaluate.py), one 90° off about x reads about 97°. Rotation about z
+      during gait; tests/training/i2s/test_evaluate.py), one 90° off about x reads about 97°. Rotation about z
       (the long axis) does not show here.
     - Foot flat (feet): the functional foot frame's z is "up" while the foot is flat (``functional_correction``:
       the slowest quarter of its samples, pitch only). The sensor's own up over its slowest quarter of samples
@@ -327,8 +327,8 @@ def population_offset_baseline(
     """
     import torch  # training-side only: the canonical frame is the graph's own torch code
 
-    from training.data.windows import WindowSampler
-    from training.models import CanonicalFrame
+    from training.i2s.data.windows import WindowSampler
+    from training.i2s.models import CanonicalFrame
 
     def canonical(batch: Batch) -> np.ndarray:
         return CanonicalFrame()(torch.from_numpy(batch.imu).double()).numpy()

@@ -10,8 +10,8 @@ import torch
 
 from service.core.manifest import read_manifest
 from service.inference.registry import version_key
-from training.models import AlignmentNet, AssignmentNet
-from training.warmstart import (
+from training.i2s.models import AlignmentNet, AssignmentNet
+from training.i2s.warmstart import (
     assignment_ensemble,
     averaging_options,
     ensemble_members,
@@ -19,7 +19,7 @@ from training.warmstart import (
     warm_start_from_shipped,
 )
 
-SHIPPED = Path(__file__).resolve().parents[2] / "onnx_models" / "i2s_assignment"
+SHIPPED = Path(__file__).resolve().parents[3] / "onnx_models" / "i2s_assignment"
 SHIPPED_ALIGNMENT = SHIPPED.parent / "i2s_alignment"
 
 
@@ -110,9 +110,9 @@ def test_an_ensemble_is_refused_with_its_members_named() -> None:
 
 
 def test_an_ensemble_is_assembled_not_trained() -> None:
-    from training.config import load_config
+    from training.i2s.config import load_config
 
-    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_assignment.yaml"
+    config = Path(__file__).resolve().parents[3] / "training/configs/i2s_assignment.yaml"
     members = "train.ensemble_of=[onnx_models/i2s_assignment/1.6.0,onnx_models/i2s_assignment/1.8.0]"
     assert load_config(config, [members, "train.max_epochs=0"]).train.ensemble_of
     for extra in ("train.max_epochs=3", "train.quarter_turns=true", "train.init_from_run=abc"):
@@ -129,15 +129,15 @@ def test_an_ensemble_must_hold_its_members_real_training_recordings_out_of_evalu
     import json
     import shutil
 
-    from training.config import load_config
-    from training.pipeline import _members_real_recordings_are_held_out_of_evaluation
+    from training.i2s.config import load_config
+    from training.i2s.pipeline import _members_real_recordings_are_held_out_of_evaluation
 
     member = tmp_path / "i2s_assignment" / "9.9.9"
     shutil.copytree(SHIPPED / "1.8.0", member)
     manifest = json.loads((member / "manifest.json").read_text())
     manifest["training_data"]["real_train_recordings"] = ["ximu3_lowerbody"]
     (member / "manifest.json").write_text(json.dumps(manifest))
-    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_assignment.yaml"
+    config = Path(__file__).resolve().parents[3] / "training/configs/i2s_assignment.yaml"
     members = f"train.ensemble_of=[onnx_models/i2s_assignment/1.6.0,{member}]"
     with pytest.raises(ValueError, match=r"trained on the real recordings \['ximu3_lowerbody'\]"):
         _members_real_recordings_are_held_out_of_evaluation(load_config(config, [members, "train.max_epochs=0"]))
@@ -148,14 +148,14 @@ def test_an_ensemble_must_hold_its_members_real_training_recordings_out_of_evalu
 def test_the_warm_start_competes_as_epoch_zero(data_dir: Path, kinematics_cache: Path) -> None:
     """Fine-tuning that never beats the warm-start weights on validation returns them unchanged (best epoch 0);
     an epoch that does beat them is kept. A learning rate of 1 wrecks the shipped weights in two steps."""
-    from training.config import load_config
     from training.data.catalog import mocap_entries
-    from training.data.mocap import build_kinematics
-    from training.train import train
+    from training.i2s.config import load_config
+    from training.i2s.data.mocap import build_kinematics
+    from training.i2s.train import train
 
     entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"][:3]
     clips = build_kinematics(data_dir, entries, kinematics_cache)
-    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_assignment.yaml"
+    config = Path(__file__).resolve().parents[3] / "training/configs/i2s_assignment.yaml"
     tiny = ["train.steps_per_epoch=2", "train.val_windows=256", "train.batch_size=64", "train.threads=2"]
     net = AssignmentNet()
     init = warm_start_from_shipped(_float32(), net)
@@ -173,10 +173,10 @@ def test_fit_fine_tunes_a_shipped_alignment_file(data_dir: Path, kinematics_cach
     from typer.testing import CliRunner
 
     from training.cli import app
-    from training.config import load_config
-    from training.data.split import load_clips, save_pack
+    from training.i2s.config import load_config
+    from training.i2s.data.split import load_clips, save_pack
 
-    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_alignment.yaml"
+    config = Path(__file__).resolve().parents[3] / "training/configs/i2s_alignment.yaml"
     shipped = SHIPPED_ALIGNMENT / "3.0.0"
     overrides = [
         "data.activities=[walk]",

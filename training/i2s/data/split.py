@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from service.core.recordings import RealRecording, RealSensor
-from training.config import ExperimentConfig
 from training.data.catalog import CatalogEntry, mocap_entries
-from training.data.imu_sim import SegmentKinematics
-from training.data.mocap import Clip, KinematicsParams, as_recorded, build_kinematics, stiff_knee_variants
+from training.i2s.config import ExperimentConfig
+from training.i2s.data.imu_sim import SegmentKinematics
+from training.i2s.data.mocap import Clip, KinematicsParams, as_recorded, build_kinematics, stiff_knee_variants
 
 _KIN_FIELDS = [f.name for f in dataclasses.fields(SegmentKinematics) if f.name != "sample_rate_hz"]
 

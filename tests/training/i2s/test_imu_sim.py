@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from service.core.skeleton import SegmentTrajectories
-from training.data.imu_sim import (
+from training.i2s.data.imu_sim import (
     ALIGNMENT_AXES,
     SensorSpec,
     alignment_grid,
@@ -100,7 +100,7 @@ def test_mirrored_kinematics_are_those_of_the_mirrored_mocap(data_dir) -> None:
     from service.core.kinematics import GlobalPoses, forward_kinematics
     from service.core.skeleton import SkeletonMap, functional_frames, segment_trajectories, skeleton_map_for
     from training.data.catalog import METRES_PER_UNIT, mocap_entries
-    from training.data.imu_sim import mirrored
+    from training.i2s.data.imu_sim import mirrored
 
     entry = next(e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07")
     poses = forward_kinematics(read_bvh(data_dir / entry.path), METRES_PER_UNIT[entry.source])
@@ -122,7 +122,7 @@ def test_mirrored_kinematics_are_those_of_the_mirrored_mocap(data_dir) -> None:
 def _walk_trajectory(data_dir, frames: int = 600):
     from service.core.skeleton import functional_frames
     from training.data.catalog import mocap_entries
-    from training.data.mocap import geometric_trajectories
+    from training.i2s.data.mocap import geometric_trajectories
 
     entry = next(e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07")
     traj, _ = functional_frames(geometric_trajectories(data_dir / entry.path, entry))
@@ -134,7 +134,7 @@ def _walk_trajectory(data_dir, frames: int = 600):
 def test_a_braced_knee_keeps_the_leg_rigid_and_the_rest_of_the_body_as_recorded(data_dir) -> None:
     """``stiffened_knee``: with keep 0 the shank turns with the thigh, the foot stays rigid on the shank, the bone
     lengths hold and the other segments are untouched; with keep 1 nothing changes."""
-    from training.data.imu_sim import stiffened_knee
+    from training.i2s.data.imu_sim import stiffened_knee
 
     traj = _walk_trajectory(data_dir)
     same = stiffened_knee(traj, "left", 1.0)
@@ -163,7 +163,7 @@ def test_a_braced_knee_keeps_the_leg_rigid_and_the_rest_of_the_body_as_recorded(
 
 
 def test_soft_tissue_motion_has_the_asked_size_and_its_rate_is_its_derivative() -> None:
-    from training.data.imu_sim import SoftTissue, soft_tissue_motion
+    from training.i2s.data.imu_sim import SoftTissue, soft_tissue_motion
 
     rng = np.random.default_rng(0)
     t = (np.arange(128) / RATE)[None, :, None]
@@ -187,7 +187,7 @@ def test_soft_tissue_motion_has_the_asked_size_and_its_rate_is_its_derivative() 
 
 
 def test_a_sensor_turned_on_its_segment_reads_the_turned_vectors_and_the_added_rate() -> None:
-    from training.data.imu_sim import with_soft_tissue
+    from training.i2s.data.imu_sim import with_soft_tissue
 
     rng = np.random.default_rng(1)
     acc_s, gyr_s = rng.normal(size=(2, 5, 3)), rng.normal(size=(2, 5, 3))
@@ -205,8 +205,8 @@ def test_the_sampler_turns_thigh_sensors_on_their_segment_more_than_foot_sensors
     """The same windows with and without the soft-tissue artefact (no noise, no displacement): the specific
     force keeps its size, turns by up to the configured angle, and turns more on the thighs than on the feet."""
     from training.data.catalog import mocap_entries
-    from training.data.mocap import build_kinematics
-    from training.data.windows import Augmentation, WindowSampler
+    from training.i2s.data.mocap import build_kinematics
+    from training.i2s.data.windows import Augmentation, WindowSampler
 
     clips = build_kinematics(data_dir, mocap_entries(data_dir, ["walk"])[:3], kinematics_cache)
     quiet = dict(acc_noise_std_mps2=0.0)

@@ -14,9 +14,9 @@ from service.core.recordings import RealRecording, RealSensor
 from service.core.segments import SEGMENTS
 from service.core.windowing import sliding_windows
 from training.data.catalog import mocap_entries
-from training.data.imu_sim import alignment, imu_readings
-from training.data.mocap import build_kinematics
-from training.evaluate import evaluate_real, evaluate_real_alignment
+from training.i2s.data.imu_sim import alignment, imu_readings
+from training.i2s.data.mocap import build_kinematics
+from training.i2s.evaluate import evaluate_real, evaluate_real_alignment
 
 SEGMENT = SEGMENTS.index("LeftLowerLeg")
 
@@ -99,7 +99,7 @@ def test_declared_worn_segments_keep_a_favourite_that_no_sensor_wears_out(record
 
 
 def test_body_joint_assignment_resolves_each_body_and_skips_a_cut_one() -> None:
-    from training.evaluate import body_joint_assignment
+    from training.i2s.evaluate import body_joint_assignment
 
     eye = np.eye(len(SEGMENTS))
     favourite = np.log(np.clip(0.5 * eye + 0.5 / len(SEGMENTS), 1e-12, 1))  # row k favours class k
@@ -114,8 +114,8 @@ def test_body_joint_assignment_resolves_each_body_and_skips_a_cut_one() -> None:
 def test_simulated_window_joint_accuracy_gets_no_help_from_row_order(data_dir: Path, kinematics_cache) -> None:
     """A model that answers the same for every window gives one-to-one answers decided by ties: a body's rows are
     shuffled before they are assigned, so about one in seven is right, as for a guess."""
-    from training.data.windows import Augmentation
-    from training.evaluate import evaluate_simulated
+    from training.i2s.data.windows import Augmentation
+    from training.i2s.evaluate import evaluate_simulated
 
     entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"][:1]
     clips = build_kinematics(data_dir, entries, kinematics_cache)
@@ -206,8 +206,8 @@ def test_population_offset_baseline_is_small_on_its_own_subject_and_across_subje
     reads under 2° (measured 0.6°). Fitted on another subject it reads 2.5° with the functional segment frames
     (``service.core.skeleton.functional_correction``); with the geometric frames alone it read 6.6°, the offset
     between a subject's skeleton-fitted frames and its motion being the subject's own."""
-    from training.data.windows import Augmentation
-    from training.evaluate import population_offset_baseline
+    from training.i2s.data.windows import Augmentation
+    from training.i2s.evaluate import population_offset_baseline
 
     walks = mocap_entries(data_dir, ["walk"])
     own = build_kinematics(data_dir, [e for e in walks if e.group == "cmu_07"][:2], kinematics_cache)
@@ -224,9 +224,9 @@ def test_the_braced_knee_evaluation_scores_the_braced_shank_and_foot_only(data_d
     """A model that answers LeftLowerLeg for everything is right on exactly the left-braced shanks: a quarter of
     the scored windows (shank and foot of each braced leg, both legs braced once per clip)."""
     from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES
-    from training.data.mocap import stiff_knee_variants
-    from training.data.windows import Augmentation
-    from training.evaluate import evaluate_braced_knees
+    from training.i2s.data.mocap import stiff_knee_variants
+    from training.i2s.data.windows import Augmentation
+    from training.i2s.evaluate import evaluate_braced_knees
 
     entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"][:1]
     variants = stiff_knee_variants(
@@ -262,9 +262,9 @@ def test_evaluate_csv_scores_ones_own_files_as_the_reader_does(data_dir: Path, t
 
     from service.core.recordings import read_recording
     from training.cli import app
-    from training.evaluate import onnx_predictor
+    from training.i2s.evaluate import onnx_predictor
 
-    models = Path(__file__).resolve().parents[2] / "onnx_models"
+    models = Path(__file__).resolve().parents[3] / "onnx_models"
     rec = read_recording(data_dir, "gaitmap_foot/imu_sample_ic_stride")
     args = ["evaluate-csv", "--rate", "60", "--acc-unit", "g", "--gyr-unit", "deg/s", "--skip-columns", "1"]
     args += ["--models", str(models), "--assignment", "1.8.0"]

@@ -4,12 +4,12 @@ from pathlib import Path
 
 import torch
 
-from training.config import load_config
 from training.data.catalog import mocap_entries
-from training.data.mocap import build_kinematics
-from training.train import build_model, train
+from training.i2s.config import load_config
+from training.i2s.data.mocap import build_kinematics
+from training.i2s.train import build_model, train
 
-CONFIG = Path(__file__).resolve().parents[2] / "training/configs/i2s_assignment.yaml"
+CONFIG = Path(__file__).resolve().parents[3] / "training/configs/i2s_assignment.yaml"
 TINY = ["train.steps_per_epoch=1", "train.max_epochs=1", "train.val_windows=128", "train.batch_size=64"]
 
 

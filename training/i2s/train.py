@@ -20,12 +20,13 @@ from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm import tqdm
 
-from training.config import ExperimentConfig, flatten
-from training.data.mocap import Clip
-from training.data.split import recordings_digest
-from training.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, concat_batches
-from training.models import AlignmentNet, AssignmentNet
-from training.warmstart import assignment_ensemble
+from training.config import flatten
+from training.i2s.config import ExperimentConfig
+from training.i2s.data.mocap import Clip
+from training.i2s.data.split import recordings_digest
+from training.i2s.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, concat_batches
+from training.i2s.models import AlignmentNet, AssignmentNet
+from training.i2s.warmstart import assignment_ensemble
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ from service.core.assignment import is_moving
 from service.core.recordings import RealRecording
 from service.core.rotations import quat_from_matrix
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES, sliding_windows
-from training.data.imu_sim import (
+from training.i2s.data.imu_sim import (
     SOFT_TISSUE_SHARE,
     SensorSpec,
     SoftTissue,
@@ -32,10 +32,10 @@ from training.data.imu_sim import (
     soft_tissue_motion,
     with_soft_tissue,
 )
-from training.data.mocap import Clip
+from training.i2s.data.mocap import Clip
 
-if TYPE_CHECKING:  # training.config imports this module (Augmentation)
-    from training.config import ExperimentConfig
+if TYPE_CHECKING:  # training.i2s.config imports this module (Augmentation)
+    from training.i2s.config import ExperimentConfig
 
 N_SEGMENTS = 7
 _MAX_MOVING_ROUNDS = 20  # moving_only: batches drawn before giving up on a nearly still clip set

@@ -24,8 +24,8 @@ from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantTy
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from service.core.manifest import read_manifest, sha256_file, write_manifest
-from training.config import ExperimentConfig
-from training.data.windows import WindowSampler
+from training.i2s.config import ExperimentConfig
+from training.i2s.data.windows import WindowSampler
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +47,7 @@ class _Windows(CalibrationDataReader):
 
 def calibration_windows(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, n: int) -> np.ndarray:
     """``n`` simulated windows of the *training* subjects, with the run's own augmentations."""
-    from training.data.split import load_clips, split_clips
+    from training.i2s.data.split import load_clips, split_clips
 
     train, _, _ = split_clips(
         load_clips(cfg, data_dir, cache_dir), cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed
@@ -83,7 +83,7 @@ def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray, rnn: bool) -> s
 def ship_int8(src_dir: Path, version: str, data_dir: Path, cache_dir: Path, n_calibration: int, rnn: bool) -> Path:
     """``onnx_models/<name>/<src version>`` → ``onnx_models/<name>/<version>`` with an int8 model, its manifest
     (new sha256, the quantisation recorded, evaluations cleared until ``training.cli evaluate`` runs) and golden."""
-    from training.ship import load_run_config
+    from training.i2s.ship import load_run_config
 
     manifest = read_manifest(src_dir / "manifest.json")
     cfg = ExperimentConfig.model_validate(load_run_config(manifest.mlflow["run_id"]))

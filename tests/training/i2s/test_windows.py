@@ -11,13 +11,13 @@ import pytest
 from service.core.assignment import is_moving
 from service.core.recordings import read_recording
 from service.core.rotations import matrix_from_quat
-from training.config import load_config
 from training.data.catalog import mocap_entries
-from training.data.mocap import build_kinematics
-from training.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, grid_batches
-from training.train import train
+from training.i2s.config import load_config
+from training.i2s.data.mocap import build_kinematics
+from training.i2s.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, grid_batches
+from training.i2s.train import train
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 @pytest.fixture(scope="module")
@@ -121,9 +121,9 @@ def test_stiff_knee_variants_follow_their_clip_and_take_their_share(
 ) -> None:
     """Two variants per walking clip (left and right knee braced), rebuilt identically from the cache; in the
     LOSO split they go where their recorded clip goes and never into the test set; draws give them their share."""
-    from training.data.mocap import braced_side, stiff_knee_variants
-    from training.data.split import load_pack, save_pack, split_clips
-    from training.data.windows import _draw_probabilities
+    from training.i2s.data.mocap import braced_side, stiff_knee_variants
+    from training.i2s.data.split import load_pack, save_pack, split_clips
+    from training.i2s.data.windows import _draw_probabilities
 
     entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group in ("cmu_07", "cmu_05", "cmu_02")]
     clips = build_kinematics(data_dir, entries, kinematics_cache)
@@ -169,7 +169,7 @@ def test_real_val_weight_sets_the_real_share_of_the_loss_that_selects_the_epoch(
     real one, so the two losses differ and each weighting has one answer."""
     import torch
 
-    from training.train import _validation
+    from training.i2s.train import _validation
 
     class AlwaysFirst(torch.nn.Module):
         def forward(self, imu: torch.Tensor) -> torch.Tensor:

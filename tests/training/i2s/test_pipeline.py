@@ -15,13 +15,13 @@ from benchmarks.servers import start_mlflow_server, start_service, stop
 from service.core.manifest import read_manifest, write_manifest
 from service.core.segments import SEGMENTS
 from service.inference.registry import load_models, load_registry_models
-from training.config import load_config
-from training.data.mocap import KINEMATICS_VERSION
-from training.pipeline import run_training
-from training.ship import export_run
+from training.i2s.config import load_config
+from training.i2s.data.mocap import KINEMATICS_VERSION
+from training.i2s.pipeline import run_training
+from training.i2s.ship import export_run
 from training.tracking import record_evaluation
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 TINY = [
     "data.activities=[walk]",
     "data.test_subjects=[cmu_07]",
@@ -153,9 +153,9 @@ def test_a_training_fitted_elsewhere_is_tracked_here_and_only_with_its_own_confi
     from typer.testing import CliRunner
 
     from training.cli import app
-    from training.data.mocap import dataset_digest
-    from training.data.split import load_clips, load_pack, recordings_digest, save_pack, split_clips
-    from training.train import load_fitted
+    from training.i2s.data.mocap import dataset_digest
+    from training.i2s.data.split import load_clips, load_pack, recordings_digest, save_pack, split_clips
+    from training.i2s.train import load_fitted
 
     overrides = TINY + ["tracking.experiment=test-fitted"]
     cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", overrides)
@@ -200,10 +200,10 @@ def test_fit_mixes_in_the_real_recordings_its_pack_carries_and_is_tracked_only_w
 
     from service.core.recordings import read_recording
     from training.cli import app
-    from training.data.mocap import dataset_digest
-    from training.data.split import load_clips, load_pack_recordings, recordings_digest, split_clips
-    from training.data.windows import RealWindowSampler
-    from training.train import load_fitted
+    from training.i2s.data.mocap import dataset_digest
+    from training.i2s.data.split import load_clips, load_pack_recordings, recordings_digest, split_clips
+    from training.i2s.data.windows import RealWindowSampler
+    from training.i2s.train import load_fitted
 
     config = REPO / "training/configs/i2s_assignment.yaml"
     name = "capacitive_sub01/CSBaseline"
@@ -259,7 +259,7 @@ def test_real_loso_holds_each_source_out_once_and_pools_its_windows(
     """Three real sources, three fold runs: each trains on the other sources' recordings only and is scored on
     its own; the summary's pooled figures are the window-weighted means of the folds' held-out figures."""
     from service.core.recordings import read_all_real
-    from training.pipeline import HELD_OUT_METRICS, run_real_loso
+    from training.i2s.pipeline import HELD_OUT_METRICS, run_real_loso
 
     cfg = load_config(
         REPO / "training/configs/i2s_assignment.yaml",

@@ -11,10 +11,17 @@ from scipy.spatial.transform import Rotation
 
 from service.core.segments import SEGMENTS
 from training.data.catalog import mocap_entries
-from training.data.mocap import build_kinematics
-from training.data.windows import Augmentation, WindowSampler
-from training.export import export_onnx, golden_pair, onnx_parity
-from training.models import AlignmentNet, AssignmentNet, CanonicalFrame, FunctionalAxes, quat_from_matrix, rotate_imu
+from training.i2s.data.mocap import build_kinematics
+from training.i2s.data.windows import Augmentation, WindowSampler
+from training.i2s.export import export_onnx, golden_pair, onnx_parity
+from training.i2s.models import (
+    AlignmentNet,
+    AssignmentNet,
+    CanonicalFrame,
+    FunctionalAxes,
+    quat_from_matrix,
+    rotate_imu,
+)
 
 
 def _moving_windows(n: int, seed: int = 0) -> torch.Tensor:
@@ -240,9 +247,9 @@ def test_functional_axes_alignment_net_onnx_parity(tmp_path: Path) -> None:
 def test_the_papers_stereographic_loss_is_refused_with_a_canonical_frame() -> None:
     from pydantic import ValidationError
 
-    from training.config import load_config
+    from training.i2s.config import load_config
 
-    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_alignment.yaml"
+    config = Path(__file__).resolve().parents[3] / "training/configs/i2s_alignment.yaml"
     with pytest.raises(ValidationError, match="needs canonical_frame false"):
         load_config(config, ["train.alignment_loss=stereographic_l2"])
     assert load_config(config, ["train.alignment_loss=stereographic_l2", "train.canonical_frame=false"])
@@ -251,7 +258,7 @@ def test_the_papers_stereographic_loss_is_refused_with_a_canonical_frame() -> No
 def test_quarter_turns_are_exact_sensor_rotations_and_the_average_is_invariant(tmp_path: Path) -> None:
     """_quarter_turn(k) is the reading of a sensor turned k · 90° about its z; averaging over the four makes the
     class probabilities invariant to those turns for any weights (the plain net is not), and it exports."""
-    from training.models import _quarter_turn
+    from training.i2s.models import _quarter_turn
 
     imu = _moving_windows(8, seed=7)
     for k in range(4):
@@ -282,7 +289,7 @@ def test_gravity_turns_rotate_about_the_mean_specific_force_and_the_average_is_i
     """turned_about_gravity(n)[j] is the window rotated by j · 360°/n about its own mean specific force (which it
     leaves fixed); with the quarter turns too, the average over all 4n passes is invariant to either kind of
     turn, for any weights (the plain net is not), and it exports with the class dimension fixed."""
-    from training.models import _quarter_turn, turned_about_gravity
+    from training.i2s.models import _quarter_turn, turned_about_gravity
 
     imu = _moving_windows(8, seed=3)
     axis = imu[..., :3].mean(1).numpy()
@@ -317,7 +324,7 @@ def test_gravity_turn_segments_mix_the_two_averages_per_class(tmp_path: Path) ->
     """With gravity_turn_segments the named classes take the 4n-pass average and the others the window's own
     quarter turns, renormalised; the mixture stays exactly invariant to the quarter turns, the leg classes keep
     their invariance to the turns about gravity, and the graph exports with the class dimension fixed."""
-    from training.models import _quarter_turn, turned_about_gravity
+    from training.i2s.models import _quarter_turn, turned_about_gravity
 
     legs = ["LeftLowerLeg", "LeftUpperLeg", "RightUpperLeg", "RightLowerLeg"]
     is_leg = torch.tensor([s in legs for s in SEGMENTS])
@@ -359,9 +366,9 @@ def test_gravity_turn_segments_mix_the_two_averages_per_class(tmp_path: Path) ->
 def test_quarter_turns_and_the_canonical_frame_are_refused_together() -> None:
     from pydantic import ValidationError
 
-    from training.config import load_config
+    from training.i2s.config import load_config
 
-    config = Path(__file__).resolve().parents[2] / "training/configs/i2s_assignment.yaml"
+    config = Path(__file__).resolve().parents[3] / "training/configs/i2s_assignment.yaml"
     with pytest.raises(ValidationError, match="quarter_turns"):
         load_config(config, ["train.quarter_turns=true", "train.canonical_frame=true"])
     with pytest.raises(ValidationError, match="gravity_turns"):

@@ -19,7 +19,7 @@ from service.core.bvh import read_bvh
 from service.core.kinematics import forward_kinematics
 from service.core.skeleton import SegmentTrajectories, functional_frames, segment_trajectories, skeleton_map_for
 from training.data.catalog import METRES_PER_UNIT, CatalogEntry
-from training.data.imu_sim import LEG_CHAIN, SegmentKinematics, segment_kinematics, stiffened_knee
+from training.i2s.data.imu_sim import LEG_CHAIN, SegmentKinematics, segment_kinematics, stiffened_knee
 
 log = logging.getLogger(__name__)
 

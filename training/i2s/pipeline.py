@@ -18,18 +18,19 @@ from mlflow.tracking import MlflowClient
 
 from service.core.manifest import read_manifest
 from service.core.recordings import RealRecording, read_all_real, read_recording
-from training.config import ExperimentConfig, flatten
-from training.data.mocap import KINEMATICS_VERSION, Clip, as_recorded, dataset_digest
-from training.data.split import load_clips, recordings_digest, split_clips
-from training.data.windows import Augmentation, RealWindowSampler, WindowSampler, real_window_samplers
-from training.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
-from training.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
+from training.config import flatten
+from training.i2s.config import ExperimentConfig
+from training.i2s.data.mocap import KINEMATICS_VERSION, Clip, as_recorded, dataset_digest
+from training.i2s.data.split import load_clips, recordings_digest, split_clips
+from training.i2s.data.windows import Augmentation, RealWindowSampler, WindowSampler, real_window_samplers
+from training.i2s.evaluate import evaluate_real, evaluate_real_alignment, evaluate_simulated, onnx_predictor
+from training.i2s.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
+from training.i2s.ship import build_manifest, run_version
+from training.i2s.train import TrainResult, build_model, load_fitted, train
+from training.i2s.warmstart import ensemble_state, warm_start_from_shipped
 from training.plots import confusion_matrix_png, error_boxplot_png, held_out_bars_png, learning_curves_png
-from training.ship import build_manifest, run_version
 from training.snapshot import number_as_in_snapshot
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
-from training.train import TrainResult, build_model, load_fitted, train
-from training.warmstart import ensemble_state, warm_start_from_shipped
 
 log = logging.getLogger(__name__)
 

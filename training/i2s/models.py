@@ -1,6 +1,6 @@
 """The networks of paper 000 §2.2 and Table A1: a shared CNN front end, a GRU for assignment and a
 2-layer LSTM for alignment, plus our optional ``CanonicalFrame`` in front of either (not in the paper; README
-"Canonical frame"). Only the models live here; training is in ``training.train``.
+"Canonical frame"). Only the models live here; training is in ``training.i2s.train``.
 """
 
 from __future__ import annotations
@@ -205,7 +205,7 @@ class AssignmentNet(nn.Module):
         # One pass per turn (not one batch of all turns): a reshape back would leave the exported class dimension
         # symbolic, and the service checks the manifest's [batch, 7] against the graph; one batch was not faster
         # in onnxruntime either (ad-hoc timing, docs/benchmarks.md). The first pass is the window as it came
-        # (training.warmstart reads it).
+        # (training.i2s.warmstart reads it).
         passes = torch.stack([torch.log_softmax(self._logits(_quarter_turn(v, k)), -1) for v in views for k in turns])
         averaged = torch.logsumexp(passes, dim=0) - math.log(len(views) * len(turns))  # log of the mean probability
         if self.gravity_turn_segments is None:
@@ -224,7 +224,7 @@ class AssignmentEnsemble(nn.Module):
     in paper 000). ``forward`` returns the log of the mean probability, as an averaged ``AssignmentNet`` does.
 
     Each member keeps its own turn averages, so the passes are the sum of the members'. It is assembled from
-    shipped members (``train.ensemble_of``, ``training.warmstart``), not trained as a whole: members that learnt
+    shipped members (``train.ensemble_of``, ``training.i2s.warmstart``), not trained as a whole: members that learnt
     different motions (the gait-only 1.6.0, the all-activity 1.8.0) err on different real windows (README "Method").
     """
 

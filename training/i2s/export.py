@@ -10,7 +10,7 @@ import onnxruntime as ort
 import torch
 from torch import nn
 
-from training.models import AlignmentNet, AssignmentEnsemble, AssignmentExport, AssignmentNet
+from training.i2s.models import AlignmentNet, AssignmentEnsemble, AssignmentExport, AssignmentNet
 
 log = logging.getLogger(__name__)
 

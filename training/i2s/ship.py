@@ -19,9 +19,9 @@ from mlflow.tracking import MlflowClient
 from service.core.manifest import Evaluation, Manifest, TensorSpec, read_manifest, sha256_file, write_manifest
 from service.core.segments import SEGMENTS
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
-from training.config import ExperimentConfig
-from training.data.mocap import Clip, KinematicsParams, stiff_knee_variants
-from training.evaluate import (
+from training.i2s.config import ExperimentConfig
+from training.i2s.data.mocap import Clip, KinematicsParams, stiff_knee_variants
+from training.i2s.evaluate import (
     EVAL_SEED,
     evaluate_braced_knees,
     evaluate_real,
@@ -29,7 +29,7 @@ from training.evaluate import (
     evaluate_simulated,
     onnx_predictor,
 )
-from training.export import OPSET, OUTPUT_NAMES, PARITY_ATOL, onnx_parity
+from training.i2s.export import OPSET, OUTPUT_NAMES, PARITY_ATOL, onnx_parity
 from training.plots import confusion_matrix_png
 from training.snapshot import local_run_id
 from training.tracking import record_evaluation
@@ -63,7 +63,7 @@ def run_version(run: mlflow.entities.Run) -> str:
 
 def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str, version: str) -> Manifest:
     """The manifest of a run's ONNX model (DESIGN.md §1): written beside shipped files by ``export_run`` and
-    embedded in the logged MLflow model's metadata by ``training.pipeline`` (for registry serving)."""
+    embedded in the logged MLflow model's metadata by ``training.i2s.pipeline`` (for registry serving)."""
     output, kind = _output_spec(cfg.task)
     mlflow_info = {"run_id": run.info.run_id, "experiment_id": run.info.experiment_id}
     if "model_uri" in run.data.tags:
@@ -179,8 +179,8 @@ def evaluate_shipped(
     model_dir: Path, data_dir: Path, cache_dir: Path, command: str, max_windows: int | None = None
 ) -> Manifest:
     """Evaluate the shipped ONNX file (LOSO simulated fold and, for assignment, real recordings)."""
-    from training.data.split import load_clips, split_clips
-    from training.pipeline import PRIMARY_METRIC, held_out_recordings
+    from training.i2s.data.split import load_clips, split_clips
+    from training.i2s.pipeline import PRIMARY_METRIC, held_out_recordings
 
     manifest = read_manifest(model_dir / "manifest.json")
     run_id = local_run_id(manifest.mlflow["run_id"])  # the manifest keeps the id of the store it was trained in
@@ -247,7 +247,7 @@ def evaluate_shipped(
                 command=command,
                 data="imu_real recordings (no I2S ground truth): per sensor, spread of the predicted alignment over "
                 "its moving windows, and for the legs the angle of the rotated mean specific force from segment +z "
-                "(training.evaluate.evaluate_real_alignment)",
+                "(training.i2s.evaluate.evaluate_real_alignment)",
                 metrics=_headline(real_metrics),
             )
         )

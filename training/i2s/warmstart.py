@@ -18,7 +18,7 @@ import torch
 from onnx import numpy_helper
 
 from service.core.manifest import read_manifest
-from training.models import AlignmentNet, AssignmentEnsemble, AssignmentNet
+from training.i2s.models import AlignmentNet, AssignmentEnsemble, AssignmentNet
 
 # Gate blocks along axis 0: where each torch gate sits in the ONNX layout (torch order, ONNX positions).
 _GRU_GATES = (1, 0, 2)  # ONNX (z, r, h) → torch (r, z, n)

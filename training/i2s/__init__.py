@@ -1,0 +1,1 @@
+"""IMU-to-segment assignment and alignment (Zimmermann et al. 2018)."""

@@ -1,0 +1,1 @@
+"""Simulated and real I2S data: IMU simulation, mocap kinematics cache, splits, windows."""
