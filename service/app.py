@@ -13,10 +13,12 @@ from fastapi.exceptions import RequestValidationError
 
 from service.api.guard import Guard
 from service.api.metrics import ServiceMetrics
+from service.api.pose_routes import router as pose_router
 from service.api.routes import router
 from service.api.stream import router as stream_router
 from service.core.units import UnitError
 from service.inference.batcher import MicroBatcher
+from service.inference.pose import PoseModel
 from service.inference.predict import InputError
 from service.inference.registry import load_models, load_registry_models
 from service.inference.runner import ModelRunner
@@ -38,6 +40,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if task in app.state.models:
                 log.info("registry model %s replaces %s for %s", model.source, app.state.models[task].source, task)
             app.state.models[task] = model
+        app.state.pose_models = {
+            name: PoseModel(m) for name, m in app.state.models.items() if m.manifest.task == "imu_pose"
+        }
         if not app.state.models:
             log.error("no valid model under %s", settings.models_dir.resolve())
         runner = app.state.runner = ModelRunner(
@@ -58,12 +63,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="wearmocap",
         version="0.1.0",
         lifespan=lifespan,
-        description="IMU-to-segment assignment and alignment (paper 000) served with onnxruntime.",
+        description="Wearable motion capture served with onnxruntime: IMU-to-segment assignment and alignment "
+        "(Zimmermann et al. 2018) and whole-body pose from sparse IMUs (Zheng et al. 2021).",
     )
     app.state.metrics = ServiceMetrics()
     app.state.settings = settings
     app.state.models = {}
+    app.state.pose_models = {}
     app.include_router(router)
+    app.include_router(pose_router)
     app.include_router(stream_router)
 
     @app.exception_handler(InputError)

@@ -1,5 +1,6 @@
-"""``wearmocap-train``: thin typer commands over the training library (simulate, train, register,
-export, evaluate, snapshot-export / snapshot-restore, ui). Run ``python -m training.cli --help``.
+"""``wearmocap-train``: thin typer commands over the training library (I2S: simulate, train, register, export,
+evaluate; pose: pose-train, evaluate-pose; snapshot-export / snapshot-restore, ui).
+Run ``python -m training.cli --help``.
 """
 
 from __future__ import annotations
@@ -240,6 +241,103 @@ def evaluate_real_command(
         shown = ("accuracy/", "joint", "window_joint", "real_accuracy", "real_joint", "real_window_joint")
         if key.startswith((*shown, "real_n_windows")):
             typer.echo(f"{key}: {value:.4f}")
+
+
+POSE_CACHE = Path(".cache/pose_motion")
+
+
+@app.command("pose-train")
+def pose_train(
+    config: Path,
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+    overrides: list[str] = Override,
+    ship: bool = typer.Option(False, help="ship the model under onnx_models/<name>/<version>"),
+    version: str | None = typer.Option(None, help="the shipped version (default 0.0.0+<run id>)"),
+    models_dir: Path = typer.Option(Path("onnx_models")),
+) -> None:
+    """Train a pose model (training/configs/pose_*.yaml), evaluate it on validation and held-out subjects,
+    export ONNX, log everything to MLflow and register it."""
+    from training.pose.config import load_pose_config
+    from training.pose.pipeline import run_pose_experiment
+
+    cfg = load_pose_config(config, overrides)
+    out = run_pose_experiment(cfg, resolve_data_dir(data_dir), cache_dir, models_dir if ship else None, version)
+    typer.echo(f"run_id={out['run_id']} shipped={out['shipped']}")
+    for activity, m in out["test"]["activity"].items():
+        base = out["mean_pose"]["activity"][activity]
+        typer.echo(
+            f"{activity:18s} angle {m['angle_unsensed_deg']:6.2f}° (mean pose {base['angle_unsensed_deg']:6.2f}°)  "
+            f"all {m['angle_all_deg']:6.2f}°  SIP {m['sip_deg']:6.2f}°  JPE {m['jpe_cm']:5.2f} cm"
+        )
+
+
+@app.command("pose-acc-check")
+def pose_acc_check(
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+    activity: str = typer.Option("walk", help="the catalogue activity to compare on"),
+) -> None:
+    """Compare the simulated acceleration of the Butterworth + gradient pipeline with TransPose's smoothed finite
+    difference, on CMU and on Bandai-Namco (30 fps, resampled to 60 Hz first)."""
+    import json
+
+    from training.pose.data import build_motions, pose_entries
+    from training.pose.simulate import acceleration_check
+
+    root = resolve_data_dir(data_dir)
+    entries = [e for e in pose_entries(root) if e.activity == activity]
+    typer.echo(json.dumps(acceleration_check(build_motions(root, entries, cache_dir)), indent=1))
+
+
+@app.command("evaluate-pose")
+def evaluate_pose(
+    paths: list[Path] = typer.Argument(None, help="BVH files or folders (default: the held-out subjects)"),
+    model: Path = typer.Option(..., help="a shipped pose model, e.g. onnx_models/pose_full6/1.0.0"),
+    mapping: Path | None = typer.Option(None, help="JSON/YAML mapping of an unknown skeleton onto the body"),
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+    as_json: bool = typer.Option(False, "--json", help="print per clip and overall metrics as JSON"),
+) -> None:
+    """Score a shipped pose model on mocap: simulate its sensors on the clips and report per clip and overall
+    segment-angle error, SIP error, joint-position error and jitter (per activity and subject too)."""
+    import json
+
+    from service.core.manifest import read_manifest
+    from training.pose.config import PoseConfig
+    from training.pose.pipeline import evaluate_shipped_pose, load_pose_data, results_table, user_clips
+
+    if paths:
+        clips = user_clips(list(paths), mapping)
+    else:
+        manifest = read_manifest(model / "manifest.json")
+        td = manifest.training_data
+        cfg = PoseConfig(
+            name=manifest.name,
+            sensors=manifest.pose.sensors,
+            data={
+                "test_subjects": td["test_subjects"],
+                "val_subjects": td["validation_subjects"],
+                "test_activities_of_unlabelled": td["test_unlabelled_clips"],
+            },
+        )
+        clips = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir).test
+    results, summary = evaluate_shipped_pose(model, clips)
+    if as_json:
+        per_clip = [{"clip": r.path, "frames": r.frames, **r.metrics} for r in results]
+        typer.echo(json.dumps({"clips": per_clip, **summary}, indent=1))
+        return
+    typer.echo(results_table(results))
+    for kind in ("activity", "subject"):
+        for key, m in summary[kind].items():
+            typer.echo(
+                f"{kind} {key:22s} all {m['angle_all_deg']:6.2f}°  unsensed {m['angle_unsensed_deg']:6.2f}°  "
+                f"SIP {m['sip_deg']:6.2f}°  JPE {m['jpe_cm']:5.2f} cm  jitter {m['jitter_mps3']:7.1f} m/s³"
+            )
+    m = summary["overall"]["all"]
+    typer.echo(
+        f"overall all {m['angle_all_deg']:.2f}°, unsensed {m['angle_unsensed_deg']:.2f}°, JPE {m['jpe_cm']:.2f} cm"
+    )
 
 
 @app.command("evaluate-csv")

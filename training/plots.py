@@ -1,4 +1,5 @@
-"""Figures logged to MLflow: confusion matrix, error box plots (paper 000 §3.3 style), learning curves."""
+"""Figures logged to MLflow: confusion matrix, error box plots (paper 000 §3.3 style), learning curves, pose
+errors per segment and skeleton snapshots."""
 
 from __future__ import annotations
 
@@ -76,7 +77,7 @@ def learning_curves_png(history: list[dict[str, float]], path: Path, title: str)
 
 def held_out_bars_png(folds: dict[str, dict[str, float]], path: Path, title: str) -> Path:
     """Real-data leave-one-source-out: per held-out source, accuracy per window and one-to-one per moment, each
-    with and without left/right (``training.pipeline.run_real_loso``)."""
+    with and without left/right (``training.i2s.pipeline.run_real_loso``)."""
     keys = [
         ("real_accuracy", "per window"),
         ("real_accuracy_ignoring_side", "per window, ignoring left/right"),
@@ -96,5 +97,66 @@ def held_out_bars_png(folds: dict[str, dict[str, float]], path: Path, title: str
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=2)  # below: bars reach 100 %
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def pose_learning_curve_png(history: list[dict[str, float]], path: Path, title: str) -> Path:
+    """Training loss and the validation subjects' mean angle per epoch (how far from convergence a run stopped)."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    epochs = [h["epoch"] for h in history]
+    ax.plot(epochs, [h["train_loss"] for h in history], label="train loss (rotation-matrix MSE)", color="C0")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("train loss")
+    ax2 = ax.twinx()
+    ax2.plot(epochs, [h["val_angle_deg"] for h in history], label="validation angle (deg)", color="C1")
+    ax2.set_ylabel("validation mean angle (deg)")
+    fig.legend(loc="upper right")
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def pose_segment_errors_png(per_segment: dict[str, float], sensors: list[str], path: Path, title: str) -> Path:
+    """Mean global orientation error per segment; the sensors' own segments in grey."""
+    names = list(per_segment)
+    fig, ax = plt.subplots(figsize=(9, 4))
+    colors = ["0.6" if n in sensors else "C0" for n in names]
+    ax.bar(range(len(names)), [per_segment[n] for n in names], color=colors)
+    ax.set_xticks(range(len(names)), names, rotation=60, ha="right", fontsize=8)
+    ax.set_ylabel("mean angle error (deg)")
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def skeleton_snapshots_png(
+    p_true: np.ndarray, p_pred: np.ndarray, parents: tuple[int, ...], frames: list[int], path: Path, title: str
+) -> Path:
+    """Stick figures of prediction (blue) against truth (grey), front (y–z) and side (x–z) views, some frames.
+
+    ``p_*``: joint positions (T, S, 3) in the body's heading frame, pelvis at the origin.
+    """
+    fig, axes = plt.subplots(2, len(frames), figsize=(2.2 * len(frames), 5.5), squeeze=False)
+    for col, t in enumerate(frames):
+        for row, (a, b, view) in enumerate(((1, 2, "front"), (0, 2, "side"))):
+            ax = axes[row, col]
+            for p, color, width in ((p_true, "0.6", 3.0), (p_pred, "C0", 1.5)):
+                for k, parent in enumerate(parents):
+                    if parent >= 0:
+                        ax.plot([p[t, parent, a], p[t, k, a]], [p[t, parent, b], p[t, k, b]], color=color, lw=width)
+            ax.set_aspect("equal")
+            ax.set_xlim(-0.9, 0.9)
+            ax.set_ylim(-1.1, 0.9)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(f"frame {t} {view}", fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path

@@ -32,14 +32,16 @@ def setup_tracking(experiment: str) -> str:
     return uri
 
 
-def log_onnx_model(proto: onnx.ModelProto, golden: dict[str, np.ndarray], manifest: Manifest) -> ModelInfo:
+def log_onnx_model(
+    proto: onnx.ModelProto, golden: dict[str, np.ndarray], manifest: Manifest, input_key: str = "imu"
+) -> ModelInfo:
     """Log the active run's ONNX model with its signature and input example (from the golden pair). The manifest
     rides in the MLmodel metadata, so the service can serve the model straight from the registry."""
     return mlflow.onnx.log_model(
         onnx_model=proto,
         name="model",
-        signature=infer_signature(golden["imu"], golden["expected"]),
-        input_example=golden["imu"][:1],
+        signature=infer_signature(golden[input_key], golden["expected"]),
+        input_example=golden[input_key][:1],
         save_as_external_data=False,
         metadata={MLMODEL_METADATA_KEY: manifest.model_dump(mode="json")},
     )

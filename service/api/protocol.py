@@ -11,6 +11,9 @@ Client → server
   binary packet (little-endian): uint16 sensor index (order of "start"), uint16 n, uint32 seq,
   then n × 6 float32 (acc xyz, gyr xyz in the declared units)                 8 + 24 n bytes
   {"type": "stop"}
+  Pose sessions add "pose": {"calibration": "declared" | "still_pose" | "assignment", ...} to "start" and each
+  sensor's "segment" (and "q_segment_sensor" when declared); their samples are rows of 10 values, acc xyz, gyr xyz,
+  q_world_sensor w x y z (binary: n x 10 float32), at 60 Hz (``PoseStreamOptions``).
 ``seq`` is the sensor's sample counter of the packet's first sample (0, 1, 2, … per sample).
 
 Server → client
@@ -22,6 +25,11 @@ Server → client
   mean alignment over its last WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread; after each group
   of results) · gap / late (sequence problems, in order with the results) · error (then close, after the results
   of every accepted packet).
+  Pose sessions also get: calibration ({"status": "waiting" | "calibrated", ...}: how the session calibrates;
+  declared sessions are calibrated at the start, still-pose sessions after a still span, assignment sessions when
+  the assignment is sure of the model's segments) · pose (from the streaming model, as frames complete: first_frame,
+  frames, q_world_segment and joint_positions_m per frame in "started"'s pose.segments order; each frame answers
+  look_ahead_frames late).
 Close codes: 1003 unsupported data, 1008 protocol violation, 1009 message too big, 1000 after stop.
 """
 
@@ -37,6 +45,7 @@ from service.api.schemas import (
     CANDIDATE_SEGMENTS_DESCRIPTION,
     WORN_SEGMENTS_DESCRIPTION,
     AccUnit,
+    BodySegmentName,
     GyrUnit,
     SegmentSet,
     check_declarations,
@@ -60,6 +69,27 @@ class StreamSensor(BaseModel):
     acc_unit: AccUnit = "m/s^2"
     gyr_unit: GyrUnit = "rad/s"
     candidate_segments: SegmentSet | None = Field(None, description=CANDIDATE_SEGMENTS_DESCRIPTION)
+    segment: BodySegmentName | None = Field(None, description="pose sessions: the body segment the sensor is on")
+    q_segment_sensor: list[float] | None = Field(
+        None, min_length=4, max_length=4, description="pose sessions, calibration 'declared': v_segment = R(q) v_sensor"
+    )
+
+
+class PoseStreamOptions(BaseModel):
+    """Pose on the stream. Samples are then rows of 10 values: acc xyz, gyr xyz, q_world_sensor w x y z (binary:
+    n x 10 float32), at 60 Hz. Calibration: ``declared`` (each sensor's ``segment`` and ``q_segment_sensor``),
+    ``still_pose`` (each sensor's ``segment``; the first ``still_seconds`` are a still N-pose or T-pose, repeated
+    until still) or ``assignment`` (lower-body sensors: the stream's own I2S assignment places them and hands
+    over its alignments once it is sure)."""
+
+    model_config = ConfigDict(extra="forbid")
+    model: str | None = Field(None, description="a streaming pose model's name; default: the one for the sensors")
+    calibration: Literal["declared", "still_pose", "assignment"] = "declared"
+    still_pose: Literal["npose", "tpose"] = "npose"
+    still_seconds: float = Field(2.0, ge=0.5, le=10.0)
+    pelvis_back_axis: list[float] = Field(default_factory=lambda: [0.0, 0.0, 1.0], min_length=3, max_length=3)
+    body_height_m: float | None = Field(None, ge=0.5, le=2.5)
+    assignment_confidence: float = Field(0.9, gt=0.0, le=1.0, description="assignment: hand over at this confidence")
 
 
 class StartMessage(BaseModel):
@@ -68,10 +98,27 @@ class StartMessage(BaseModel):
     sensors: list[StreamSensor] = Field(min_length=1, max_length=64)
     allow_shared: bool = False
     worn_segments: SegmentSet | None = Field(None, description=WORN_SEGMENTS_DESCRIPTION)
+    pose: PoseStreamOptions | None = None
 
     @model_validator(mode="after")
     def _declarations_agree(self) -> StartMessage:
         check_declarations([s.candidate_segments for s in self.sensors], self.worn_segments, "sensors")
+        if self.pose is None:
+            return self
+        for k, s in enumerate(self.sensors):
+            if s.sample_rate_hz != 60.0:
+                raise ValueError(
+                    f"sensors[{k}].sample_rate_hz: pose sessions stream at 60 Hz, got {s.sample_rate_hz:g}"
+                )
+            if self.pose.calibration != "assignment" and s.segment is None:
+                raise ValueError(
+                    f"sensors[{k}].segment: calibration {self.pose.calibration!r} needs each sensor's segment"
+                )
+            if self.pose.calibration == "declared" and s.q_segment_sensor is None:
+                raise ValueError(f"sensors[{k}].q_segment_sensor: calibration 'declared' needs each sensor's alignment")
+        segments = [s.segment for s in self.sensors if s.segment is not None]
+        if len(set(segments)) != len(segments):
+            raise ValueError(f"sensors: one sensor per segment, got {segments}")
         return self
 
 
@@ -83,8 +130,8 @@ class SamplesMessage(BaseModel):
     samples: list[list[float]] = Field(min_length=1)
 
 
-def decode_binary(data: bytes, n_sensors: int, max_samples: int) -> tuple[int, int, np.ndarray]:
-    """(sensor index, seq, samples ``(n, 6)`` float64) from a binary packet."""
+def decode_binary(data: bytes, n_sensors: int, max_samples: int, width: int = 6) -> tuple[int, int, np.ndarray]:
+    """(sensor index, seq, samples ``(n, width)`` float64) from a binary packet (width 10 in pose sessions)."""
     if len(data) < HEADER.size:
         raise ProtocolError(f"binary packet needs an {HEADER.size}-byte header, got {len(data)} bytes", 1003)
     index, n, seq = HEADER.unpack_from(data)
@@ -92,10 +139,10 @@ def decode_binary(data: bytes, n_sensors: int, max_samples: int) -> tuple[int, i
         raise ProtocolError(f"binary packet names sensor index {index}; the session has {n_sensors} sensors")
     if n > max_samples:
         raise ProtocolError(f"at most {max_samples} samples per packet, got {n}", 1009)
-    expected = HEADER.size + 24 * n
+    expected = HEADER.size + 4 * width * n
     if len(data) != expected:
         raise ProtocolError(f"binary packet with n={n} must be {expected} bytes, got {len(data)}", 1003)
-    return index, seq, np.frombuffer(data, dtype="<f4", offset=HEADER.size).reshape(n, 6).astype(np.float64)
+    return index, seq, np.frombuffer(data, dtype="<f4", offset=HEADER.size).reshape(n, width).astype(np.float64)
 
 
 def encode_binary(index: int, seq: int, samples: np.ndarray) -> bytes:
@@ -103,10 +150,17 @@ def encode_binary(index: int, seq: int, samples: np.ndarray) -> bytes:
     return HEADER.pack(index, len(samples), seq) + np.asarray(samples, dtype="<f4").tobytes()
 
 
-def check_samples(samples: np.ndarray, max_samples: int, where: str) -> None:
-    if samples.ndim != 2 or samples.shape[1] != 6:
-        raise ProtocolError(f"{where}: samples must be rows of 6 values, got shape {samples.shape}")
+def check_samples(samples: np.ndarray, max_samples: int, where: str, width: int = 6) -> None:
+    if samples.ndim != 2 or samples.shape[1] != width:
+        raise ProtocolError(f"{where}: samples must be rows of {width} values, got shape {samples.shape}")
     if len(samples) > max_samples:
         raise ProtocolError(f"{where}: at most {max_samples} samples per packet, got {len(samples)}", 1009)
     if not np.all(np.isfinite(samples)):
         raise ProtocolError(f"{where}: samples must be finite, got NaN or Inf")
+    if width == 10:
+        norm = np.linalg.norm(samples[:, 6:10], axis=1)
+        if np.any(np.abs(norm - 1.0) > 0.1):
+            i = int(np.argmax(np.abs(norm - 1.0)))
+            raise ProtocolError(
+                f"{where}: sample {i}'s q_world_sensor must be a unit quaternion, got norm {norm[i]:.3f}"
+            )

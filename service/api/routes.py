@@ -281,7 +281,6 @@ def _add_pose_route(path: str, task: str, source: str) -> None:
     )(pose)
 
 
-_add_pose_route("/v1/pose/imu", "imu_pose", "sparse-IMU features")
 _add_pose_route("/v1/pose/flex", "flex_pose", "flex-sensor readings")
 
 

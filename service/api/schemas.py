@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
+from service.core.body import BODY_SEGMENTS
 from service.core.segments import SEGMENTS
 
 SegmentName = Literal[SEGMENTS]  # type: ignore[valid-type]
@@ -270,6 +271,108 @@ class PoseResponse(BaseModel):
     results: list[PoseResult]
     output_kind: str = Field(description="the model's output kind (manifest)")
     model_versions: dict[str, str]
+
+
+BodySegmentName = Literal[BODY_SEGMENTS]  # type: ignore[valid-type]
+_IDENTITY = [1.0, 0.0, 0.0, 0.0]
+
+
+class PoseSensor(BaseModel):
+    """One sensor's raw readings, oldest first, one row per sample: its fusion's orientation in its own world
+    frame (any frame with z up: ENU, NWU, …; the pose does not depend on its heading) and its accelerometer."""
+
+    model_config = ConfigDict(extra="forbid")
+    sensor_id: str = Field(min_length=1, max_length=64)
+    segment: BodySegmentName = Field(description="the body segment the sensor is on (GET /v1/models: pose.sensors)")
+    q_world_sensor: list[list[float]] = Field(min_length=2, description="unit quaternions w, x, y, z per sample")
+    acc: list[list[float]] = Field(min_length=2, description="specific force x, y, z in the sensor frame per sample")
+    gyr: list[list[float]] | None = Field(None, description="angular rate x, y, z (rad/s), optional: checks stillness")
+    q_segment_sensor: list[float] | None = Field(
+        None,
+        min_length=4,
+        max_length=4,
+        description="declared alignment (calibration method 'declared'): v_segment = R(q) v_sensor, w, x, y, z; "
+        "e.g. /v1/imu/assign's alignment of a lower-body sensor",
+    )
+
+
+class PoseCalibration(BaseModel):
+    """How sensor readings become segment readings. ``declared``: each sensor's ``q_segment_sensor``, no pose
+    needed. ``still_pose``: frames [start, stop) of this request are a still N-pose (arms hanging) or T-pose (arms
+    sideways) of 2-3 s; each sensor's alignment and the body's heading are computed from it (the pelvis sensor's
+    ``pelvis_back_axis``, in its own frame, must point out of the lower back)."""
+
+    model_config = ConfigDict(extra="forbid")
+    method: Literal["declared", "still_pose"] = "declared"
+    pose: Literal["npose", "tpose"] = "npose"
+    start: int = Field(0, ge=0)
+    stop: int | None = Field(None, ge=1)
+    pelvis_back_axis: list[float] = Field(default_factory=lambda: [0.0, 0.0, 1.0], min_length=3, max_length=3)
+
+
+EXAMPLE_POSE_IMU = {
+    "sample_rate_hz": 60.0,
+    "acc_unit": "m/s^2",
+    "sensors": [
+        {
+            "sensor_id": name.lower(),
+            "segment": name,
+            "q_world_sensor": [_IDENTITY] * 3,
+            "acc": [[0.0, 0.0, 9.81]] * 3,
+            "q_segment_sensor": _IDENTITY,
+        }
+        for name in ("Pelvis", "LeftLowerLeg", "RightLowerLeg")
+    ],
+    "calibration": {"method": "declared"},
+}
+
+
+class PoseImuRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_POSE_IMU]})
+    sample_rate_hz: float = Field(60.0, description="between 20 and 400 Hz; resampled to the model's 60 Hz")
+    acc_unit: AccUnit = "m/s^2"
+    gyr_unit: GyrUnit = "rad/s"
+    sensors: list[PoseSensor] = Field(min_length=1, max_length=len(BODY_SEGMENTS))
+    calibration: PoseCalibration = Field(default_factory=PoseCalibration)
+    model: str | None = Field(None, description="a pose model's name; default: the offline model for these sensors")
+    body_height_m: float | None = Field(None, ge=0.5, le=2.5, description="scale the default body to this height")
+
+
+class SegmentTrack(BaseModel):
+    source: Literal["sensor", "model", "parent"] = Field(
+        description="sensor: the calibrated sensor; model: the network; parent: neither covers it, the parent's"
+    )
+    q_world_segment: list[list[float]]
+    q_parent_segment: list[list[float]]
+    joint_position_m: list[list[float]] = Field(description="the segment's origin, pelvis at (0, 0, 0)")
+
+
+_EXAMPLE_TRACK = {
+    "source": "sensor",
+    "q_world_segment": [[1.0, 0.0, 0.0, 0.0]],
+    "q_parent_segment": [[1.0, 0.0, 0.0, 0.0]],
+    "joint_position_m": [[0.0, 0.0, 0.0]],
+}
+EXAMPLE_POSE_IMU_RESPONSE = {
+    "model": {"name": "pose_lower3", "version": "1.0.0"},
+    "sample_rate_hz": 60.0,
+    "frames": 1,
+    "look_ahead_frames": 75,
+    "body_height_m": 1.7,
+    "q_segment_sensor": {"pelvis": [1.0, 0.0, 0.0, 0.0]},
+    "segments": {"Pelvis": _EXAMPLE_TRACK},
+}
+
+
+class PoseImuResponse(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [EXAMPLE_POSE_IMU_RESPONSE]})
+    model: dict[str, str]
+    sample_rate_hz: float
+    frames: int
+    look_ahead_frames: int = Field(description="future frames each answer has seen (streaming models)")
+    body_height_m: float
+    q_segment_sensor: dict[str, list[float]] = Field(description="the calibration used, per sensor_id")
+    segments: dict[str, SegmentTrack]
 
 
 def error_responses(*codes: int, details: dict[int, str] | None = None) -> dict[int | str, dict]:

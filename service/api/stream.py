@@ -36,8 +36,13 @@ from service.core.assignment import (
     joint_assignment,
     turns_about_vertical,
 )
+from service.core.body import BODY_SEGMENTS
+from service.core.pose_stream import FrameAligner, StreamLagError
+from service.core.rotations import canonical_quat
 from service.core.segments import SEGMENTS, segment_indices, segment_names
 from service.core.stream import SensorStream
+from service.core.units import ACC_UNITS, GYR_UNITS
+from service.inference.pose import LivePose, PoseModel
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
 
 log = logging.getLogger(__name__)
@@ -132,6 +137,86 @@ class Session:
         self.idle.set()
         self.room.set()
         self.failure: Exception | None = None
+        self.pose: LivePose | None = None
+        self.pose_order: list[int] | None = None  # stream sensor index of each of the model's sensors
+        self.aligner: FrameAligner | None = None
+        self.run_i2s = True
+        self.width = 6  # values per sample: 10 in pose sessions
+        self.pose_threshold = 0.9
+        self.outbox: Outbox | None = None
+
+    def start_pose(self, start: StartMessage, models: dict[str, PoseModel]) -> None:
+        """Choose the streaming model and its calibration (``PoseStreamOptions``); ProtocolError if none fits."""
+        opts = start.pose
+        segments = [s.segment for s in start.sensors]
+        if opts.calibration == "assignment":
+            candidates = [m for m in models.values() if m.spec.streaming and set(m.spec.sensors) <= set(SEGMENTS)]
+            if opts.model is not None:
+                candidates = [m for m in candidates if m.name == opts.model]
+            if not candidates:
+                raise ProtocolError(
+                    f"pose.calibration 'assignment' needs a streaming model whose sensors are lower-body segments "
+                    f"({opts.model or 'any'}); loaded pose models: {sorted(models)}"
+                )
+            model = candidates[0]
+        else:
+            fitting = [
+                m
+                for m in models.values()
+                if m.spec.streaming and sorted(m.spec.sensors) == sorted(segments) and opts.model in (None, m.name)
+            ]
+            if not fitting:
+                placements = sorted({", ".join(m.spec.sensors) for m in models.values() if m.spec.streaming})
+                raise ProtocolError(
+                    f"pose: no streaming pose model {opts.model or ''} takes sensors on {segments}; "
+                    f"the loaded ones take [{'] or ['.join(placements)}]"
+                )
+            model = fitting[0]
+            self.pose_order = [segments.index(seg) for seg in model.spec.sensors]
+        q = None
+        if opts.calibration == "declared":
+            q = canonical_quat(np.array([start.sensors[k].q_segment_sensor for k in self.pose_order], dtype=np.float64))
+        self.pose = LivePose(
+            model,
+            opts.calibration,
+            q,
+            int(round(opts.still_seconds * 60.0)),
+            opts.still_pose,
+            tuple(opts.pelvis_back_axis),
+            opts.body_height_m,
+        )
+        self.aligner = FrameAligner(len(self.streams), 10)
+        self.run_i2s = opts.calibration == "assignment"
+        self.width = 10
+        self.pose_threshold = opts.assignment_confidence
+
+    def pose_units(self, k: int) -> np.ndarray:
+        """Per-column factors of sensor ``k``'s rows into m/s², rad/s and a unitless quaternion."""
+        s = self.streams[k]
+        return np.array([ACC_UNITS[s.acc_unit]] * 3 + [GYR_UNITS[s.gyr_unit]] * 3 + [1.0] * 4)
+
+    def hand_over(self, message: dict) -> dict | None:
+        """Assignment calibration: once the joint assignment puts a sensor on each of the model's segments with
+        an alignment and enough confidence, those become the pose calibration; the calibration message."""
+        live = self.pose
+        if live is None or live.calibrated or live.method != "assignment":
+            return None
+        by_segment = {s["segment"]: (k, s) for k, s in enumerate(message["sensors"]) if s["segment"] is not None}
+        need = live.model.spec.sensors
+        if not all(seg in by_segment for seg in need):
+            return None
+        chosen = [by_segment[seg] for seg in need]
+        threshold = self.pose_threshold
+        if any(s["alignment"] is None or s["confidence"] < threshold for _, s in chosen):
+            return None
+        self.pose_order = [k for k, _ in chosen]
+        live.q_segment_sensor = canonical_quat(np.array([s["alignment"]["q_segment_imu"] for _, s in chosen]))
+        return {
+            "type": "calibration",
+            "status": "calibrated",
+            "method": "assignment",
+            "segments": {s["sensor_id"]: seg for seg, (_, s) in zip(need, chosen, strict=True)},
+        }
 
     def submit(self, work: Work) -> None:
         self.work.append(work)
@@ -185,8 +270,53 @@ class Session:
         return {"type": "assignment", "sensors": sensors, "results_dropped": dropped}
 
 
+async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples: np.ndarray, outbox: Outbox) -> None:
+    """Join the packet into body frames and run the live pose on every frame all sensors have reached."""
+    try:
+        joined = session.aligner.push(k, seq, samples * session.pose_units(k))
+    except StreamLagError as exc:
+        raise ProtocolError(str(exc)) from None
+    sensor_id = session.streams[k].sensor_id
+    if joined.late is not None and not session.run_i2s:
+        expected, received = joined.late
+        outbox.put(
+            {
+                "type": "late",
+                "sensor_id": sensor_id,
+                "expected_seq": expected,
+                "received_seq": received,
+                "action": "packet dropped",
+            }
+        )
+    if joined.filled and not session.run_i2s:
+        outbox.put(
+            {
+                "type": "gap",
+                "sensor_id": sensor_id,
+                "expected_seq": seq - joined.filled,
+                "received_seq": seq,
+                "missing": joined.filled,
+                "action": "held the last sample",
+            }
+        )
+    if not len(joined.frames) or session.pose_order is None:
+        return
+    received = time.perf_counter()
+    frames = joined.frames[:, session.pose_order]
+    messages = await app.state.runner.run_call(session.pose.process, frames, joined.first_frame)
+    for message in messages:
+        outbox.put(message)
+        if message["type"] == "pose":
+            app.state.metrics.stream_result.observe(time.perf_counter() - received)
+
+
 async def _accept_packet(app: FastAPI, session: Session, k: int, seq: int, samples: np.ndarray) -> None:
     """Buffer a packet's samples and queue its windows (and any sequence notice) for inference."""
+    if session.pose is not None:
+        await _accept_pose(app, session, k, seq, samples, session.outbox)
+        if not session.run_i2s:
+            return
+        samples = samples[:, :6]
     stream = session.streams[k]
     work = Work(k, time.perf_counter())
     pushed = stream.push(seq, samples)
@@ -265,7 +395,11 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
         if outbox.put(moment):
             app.state.metrics.dropped.inc()
     if windows:
-        outbox.put(session.assignment_message(outbox.dropped))
+        message = session.assignment_message(outbox.dropped)
+        outbox.put(message)
+        handed = session.hand_over(message)
+        if handed is not None:
+            outbox.put(handed)
 
 
 def _parse_text(text: str) -> dict:
@@ -287,7 +421,10 @@ async def _receive_start(ws: WebSocket) -> Session:
     except ValidationError as exc:
         raise ProtocolError(f"invalid start message: {_first_error(exc)}") from None
     settings = ws.app.state.settings
-    return Session(start, settings.stream_max_pending_windows, settings.stream_alignment_windows)
+    session = Session(start, settings.stream_max_pending_windows, settings.stream_alignment_windows)
+    if start.pose is not None:
+        session.start_pose(start, ws.app.state.pose_models)
+    return session
 
 
 def _first_error(exc: ValidationError) -> str:
@@ -305,7 +442,7 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
         if message["type"] == "websocket.disconnect":
             raise WebSocketDisconnect(message.get("code", 1000))
         if message.get("bytes") is not None:
-            k, seq, samples = decode_binary(message["bytes"], len(session.streams), max_samples)
+            k, seq, samples = decode_binary(message["bytes"], len(session.streams), max_samples, session.width)
         else:
             data = _parse_text(message["text"])
             if data["type"] == "stop":
@@ -322,10 +459,11 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
             if packet.sensor_id not in session.index:
                 raise ProtocolError(f"unknown sensor_id {packet.sensor_id!r}; declared: {list(session.index)}")
             k, seq = session.index[packet.sensor_id], packet.seq
-            if any(len(r) != 6 for r in packet.samples):
-                raise ProtocolError(f"sensor {packet.sensor_id}: every sample needs 6 values")
+            if any(len(r) != session.width for r in packet.samples):
+                what = "acc xyz, gyr xyz, q_world_sensor wxyz" if session.width == 10 else "acc xyz, gyr xyz"
+                raise ProtocolError(f"sensor {packet.sensor_id}: every sample needs {session.width} values ({what})")
             samples = np.asarray(packet.samples, dtype=np.float64)
-        check_samples(samples, max_samples, f"sensor {session.streams[k].sensor_id}")
+        check_samples(samples, max_samples, f"sensor {session.streams[k].sensor_id}", session.width)
         await _accept_packet(ws.app, session, k, seq, samples)
 
 
@@ -349,9 +487,11 @@ async def stream(ws: WebSocket) -> None:
     worker: asyncio.Task | None = None
     try:
         session = await _receive_start(ws)
+        session.outbox = outbox
         worker = asyncio.create_task(_infer_loop(ws.app, session, outbox))
         outbox.put(
             {
+                "pose": _pose_started(session),
                 "type": "started",
                 "sensors": [s.sensor_id for s in session.streams],
                 "window_samples": 128,
@@ -380,6 +520,22 @@ async def stream(ws: WebSocket) -> None:
             await _close(ws, code, reason)
         else:
             sender.cancel()
+
+
+def _pose_started(session: Session) -> dict | None:
+    live = session.pose
+    if live is None:
+        return None
+    return {
+        "model": live.model.name,
+        "version": live.model.loaded.manifest.version,
+        "sensors": live.model.spec.sensors,
+        "segments": list(BODY_SEGMENTS),
+        "look_ahead_frames": live.model.spec.look_ahead_frames,
+        "calibration": live.method,
+        "still_frames": live.still_frames if live.method == "still_pose" else 0,
+        "body_height_m": round(live.body.height_m, 3),
+    }
 
 
 async def _close(ws: WebSocket, code: int, reason: str) -> None:

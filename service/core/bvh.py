@@ -6,6 +6,7 @@ line is honoured: channel order differs between sources (``../shared/data/README
 
 from __future__ import annotations
 
+import gzip
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,8 +45,10 @@ class Bvh:
 
 
 def read_bvh(path: str | Path) -> Bvh:
-    """Parse a BVH file."""
-    tokens = Path(path).read_text().split()
+    """Parse a BVH file, plain or gzipped (``.bvh.gz``)."""
+    path = Path(path)
+    text = gzip.open(path, "rt").read() if path.suffix == ".gz" else path.read_text()
+    tokens = text.split()
     return _parse(tokens, str(path))
 
 

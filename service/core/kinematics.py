@@ -48,12 +48,19 @@ def _local_rotations(bvh: Bvh, joint_index: int) -> np.ndarray:
 
 
 def _local_translation(bvh: Bvh, joint_index: int) -> np.ndarray:
-    """OFFSET plus any position channels, ``(T, 3)`` in file units."""
+    """The joint's local translation ``(T, 3)`` in file units.
+
+    The root's position channels add to its OFFSET (the iClone root: Y position about -1.9 on an OFFSET of
+    105.2 cm). A non-root joint's position channels *replace* its OFFSET: Bandai-Namco writes 6 channels on every
+    joint whose positions equal the OFFSET, and adding them would double every bone (``../shared/data/README.md``).
+    """
     joint = bvh.joints[joint_index]
     t = np.broadcast_to(joint.offset, (bvh.motion.shape[0], 3)).copy()
     for k, channel in enumerate(joint.channels):
         if channel.endswith("position"):
-            t[:, "XYZ".index(channel[0].upper())] += bvh.motion[:, joint.channel_start + k]
+            axis = "XYZ".index(channel[0].upper())
+            values = bvh.motion[:, joint.channel_start + k]
+            t[:, axis] = t[:, axis] + values if joint.parent < 0 else values
     return t
 
 

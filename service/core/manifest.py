@@ -31,6 +31,33 @@ class Evaluation(BaseModel):
     metrics: dict[str, float]
 
 
+class PoseSpec(BaseModel):
+    """What an ``imu_pose`` model needs from the service and gives back (paper 001 §4; DESIGN.md §2).
+
+    The input is ``(batch, frames, features)`` of ``service.core.calibration.pose_features`` for ``sensors`` in
+    that order (the first is the root, the Pelvis); the output ``(batch, frames, segments, 3, 3)`` holds the
+    root-relative orientations R_root_segment of ``output_segments``. A ``streaming`` model also takes and returns
+    its LSTM state ``h``/``c`` of shape ``(layers, batch, hidden)`` and answers each frame ``look_ahead_frames``
+    late; an offline model is run on ``window_frames`` chunks that keep ``context_frames`` either side.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    sensors: list[str]
+    output_segments: list[str]
+    feature_version: str
+    acc_scale_mps2: float
+    representation: Literal["6d", "axis_angle"]
+    architecture: str
+    streaming: bool
+    look_ahead_frames: int = Field(ge=0)
+    window_frames: int = Field(ge=1)
+    context_frames: int = Field(ge=0)
+    state_layers: int = 0
+    state_hidden: int = 0
+    body: dict[str, list] = Field(description="default skeleton: segments and offsets_m (service.core.body.Body)")
+    body_height_m: float
+
+
 class Manifest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     schema_version: int = MANIFEST_SCHEMA_VERSION
@@ -45,7 +72,12 @@ class Manifest(BaseModel):
     # joint_angles_deg: output (batch, joints, components) in degrees; joint_axis_angle_rad: (batch, joints, 3),
     # each joint's rotation as axis × angle in radians.
     output_kind: Literal[
-        "probabilities", "logits", "quaternion_per_segment", "joint_angles_deg", "joint_axis_angle_rad"
+        "probabilities",
+        "logits",
+        "quaternion_per_segment",
+        "joint_angles_deg",
+        "joint_axis_angle_rad",
+        "rotation_matrix_per_segment",
     ]
     sample_rate_hz: float
     window_samples: int
@@ -61,6 +93,7 @@ class Manifest(BaseModel):
         None, min_length=2, max_length=2, description="inclusive bounds of every input value, e.g. 12-bit counts"
     )
     quaternion_convention: str | None = None
+    pose: PoseSpec | None = None
     sha256: str
     training_data: dict[str, object] = Field(default_factory=dict)
     evaluations: list[Evaluation] = Field(default_factory=list)
@@ -73,7 +106,9 @@ class Manifest(BaseModel):
     def _pose_contract_is_consistent(self) -> Manifest:
         """A pose model's manifest must describe its tensors fully: the service builds inputs and labels
         outputs from it alone."""
-        if self.task not in ("imu_pose", "flex_pose"):
+        if self.task == "imu_pose":
+            return self._imu_pose_contract()
+        if self.task != "flex_pose":
             return self
         if self.output_kind not in ("joint_angles_deg", "joint_axis_angle_rad"):
             raise ValueError(f"a {self.task} model needs a joint output_kind, got {self.output_kind}")
@@ -84,6 +119,34 @@ class Manifest(BaseModel):
         expected_out = ["batch", len(self.joints), k]
         if len(self.outputs) != 1 or self.outputs[0].shape != expected_out or not self.joints or not k:
             raise ValueError(f"a {self.task} model gives one output of shape {expected_out} (joints × components)")
+        return self
+
+
+    def _imu_pose_contract(self) -> Manifest:
+        from service.core.body import BODY_SEGMENTS
+        from service.core.calibration import FEATURE_VERSION, features_per_frame
+
+        p = self.pose
+        if p is None or self.output_kind != "rotation_matrix_per_segment":
+            raise ValueError("an imu_pose model needs a 'pose' section and output_kind rotation_matrix_per_segment")
+        unknown = sorted(set(p.sensors + p.output_segments) - set(BODY_SEGMENTS))
+        if unknown or not p.sensors or p.sensors[0] != "Pelvis" or set(p.sensors) & set(p.output_segments):
+            raise ValueError(
+                "imu_pose: sensors must start with Pelvis and not overlap output_segments, all of "
+                f"{list(BODY_SEGMENTS)}; "
+                f"unknown {unknown}"
+            )
+        if p.feature_version != FEATURE_VERSION:
+            raise ValueError(f"imu_pose: features {p.feature_version!r}, this service computes {FEATURE_VERSION!r}")
+        batch = 1 if p.streaming else "batch"  # a stream is one body: the streaming graph has batch 1
+        expected_in = [batch, "frames", features_per_frame(len(p.sensors))]
+        if self.inputs[0].shape != expected_in:
+            raise ValueError(f"an imu_pose model takes features of shape {expected_in}, got {self.inputs[0].shape}")
+        expected_out = [batch, "frames", len(p.output_segments), 3, 3]
+        if self.outputs[0].shape != expected_out:
+            raise ValueError(f"an imu_pose model gives rotations of shape {expected_out}, got {self.outputs[0].shape}")
+        if p.streaming and (len(self.inputs) != 3 or len(self.outputs) != 3 or not p.state_layers):
+            raise ValueError("a streaming imu_pose model takes (features, h, c) and returns (rotations, h, c)")
         return self
 
 

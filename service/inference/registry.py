@@ -73,7 +73,8 @@ def version_key(version: str) -> tuple[int, ...]:
 
 
 def load_models(root: Path, threads: int, pins: dict[str, str] | None = None) -> dict[str, LoadedModel]:
-    """Newest valid version of every model below ``root`` (or the version ``pins`` names), keyed by task."""
+    """Newest valid version of every model below ``root`` (or the version ``pins`` names), keyed by task (imu_pose
+    models by name)."""
     models: dict[str, LoadedModel] = {}
     pins = pins or {}
     for manifest_path in sorted(root.glob("*/*/manifest.json")):
@@ -85,7 +86,8 @@ def load_models(root: Path, threads: int, pins: dict[str, str] | None = None) ->
         except Exception as exc:  # any broken model is refused; the others are still served
             log.error("refusing model %s: %s", manifest_path.parent, exc)
             continue
-        task = model.manifest.task
+        # pose models are several per task (placements, offline and streaming): keyed by name
+        task = model.manifest.name if model.manifest.task == "imu_pose" else model.manifest.task
         if task not in models or version_key(model.manifest.version) > version_key(models[task].manifest.version):
             models[task] = model
         log.info("loaded %s %s (%s)", model.manifest.name, model.manifest.version, task)

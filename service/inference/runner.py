@@ -46,5 +46,9 @@ class ModelRunner:
         """One model (e.g. a pose model) on its input, in the same worker threads, without batching."""
         return await asyncio.wrap_future(self.pool.submit(self.models[task].run, x))
 
+    async def run_call(self, fn, *args):
+        """Any call (a pose request's whole computation) in the same worker threads, off the event loop."""
+        return await asyncio.wrap_future(self.pool.submit(fn, *args))
+
     def close(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)

@@ -105,7 +105,6 @@ TINY_POSE = {
         ["LeftElbow", "RightElbow", "LeftKnee", "RightKnee"],
         ["flexion"],
     ),
-    "imu_pose": ([f"f{k}" for k in range(12)], 60.0, 30, None, ["LeftKnee", "RightKnee"], ["x", "y", "z"]),
 }
 
 

@@ -273,6 +273,8 @@ def test_openapi_documents_every_endpoint_with_examples(client: TestClient) -> N
     from service.api.schemas import (
         AssignRequest,
         AssignResponse,
+        PoseImuRequest,
+        PoseImuResponse,
         PoseRequest,
         PoseResponse,
         WindowsRequest,
@@ -293,7 +295,8 @@ def test_openapi_documents_every_endpoint_with_examples(client: TestClient) -> N
             if "requestBody" in op:
                 assert has_example(op["requestBody"]), f"{method} {path}: no request example"
     # The examples are valid bodies.
-    for model in (WindowsRequest, WindowsResponse, AssignRequest, AssignResponse, PoseRequest, PoseResponse):
+    bodies = (WindowsRequest, WindowsResponse, AssignRequest, AssignResponse, PoseRequest, PoseResponse)
+    for model in (*bodies, PoseImuRequest, PoseImuResponse):
         for example in model.model_config["json_schema_extra"]["examples"]:
             model.model_validate(example)
 

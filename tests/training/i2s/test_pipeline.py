@@ -6,12 +6,11 @@ import ast
 from pathlib import Path
 
 import httpx
-import mlflow
 import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
 
-from benchmarks.servers import start_mlflow_server, start_service, stop
+from benchmarks.servers import start_service, stop
 from service.core.manifest import read_manifest, write_manifest
 from service.core.segments import SEGMENTS
 from service.inference.registry import load_models, load_registry_models
@@ -31,17 +30,6 @@ TINY = [
     "train.batch_size=64",
     "train.threads=2",
 ]
-
-
-@pytest.fixture(scope="module")
-def mlflow_server(tmp_path_factory: pytest.TempPathFactory):
-    proc, uri = start_mlflow_server(tmp_path_factory.mktemp("mlflow"))
-    mp = pytest.MonkeyPatch()
-    mp.setenv("MLFLOW_TRACKING_URI", uri)
-    mlflow.set_tracking_uri(uri)
-    yield uri
-    mp.undo()
-    stop(proc)
 
 
 def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(

@@ -1,0 +1,238 @@
+"""``POST /v1/pose/imu``: whole-body pose from raw sensor readings, with a declared or a still-pose calibration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Request, Response
+
+from service.api.routes import _Route, _settings
+from service.api.schemas import PoseImuRequest, PoseImuResponse, SegmentTrack, error_responses
+from service.core.body import BODY_SEGMENTS
+from service.core.calibration import (
+    CalibrationError,
+    is_still,
+    pose_features,
+    segment_readings,
+    still_pose_calibration,
+)
+from service.core.resample import resample_uniform
+from service.core.rotations import canonical_quat
+from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS
+from service.inference.pose import PoseModel, covered_segments, pose_answer, whole_body
+from service.inference.predict import InputError
+from service.settings import Settings
+
+router = APIRouter(route_class=_Route)
+
+MIN_POSE_IMU_RATE_HZ, MAX_POSE_IMU_RATE_HZ = 20.0, 400.0
+QUAT_NORM_TOLERANCE = 0.1  # |q| within 1 ± this is normalised; further off is a client error
+MAX_POSE_FRAMES = 60 * 60 * 10  # ten minutes at 60 Hz per request
+STILL_ACC_NORM_TOLERANCE_MPS2 = 1.5
+
+
+def pose_models(request: Request) -> dict[str, PoseModel]:
+    return request.app.state.pose_models
+
+
+def choose_model(models: dict[str, PoseModel], segments: list[str], name: str | None, streaming: bool) -> PoseModel:
+    """The named model, else the one (offline unless ``streaming``) whose sensors are exactly ``segments``."""
+    if not models:
+        raise HTTPException(503, "no imu_pose model is loaded")
+    if name is not None:
+        if name not in models:
+            raise HTTPException(422, f"model: no pose model {name!r}; loaded: {sorted(models)}")
+        model = models[name]
+        missing = [s for s in model.spec.sensors if s not in segments]
+        extra = [s for s in segments if s not in model.spec.sensors]
+        if missing or extra:
+            raise HTTPException(
+                422,
+                f"sensors: {name} takes sensors on {model.spec.sensors}; got {segments} "
+                f"(missing {missing}, not used {extra})",
+            )
+        return model
+    for model in models.values():
+        if sorted(model.spec.sensors) == sorted(segments) and model.spec.streaming == streaming:
+            return model
+    placements = sorted({", ".join(m.spec.sensors) for m in models.values()})
+    raise HTTPException(
+        422,
+        f"sensors: no {'streaming' if streaming else 'offline'} pose model takes sensors on {segments}; "
+        f"the loaded models take [{'] or ['.join(placements)}]",
+    )
+
+
+@dataclass(frozen=True)
+class Readings:
+    """Validated raw readings in the model's sensor order at the model's rate: q (T, N, 4), acc (T, N, 3) m/s²."""
+
+    q_world_sensor: np.ndarray
+    acc_mps2: np.ndarray
+    gyr_rads: np.ndarray | None
+    sensor_ids: list[str]
+
+
+def _array(rows: list[list[float]], width: int, where: str) -> np.ndarray:
+    bad = next((len(r) for r in rows if len(r) != width), None)
+    if bad is not None:
+        raise InputError(f"{where}: every row needs {width} values, got a row of {bad}")
+    x = np.asarray(rows, dtype=np.float64)
+    if not np.isfinite(x).all():
+        row = int(np.argmin(np.isfinite(x).all(axis=1)))
+        raise InputError(f"{where}[{row}]: values must be finite numbers, got NaN or Inf")
+    return x
+
+
+def _resample_quats(q: np.ndarray, from_hz: float, to_hz: float) -> np.ndarray:
+    from scipy.spatial.transform import Rotation, Slerp
+
+    t = np.arange(len(q)) / from_hz
+    t_new = np.arange(0.0, t[-1] + 1e-9, 1.0 / to_hz)
+    return Slerp(t, Rotation.from_quat(q, scalar_first=True))(t_new).as_quat(scalar_first=True)
+
+
+def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
+    rate = body.sample_rate_hz
+    if not MIN_POSE_IMU_RATE_HZ <= rate <= MAX_POSE_IMU_RATE_HZ:
+        raise InputError(
+            f"sample_rate_hz must be in [{MIN_POSE_IMU_RATE_HZ:g}, {MAX_POSE_IMU_RATE_HZ:g}], got {rate:g}"
+        )
+    by_segment = {s.segment: (k, s) for k, s in enumerate(body.sensors)}
+    if len(by_segment) != len(body.sensors):
+        raise InputError(f"sensors: one sensor per segment, got segments {[s.segment for s in body.sensors]}")
+    lengths = {len(s.q_world_sensor) for s in body.sensors} | {len(s.acc) for s in body.sensors}
+    if len(lengths) != 1:
+        raise InputError(
+            f"sensors: every sensor needs the same number of q_world_sensor and acc rows, got {sorted(lengths)}"
+        )
+    n = lengths.pop()
+    if n * 60.0 / rate > MAX_POSE_FRAMES:
+        raise InputError(f"at most {MAX_POSE_FRAMES} frames at 60 Hz per request, got {n} samples at {rate:g} Hz")
+    qs, accs, gyrs, ids = [], [], [], []
+    for seg in model.spec.sensors:
+        k, s = by_segment[seg]
+        where = f"sensors[{k}]"
+        q = _array(s.q_world_sensor, 4, f"{where}.q_world_sensor")
+        norm = np.linalg.norm(q, axis=1)
+        off = np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE
+        if off.any():
+            i = int(np.argmax(off))
+            raise InputError(
+                f"{where}.q_world_sensor[{i}]: expected a unit quaternion (w, x, y, z), got norm {norm[i]:.3f}"
+            )
+        qs.append(canonical_quat(q))
+        accs.append(_array(s.acc, 3, f"{where}.acc") * ACC_UNITS[body.acc_unit])
+        if s.gyr is not None:
+            if len(s.gyr) != n:
+                raise InputError(f"{where}.gyr: {n} rows expected (as q_world_sensor), got {len(s.gyr)}")
+            gyrs.append(_array(s.gyr, 3, f"{where}.gyr") * GYR_UNITS[body.gyr_unit])
+        ids.append(s.sensor_id)
+    q = np.stack(qs, axis=1)
+    acc = np.stack(accs, axis=1)
+    gyr = np.stack(gyrs, axis=1) if len(gyrs) == len(qs) else None
+    if not np.isclose(rate, 60.0):
+        q = np.stack([_resample_quats(q[:, k], rate, 60.0) for k in range(q.shape[1])], axis=1)
+        acc = resample_uniform(acc, rate, 60.0)[: len(q)]
+        gyr = None if gyr is None else resample_uniform(gyr, rate, 60.0)[: len(q)]
+        q = q[: len(acc)]
+    return Readings(q, acc, gyr, ids)
+
+
+def calibrate(body: PoseImuRequest, model: PoseModel, r: Readings) -> np.ndarray:
+    """``q_segment_sensor`` (N, 4) in the model's sensor order, by the request's method."""
+    cal = body.calibration
+    order = {s.segment: (k, s) for k, s in enumerate(body.sensors)}
+    if cal.method == "declared":
+        out = []
+        for seg in model.spec.sensors:
+            k, s = order[seg]
+            if s.q_segment_sensor is None:
+                raise InputError(
+                    f"sensors[{k}].q_segment_sensor: calibration 'declared' needs every sensor's alignment; "
+                    "give it, or use calibration method 'still_pose' with a still span"
+                )
+            q = np.asarray(s.q_segment_sensor, dtype=np.float64)
+            if not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1.0) > QUAT_NORM_TOLERANCE:
+                raise InputError(f"sensors[{k}].q_segment_sensor: expected a finite unit quaternion, got {list(q)}")
+            out.append(canonical_quat(q))
+        return np.stack(out)
+    scale = 60.0 / body.sample_rate_hz
+    start, stop = int(round(cal.start * scale)), int(round((cal.stop if cal.stop is not None else 0) * scale))
+    n = len(r.q_world_sensor)
+    if cal.stop is None or not 0 <= start < stop <= n:
+        raise InputError(
+            f"calibration: a still span needs 0 <= start < stop <= {round(n / scale)} samples, "
+            f"got start {cal.start}, stop {cal.stop}"
+        )
+    if stop - start < 30:
+        raise InputError(f"calibration: the still span must last at least 0.5 s, got {(stop - start) / 60.0:.2f} s")
+    span = slice(start, stop)
+    still, why = is_still(None if r.gyr_rads is None else r.gyr_rads[span], r.acc_mps2[span])
+    if not still:
+        raise InputError(
+            f"calibration: frames {cal.start}-{cal.stop} are not still: {why.replace('sensor ', 'sensor #')}"
+        )
+    acc_norm = float(np.median(np.linalg.norm(r.acc_mps2[span], axis=-1)))
+    if abs(acc_norm - GRAVITY_MPS2) > STILL_ACC_NORM_TOLERANCE_MPS2:
+        raise InputError(
+            f"calibration: the still sensors read |acc| {acc_norm:.2f} m/s^2 where gravity reads 9.81: "
+            f"is acc_unit ({body.acc_unit}) right?"
+        )
+    try:
+        return still_pose_calibration(r.q_world_sensor[span], model.spec.sensors, cal.pose, 0, cal.pelvis_back_axis)
+    except CalibrationError as exc:
+        raise InputError(f"calibration: {exc}") from None
+
+
+def pose_response(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None) -> PoseImuResponse:
+    R_w_seg, a_w = segment_readings(r.q_world_sensor, r.acc_mps2, q_seg_sensor)
+    R_out = model.predict(pose_features(R_w_seg, a_w))
+    R_world = whole_body(R_w_seg, R_out, model.sensor_index, model.output_index)
+    body = model.body.scaled(height) if height else model.body
+    answer = pose_answer(R_world, body)
+    covered = set(covered_segments(model))
+    sources = {s: "sensor" if s in model.spec.sensors else "model" if s in covered else "parent" for s in BODY_SEGMENTS}
+    rnd = lambda a, d: np.round(a, d).tolist()  # noqa: E731
+    return PoseImuResponse(
+        model={"name": model.name, "version": model.loaded.manifest.version},
+        sample_rate_hz=60.0,
+        frames=len(R_world),
+        look_ahead_frames=model.spec.look_ahead_frames,
+        body_height_m=round(body.height_m, 3),
+        q_segment_sensor={i: rnd(q, 6) for i, q in zip(r.sensor_ids, q_seg_sensor, strict=True)},
+        segments={
+            s: SegmentTrack(
+                source=sources[s],
+                q_world_segment=rnd(answer["q_world_segment"][:, k], 5),
+                q_parent_segment=rnd(answer["q_parent_segment"][:, k], 5),
+                joint_position_m=rnd(answer["joint_positions_m"][:, k], 4),
+            )
+            for k, s in enumerate(BODY_SEGMENTS)
+        },
+    )
+
+
+@router.post(
+    "/v1/pose/imu",
+    response_model=PoseImuResponse,
+    tags=["pose"],
+    summary="Whole-body pose from raw IMU readings",
+    description=(
+        "Raw readings per sensor (its fusion's q_world_sensor in its own z-up world frame and its accelerometer), "
+        "the segment each sensor is on, and a calibration: `declared` alignments (no pose needed, e.g. from "
+        "/v1/imu/assign) or the frame span of a still N-pose/T-pose in this request. Returns per frame (60 Hz) and "
+        "segment the global and parent-relative quaternions and joint positions of the default body (or of "
+        "`body_height_m`). The model is the offline one whose sensors match, or the one `model` names."
+    ),
+    responses=error_responses(
+        401, 413, 422, 503, details={422: "sensors: no offline pose model takes sensors on ['Pelvis', 'Head']; ..."}
+    ),
+)
+async def pose_from_imu(body: PoseImuRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
+    model = choose_model(pose_models(request), [s.segment for s in body.sensors], body.model, streaming=False)
+    readings = read_sensors(body, model)
+    q_seg_sensor = calibrate(body, model, readings)
+    answer = await request.app.state.runner.run_call(pose_response, model, readings, q_seg_sensor, body.body_height_m)
+    return Response(answer.model_dump_json(), media_type="application/json")

@@ -1,0 +1,540 @@
+"""One canonical body for whole-body pose: 21 segments, their tree, anatomical frames, and forward kinematics.
+
+Every mocap skeleton family is mapped onto these segments by a small declarative table (``SkeletonMapping``:
+segment → the joint whose rotation drives it and the joint that ends it); a user's own BVH with an unknown
+skeleton works the same way with a mapping file (``load_mapping``, JSON or YAML with the same fields).
+
+Segment frames follow DESIGN.md §2 (as Xsens MVN): in neutral stance x anterior, y left, z superior, origin at
+the proximal joint. They are built as ``service.core.skeleton`` builds the seven lower-body frames: a geometric
+target per frame (long axis from the joints, anterior from the pelvis heading), then one constant offset per
+clip and segment (the rotation mean of R_world_bone⁻¹ · target), so that each segment frame moves rigidly with
+its bone and keeps the bone's axial twist.
+
+Forward kinematics (``Body.forward``): each segment's origin is its parent's origin plus the parent's
+orientation applied to a constant bone vector expressed in the parent's frame (``Body.offsets_m``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation, Slerp
+
+from service.core.kinematics import GlobalPoses
+
+# Canonical segments in tree order (a parent precedes its children); Xsens MVN names (L5 lower spine, T8 upper).
+BODY_SEGMENTS: tuple[str, ...] = (
+    "Pelvis",
+    "L5",
+    "T8",
+    "Neck",
+    "Head",
+    "LeftShoulder",
+    "LeftUpperArm",
+    "LeftForeArm",
+    "LeftHand",
+    "RightShoulder",
+    "RightUpperArm",
+    "RightForeArm",
+    "RightHand",
+    "LeftUpperLeg",
+    "LeftLowerLeg",
+    "LeftFoot",
+    "LeftToe",
+    "RightUpperLeg",
+    "RightLowerLeg",
+    "RightFoot",
+    "RightToe",
+)
+BODY_PARENT: dict[str, str | None] = {
+    "Pelvis": None,
+    "L5": "Pelvis",
+    "T8": "L5",
+    "Neck": "T8",
+    "Head": "Neck",
+    "LeftShoulder": "T8",
+    "LeftUpperArm": "LeftShoulder",
+    "LeftForeArm": "LeftUpperArm",
+    "LeftHand": "LeftForeArm",
+    "RightShoulder": "T8",
+    "RightUpperArm": "RightShoulder",
+    "RightForeArm": "RightUpperArm",
+    "RightHand": "RightForeArm",
+    "LeftUpperLeg": "Pelvis",
+    "LeftLowerLeg": "LeftUpperLeg",
+    "LeftFoot": "LeftLowerLeg",
+    "LeftToe": "LeftFoot",
+    "RightUpperLeg": "Pelvis",
+    "RightLowerLeg": "RightUpperLeg",
+    "RightFoot": "RightLowerLeg",
+    "RightToe": "RightFoot",
+}
+PARENT_INDEX: tuple[int, ...] = tuple(
+    -1 if BODY_PARENT[s] is None else BODY_SEGMENTS.index(BODY_PARENT[s]) for s in BODY_SEGMENTS
+)
+
+# How the geometric target frame of each segment is read off its joints (proximal p, distal d):
+#   trunk: z from the segment's origin to the neck's (rigs curve the lumbar bones 20-40° forward; the MVN frames
+#   of the spine are upright in stance);  up: z along d − p (neck);
+#   down: z along p − d (limbs hang in neutral stance, z superior);
+#   left / right: y along ±(d − p) (shoulders run sideways);  foot: ankle → toe reads FOOT_AXIS in the frame;
+#   parent: the parent's target (head, hands, toes: their end points are not reliable across rigs; Bandai-Namco's
+#   end sites have zero length).
+_AXIS_RULE: dict[str, str] = {
+    "L5": "trunk",
+    "T8": "trunk",
+    "Neck": "up",
+    "Head": "parent",
+    "LeftShoulder": "left",
+    "RightShoulder": "right",
+    "LeftToe": "parent",
+    "RightToe": "parent",
+    "LeftHand": "parent",
+    "RightHand": "parent",
+}
+for _s in BODY_SEGMENTS:
+    if _s.endswith("Foot"):
+        _AXIS_RULE[_s] = "foot"
+    _AXIS_RULE.setdefault(_s, "down")
+_AXIS_RULE.pop("Pelvis")
+FOOT_AXIS = np.array([0.9, 0.0, -0.4]) / np.linalg.norm([0.9, 0.0, -0.4])  # paper 000 §2.4.1, as in skeleton.py
+
+
+class MappingError(ValueError):
+    """A skeleton mapping that does not fit the skeleton or the canonical body; the message says what."""
+
+
+@dataclass(frozen=True)
+class SkeletonMapping:
+    """Declarative map of one skeleton family onto ``BODY_SEGMENTS``.
+
+    segments: segment → (driving joint, distal joint or None); the driving joint's position is the segment origin
+    and its rotation moves the segment. hips: left and right hip joints (the pelvis's lateral axis).
+    metres_per_unit: the length unit of the BVH files.
+    """
+
+    name: str
+    segments: dict[str, tuple[str, str | None]]
+    hips: tuple[str, str]
+    metres_per_unit: float
+
+    def check(self, joint_names: tuple[str, ...]) -> None:
+        missing = [s for s in BODY_SEGMENTS if s not in self.segments]
+        extra = [s for s in self.segments if s not in BODY_SEGMENTS]
+        if missing or extra:
+            raise MappingError(
+                f"mapping {self.name!r}: expected every segment of {list(BODY_SEGMENTS)}; "
+                f"missing {missing}, unknown {extra}"
+            )
+        names = set(joint_names)
+        used = {j for joint, distal in self.segments.values() for j in (joint, distal) if j} | set(self.hips)
+        used.discard(END_SITE)
+        absent = sorted(used - names)
+        if absent:
+            raise MappingError(f"mapping {self.name!r}: joints {absent} are not in the skeleton {sorted(names)}")
+        for s in BODY_SEGMENTS:
+            if _AXIS_RULE.get(s, "pelvis") not in ("parent", "pelvis") and self.segments[s][1] is None:
+                raise MappingError(f"mapping {self.name!r}: segment {s} needs a distal joint")
+
+
+def _side_table(prefix_l: str, prefix_r: str, names: dict[str, tuple[str, str | None]]) -> dict:
+    out = {}
+    for seg, (joint, distal) in names.items():
+        for side, pre in (("Left", prefix_l), ("Right", prefix_r)):
+            out[f"{side}{seg}"] = (joint.format(s=pre), None if distal is None else distal.format(s=pre))
+    return out
+
+
+def _mapping(name: str, axial: dict, sided: dict, sides: tuple[str, str], hips: tuple[str, str], mpu: float):
+    return SkeletonMapping(name, {**axial, **_side_table(*sides, sided)}, hips, mpu)
+
+
+SKELETON_MAPPINGS: dict[str, SkeletonMapping] = {
+    "cmu_li2018": _mapping(
+        "cmu_li2018",
+        {
+            "Pelvis": ("root", None),
+            "L5": ("lowerback", "upperback"),
+            "T8": ("upperback", "thorax"),
+            "Neck": ("lowerneck", "head"),
+            "Head": ("head", None),
+        },
+        {
+            "Shoulder": ("{s}clavicle", "{s}humerus"),
+            "UpperArm": ("{s}humerus", "{s}radius"),
+            "ForeArm": ("{s}radius", "{s}wrist"),
+            "Hand": ("{s}wrist", "{s}hand"),
+            "UpperLeg": ("{s}femur", "{s}tibia"),
+            "LowerLeg": ("{s}tibia", "{s}foot"),
+            "Foot": ("{s}foot", "{s}toes"),
+            "Toe": ("{s}toes", None),
+        },
+        ("l", "r"),
+        ("lfemur", "rfemur"),
+        1.0,
+    ),
+    "cmu_iclone": _mapping(
+        "cmu_iclone",
+        {
+            "Pelvis": ("CC_Base_Pelvis", None),
+            "L5": ("CC_Base_Waist", "CC_Base_Spine01"),
+            "T8": ("CC_Base_Spine02", "CC_Base_NeckTwist01"),
+            "Neck": ("CC_Base_NeckTwist01", "CC_Base_Head"),
+            "Head": ("CC_Base_Head", None),
+        },
+        {
+            "Shoulder": ("CC_Base_{s}_Clavicle", "CC_Base_{s}_Upperarm"),
+            "UpperArm": ("CC_Base_{s}_Upperarm", "CC_Base_{s}_Forearm"),
+            "ForeArm": ("CC_Base_{s}_Forearm", "CC_Base_{s}_Hand"),
+            "Hand": ("CC_Base_{s}_Hand", "CC_Base_{s}_Mid1"),
+            "UpperLeg": ("CC_Base_{s}_Thigh", "CC_Base_{s}_Calf"),
+            "LowerLeg": ("CC_Base_{s}_Calf", "CC_Base_{s}_Foot"),
+            "Foot": ("CC_Base_{s}_Foot", "CC_Base_{s}_ToeBase"),
+            "Toe": ("CC_Base_{s}_ToeBase", None),
+        },
+        ("L", "R"),
+        ("CC_Base_L_Thigh", "CC_Base_R_Thigh"),
+        0.01,
+    ),
+    "cmu_raw_mb": _mapping(
+        "cmu_raw_mb",
+        {
+            "Pelvis": ("Hips", None),
+            "L5": ("LowerBack", "Spine"),
+            "T8": ("Spine", "Spine1"),  # Spine1 -> Neck has zero length
+            "Neck": ("Neck", "Head"),
+            "Head": ("Head", None),
+        },
+        {
+            "Shoulder": ("{s}Shoulder", "{s}Arm"),
+            "UpperArm": ("{s}Arm", "{s}ForeArm"),
+            "ForeArm": ("{s}ForeArm", "{s}Hand"),
+            "Hand": ("{s}Hand", "{s}FingerBase"),
+            "UpperLeg": ("{s}UpLeg", "{s}Leg"),
+            "LowerLeg": ("{s}Leg", "{s}Foot"),
+            "Foot": ("{s}Foot", "{s}ToeBase"),
+            "Toe": ("{s}ToeBase", None),
+        },
+        ("Left", "Right"),
+        ("LeftUpLeg", "RightUpLeg"),
+        0.0254 / 0.45,
+    ),
+    # cmu_raw 131_*: the same skeleton as cmu_raw_mb under 3ds Max names, one joint name per position.
+    "cmu_raw_3dsmax": SkeletonMapping(
+        "cmu_raw_3dsmax",
+        {
+            "Pelvis": ("Hips", None),
+            "L5": ("lowerback", "Chest"),
+            "T8": ("Chest", "Chest2"),  # Chest2 -> lowerneck has zero length
+            "Neck": ("lowerneck", "Head"),
+            "Head": ("Head", None),
+            **{
+                f"{side}{seg}": (joint.format(s=side), None if distal is None else distal.format(s=side))
+                for side in ("Left", "Right")
+                for seg, (joint, distal) in {
+                    "Shoulder": ("{s}Collar", "{s}Shoulder"),
+                    "UpperArm": ("{s}Shoulder", "{s}Elbow"),
+                    "ForeArm": ("{s}Elbow", "{s}Wrist"),
+                    "UpperLeg": ("{s}Hip", "{s}Knee"),
+                    "LowerLeg": ("{s}Knee", "{s}Ankle"),
+                    "Foot": ("{s}Ankle", "{s}Toe"),
+                    "Toe": ("{s}Toe", None),
+                }.items()
+            },
+            "LeftHand": ("LeftWrist", "lhand"),
+            "RightHand": ("RightWrist", "rhand"),
+        },
+        ("LeftHip", "RightHip"),
+        0.0254 / 0.45,
+    ),
+    "bandai_namco": _mapping(
+        "bandai_namco",
+        {
+            "Pelvis": ("Hips", None),
+            "L5": ("Spine", "Chest"),
+            "T8": ("Chest", "Neck"),
+            "Neck": ("Neck", "Head"),
+            "Head": ("Head", None),
+        },
+        {
+            "Shoulder": ("Shoulder_{s}", "UpperArm_{s}"),
+            "UpperArm": ("UpperArm_{s}", "LowerArm_{s}"),
+            "ForeArm": ("LowerArm_{s}", "Hand_{s}"),
+            "Hand": ("Hand_{s}", None),
+            "UpperLeg": ("UpperLeg_{s}", "LowerLeg_{s}"),
+            "LowerLeg": ("LowerLeg_{s}", "Foot_{s}"),
+            "Foot": ("Foot_{s}", "Toes_{s}"),
+            "Toe": ("Toes_{s}", None),
+        },
+        ("L", "R"),
+        ("UpperLeg_L", "UpperLeg_R"),
+        0.01,
+    ),
+}
+# "end" as a distal joint: the driving joint's BVH end site.
+END_SITE = "end"
+
+
+def mapping_for_source(source: str, joint_names: tuple[str, ...]) -> SkeletonMapping:
+    """The mapping of a data source (index.csv ``source``); cmu_raw comes in two naming schemes."""
+    if source == "cmu_raw":
+        return SKELETON_MAPPINGS["cmu_raw_mb" if "LeftUpLeg" in joint_names else "cmu_raw_3dsmax"]
+    if source.startswith("bandai_namco"):
+        return SKELETON_MAPPINGS["bandai_namco"]
+    try:
+        return SKELETON_MAPPINGS[source]
+    except KeyError:
+        raise MappingError(f"no skeleton mapping for source {source!r}; pass a mapping file") from None
+
+
+def detect_mapping(joint_names: tuple[str, ...]) -> SkeletonMapping:
+    """The known family whose joints a skeleton has; else a ``MappingError`` asking for a mapping file."""
+    names = set(joint_names)
+    for mapping in SKELETON_MAPPINGS.values():
+        used = {j for joint, distal in mapping.segments.values() for j in (joint, distal) if j and j != END_SITE}
+        if used | set(mapping.hips) <= names:
+            return mapping
+    raise MappingError(
+        f"the skeleton (joints {sorted(names)[:12]}…) is none of the known families {sorted(SKELETON_MAPPINGS)}; "
+        "write a mapping file (service.core.body.load_mapping) and pass it with --mapping"
+    )
+
+
+def load_mapping(path: str | Path) -> SkeletonMapping:
+    """A user's mapping file (JSON, or YAML when PyYAML is installed)::
+
+        {"name": "my_rig", "metres_per_unit": 0.01, "hips": ["LeftUpLeg", "RightUpLeg"],
+         "segments": {"Pelvis": {"joint": "Hips"}, "L5": {"joint": "Spine", "distal": "Spine1"}, ...}}
+
+    Every segment of ``BODY_SEGMENTS`` is required; ``distal`` may be ``"end"`` (the joint's end site) and is not
+    needed for Pelvis, Head and the toes.
+    """
+    text = Path(path).read_text()
+    if Path(path).suffix in (".yaml", ".yml"):
+        import yaml  # the service installs PyYAML; plain numpy users can write JSON
+
+        raw = yaml.safe_load(text)
+    else:
+        raw = json.loads(text)
+    try:
+        segments = {s: (v["joint"], v.get("distal")) for s, v in raw["segments"].items()}
+        return SkeletonMapping(
+            str(raw.get("name", Path(path).stem)),
+            segments,
+            (raw["hips"][0], raw["hips"][1]),
+            float(raw["metres_per_unit"]),
+        )
+    except (KeyError, TypeError, IndexError) as exc:
+        raise MappingError(
+            f"{path}: a mapping needs 'metres_per_unit', 'hips' [left, right] and 'segments' "
+            f"{{segment: {{'joint': ..., 'distal': ...}}}}; missing or malformed: {exc}"
+        ) from None
+
+
+@dataclass(frozen=True)
+class BodyMotion:
+    """One clip on the canonical body: R_world_segment (T, S, 3, 3), origin_m (T, S, 3) proximal joints,
+    midpoint_m (T, S, 3) where a sensor is nominally placed, at ``sample_rate_hz``."""
+
+    R_world_segment: np.ndarray
+    origin_m: np.ndarray
+    midpoint_m: np.ndarray
+    sample_rate_hz: float
+
+    @property
+    def n_frames(self) -> int:
+        return self.R_world_segment.shape[0]
+
+    def crop(self, start: int, stop: int | None = None) -> BodyMotion:
+        s = slice(start, stop)
+        return BodyMotion(self.R_world_segment[s], self.origin_m[s], self.midpoint_m[s], self.sample_rate_hz)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _frame_z_x(z: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
+    z = _unit(z)
+    x = _unit(x_hint - np.sum(x_hint * z, -1, keepdims=True) * z)
+    return np.stack([x, np.cross(z, x), z], axis=-1)
+
+
+def _frame_y_x(y: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
+    y = _unit(y)
+    x = _unit(x_hint - np.sum(x_hint * y, -1, keepdims=True) * y)
+    return np.stack([x, y, np.cross(x, y)], axis=-1)
+
+
+def _foot_frame(ankle: np.ndarray, toe: np.ndarray, y_hint: np.ndarray) -> np.ndarray:
+    u = _unit(toe - ankle)
+    y = _unit(y_hint - np.sum(y_hint * u, -1, keepdims=True) * u)
+    w = np.cross(u, y)
+    c, s = FOOT_AXIS[0], -FOOT_AXIS[2]
+    return np.stack([c * u + s * w, y, c * w - s * u], axis=-1)
+
+
+def _rigid_offset(R_bone: np.ndarray, target: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Constant R_bone_segment: the rotation mean of R_bone⁻¹ · target over the frames where the target is
+    well defined (``weight`` > 0: the long axis not along the anterior hint)."""
+    rel = np.einsum("tji,tjk->tik", R_bone, target)
+    keep = weight > 0.2
+    if keep.sum() < 1:
+        keep = np.ones_like(keep)
+    return Rotation.from_matrix(rel[keep]).mean(weights=weight[keep]).as_matrix()
+
+
+def body_motion(poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict[str, np.ndarray]) -> BodyMotion:
+    """The canonical segments of one clip from its global joint poses.
+
+    ``end_sites_m``: joint name → the end-site offset in the joint's local frame, metres (``bvh_end_sites``).
+    """
+    mapping.check(poses.names)
+    P, R = poses.positions_m, poses.R_world_joint
+
+    def pos(name: str, owner: str) -> np.ndarray:
+        if name == END_SITE:
+            if owner not in end_sites_m:
+                raise MappingError(f"mapping {mapping.name!r}: joint {owner!r} has no end site")
+            return P[:, poses.index(owner)] + R[:, poses.index(owner)] @ end_sites_m[owner]
+        return P[:, poses.index(name)]
+
+    l_hip, r_hip = P[:, poses.index(mapping.hips[0])], P[:, poses.index(mapping.hips[1])]
+    up = np.broadcast_to([0.0, 0.0, 1.0], l_hip.shape)
+    y_pelvis = _unit(l_hip - r_hip)
+    heading = _unit(np.cross(y_pelvis, up))
+    targets: dict[str, np.ndarray] = {"Pelvis": _frame_z_x(np.cross(heading, y_pelvis), heading)}
+    weights: dict[str, np.ndarray] = {"Pelvis": np.ones(len(P))}
+    origin, mid = {}, {}
+    for s in BODY_SEGMENTS:
+        joint, distal = mapping.segments[s]
+        p = pos(joint, joint)
+        origin[s] = p
+        d = pos(distal, joint) if distal else None
+        if s == "Pelvis":
+            mid[s] = (p + (l_hip + r_hip) / 2.0) / 2.0  # between the root joint and the hip centre
+            continue
+        rule = _AXIS_RULE[s]
+        if rule == "parent":
+            parent = BODY_PARENT[s]
+            targets[s], weights[s] = targets[parent], weights[parent]
+            mid[s] = p if d is None or distal == END_SITE else (p + d) / 2.0
+            continue
+        mid[s] = (p + d) / 2.0
+        length = np.median(np.linalg.norm(d - p, axis=-1))
+        if length < 1e-3:
+            raise MappingError(
+                f"mapping {mapping.name!r}: segment {s} runs from {joint!r} to {distal!r}, which are "
+                f"{length * 1000:.1f} mm apart; map it to joints a bone apart"
+            )
+        if rule == "trunk":
+            d = P[:, poses.index(mapping.segments["Neck"][0])]
+        axis = {"trunk": d - p, "up": d - p, "down": p - d, "left": d - p, "right": p - d, "foot": d - p}[rule]
+        align = np.abs(np.sum(_unit(axis) * heading, -1))
+        weights[s] = 1.0 - align
+        if rule in ("trunk", "up", "down"):
+            targets[s] = _frame_z_x(axis, heading)
+        elif rule in ("left", "right"):
+            targets[s] = _frame_y_x(axis, heading)
+        else:  # foot: y from the shank's frame
+            targets[s] = _foot_frame(p, d, targets[BODY_PARENT[s]][..., 1])
+            weights[s] = np.ones(len(P))
+    R_out = np.empty((len(P), len(BODY_SEGMENTS), 3, 3))
+    for k, s in enumerate(BODY_SEGMENTS):
+        R_bone = R[:, poses.index(mapping.segments[s][0])]
+        R_out[:, k] = R_bone @ _rigid_offset(R_bone, targets[s], weights[s])
+    stack = lambda d: np.stack([d[s] for s in BODY_SEGMENTS], axis=1)  # noqa: E731
+    return BodyMotion(R_out, stack(origin), stack(mid), poses.sample_rate_hz)
+
+
+def resample_motion(motion: BodyMotion, sample_rate_hz: float) -> BodyMotion:
+    """Resample: orientations by slerp, positions by cubic spline (smooth second derivative: the accelerations
+    of 30 fps Bandai-Namco clips are differentiated after this, ``../shared/data/README.md``)."""
+    if np.isclose(motion.sample_rate_hz, sample_rate_hz):
+        return motion
+    n = motion.n_frames
+    t_old = np.arange(n) / motion.sample_rate_hz
+    # Frame times are rounded in the files (0.0333333 s): a last frame within 1e-3 of a sample is kept, at the end
+    n_new = int(np.floor(t_old[-1] * sample_rate_hz + 1e-3)) + 1
+    t_new = np.minimum(np.arange(n_new) / sample_rate_hz, t_old[-1])
+    S = len(BODY_SEGMENTS)
+    R = np.stack(
+        [Slerp(t_old, Rotation.from_matrix(motion.R_world_segment[:, s]))(t_new).as_matrix() for s in range(S)], 1
+    )
+    spline = lambda a: CubicSpline(t_old, a, axis=0)(t_new)  # noqa: E731
+    return BodyMotion(R, spline(motion.origin_m), spline(motion.midpoint_m), sample_rate_hz)
+
+
+@dataclass(frozen=True)
+class Body:
+    """A skeleton for forward kinematics: per segment, its origin in its parent's frame (metres).
+
+    offsets_m: (S, 3); the root's entry is unused. ``height_m`` is the standing height it implies
+    (``standing_height``), so that a client's own height scales the body (``scaled``).
+    """
+
+    offsets_m: np.ndarray
+    segments: tuple[str, ...] = field(default=BODY_SEGMENTS)
+
+    def forward(self, R_world_segment: np.ndarray, root_m: np.ndarray | None = None) -> np.ndarray:
+        """Segment origins ``(T, S, 3)`` from orientations ``(T, S, 3, 3)``; the root at ``root_m`` or 0."""
+        T = R_world_segment.shape[0]
+        p = np.zeros((T, len(self.segments), 3))
+        if root_m is not None:
+            p[:, 0] = root_m
+        for k in range(1, len(self.segments)):
+            parent = PARENT_INDEX[k]
+            p[:, k] = p[:, parent] + R_world_segment[:, parent] @ self.offsets_m[k]
+        return p
+
+    @property
+    def height_m(self) -> float:
+        return standing_height(self)
+
+    def scaled(self, height_m: float) -> Body:
+        return Body(self.offsets_m * (height_m / self.height_m), self.segments)
+
+    def to_json(self) -> dict:
+        return {"segments": list(self.segments), "offsets_m": np.round(self.offsets_m, 5).tolist()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> Body:
+        if tuple(d["segments"]) != BODY_SEGMENTS:
+            raise MappingError(f"a body lists the segments {list(BODY_SEGMENTS)}, got {d['segments']}")
+        return cls(np.asarray(d["offsets_m"], dtype=np.float64))
+
+
+def clip_body(motion: BodyMotion) -> Body:
+    """The clip's own skeleton: each bone vector in its parent's frame, the median over frames (constant up to
+    the rigs' intermediate joints, which the canonical body lumps into their segment)."""
+    off = np.zeros((len(BODY_SEGMENTS), 3))
+    for k in range(1, len(BODY_SEGMENTS)):
+        parent = PARENT_INDEX[k]
+        d = motion.origin_m[:, k] - motion.origin_m[:, parent]
+        off[k] = np.median(np.einsum("tji,tj->ti", motion.R_world_segment[:, parent], d), axis=0)
+    return Body(off)
+
+
+def standing_height(body: Body) -> float:
+    """Height of the neutral pose (every segment frame = identity): head origin above the lowest toe origin,
+    plus a head length of 0.12 of that span (anthropometric ratio, assumed)."""
+    p = body.forward(np.broadcast_to(np.eye(3), (1, len(BODY_SEGMENTS), 3, 3)))[0]
+    span = p[BODY_SEGMENTS.index("Head"), 2] - p[:, 2].min()
+    return float(span * 1.12)
+
+
+def read_body_motion(path: str | Path, mapping: SkeletonMapping | None = None, source: str = "") -> BodyMotion:
+    """A BVH file (plain or ``.gz``) on the canonical body, at its own rate; ``mapping`` or the source's."""
+    from service.core.bvh import read_bvh
+    from service.core.kinematics import forward_kinematics
+
+    bvh = read_bvh(path)
+    names = tuple(j.name for j in bvh.joints)
+    mapping = mapping or (mapping_for_source(source, names) if source else detect_mapping(names))
+    poses = forward_kinematics(bvh, mapping.metres_per_unit)
+    ends = {bvh.joints[j].name: off * mapping.metres_per_unit for j, off in bvh.end_sites.items()}
+    return body_motion(poses, mapping, ends)

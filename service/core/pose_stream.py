@@ -1,0 +1,73 @@
+"""Live whole-body frames from several sensors' packets: the streaming twin of a pose request's sample rows.
+
+Each sensor's packets carry consecutive samples from a sequence number; ``FrameAligner`` joins the sensors'
+samples with the same number into one body frame ``(N, C)`` and releases every frame that all sensors have
+reached. A gap is filled by holding the sensor's last sample (the pose model needs every frame; the fill is
+reported), a late or repeated packet is dropped (reported).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+MAX_LAG_FRAMES = 1200  # 20 s at 60 Hz: a sensor further behind the others stalls the session
+
+
+class StreamLagError(ValueError):
+    """One sensor is so far behind the others that their frames cannot be buffered any longer."""
+
+
+@dataclass
+class AlignResult:
+    frames: np.ndarray  # (m, N, C), the frames all sensors have reached, oldest first
+    first_frame: int  # index of frames[0] since the start of the stream
+    filled: int = 0  # samples held to fill a gap in this packet
+    late: tuple[int, int] | None = None  # (expected, received): the packet was dropped
+    notices: list[dict] = field(default_factory=list)
+
+
+class FrameAligner:
+    def __init__(self, n_sensors: int, width: int) -> None:
+        self.n, self.width = n_sensors, width
+        self.buffers: list[list[np.ndarray]] = [[] for _ in range(n_sensors)]
+        self.buffered = np.zeros(n_sensors, dtype=np.int64)
+        self.expected = np.zeros(n_sensors, dtype=np.int64)
+        self.last: list[np.ndarray | None] = [None] * n_sensors
+        self.emitted = 0
+
+    def push(self, k: int, seq: int, samples: np.ndarray) -> AlignResult:
+        """Add sensor ``k``'s ``samples`` ``(n, C)`` whose first has sequence number ``seq``."""
+        result = AlignResult(np.zeros((0, self.n, self.width)), self.emitted)
+        if seq < self.expected[k]:
+            result.late = (int(self.expected[k]), seq)
+            return result
+        if seq > self.expected[k]:
+            hold = self.last[k] if self.last[k] is not None else samples[0]
+            result.filled = int(seq - self.expected[k])
+            self.buffers[k].append(np.repeat(hold[None], result.filled, axis=0))
+            self.buffered[k] += result.filled
+        self.buffers[k].append(samples)
+        self.buffered[k] += len(samples)
+        self.expected[k] = seq + len(samples)
+        self.last[k] = samples[-1]
+        if self.buffered.max() - self.buffered.min() > MAX_LAG_FRAMES:
+            slow = int(np.argmin(self.buffered))
+            raise StreamLagError(
+                f"sensor #{slow} is {int(self.buffered.max() - self.buffered.min())} samples behind the others "
+                f"(at most {MAX_LAG_FRAMES})"
+            )
+        m = int(self.buffered.min())
+        if m == 0:
+            return result
+        out = np.empty((m, self.n, self.width))
+        for j in range(self.n):
+            joined = np.concatenate(self.buffers[j]) if len(self.buffers[j]) > 1 else self.buffers[j][0]
+            out[:, j] = joined[:m]
+            rest = joined[m:]
+            self.buffers[j] = [rest] if len(rest) else []
+        self.buffered -= m
+        result.frames, result.first_frame = out, self.emitted
+        self.emitted += m
+        return result

@@ -1,0 +1,247 @@
+"""Running an ``imu_pose`` model: offline in overlapping chunks, or streaming with its LSTM state, and turning its
+root-relative output into whole-body orientations and joint positions (DESIGN.md §2 pose output).
+
+Used by the service and by training's evaluation alike, so a shipped model is scored the way it is served.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body
+from service.core.rotations import quat_from_matrix
+from service.inference.registry import LoadedModel
+
+Predictor = Callable[[np.ndarray], np.ndarray]  # features (T, F) → R_root_segment (T, S_out, 3, 3)
+
+
+def chunk_plan(n_frames: int, window: int, context: int) -> list[tuple[int, int, int, int]]:
+    """Chunks ``(start, stop, keep_from, keep_to)`` (absolute frames) that cover ``n_frames``: each chunk is at most
+    ``window`` long and keeps its middle, ``context`` frames from either end (paper 001: every answer has up to
+    150 past and 150 future frames in its 300-frame sequence); the first and last chunks keep their outer ends."""
+    if n_frames <= window:
+        return [(0, n_frames, 0, n_frames)]
+    if window - 2 * context < 1:
+        raise ValueError(f"window {window} must exceed twice the context {context}")
+    plan, start, keep_from = [], 0, 0
+    while start + window < n_frames:
+        keep_to = start + window - context
+        plan.append((start, start + window, keep_from, keep_to))
+        keep_from, start = keep_to, keep_to - context
+    plan.append((n_frames - window, n_frames, keep_from, n_frames))
+    return plan
+
+
+def run_chunked(predict: Predictor, features: np.ndarray, window: int, context: int) -> np.ndarray:
+    """An offline predictor over a whole recording, chunk by chunk (``chunk_plan``)."""
+    out = None
+    for start, stop, keep_from, keep_to in chunk_plan(len(features), window, context):
+        y = predict(features[start:stop])
+        if out is None:
+            out = np.empty((len(features),) + y.shape[1:], dtype=y.dtype)
+        out[keep_from:keep_to] = y[keep_from - start : keep_to - start]
+    return out
+
+
+@dataclass
+class StreamState:
+    h: np.ndarray  # (layers, 1, hidden)
+    c: np.ndarray
+
+
+class PoseModel:
+    """A loaded ``imu_pose`` model with its manifest's pose section."""
+
+    def __init__(self, loaded: LoadedModel) -> None:
+        if loaded.manifest.pose is None:
+            raise ValueError(f"{loaded.manifest.name} is not an imu_pose model")
+        self.loaded, self.spec = loaded, loaded.manifest.pose
+        self.body = Body.from_json(self.spec.body)
+        self.sensor_index = [BODY_SEGMENTS.index(s) for s in self.spec.sensors]
+        self.output_index = [BODY_SEGMENTS.index(s) for s in self.spec.output_segments]
+
+    @property
+    def name(self) -> str:
+        return self.loaded.manifest.name
+
+    def _run(self, features: np.ndarray) -> np.ndarray:
+        x = features[None].astype(np.float32)
+        if not self.spec.streaming:
+            return self.loaded.session.run(None, {self.loaded.manifest.inputs[0].name: x})[0][0]
+        state = self.new_state()
+        y, _ = self.step(features, state)
+        return y
+
+    def predict(self, features: np.ndarray) -> np.ndarray:
+        """R_root_segment ``(T, S_out, 3, 3)`` of every frame of ``features`` ``(T, F)``.
+
+        A streaming model is run over the recording with its look-ahead: the last frame is repeated
+        ``look_ahead_frames`` times at the end, so that frame t's answer is the one it gives ``look_ahead`` frames
+        later, exactly as on the live stream.
+        """
+        if self.spec.streaming:
+            L = self.spec.look_ahead_frames
+            padded = np.concatenate([features, np.repeat(features[-1:], L, axis=0)]) if L else features
+            return self._run(padded)[L:]
+        return run_chunked(self._run, features, self.spec.window_frames, self.spec.context_frames)
+
+    def new_state(self) -> StreamState:
+        shape = (self.spec.state_layers, 1, self.spec.state_hidden)
+        return StreamState(np.zeros(shape, np.float32), np.zeros(shape, np.float32))
+
+    def step(self, features: np.ndarray, state: StreamState) -> tuple[np.ndarray, StreamState]:
+        """Streaming: frames ``(n, F)`` → their outputs ``(n, S_out, 3, 3)`` (each for the frame
+        ``look_ahead_frames`` earlier) and the new state."""
+        names = [i.name for i in self.loaded.session.get_inputs()]
+        y, h, c = self.loaded.session.run(
+            None, {names[0]: features[None].astype(np.float32), names[1]: state.h, names[2]: state.c}
+        )
+        return y[0], StreamState(h, c)
+
+
+def whole_body(
+    R_world_sensor_segment: np.ndarray, R_root_out: np.ndarray, sensor_index: list[int], output_index: list[int]
+) -> np.ndarray:
+    """Global orientations of all ``BODY_SEGMENTS`` ``(T, 21, 3, 3)``: the sensors' segments as measured, the
+    others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D). Segments that neither a
+    sensor nor the model covers (e.g. the arms of a lower-body model) take their parent's orientation."""
+    T = R_root_out.shape[0]
+    R = np.full((T, len(BODY_SEGMENTS), 3, 3), np.nan)
+    R[:, sensor_index] = R_world_sensor_segment
+    R[:, output_index] = np.einsum("tij,tsjk->tsik", R_world_sensor_segment[:, 0], R_root_out)
+    for k in range(1, len(BODY_SEGMENTS)):
+        if np.isnan(R[0, k, 0, 0]):
+            R[:, k] = R[:, PARENT_INDEX[k]]
+    return R
+
+
+def covered_segments(model: PoseModel) -> list[str]:
+    return [BODY_SEGMENTS[k] for k in sorted(model.sensor_index + model.output_index)]
+
+
+def pose_answer(R_world: np.ndarray, body: Body) -> dict[str, np.ndarray]:
+    """Per frame and segment ``q_world_segment``, ``q_parent_segment`` (w, x, y, z; the root's parent is the
+    world) and the joint positions (segment origins) in metres, the pelvis at the origin."""
+    parent = np.array([k if p < 0 else p for k, p in enumerate(PARENT_INDEX)])
+    R_parent = np.einsum("tsji,tsjk->tsik", R_world[:, parent], R_world)
+    R_parent[:, 0] = R_world[:, 0]
+    return {
+        "q_world_segment": quat_from_matrix(R_world),
+        "q_parent_segment": quat_from_matrix(R_parent),
+        "joint_positions_m": body.forward(R_world),
+    }
+
+
+class LivePose:
+    """One live session's pose: calibration (declared, a still pose at the start, or handed over by the I2S
+    assignment), the streaming model's state, and the last ``look_ahead`` frames' segment readings that its
+    answers refer to.
+
+    Frames are ``(m, N, 10)``: accelerometer xyz (m/s²), gyroscope xyz (rad/s), q_world_sensor wxyz, in the model's
+    sensor order, 60 Hz.
+    """
+
+    def __init__(
+        self,
+        model: PoseModel,
+        method: str,
+        q_segment_sensor: np.ndarray | None = None,
+        still_frames: int = 120,
+        still_pose: str = "npose",
+        back_axis: tuple[float, float, float] = (0.0, 0.0, 1.0),
+        height_m: float | None = None,
+    ) -> None:
+        if not model.spec.streaming:
+            raise ValueError(f"{model.name} is an offline model; live sessions need a streaming one")
+        self.model, self.method = model, method
+        self.q_segment_sensor = q_segment_sensor
+        self.still_frames, self.still_pose, self.back_axis = still_frames, still_pose, back_axis
+        self.body = model.body.scaled(height_m) if height_m else model.body
+        self.state = model.new_state()
+        self.still: list[np.ndarray] = []
+        self.history = np.zeros((0, len(model.sensor_index), 3, 3))  # segment readings awaiting their answer
+        self.inputs = 0  # frames fed to the network
+        self.first_frame = 0  # stream frame index of the first frame fed to the network
+
+    @property
+    def calibrated(self) -> bool:
+        return self.q_segment_sensor is not None
+
+    def process(self, frames: np.ndarray, first_frame: int) -> list[dict]:
+        """Frames ``(m, N, 10)`` from stream frame ``first_frame`` on → ``calibration`` and ``pose`` messages."""
+        messages: list[dict] = []
+        if not self.calibrated:
+            if self.method != "still_pose":
+                return messages  # waiting for the assignment to hand over the alignments
+            message, frames, first_frame = self._collect_still(frames, first_frame)
+            if message is not None:
+                messages.append(message)
+            if not self.calibrated or not len(frames):
+                return messages
+        pose = self.step(frames, first_frame)
+        if pose is not None:
+            messages.append(pose)
+        return messages
+
+    def _collect_still(self, frames: np.ndarray, first_frame: int) -> tuple[dict | None, np.ndarray, int]:
+        """Collect the still span; a message once it is judged, and the frames after it."""
+        from service.core.calibration import CalibrationError, is_still, still_pose_calibration
+
+        if not self.still:
+            self.still_first = first_frame
+        self.still.append(frames)
+        span = np.concatenate(self.still)
+        if len(span) < self.still_frames:
+            return None, frames[:0], first_frame
+        rest, rest_first = span[self.still_frames :], self.still_first + self.still_frames
+        span = span[: self.still_frames]
+        self.still = []
+        ok, why = is_still(span[:, :, 3:6], span[:, :, :3], self.model.spec.sensors)
+        if not ok:
+            detail = f"frames {self.still_first}-{rest_first} are not still: {why}; hold the pose still"
+            return {"type": "calibration", "status": "waiting", "detail": detail}, rest[:0], rest_first
+        try:
+            q = still_pose_calibration(span[:, :, 6:10], self.model.spec.sensors, self.still_pose, 0, self.back_axis)
+        except CalibrationError as exc:
+            return {"type": "calibration", "status": "waiting", "detail": str(exc)}, rest[:0], rest_first
+        self.q_segment_sensor = q
+        message = {
+            "type": "calibration",
+            "status": "calibrated",
+            "method": "still_pose",
+            "frames": [self.still_first, rest_first],
+            "q_segment_sensor": {s: np.round(q[k], 6) for k, s in enumerate(self.model.spec.sensors)},
+        }
+        return message, rest, rest_first
+
+    def step(self, frames: np.ndarray, first_frame: int) -> dict | None:
+        """Feed calibrated frames; a ``pose`` message with every frame whose answer is now known."""
+        from service.core.calibration import pose_features, segment_readings
+
+        if self.inputs == 0:
+            self.first_frame = first_frame
+        R_w_seg, a_w = segment_readings(frames[:, :, 6:10], frames[:, :, :3], self.q_segment_sensor)
+        out, self.state = self.model.step(pose_features(R_w_seg, a_w), self.state)
+        self.history = np.concatenate([self.history, R_w_seg])
+        L = self.model.spec.look_ahead_frames
+        answered_from = max(0, self.inputs - L)  # network frame index of the first new answer
+        self.inputs += len(frames)
+        answered_to = max(0, self.inputs - L)
+        n = answered_to - answered_from
+        if n == 0:
+            return None
+        R_out = out[len(out) - n :]
+        R_sensors = self.history[:n]
+        self.history = self.history[n:]
+        R_world = whole_body(R_sensors, R_out, self.model.sensor_index, self.model.output_index)
+        answer = pose_answer(R_world, self.body)
+        return {
+            "type": "pose",
+            "first_frame": self.first_frame + answered_from,
+            "frames": n,
+            "q_world_segment": np.round(answer["q_world_segment"], 5),
+            "joint_positions_m": np.round(answer["joint_positions_m"], 4),
+        }

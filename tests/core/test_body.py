@@ -1,0 +1,102 @@
+"""The canonical body: every mocap family maps onto it with anatomical frames and constant bones."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.core.body import (
+    BODY_SEGMENTS,
+    PARENT_INDEX,
+    SKELETON_MAPPINGS,
+    MappingError,
+    clip_body,
+    detect_mapping,
+    load_mapping,
+    read_body_motion,
+    resample_motion,
+)
+from service.core.bvh import read_bvh
+
+# One walk (or the family's only clip type) per skeleton family, as the catalogue names them.
+FAMILY_CLIPS = {
+    "cmu_li2018": ("mocap/cmu_li2018/walking/train_walking_1.bvh", "cmu_li2018"),
+    "cmu_iclone": ("mocap/cmu_iclone/07_01.bvh", "cmu_iclone"),
+    "cmu_raw_mb": ("mocap/cmu_raw/01_01.bvh", "cmu_raw"),
+    "cmu_raw_3dsmax": ("mocap/cmu_raw/131_01.bvh", "cmu_raw"),
+    "bandai_namco_1": ("mocap/bandai_namco/dataset-1/dataset-1_walk_normal_001.bvh.gz", "bandai_namco_1"),
+    "bandai_namco_2": ("mocap/bandai_namco/dataset-2/dataset-2_walk_normal_001.bvh.gz", "bandai_namco_2"),
+}
+MAJOR_BONES = ("LeftUpperLeg", "LeftLowerLeg", "RightUpperLeg", "RightLowerLeg", "LeftForeArm", "RightForeArm")
+
+
+@pytest.mark.parametrize("family", sorted(FAMILY_CLIPS))
+def test_every_family_keeps_its_bone_lengths_and_stands_like_a_person(data_dir: Path, family: str) -> None:
+    path, source = FAMILY_CLIPS[family]
+    motion = read_body_motion(data_dir / path, source=source)
+    assert motion.R_world_segment.shape == (motion.n_frames, len(BODY_SEGMENTS), 3, 3)
+    for name in MAJOR_BONES:
+        k = BODY_SEGMENTS.index(name)
+        child = PARENT_INDEX.index(k)
+        length = np.linalg.norm(motion.origin_m[:, child] - motion.origin_m[:, k], axis=-1)
+        assert 0.18 < np.median(length) < 0.55, (name, np.median(length))
+        assert length.std() < 2e-3, (name, length.std())  # rigid: the Bandai doubled-offset bug would not be
+    # forward kinematics with the clip's own bones reproduces the hips, knees and ankles
+    body = clip_body(motion)
+    p = body.forward(motion.R_world_segment, motion.origin_m[:, 0])
+    legs = [BODY_SEGMENTS.index(s) for s in BODY_SEGMENTS if s.endswith(("UpperLeg", "LowerLeg", "Foot"))]
+    assert np.abs(p[:, legs] - motion.origin_m[:, legs]).max() < 0.02
+    # Bandai-Namco's position channels replace the offsets: the pelvis stands about 0.9 m high, not 1.8 m
+    assert 0.75 < np.median(motion.origin_m[:, 0, 2] - motion.origin_m[:, :, 2].min(axis=1)) < 1.15
+    assert 1.4 < body.height_m < 2.0
+
+
+@pytest.mark.parametrize("family", ["cmu_li2018", "cmu_iclone", "bandai_namco_2"])
+def test_segment_frames_are_anatomical_in_walking(data_dir: Path, family: str) -> None:
+    """DESIGN.md §2: z superior and x anterior in stance; walking keeps every major segment near that."""
+    path, source = FAMILY_CLIPS[family]
+    R = read_body_motion(data_dir / path, source=source).R_world_segment
+    z_up = np.median(R[..., 2, 2], axis=0)  # world z of each segment's z axis
+    x_fwd = np.median(np.einsum("tsi,ti->ts", R[..., 0], R[:, 0, :, 0]), axis=0)  # x against the pelvis's x
+    for name in ("Pelvis", "L5", "T8", "Head", "LeftUpperLeg", "RightLowerLeg", "LeftUpperArm", "RightFoot"):
+        k = BODY_SEGMENTS.index(name)
+        assert z_up[k] > 0.85 and x_fwd[k] > 0.8, (name, z_up[k], x_fwd[k])
+
+
+def test_a_mapping_file_maps_a_skeleton_like_the_built_in_table(data_dir: Path, tmp_path: Path) -> None:
+    built_in = SKELETON_MAPPINGS["cmu_li2018"]
+    spec = {
+        "name": "my_li2018",
+        "metres_per_unit": 1.0,
+        "hips": list(built_in.hips),
+        "segments": {s: {"joint": j, "distal": d} for s, (j, d) in built_in.segments.items()},
+    }
+    (tmp_path / "map.json").write_text(json.dumps(spec))
+    path = data_dir / FAMILY_CLIPS["cmu_li2018"][0]
+    a = read_body_motion(path, load_mapping(tmp_path / "map.json"))
+    b = read_body_motion(path, source="cmu_li2018")
+    np.testing.assert_allclose(a.R_world_segment, b.R_world_segment)
+    del spec["segments"]["LeftHand"]
+    (tmp_path / "bad.json").write_text(json.dumps(spec))
+    with pytest.raises(MappingError, match="missing \\['LeftHand'\\]"):
+        read_body_motion(path, load_mapping(tmp_path / "bad.json"))
+
+
+def test_unknown_skeletons_ask_for_a_mapping_and_known_ones_are_detected(data_dir: Path) -> None:
+    bvh = read_bvh(data_dir / FAMILY_CLIPS["cmu_iclone"][0])
+    assert detect_mapping(tuple(j.name for j in bvh.joints)).name == "cmu_iclone"
+    with pytest.raises(MappingError, match="--mapping"):
+        detect_mapping(("Root", "Spine", "Arm"))
+
+
+def test_resampling_bandai_to_60_hz_keeps_the_clip(data_dir: Path) -> None:
+    path, source = FAMILY_CLIPS["bandai_namco_2"]
+    m30 = read_body_motion(data_dir / path, source=source)
+    m60 = resample_motion(m30, 60.0)
+    assert round(m30.sample_rate_hz) == 30 and m60.n_frames == 2 * m30.n_frames - 1
+    # the spline passes through the samples (to the files' rounding of the frame time, 0.0333333 s)
+    np.testing.assert_allclose(m60.origin_m[::2], m30.origin_m, atol=1e-4)
+    np.testing.assert_allclose(m60.R_world_segment[::2], m30.R_world_segment, atol=1e-3)

@@ -1,0 +1,123 @@
+"""The pose job end to end against a real MLflow server, on the iClone CMU clips with tiny networks."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mlflow.tracking import MlflowClient
+
+from service.core.body import SKELETON_MAPPINGS
+from service.core.manifest import read_manifest
+from service.inference.pose import PoseModel
+from service.inference.registry import load_model
+from training.pose.config import PoseConfig
+from training.pose.pipeline import run_pose_experiment
+
+REPO = Path(__file__).resolve().parents[3]
+TINY = {
+    "data": {"sources": ["cmu_iclone"], "test_subjects": ["cmu_07"], "val_subjects": ["cmu_03"]},
+    "train": {"sequences_per_epoch": 32, "batch_size": 16, "max_epochs": 2, "sequence_frames": 120,
+              "context_frames": 30},
+}
+
+
+@pytest.fixture(scope="module")
+def shipped(mlflow_server: str, data_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
+    models = tmp_path_factory.mktemp("onnx_models")
+    cache = tmp_path_factory.mktemp("pose_cache")
+    out = {}
+    for name, model in (
+        ("tiny_full6", {"kind": "bilstm", "hidden": 16, "layers": 1}),
+        ("tiny_full6_stream", {"kind": "lstm", "hidden": 16, "layers": 2, "look_ahead": 5}),
+    ):
+        cfg = PoseConfig.model_validate({"name": name, "model": model, **TINY, "tracking": {"experiment": "test-pose"}})
+        out[name] = run_pose_experiment(cfg, data_dir, cache, models, "0.0.1", workers=2)
+    return out
+
+
+def test_the_job_logs_its_run_registers_and_ships_a_valid_model(shipped: dict[str, dict]) -> None:
+    result = shipped["tiny_full6"]
+    client = MlflowClient()
+    run = client.get_run(result["run_id"])
+    m = run.data.metrics
+    assert len(client.get_metric_history(run.info.run_id, "val_angle_deg_epoch")) == 2
+    for key in (
+        "test_walk_angle_unsensed_deg",
+        "test_walk_jpe_cm",
+        "test_subject_cmu_07_sip_deg",
+        "test_meanpose_walk_angle_unsensed_deg",
+        "val_angle_unsensed_deg",
+        "onnx_parity_max_abs",
+    ):
+        assert key in m and np.isfinite(m[key]), key
+    assert 0.0 < m["test_walk_angle_all_deg"] < 180.0 and m["onnx_parity_max_abs"] < 1e-4
+    plots = {a.path for a in client.list_artifacts(run.info.run_id, "plots")}
+    assert {"plots/learning_curve.png", "plots/segment_errors_test.png", "plots/skeleton_walk.png"} <= plots
+    assert {i.tags[0].value for i in run.inputs.dataset_inputs} == {"train", "validation", "test"}
+    champion = client.get_model_version_by_alias("tiny_full6", "champion")
+    assert champion.run_id == run.info.run_id
+    manifest = read_manifest(Path(result["shipped"]) / "manifest.json")
+    assert manifest.task == "imu_pose" and manifest.pose.sensors[0] == "Pelvis"
+    assert manifest.training_data["bandai_namco"] is False and "licence" not in manifest.training_data
+    assert manifest.evaluations[0].metrics["test_walk_angle_all_deg"] == pytest.approx(
+        m["test_walk_angle_all_deg"], abs=0.05
+    )
+
+
+def test_the_streaming_model_frame_by_frame_equals_its_offline_evaluation(shipped: dict[str, dict]) -> None:
+    """What the live stream answers is exactly what ``evaluate-pose`` scored on the same frames."""
+    model = PoseModel(load_model(Path(shipped["tiny_full6_stream"]["shipped"]), 1))
+    assert model.spec.streaming and model.spec.look_ahead_frames == 5
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(157, 66)).astype(np.float32)
+    offline = model.predict(features)
+    state, answers = model.new_state(), []
+    for start in range(0, len(features), 7):  # packets of 7 frames, then the 5 look-ahead frames repeated at the end
+        out, state = model.step(features[start : start + 7], state)
+        answers.append(out)
+    out, state = model.step(np.repeat(features[-1:], 5, axis=0), state)
+    answers.append(out)
+    live = np.concatenate(answers)[5:]
+    np.testing.assert_allclose(live, offline, atol=1e-5)
+
+
+def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
+    shipped: dict[str, dict], data_dir: Path, tmp_path: Path
+) -> None:
+    """A skeleton family we do not know (the iClone rig with its joints renamed) works through a mapping file."""
+    clips = tmp_path / "walks"
+    clips.mkdir()
+    for name in ("07_01.bvh", "07_02.bvh"):
+        text = (data_dir / "mocap/cmu_iclone" / name).read_text().replace("CC_Base_", "Lab_")
+        (clips / name).write_text(text)
+    built_in = SKELETON_MAPPINGS["cmu_iclone"]
+    rename = lambda j: None if j is None else j.replace("CC_Base_", "Lab_")  # noqa: E731
+    mapping = {
+        "name": "a_lab_rig",
+        "metres_per_unit": built_in.metres_per_unit,
+        "hips": [rename(j) for j in built_in.hips],
+        "segments": {s: {"joint": rename(j), "distal": rename(d)} for s, (j, d) in built_in.segments.items()},
+    }
+    (tmp_path / "rig.json").write_text(json.dumps(mapping))
+    model = shipped["tiny_full6"]["shipped"]
+    base = [sys.executable, "-m", "training.cli", "evaluate-pose", str(clips), "--model", model]
+    done = subprocess.run(
+        [*base, "--mapping", str(tmp_path / "rig.json"), "--json"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout[done.stdout.index("{") :])
+    assert [Path(c["clip"]).name for c in report["clips"]] == ["07_01.bvh", "07_02.bvh"]
+    assert 0.0 < report["overall"]["all"]["angle_all_deg"] < 180.0 and report["overall"]["all"]["jpe_cm"] > 0.0
+    assert set(report["activity"]) == {"walks"}
+    unmapped = subprocess.run(base, capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert unmapped.returncode != 0
+    assert "--mapping" in " ".join((unmapped.stdout + unmapped.stderr).split())

@@ -1,0 +1,137 @@
+"""Mocap clips on the canonical body, at the model rate, cached on disk; the held-out-subject split.
+
+Every BVH of the data directory (CMU li2018, iClone, raw, and both Bandai-Namco sets) is read through
+``service.core.body`` with its family's mapping table, T-pose frames dropped, resampled to 60 Hz (slerp and cubic
+spline: Bandai-Namco is 30 fps) and stored as float32 quaternions and positions, keyed by a digest of the file's
+bytes, the rate and ``MOTION_VERSION``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from service.core.body import BodyMotion, SkeletonMapping, read_body_motion, resample_motion
+from service.core.rotations import matrix_from_quat, quat_from_matrix
+from training.data.catalog import CatalogEntry, read_catalog
+
+log = logging.getLogger(__name__)
+
+MOTION_VERSION = "2"  # 2: upright trunk frames for L5 and T8
+MODEL_RATE_HZ = 60.0
+BANDAI_LICENCE = "CC BY-NC 4.0 (Bandai Namco Research Motiondataset): non-commercial use only"
+
+
+def pose_entries(data_dir: Path, sources: list[str] | None = None) -> list[CatalogEntry]:
+    """Usable BVH clips of the catalogue (``exclude`` empty), plain or gzipped, optionally of some sources."""
+    return [
+        e
+        for e in read_catalog(data_dir)
+        if (e.path.endswith(".bvh") or e.path.endswith(".bvh.gz"))
+        and not e.exclude
+        and (sources is None or e.source in sources)
+    ]
+
+
+@dataclass(frozen=True)
+class MotionClip:
+    """One clip on the canonical body at 60 Hz with where it comes from."""
+
+    path: str
+    source: str
+    subject: str  # "" when the source names none (Bandai-Namco, most li2018 clips)
+    activity: str
+    motion: BodyMotion
+    digest: str
+
+    @property
+    def group(self) -> str:
+        return self.subject or f"{self.source}_unlabelled"
+
+
+def _digest(path: Path) -> str:
+    h = hashlib.sha256(path.read_bytes())
+    h.update(f"|{MODEL_RATE_HZ}|v{MOTION_VERSION}".encode())
+    return h.hexdigest()[:20]
+
+
+def load_motion(path: Path, source: str, skip_frames: int = 0, mapping: SkeletonMapping | None = None) -> BodyMotion:
+    """A BVH on the canonical body at the model rate, the first ``skip_frames`` (T-pose) dropped."""
+    motion = read_body_motion(path, mapping, source)
+    return resample_motion(motion.crop(skip_frames), MODEL_RATE_HZ)
+
+
+def _save(path: Path, m: BodyMotion) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(
+        tmp,
+        q=quat_from_matrix(m.R_world_segment).astype(np.float32),
+        origin=m.origin_m.astype(np.float32),
+        mid=m.midpoint_m.astype(np.float32),
+    )
+    tmp.rename(path)
+
+
+def _load(path: Path) -> BodyMotion:
+    with np.load(path) as z:
+        R = matrix_from_quat(z["q"].astype(np.float64))
+        return BodyMotion(R, z["origin"].astype(np.float64), z["mid"].astype(np.float64), MODEL_RATE_HZ)
+
+
+def _load_or_compute(args: tuple[Path, CatalogEntry, Path]) -> MotionClip | None:
+    data_dir, e, cache_dir = args
+    path = data_dir / e.path
+    digest = _digest(path)
+    cached = cache_dir / f"{digest}.npz"
+    if cached.exists():
+        motion = _load(cached)
+    else:
+        try:
+            motion = load_motion(path, e.source, e.tpose_frames)
+        except Exception as exc:  # one unreadable clip must not stop a build of thousands; it is logged
+            log.warning("skipping %s: %s", e.path, exc)
+            return None
+        _save(cached, motion)
+        motion = _load(cached)  # the float32 round trip, so a fresh build and a cached one are identical
+    return MotionClip(e.path, e.source, e.subject, e.activity, motion, digest)
+
+
+def build_motions(
+    data_dir: Path, entries: list[CatalogEntry], cache_dir: Path, workers: int = 2, min_frames: int = 32
+) -> list[MotionClip]:
+    """Every entry on the canonical body, from the cache where possible, with a progress bar."""
+    jobs = [(data_dir, e, cache_dir) for e in entries]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        clips = list(tqdm(pool.map(_load_or_compute, jobs, chunksize=8), total=len(jobs), desc="mocap", unit="clip"))
+    kept = [c for c in clips if c is not None and c.motion.n_frames >= min_frames]
+    log.info("%d of %d clips on the canonical body (cache %s)", len(kept), len(jobs), cache_dir)
+    return kept
+
+
+def split_by_subject(
+    clips: list[MotionClip], test_groups: list[str], val_groups: list[str], test_clips: list[str]
+) -> tuple[list[MotionClip], list[MotionClip], list[MotionClip]]:
+    """Train / validation / test by subject group, never by clip (``test_clips`` adds whole clips of unlabelled
+    pools: the li2018 runs, whose performer is not named). Bandai-Namco (no actor ids) stays on the train side."""
+    test = [c for c in clips if c.group in test_groups or c.path in test_clips]
+    val = [c for c in clips if c.group in val_groups and c not in test]
+    train = [c for c in clips if c not in test and c not in val]
+    overlap = {c.group for c in train} & set(test_groups + val_groups)
+    if overlap:
+        raise ValueError(f"subject groups {sorted(overlap)} on both sides of the split")
+    return train, val, test
+
+
+def dataset_digest(clips: list[MotionClip]) -> str:
+    return hashlib.sha256("|".join(sorted(c.digest for c in clips)).encode()).hexdigest()[:20]
+
+
+def trains_on_bandai(clips: list[MotionClip]) -> bool:
+    return any(c.source.startswith("bandai_namco") for c in clips)

@@ -1,0 +1,150 @@
+"""Pose metrics, per clip and per motion type and held-out subject (paper 001 Table 1; DIP 2018, TransPose 2021).
+
+For each clip one fixed simulated session (``train.fixed_sessions``) goes through the predictor; the answer is
+assembled into the whole body the way the service assembles it (``service.inference.pose.whole_body``: the
+sensors' segments as measured, the others the measured pelvis times the model's answer). Metrics:
+
+- ``angle_all_deg``: mean geodesic angle between predicted and true global segment orientations over every
+  segment the model covers (sensors and outputs); ``angle_unsensed_deg``: over the output segments only
+  (paper 001 Table 1 reports "the relative rotation angle between the reconstructed pose and the actual pose");
+- ``sip_deg``: the same over the upper arms and upper legs (SIP error, DIP 2018 / TransPose 2021);
+- ``jpe_cm``: mean distance of the segment origins after forward kinematics with the clip's own skeleton
+  (``body.clip_body``), root-aligned (Vlutters 2016 §IV-E; TransPose's joint position error);
+- ``jitter_mps3``: mean magnitude of the third time derivative of the predicted joint positions (TransPose), and
+  ``jitter_true_mps3`` of the truth for reference.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from service.core.body import BODY_SEGMENTS, clip_body
+from service.inference.pose import whole_body
+from training.pose.data import MotionClip
+from training.pose.simulate import Session
+from training.pose.train import geodesic_deg
+
+SIP_SEGMENTS = ("LeftUpperArm", "RightUpperArm", "LeftUpperLeg", "RightUpperLeg")
+METRICS = ("angle_all_deg", "angle_unsensed_deg", "sip_deg", "jpe_cm", "jitter_mps3", "jitter_true_mps3")
+
+
+@dataclass(frozen=True)
+class ClipResult:
+    path: str
+    activity: str
+    group: str
+    frames: int
+    metrics: dict[str, float]
+    per_segment_deg: dict[str, float]
+
+
+def clip_metrics(
+    clip: MotionClip,
+    session: Session,
+    R_root_out: np.ndarray,
+    sensors: Sequence[str],
+    outputs: Sequence[str],
+) -> ClipResult:
+    sensor_index = [BODY_SEGMENTS.index(s) for s in sensors]
+    output_index = [BODY_SEGMENTS.index(s) for s in outputs]
+    covered = sorted(sensor_index + output_index)
+    R_pred = whole_body(session.R_world_sensor_segment, R_root_out, sensor_index, output_index)
+    Rz = Rotation.from_rotvec([0.0, 0.0, session.heading_rad]).as_matrix()
+    R_true = np.einsum("ij,tsjk->tsik", Rz, clip.motion.R_world_segment)
+    err = geodesic_deg(R_pred, R_true)  # (T, 21)
+    body = clip_body(clip.motion)
+    p_pred, p_true = body.forward(R_pred), body.forward(R_true)
+    joints = [k for k in covered if k != 0]
+    dist = np.linalg.norm(p_pred[:, joints] - p_true[:, joints], axis=-1)
+    rate = clip.motion.sample_rate_hz
+
+    def jitter(p: np.ndarray) -> float:
+        if len(p) < 4:
+            return float("nan")
+        return float(np.linalg.norm(np.diff(p[:, joints], n=3, axis=0) * rate**3, axis=-1).mean())
+
+    sip = [BODY_SEGMENTS.index(s) for s in SIP_SEGMENTS if BODY_SEGMENTS.index(s) in covered]
+    metrics = {
+        "angle_all_deg": float(err[:, covered].mean()),
+        "angle_unsensed_deg": float(err[:, output_index].mean()),
+        "sip_deg": float(err[:, sip].mean()) if sip else float("nan"),
+        "jpe_cm": float(dist.mean() * 100.0),
+        "jitter_mps3": jitter(p_pred),
+        "jitter_true_mps3": jitter(p_true),
+    }
+    per_segment = {BODY_SEGMENTS[k]: float(err[:, k].mean()) for k in covered}
+    return ClipResult(clip.path, clip.activity, clip.group, clip.motion.n_frames, metrics, per_segment)
+
+
+def evaluate_clips(
+    predict: Callable[[np.ndarray], np.ndarray],
+    clips: list[MotionClip],
+    sessions: list[Session],
+    sensors: Sequence[str],
+    outputs: Sequence[str],
+) -> list[ClipResult]:
+    return [clip_metrics(c, s, predict(s.features), sensors, outputs) for c, s in zip(clips, sessions, strict=True)]
+
+
+def summarise(results: list[ClipResult]) -> dict[str, dict[str, dict[str, float]]]:
+    """Frame-weighted means: ``{"overall": {"all": m}, "activity": {walk: m, …}, "subject": {cmu_07: m, …}}``
+    where each m holds the metrics and ``frames``."""
+
+    def mean(rs: list[ClipResult]) -> dict[str, float]:
+        w = np.array([r.frames for r in rs], dtype=np.float64)
+        out = {}
+        for k in METRICS:
+            v = np.array([r.metrics[k] for r in rs])
+            ok = np.isfinite(v)
+            out[k] = float((v[ok] * w[ok]).sum() / w[ok].sum()) if ok.any() else float("nan")
+        out["frames"] = float(w.sum())
+        return out
+
+    by_activity, by_group = defaultdict(list), defaultdict(list)
+    for r in results:
+        by_activity[r.activity].append(r)
+        by_group[r.group].append(r)
+    return {
+        "overall": {"all": mean(results)},
+        "activity": {k: mean(v) for k, v in sorted(by_activity.items())},
+        "subject": {k: mean(v) for k, v in sorted(by_group.items())},
+    }
+
+
+def per_segment_mean(results: list[ClipResult]) -> dict[str, float]:
+    acc, w = defaultdict(float), defaultdict(float)
+    for r in results:
+        for s, v in r.per_segment_deg.items():
+            acc[s] += v * r.frames
+            w[s] += r.frames
+    return {s: acc[s] / w[s] for s in BODY_SEGMENTS if s in acc}
+
+
+def mean_pose_predictor(train_sessions: list[Session]) -> Callable[[np.ndarray], np.ndarray]:
+    """Vlutters 2016 §IV-F: the average of every output over the training set, whatever the input."""
+    targets = np.concatenate([s.targets for s in train_sessions]).astype(np.float64)  # (N, S, 3, 3)
+    M = targets.mean(axis=0)
+    U, _, Vt = np.linalg.svd(M)
+    D = np.ones((len(M), 3))
+    D[:, 2] = np.sign(np.linalg.det(U @ Vt))
+    mean_R = np.einsum("sij,sj,sjk->sik", U, D, Vt).astype(np.float32)
+
+    def predict(features: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(mean_R, (len(features),) + mean_R.shape).copy()
+
+    return predict
+
+
+def flat_metrics(summary: dict, prefix: str = "test") -> dict[str, float]:
+    """MLflow metric names: ``test_walk_angle_unsensed_deg``, ``test_subject_cmu_07_jpe_cm``, ``test_angle_all_deg``."""
+    out = {f"{prefix}_{k}": v for k, v in summary["overall"]["all"].items() if k != "frames"}
+    for a, m in summary["activity"].items():
+        out.update({f"{prefix}_{a}_{k}": v for k, v in m.items() if k != "frames"})
+    for g, m in summary["subject"].items():
+        out.update({f"{prefix}_subject_{g}_{k}": v for k, v in m.items() if k != "frames"})
+    return {k: float(v) for k, v in out.items() if np.isfinite(v)}

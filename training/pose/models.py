@@ -1,0 +1,115 @@
+"""Pose networks: paper 001's Bi-LSTM, paper 003's LSTM and feed-forward network, and a streaming LSTM.
+
+All map pelvis-relative features ``(B, T, F)`` (``service.core.calibration.pose_features``) to the pelvis-relative
+orientations of the output segments as rotation matrices ``(B, T, S, 3, 3)``. Feature standardisation (training
+mean and std) sits inside the graph, so the exported ONNX takes the features as the service computes them.
+
+- ``bilstm`` (paper 001 §4.2, Fig. 2, after Huang et al. 2018, DIP): input dropout 0.2, a dense layer with ReLU,
+  two bidirectional LSTM layers, a dense output. Fig. 2's numbers are missing from our copy of the paper; DIP
+  uses 512 units, we use ``hidden`` (256 on two CPU cores). Trained on 300-frame sequences (150 past, 150 future).
+- ``lstm`` (Vlutters 2016 §IV-C; unidirectional): the same without the backward direction. With
+  ``look_ahead`` L > 0 it is the streaming model: at input frame t it outputs the pose of frame t − L, so it has
+  seen L future frames (TransPose's online mode: 5 frames, 83 ms at 60 Hz).
+- ``ffn`` (Vlutters 2016 §IV-C): one frame in, one hidden ReLU layer, dropout 0.5 on the input, linear out.
+
+Output representation: ``6d`` (the first two columns, Gram–Schmidt; Zhou et al. 2019) or ``axis_angle``
+(paper 001's choice; Rodrigues' formula), both turned into matrices in the graph so the loss and the
+service see the same thing.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+REPRESENTATION_WIDTH = {"6d": 6, "axis_angle": 3}
+
+
+def matrices_from_6d(x: torch.Tensor) -> torch.Tensor:
+    """``(..., 6)`` → rotation matrices ``(..., 3, 3)`` whose first two columns are the Gram–Schmidt of x."""
+    a, b = x[..., :3], x[..., 3:]
+    c0 = a / torch.sqrt((a * a).sum(-1, keepdim=True) + 1e-12)
+    b = b - (c0 * b).sum(-1, keepdim=True) * c0
+    c1 = b / torch.sqrt((b * b).sum(-1, keepdim=True) + 1e-12)
+    c2 = torch.linalg.cross(c0, c1, dim=-1)
+    return torch.stack([c0, c1, c2], dim=-1)
+
+
+def matrices_from_axis_angle(r: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: ``(..., 3)`` axis × angle (rad) → ``(..., 3, 3)``; smooth at 0 through the eps."""
+    theta = torch.sqrt((r * r).sum(-1, keepdim=True) + 1e-12)
+    k = r / theta
+    kx, ky, kz = k[..., 0], k[..., 1], k[..., 2]
+    zero = torch.zeros_like(kx)
+    K = torch.stack([zero, -kz, ky, kz, zero, -kx, -ky, kx, zero], dim=-1).reshape(*r.shape[:-1], 3, 3)
+    s, c = torch.sin(theta)[..., None], torch.cos(theta)[..., None]
+    eye = torch.eye(3, dtype=r.dtype, device=r.device).expand_as(K)
+    return eye + s * K + (1.0 - c) * (K @ K)
+
+
+class PoseNet(nn.Module):
+    def __init__(
+        self,
+        kind: str,
+        n_features: int,
+        n_segments: int,
+        hidden: int = 256,
+        layers: int = 2,
+        input_dropout: float = 0.2,
+        representation: str = "6d",
+        look_ahead: int = 0,
+    ) -> None:
+        super().__init__()
+        if kind not in ("bilstm", "lstm", "ffn"):
+            raise ValueError(f"kind must be bilstm, lstm or ffn, got {kind!r}")
+        if representation not in REPRESENTATION_WIDTH:
+            raise ValueError(f"representation must be one of {sorted(REPRESENTATION_WIDTH)}, got {representation!r}")
+        self.kind, self.representation, self.look_ahead = kind, representation, look_ahead
+        self.n_segments, self.hidden, self.layers = n_segments, hidden, layers
+        self.register_buffer("mean", torch.zeros(n_features))
+        self.register_buffer("std", torch.ones(n_features))
+        self.dropout = nn.Dropout(input_dropout)
+        self.embed = nn.Sequential(nn.Linear(n_features, hidden), nn.ReLU())
+        width = REPRESENTATION_WIDTH[representation] * n_segments
+        if kind == "ffn":
+            self.rnn = None
+            self.out = nn.Linear(hidden, width)
+        else:
+            self.rnn = nn.LSTM(hidden, hidden, layers, batch_first=True, bidirectional=kind == "bilstm")
+            self.out = nn.Linear(hidden * (2 if kind == "bilstm" else 1), width)
+
+    def set_normalisation(self, mean: torch.Tensor, std: torch.Tensor) -> None:
+        self.mean.copy_(mean)
+        self.std.copy_(torch.clamp(std, min=1e-3))
+
+    def _head(self, y: torch.Tensor) -> torch.Tensor:
+        y = self.out(y).reshape(*y.shape[:2], self.n_segments, REPRESENTATION_WIDTH[self.representation])
+        return matrices_from_6d(y) if self.representation == "6d" else matrices_from_axis_angle(y)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, T, F)`` → ``(B, T, S, 3, 3)``."""
+        h = self.embed(self.dropout((x - self.mean) / self.std))
+        if self.rnn is not None:
+            h, _ = self.rnn(h)
+        return self._head(h)
+
+    def step(
+        self, x: torch.Tensor, h0: torch.Tensor, c0: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Streaming (``lstm`` only): frames ``(B, T, F)`` with the state ``(layers, B, hidden)`` in and out."""
+        if self.kind != "lstm":
+            raise TypeError("only the unidirectional lstm streams")
+        h = self.embed((x - self.mean) / self.std)
+        h, (h1, c1) = self.rnn(h, (h0, c0))
+        return self._head(h), h1, c1
+
+
+class StreamingExport(nn.Module):
+    """The graph the service streams with: (features, h, c) → (rotations, h, c)."""
+
+    def __init__(self, net: PoseNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor, h0: torch.Tensor, c0: torch.Tensor):
+        return self.net.step(x, h0, c0)

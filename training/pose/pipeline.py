@@ -1,0 +1,325 @@
+"""One pose experiment as one MLflow run: data, training, evaluation on validation and held-out subjects, the
+mean-pose baseline, plots, ONNX export with parity, the logged model, the registry, and optionally shipping.
+
+The validation subjects decide (the epoch; the ``champion`` alias between versions); the held-out subjects are
+reported and never used to choose.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import onnx
+import pandas as pd
+import torch
+
+from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, clip_body
+from service.core.manifest import Evaluation, sha256_file, write_manifest
+from service.inference.pose import PoseModel, whole_body
+from service.inference.registry import load_model
+from training.config import flatten
+from training.plots import pose_learning_curve_png, pose_segment_errors_png, skeleton_snapshots_png
+from training.pose.config import PoseConfig
+from training.pose.data import (
+    MotionClip,
+    build_motions,
+    dataset_digest,
+    pose_entries,
+    split_by_subject,
+    trains_on_bandai,
+)
+from training.pose.evaluate import (
+    ClipResult,
+    evaluate_clips,
+    flat_metrics,
+    mean_pose_predictor,
+    per_segment_mean,
+    summarise,
+)
+from training.pose.export import build_pose_manifest, export_pose_onnx, golden_pair, is_streaming, onnx_parity
+from training.pose.simulate import Session
+from training.pose.train import PoseTrainResult, fixed_sessions, torch_predictor, train_pose
+from training.tracking import log_onnx_model, maybe_promote, setup_tracking
+
+log = logging.getLogger(__name__)
+
+VAL_SEED, TEST_SEED, BASELINE_SEED = 1, 2, 3
+SELECTION_METRIC = "val_angle_unsensed_deg"
+
+
+@dataclass(frozen=True)
+class PoseData:
+    train: list[MotionClip]
+    val: list[MotionClip]
+    test: list[MotionClip]
+
+
+def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> PoseData:
+    clips = build_motions(data_dir, pose_entries(data_dir, cfg.data.sources), cache_dir, workers)
+    held_clips = [
+        c.path
+        for c in clips
+        if not c.subject and c.activity in cfg.data.test_activities_of_unlabelled.get(c.source, [])
+    ]
+    train, val, test = split_by_subject(clips, cfg.data.test_subjects, cfg.data.val_subjects, held_clips)
+    log.info("pose split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
+    return PoseData(train, val, test)
+
+
+def default_body(clips: list[MotionClip]) -> Body:
+    """The served default skeleton: the median bone vectors of the CMU training clips (real people's proportions;
+    Bandai-Namco shares one retargeted rig)."""
+    cmu = [c for c in clips if c.source.startswith("cmu")] or clips
+    return Body(np.median(np.stack([clip_body(c.motion).offsets_m for c in cmu]), axis=0))
+
+
+def _clip_table(clips: list[MotionClip]) -> pd.DataFrame:
+    return pd.DataFrame(
+        {
+            "path": [c.path for c in clips],
+            "source": [c.source for c in clips],
+            "subject": [c.group for c in clips],
+            "activity": [c.activity for c in clips],
+            "frames_60hz": [c.motion.n_frames for c in clips],
+            "digest": [c.digest for c in clips],
+        }
+    )
+
+
+def _log_datasets(data: PoseData, data_dir: Path) -> None:
+    for context, clips in (("train", data.train), ("validation", data.val), ("test", data.test)):
+        ds = mlflow.data.from_pandas(
+            _clip_table(clips), source=str(data_dir), name=f"pose-{context}-{dataset_digest(clips)}"
+        )
+        mlflow.log_input(ds, context=context)
+
+
+def _snapshot(net_predict, clip: MotionClip, session: Session, cfg: PoseConfig, path: Path) -> Path:
+    sensors = [BODY_SEGMENTS.index(s) for s in cfg.sensors]
+    outputs = [BODY_SEGMENTS.index(s) for s in cfg.outputs]
+    R_pred = whole_body(session.R_world_sensor_segment, net_predict(session.features), sensors, outputs)
+    from scipy.spatial.transform import Rotation
+
+    Rz = Rotation.from_rotvec([0.0, 0.0, session.heading_rad]).as_matrix()
+    R_true = np.einsum("ij,tsjk->tsik", Rz, clip.motion.R_world_segment)
+    body = clip_body(clip.motion)
+    # into the pelvis's heading frame at each frame, so that the views are front and side
+    yaw = np.arctan2(R_true[:, 0, 1, 0], R_true[:, 0, 0, 0])
+    undo = Rotation.from_rotvec(np.outer(-yaw, [0.0, 0.0, 1.0])).as_matrix()
+    p_t = np.einsum("tij,tsj->tsi", undo, body.forward(R_true))
+    p_p = np.einsum("tij,tsj->tsi", undo, body.forward(R_pred))
+    frames = [int(f) for f in np.linspace(0, clip.motion.n_frames - 1, 6)]
+    return skeleton_snapshots_png(
+        p_t, p_p, PARENT_INDEX, frames, path, f"{cfg.name}: {clip.path} (grey truth, blue model)"
+    )
+
+
+def evaluation_record(name: str, command: str, data: str, summary: dict) -> Evaluation:
+    metrics = {k: round(v, 4) for k, v in flat_metrics(summary, "test").items()}
+    return Evaluation(name=name, command=command, data=data, metrics=metrics)
+
+
+def run_pose_experiment(
+    cfg: PoseConfig,
+    data_dir: Path,
+    cache_dir: Path,
+    ship_to: Path | None = None,
+    version: str | None = None,
+    workers: int = 2,
+) -> dict:
+    """Train, evaluate, export, log and register one pose model; ship it under ``ship_to/<name>/<version>``."""
+    data = load_pose_data(cfg, data_dir, cache_dir, workers)
+    val_sessions = fixed_sessions(data.val, cfg, VAL_SEED)
+    test_sessions = fixed_sessions(data.test, cfg, TEST_SEED)
+    setup_tracking(cfg.tracking.experiment)
+    with mlflow.start_run(run_name=cfg.name) as run, tempfile.TemporaryDirectory() as tmp_dir:
+        tmp = Path(tmp_dir)
+        mlflow.set_tags(
+            {
+                "task": "imu_pose",
+                "model_kind": cfg.model.kind,
+                "mlflow.note.content": f"{cfg.model.kind} ({cfg.model.representation}) from {len(cfg.sensors)} IMUs "
+                f"({', '.join(cfg.sensors)}) to {len(cfg.outputs)} segments; look-ahead {cfg.model.look_ahead} frames. "
+                "Validation subjects choose, held-out subjects are reported.",
+                "trains_on_bandai_namco": str(trains_on_bandai(data.train)),
+            }
+        )
+        mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
+        _log_datasets(data, data_dir)
+        result: PoseTrainResult = train_pose(
+            cfg,
+            data.train,
+            val_sessions,
+            on_epoch=lambda e, row: mlflow.log_metrics(
+                {"train_loss": row["train_loss"], "val_angle_deg_epoch": row["val_angle_deg"]}, step=e
+            ),
+        )
+        net = result.net
+        mlflow.log_metrics(
+            {"best_epoch": result.best_epoch, "train_wall_time_s": result.wall_s, "epochs_run": len(result.history)}
+        )
+        mlflow.set_tag("stopped", result.stopped)
+        torch.save(net.state_dict(), tmp / "model_state.pt")
+        mlflow.log_artifact(str(tmp / "model_state.pt"), "checkpoint")
+        mlflow.log_artifact(str(pose_learning_curve_png(result.history, tmp / "learning_curve.png", cfg.name)), "plots")
+
+        predict = torch_predictor(net)
+        val_summary = summarise(evaluate_clips(predict, data.val, val_sessions, cfg.sensors, cfg.outputs))
+        mlflow.log_metrics(flat_metrics(val_summary, "val"))
+        test_results = evaluate_clips(predict, data.test, test_sessions, cfg.sensors, cfg.outputs)
+        test_summary = summarise(test_results)
+        mlflow.log_metrics(flat_metrics(test_summary, "test"))
+        # Vlutters 2016 §IV-F: the training set's mean pose, whatever the input
+        baseline_sessions = fixed_sessions(data.train[:: max(1, len(data.train) // 400)], cfg, BASELINE_SEED)
+        mean_pose = mean_pose_predictor(baseline_sessions)
+        baseline = summarise(evaluate_clips(mean_pose, data.test, test_sessions, cfg.sensors, cfg.outputs))
+        mlflow.log_metrics(flat_metrics(baseline, "test_meanpose"))
+        seg = per_segment_mean(test_results)
+        mlflow.log_artifact(
+            str(
+                pose_segment_errors_png(
+                    seg, cfg.sensors, tmp / "segment_errors_test.png", f"{cfg.name}: held-out subjects"
+                )
+            ),
+            "plots",
+        )
+        walk = next((i for i, c in enumerate(data.test) if c.activity == "walk"), 0)
+        mlflow.log_artifact(
+            str(_snapshot(predict, data.test[walk], test_sessions[walk], cfg, tmp / "skeleton_walk.png")), "plots"
+        )
+        bb = next((i for i, c in enumerate(data.test) if c.activity == "basketball"), None)
+        if bb is not None:
+            mlflow.log_artifact(
+                str(_snapshot(predict, data.test[bb], test_sessions[bb], cfg, tmp / "skeleton_basketball.png")), "plots"
+            )
+        (tmp / "summary_test.json").write_text(json.dumps({"model": test_summary, "mean_pose": baseline}, indent=1))
+        mlflow.log_artifact(str(tmp / "summary_test.json"), "evaluation")
+
+        onnx_path = export_pose_onnx(net, cfg, tmp / "model.onnx")
+        golden = golden_pair(net, test_sessions[walk].features[:120], cfg)
+        parity = onnx_parity(onnx_path, golden, cfg, net)
+        mlflow.log_metric("onnx_parity_max_abs", parity)
+        if parity > 1e-4:
+            raise RuntimeError(f"onnxruntime differs from torch by {parity:.2e} on the golden input")
+        np.savez(tmp / "golden.npz", **golden)
+        body = default_body(data.train)
+        version = version or "0.0.0+" + run.info.run_id[:8]
+        training_data = {
+            "sources": sorted({c.source for c in data.train}),
+            "train_clips": len(data.train),
+            "train_frames_60hz": int(sum(c.motion.n_frames for c in data.train)),
+            "validation_subjects": cfg.data.val_subjects,
+            "test_subjects": cfg.data.test_subjects,
+            "test_unlabelled_clips": cfg.data.test_activities_of_unlabelled,
+            "bandai_namco": trains_on_bandai(data.train),
+            "train_wall_time_s": round(result.wall_s, 1),
+            "best_epoch": result.best_epoch,
+            "epochs_run": len(result.history),
+            "stopped": result.stopped,
+        }
+        evaluation = evaluation_record(
+            "held-out subjects (simulated sensors)",
+            f"python -m training.cli evaluate-pose --model onnx_models/{cfg.name}/{version}",
+            f"CMU subjects {', '.join(cfg.data.test_subjects)} and the li2018 run clips, never trained on or "
+            "chosen by; "
+            "one simulated session per clip (seed 2)",
+            test_summary,
+        )
+        manifest = build_pose_manifest(
+            cfg,
+            net,
+            version,
+            sha256_file(onnx_path),
+            body,
+            training_data,
+            [evaluation],
+            {"run_id": run.info.run_id, "experiment_id": run.info.experiment_id},
+        )
+        proto = onnx.load(str(onnx_path))
+        info = log_onnx_model(proto, golden, manifest, input_key="features")
+        mlflow.set_tag("model_uri", info.model_uri)
+        registered = mlflow.register_model(info.model_uri, cfg.registered_model)
+        val_value = flat_metrics(val_summary, "val")["val_angle_unsensed_deg"]
+        promoted = maybe_promote(
+            cfg.registered_model, registered.version, SELECTION_METRIC, val_value, False, dataset_digest(data.val)
+        )
+        mlflow.set_tag("promoted_to_champion", str(promoted))
+        manifest = manifest.model_copy(
+            update={
+                "mlflow": manifest.mlflow | {"model_uri": info.model_uri, "registered_version": str(registered.version)}
+            }
+        )
+        shipped = None
+        if ship_to is not None:
+            shipped = ship_to / cfg.name / version
+            shipped.mkdir(parents=True, exist_ok=True)
+            shutil.copy(onnx_path, shipped / "model.onnx")
+            shutil.copy(tmp / "golden.npz", shipped / "golden.npz")
+            write_manifest(manifest, shipped / "manifest.json")
+            served = PoseModel(load_model(shipped, 2))  # the served path: its numbers must equal torch's
+            served_summary = summarise(
+                evaluate_clips(served.predict, data.test, test_sessions, cfg.sensors, cfg.outputs)
+            )
+            a = served_summary["overall"]["all"]["angle_all_deg"]
+            b = test_summary["overall"]["all"]["angle_all_deg"]
+            if abs(a - b) > 0.05:
+                raise RuntimeError(f"the shipped model scores {a:.3f}° where torch scored {b:.3f}°")
+            log.info("shipped %s", shipped)
+        return {
+            "run_id": run.info.run_id,
+            "test": test_summary,
+            "mean_pose": baseline,
+            "val": val_summary,
+            "shipped": str(shipped) if shipped else None,
+            "history": result.history,
+            "streaming": is_streaming(cfg),
+        }
+
+
+def results_table(results: list[ClipResult]) -> str:
+    lines = [f"{'clip':60s} {'frames':>6s} {'all°':>6s} {'unsensed°':>9s} {'SIP°':>6s} {'JPE cm':>7s} {'jitter':>8s}"]
+    for r in results:
+        m = r.metrics
+        lines.append(
+            f"{r.path[-60:]:60s} {r.frames:6d} {m['angle_all_deg']:6.2f} {m['angle_unsensed_deg']:9.2f} "
+            f"{m['sip_deg']:6.2f} {m['jpe_cm']:7.2f} {m['jitter_mps3']:8.1f}"
+        )
+    return "\n".join(lines)
+
+
+def user_clips(paths: list[Path], mapping_file: Path | None) -> list[MotionClip]:
+    """BVH files (plain or .gz), or folders of them, on the canonical body at 60 Hz; the activity is the folder's
+    name. Without a mapping file the skeleton must be one of the known families."""
+    import hashlib
+
+    from service.core.body import load_mapping
+    from training.pose.data import load_motion
+
+    mapping = load_mapping(mapping_file) if mapping_file else None
+    files = []
+    for p in paths:
+        files += sorted(q for q in p.rglob("*") if q.name.endswith((".bvh", ".bvh.gz"))) if p.is_dir() else [p]
+    if not files:
+        raise ValueError(f"no .bvh or .bvh.gz files in {[str(p) for p in paths]}")
+    clips = []
+    for f in files:
+        digest = hashlib.sha256(f.read_bytes()).hexdigest()[:20]
+        clips.append(MotionClip(str(f), "user", f.parent.name, f.parent.name, load_motion(f, "", 0, mapping), digest))
+    return clips
+
+
+def evaluate_shipped_pose(model_dir: Path, clips: list[MotionClip]) -> tuple[list[ClipResult], dict]:
+    """A shipped ``imu_pose`` model through the served path (onnxruntime, ``PoseModel``) on simulated sessions of
+    ``clips``, the same sensors, noise and seeds as the held-out evaluation of training."""
+    model = PoseModel(load_model(model_dir, 2))
+    cfg = PoseConfig(name=model.name, sensors=model.spec.sensors, output_segments=model.spec.output_segments)
+    sessions = fixed_sessions(clips, cfg, TEST_SEED)
+    results = evaluate_clips(model.predict, clips, sessions, cfg.sensors, cfg.outputs)
+    return results, summarise(results)

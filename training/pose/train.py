@@ -1,0 +1,205 @@
+"""Training a pose network on simulated sessions of the training clips, with early stopping on validation subjects.
+
+Each epoch draws ``sequences_per_epoch`` clips (by frames, activities above ``activity_cap_frames`` drawn less
+often), simulates a fresh session of each (new mounting, noise, world heading: ``simulate.simulate_session``) and
+cuts a random ``sequence_frames`` stretch. Loss: mean squared error of the rotation matrices over the real frames
+of each sequence (batches of similar length, no padding: ``_length_buckets``). The validation figure that
+selects the epoch is the mean geodesic angle of the output
+segments on fixed sessions of the validation subjects.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from training.pose.config import PoseConfig
+from training.pose.data import MotionClip
+from training.pose.models import PoseNet
+from training.pose.simulate import SensorNoise, Session, simulate_session
+
+log = logging.getLogger(__name__)
+
+
+def build_net(cfg: PoseConfig, n_features: int) -> PoseNet:
+    m = cfg.model
+    dropout = 0.5 if m.kind == "ffn" else m.input_dropout  # Vlutters 2016 §IV-C: 0.5 on the input of the FFNN
+    hidden = 100 if m.kind == "ffn" and m.hidden == 256 else m.hidden  # Vlutters 2016: 100 hidden units
+    return PoseNet(m.kind, n_features, len(cfg.outputs), hidden, m.layers, dropout, m.representation, m.look_ahead)
+
+
+def session_of(
+    clip: MotionClip, cfg: PoseConfig, rng: np.random.Generator, noise: SensorNoise = SensorNoise()
+) -> Session:
+    return simulate_session(clip.motion, cfg.sensors, cfg.outputs, rng, noise, cfg.train.acc_method)
+
+
+def fixed_sessions(clips: list[MotionClip], cfg: PoseConfig, seed: int) -> list[Session]:
+    """One session per clip, seeded by the clip's digest: the same evaluation data on every run."""
+    return [session_of(c, cfg, np.random.default_rng([seed, int(c.digest[:12], 16)])) for c in clips]
+
+
+def clip_weights(clips: list[MotionClip], cap_frames: int) -> np.ndarray:
+    frames = Counter()
+    for c in clips:
+        frames[c.activity] += c.motion.n_frames
+    w = np.array([c.motion.n_frames * min(1.0, cap_frames / frames[c.activity]) for c in clips], dtype=np.float64)
+    return w / w.sum()
+
+
+def _batch(sessions: list[Session], look_ahead: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Padded features (B, T, F), targets (B, T, S, 3, 3) shifted by the look-ahead, lengths (B,)."""
+    T = max(len(s.features) for s in sessions)
+    B, F = len(sessions), sessions[0].features.shape[1]
+    S = sessions[0].targets.shape[1]
+    x = np.zeros((B, T, F), np.float32)
+    y = np.zeros((B, T, S, 3, 3), np.float32)
+    lengths = np.zeros(B, np.int64)
+    for i, s in enumerate(sessions):
+        n = len(s.features)
+        x[i, :n], lengths[i] = s.features, n
+        # with look-ahead L the output at frame t is the pose of frame t - L; the first L outputs have no target
+        y[i, look_ahead:n] = s.targets[: n - look_ahead] if look_ahead else s.targets
+    return torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(lengths)
+
+
+def _loss(pred: torch.Tensor, target: torch.Tensor, lengths: torch.Tensor, look_ahead: int) -> torch.Tensor:
+    T = pred.shape[1]
+    t = torch.arange(T)[None, :]
+    mask = ((t < lengths[:, None]) & (t >= look_ahead)).float()
+    err = ((pred - target) ** 2).sum(dim=(-1, -2)).mean(-1)  # (B, T)
+    return (err * mask).sum() / mask.sum().clamp(min=1.0)
+
+
+def geodesic_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
+    """Angle of R_aᵀ R_b in degrees, elementwise over the leading axes."""
+    tr = np.einsum("...ji,...ji->...", R_a, R_b)
+    return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def torch_predictor(net: PoseNet) -> Callable[[np.ndarray], np.ndarray]:
+    """features (T, F) → R_root_segment (T, S, 3, 3), the pose of each frame (look-ahead undone as in serving)."""
+
+    def predict(features: np.ndarray) -> np.ndarray:
+        L = net.look_ahead
+        x = np.concatenate([features, np.repeat(features[-1:], L, axis=0)]) if L else features
+        with torch.no_grad():
+            return net(torch.from_numpy(x[None].astype(np.float32)))[0, L:].numpy()
+
+    return predict
+
+
+def validation_angle(net: PoseNet, sessions: list[Session]) -> float:
+    net.eval()
+    predict = torch_predictor(net)
+    errs, n = 0.0, 0
+    for s in sessions:
+        e = geodesic_deg(predict(s.features), s.targets)
+        errs, n = errs + float(e.sum()), n + e.size
+    return errs / max(n, 1)
+
+
+@dataclass
+class PoseTrainResult:
+    net: PoseNet
+    history: list[dict[str, float]] = field(default_factory=list)
+    best_epoch: int = 0
+    best_val_deg: float = float("inf")
+    wall_s: float = 0.0
+    stopped: str = ""
+
+
+def feature_stats(
+    clips: list[MotionClip], cfg: PoseConfig, rng: np.random.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    picks = rng.choice(len(clips), size=min(200, len(clips)), replace=False)
+    x = np.concatenate([session_of(clips[i], cfg, rng).features for i in picks])
+    return torch.from_numpy(x.mean(0)), torch.from_numpy(x.std(0))
+
+
+def train_pose(
+    cfg: PoseConfig,
+    train_clips: list[MotionClip],
+    val_sessions: list[Session],
+    on_epoch: Callable[[int, dict[str, float]], None] | None = None,
+) -> PoseTrainResult:
+    t0 = time.time()
+    torch.manual_seed(cfg.seed)
+    torch.set_num_threads(cfg.train.threads)
+    rng = np.random.default_rng(cfg.seed)
+    n_features = (
+        val_sessions[0].features.shape[1] if val_sessions else session_of(train_clips[0], cfg, rng).features.shape[1]
+    )
+    net = build_net(cfg, n_features)
+    net.set_normalisation(*feature_stats(train_clips, cfg, rng))
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.train.lr)
+    weights = clip_weights(train_clips, cfg.data.activity_cap_frames)
+    result = PoseTrainResult(net)
+    best_state, bad = copy.deepcopy(net.state_dict()), 0
+    L, W = cfg.model.look_ahead, cfg.train.sequence_frames
+    for epoch in range(1, cfg.train.max_epochs + 1):
+        net.train()
+        picks = rng.choice(len(train_clips), size=cfg.train.sequences_per_epoch, p=weights)
+        batches = _length_buckets(picks, [c.motion.n_frames for c in train_clips], cfg.train.batch_size, rng)
+        losses = []
+        bar = tqdm(batches, desc=f"{cfg.name} epoch {epoch}", unit="batch", leave=False, mininterval=5.0)
+        for batch in bar:
+            n = min(W, min(train_clips[i].motion.n_frames for i in batch))
+            sessions = []
+            for i in batch:
+                start = int(rng.integers(0, train_clips[i].motion.n_frames - n + 1))
+                sessions.append(session_of(_crop(train_clips[i], start, start + n), cfg, rng))
+            x, y, lengths = _batch(sessions, L)
+            loss = _loss(net(x), y, lengths, L)
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+            opt.step()
+            losses.append(loss.item())
+            bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
+        val = validation_angle(net, val_sessions)
+        row = {"epoch": epoch, "train_loss": float(np.mean(losses)), "val_angle_deg": val, "wall_s": time.time() - t0}
+        result.history.append(row)
+        log.info("%s epoch %d: loss %.4f, validation %.2f°", cfg.name, epoch, row["train_loss"], val)
+        if on_epoch:
+            on_epoch(epoch, row)
+        if val < result.best_val_deg:
+            result.best_val_deg, result.best_epoch, bad = val, epoch, 0
+            best_state = copy.deepcopy(net.state_dict())
+        else:
+            bad += 1
+        if bad >= cfg.train.patience:
+            result.stopped = f"no validation gain for {bad} epochs"
+            break
+        if time.time() - t0 > cfg.train.time_budget_s:
+            result.stopped = f"time budget {cfg.train.time_budget_s:.0f} s spent"
+            break
+    else:
+        result.stopped = f"max_epochs {cfg.train.max_epochs} reached"
+    net.load_state_dict(best_state)
+    net.eval()
+    result.wall_s = time.time() - t0
+    return result
+
+
+def _length_buckets(
+    picks: np.ndarray, frames: list[int], batch_size: int, rng: np.random.Generator
+) -> list[np.ndarray]:
+    """Batches of clips of similar length (sorted, then cut), in random order: each batch is cropped to its
+    shortest member, so no sequence is padded (padding would feed the Bi-LSTM's backward pass zeros first, and
+    packing the padded batch is five times slower on the CPU)."""
+    order = picks[np.argsort([frames[i] for i in picks], kind="stable")]
+    batches = [order[i : i + batch_size] for i in range(0, len(order), batch_size)]
+    return [batches[k] for k in rng.permutation(len(batches))]
+
+
+def _crop(clip: MotionClip, start: int, stop: int) -> MotionClip:
+    return MotionClip(clip.path, clip.source, clip.subject, clip.activity, clip.motion.crop(start, stop), clip.digest)
