@@ -11,5 +11,5 @@ done
 # Comparisons (not shipped): axis-angle against 6D at the lower-body size; Vlutters 2016's FFNN and LSTM (no
 # look-ahead) against the Bi-LSTM of paper 001 with six sensors.
 python -m training.cli pose-train training/configs/pose_lower3.yaml -s name=pose_lower3_axisangle -s model.representation=axis_angle
-python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_ffn -s model.kind=ffn -s train.time_budget_s=300
-python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_lstm -s model.kind=lstm -s train.time_budget_s=600
+python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_ffn -s model.kind=ffn -s train.time_budget_s=180
+python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_lstm -s model.kind=lstm -s train.time_budget_s=420

@@ -290,6 +290,36 @@ def pose_acc_check(
     typer.echo(json.dumps(acceleration_check(build_motions(root, entries, cache_dir)), indent=1))
 
 
+@app.command("pose-real-check")
+def pose_real_check(
+    model: Path = typer.Option(Path("onnx_models/pose_lower3/1.0.0"), help="a shipped lower-body pose model"),
+    data_dir: Path | None = DataDir,
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """A lower-body pose model on real recordings (capacitive subject, MovingReality): its thighs, feet and knee
+    flexion against the thigh and foot sensors, every sensor aligned by the served I2S alignment model."""
+    import json
+
+    from service.inference.pose import PoseModel
+    from service.inference.registry import load_model, load_models
+    from training.pose.real_check import pooled, real_pose_check
+
+    alignment = load_models(Path("onnx_models"), 2)["i2s_alignment"]
+    results = real_pose_check(resolve_data_dir(data_dir), PoseModel(load_model(model, 2)), alignment)
+    summary = {
+        "alignment_model": alignment.manifest.version,
+        "capacitive_sub01": pooled(results, "capacitive"),
+        "movingreality": pooled(results, "movingreality"),
+    }
+    if as_json:
+        typer.echo(json.dumps({"recordings": results, **summary}, indent=1))
+        return
+    for name, r in results.items():
+        typer.echo(f"{name:32s} " + "  ".join(f"{k} {v:.2f}" for k, v in r.items() if k != "frames"))
+    for name in ("capacitive_sub01", "movingreality"):
+        typer.echo(f"pooled {name}: " + "  ".join(f"{k} {v:.2f}" for k, v in summary[name].items()))
+
+
 @app.command("evaluate-pose")
 def evaluate_pose(
     paths: list[Path] = typer.Argument(None, help="BVH files or folders (default: the held-out subjects)"),
@@ -298,12 +328,13 @@ def evaluate_pose(
     data_dir: Path | None = DataDir,
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
     as_json: bool = typer.Option(False, "--json", help="print per clip and overall metrics as JSON"),
+    record: bool = typer.Option(False, help="held-out mode: write the figures into the model's manifest"),
 ) -> None:
     """Score a shipped pose model on mocap: simulate its sensors on the clips and report per clip and overall
     segment-angle error, SIP error, joint-position error and jitter (per activity and subject too)."""
     import json
 
-    from service.core.manifest import read_manifest
+    from service.core.manifest import read_manifest, write_manifest
     from training.pose.config import PoseConfig
     from training.pose.pipeline import evaluate_shipped_pose, load_pose_data, results_table, user_clips
 
@@ -323,6 +354,14 @@ def evaluate_pose(
         )
         clips = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir).test
     results, summary = evaluate_shipped_pose(model, clips)
+    if record and not paths:
+        from training.pose.pipeline import HELD_OUT, evaluation_record
+
+        manifest = read_manifest(model / "manifest.json")
+        old = next(e for e in manifest.evaluations if e.name == HELD_OUT)
+        new = evaluation_record(HELD_OUT, f"python -m training.cli evaluate-pose --model {model}", old.data, summary)
+        others = [e for e in manifest.evaluations if e.name != HELD_OUT]
+        write_manifest(manifest.model_copy(update={"evaluations": [new, *others]}), model / "manifest.json")
     if as_json:
         per_clip = [{"clip": r.path, "frames": r.frames, **r.metrics} for r in results]
         typer.echo(json.dumps({"clips": per_clip, **summary}, indent=1))

@@ -33,10 +33,12 @@ def setup_tracking(experiment: str) -> str:
 
 
 def log_onnx_model(
-    proto: onnx.ModelProto, golden: dict[str, np.ndarray], manifest: Manifest, input_key: str = "imu"
+    proto: onnx.ModelProto, golden: dict[str, np.ndarray], manifest: Manifest, input_key: str | None = None
 ) -> ModelInfo:
-    """Log the active run's ONNX model with its signature and input example (from the golden pair). The manifest
-    rides in the MLmodel metadata, so the service can serve the model straight from the registry."""
+    """Log the active run's ONNX model with its signature and input example (from the golden pair: ``imu`` for the
+    I2S models, ``features`` for pose). The manifest rides in the MLmodel metadata, so the service can serve the
+    model straight from the registry."""
+    input_key = input_key or ("imu" if "imu" in golden else "features")
     return mlflow.onnx.log_model(
         onnx_model=proto,
         name="model",

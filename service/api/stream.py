@@ -1,7 +1,7 @@
 """WebSocket ``/v1/stream`` (protocol in ``service.api.protocol``).
 
 A slow consumer never grows server memory without bound: outgoing messages go through a bounded
-queue; when it is full the oldest queued *result* or *moment* is dropped (assignment, gap and error messages
+queue; when it is full the oldest queued *result*, *moment* or *pose* is dropped (assignment, gap and error messages
 are kept), the drop is counted in ``wearmocap_stream_results_dropped_total`` and reported to the client
 in the next assignment message as ``results_dropped``.
 """
@@ -62,7 +62,7 @@ class Outbox:
         dropped = False
         if len(self.items) >= self.limit:
             for k, item in enumerate(self.items):
-                if item["type"] in ("result", "moment"):
+                if item["type"] in ("result", "moment", "pose"):
                     del self.items[k]
                     self.dropped += 1
                     dropped = True
@@ -168,7 +168,8 @@ class Session:
             if not fitting:
                 placements = sorted({", ".join(m.spec.sensors) for m in models.values() if m.spec.streaming})
                 raise ProtocolError(
-                    f"pose: no streaming pose model {opts.model or ''} takes sensors on {segments}; "
+                    f"pose: no streaming pose model{' ' + opts.model if opts.model else ''} takes sensors on "
+                    f"{segments}; "
                     f"the loaded ones take [{'] or ['.join(placements)}]"
                 )
             model = fitting[0]
@@ -305,7 +306,8 @@ async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples
     frames = joined.frames[:, session.pose_order]
     messages = await app.state.runner.run_call(session.pose.process, frames, joined.first_frame)
     for message in messages:
-        outbox.put(message)
+        if outbox.put(message):
+            app.state.metrics.dropped.inc()
         if message["type"] == "pose":
             app.state.metrics.stream_result.observe(time.perf_counter() - received)
 

@@ -388,11 +388,65 @@ def _rigid_offset(R_bone: np.ndarray, target: np.ndarray, weight: np.ndarray) ->
     return Rotation.from_matrix(rel[keep]).mean(weights=weight[keep]).as_matrix()
 
 
-def body_motion(poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict[str, np.ndarray]) -> BodyMotion:
+def body_motion(
+    poses: GlobalPoses,
+    mapping: SkeletonMapping,
+    end_sites_m: dict[str, np.ndarray],
+    offsets: np.ndarray | None = None,
+) -> BodyMotion:
     """The canonical segments of one clip from its global joint poses.
 
     ``end_sites_m``: joint name → the end-site offset in the joint's local frame, metres (``bvh_end_sites``).
+    ``offsets``: the rig's R_bone_segment per segment ``(S, 3, 3)`` (``rig_offsets``); without them each clip
+    fits its own (``clip_offsets``), which moves with what the clip does (an arm's twist in a clip of raised arms).
     """
+    R_offset = clip_offsets(poses, mapping, end_sites_m) if offsets is None else offsets
+    P, R = poses.positions_m, poses.R_world_joint
+    R_out = np.empty((len(P), len(BODY_SEGMENTS), 3, 3))
+    for k, s in enumerate(BODY_SEGMENTS):
+        R_out[:, k] = R[:, poses.index(mapping.segments[s][0])] @ R_offset[k]
+    origin, mid = _segment_points(poses, mapping, end_sites_m)
+    return BodyMotion(R_out, origin, mid, poses.sample_rate_hz)
+
+
+def _segment_points(
+    poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict[str, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Segment origins and midpoints ``(T, S, 3)``."""
+    P = poses.positions_m
+    hip_centre = (P[:, poses.index(mapping.hips[0])] + P[:, poses.index(mapping.hips[1])]) / 2.0
+    origin, mid = [], []
+    for s in BODY_SEGMENTS:
+        joint, distal = mapping.segments[s]
+        p = P[:, poses.index(joint)]
+        origin.append(p)
+        if s == "Pelvis":
+            mid.append((p + hip_centre) / 2.0)  # between the root joint and the hip centre
+        elif distal is None or distal == END_SITE:
+            mid.append(p)
+        else:
+            mid.append((p + P[:, poses.index(distal)]) / 2.0)
+    return np.stack(origin, axis=1), np.stack(mid, axis=1)
+
+
+def rig_offsets(per_clip: list[np.ndarray]) -> np.ndarray:
+    """One R_bone_segment per segment for all clips of a rig ``(S, 3, 3)``: the rotation mean of the clips'
+    own offsets, re-taken over the clips no farther from it than the median (a clip of raised arms cannot pull it).
+    The bones of one rig are the same in every clip, so one offset gives every clip the same segment frames."""
+    stack = np.stack(per_clip)  # (C, S, 3, 3)
+    out = np.empty(stack.shape[1:])
+    for k in range(stack.shape[1]):
+        rot = Rotation.from_matrix(stack[:, k])
+        mean = rot.mean()
+        for _ in range(3):
+            angle = (mean.inv() * rot).magnitude()
+            mean = rot[angle <= np.median(angle) + 1e-12].mean()
+        out[k] = mean.as_matrix()
+    return out
+
+
+def clip_offsets(poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict[str, np.ndarray]) -> np.ndarray:
+    """Each segment's R_bone_segment ``(S, 3, 3)`` fitted on one clip: the rotation mean of R_bone⁻¹ · target."""
     mapping.check(poses.names)
     P, R = poses.positions_m, poses.R_world_joint
 
@@ -409,22 +463,17 @@ def body_motion(poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict[
     heading = _unit(np.cross(y_pelvis, up))
     targets: dict[str, np.ndarray] = {"Pelvis": _frame_z_x(np.cross(heading, y_pelvis), heading)}
     weights: dict[str, np.ndarray] = {"Pelvis": np.ones(len(P))}
-    origin, mid = {}, {}
     for s in BODY_SEGMENTS:
         joint, distal = mapping.segments[s]
         p = pos(joint, joint)
-        origin[s] = p
         d = pos(distal, joint) if distal else None
         if s == "Pelvis":
-            mid[s] = (p + (l_hip + r_hip) / 2.0) / 2.0  # between the root joint and the hip centre
             continue
         rule = _AXIS_RULE[s]
         if rule == "parent":
             parent = BODY_PARENT[s]
             targets[s], weights[s] = targets[parent], weights[parent]
-            mid[s] = p if d is None or distal == END_SITE else (p + d) / 2.0
             continue
-        mid[s] = (p + d) / 2.0
         length = np.median(np.linalg.norm(d - p, axis=-1))
         if length < 1e-3:
             raise MappingError(
@@ -443,12 +492,10 @@ def body_motion(poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict[
         else:  # foot: y from the shank's frame
             targets[s] = _foot_frame(p, d, targets[BODY_PARENT[s]][..., 1])
             weights[s] = np.ones(len(P))
-    R_out = np.empty((len(P), len(BODY_SEGMENTS), 3, 3))
+    out = np.empty((len(BODY_SEGMENTS), 3, 3))
     for k, s in enumerate(BODY_SEGMENTS):
-        R_bone = R[:, poses.index(mapping.segments[s][0])]
-        R_out[:, k] = R_bone @ _rigid_offset(R_bone, targets[s], weights[s])
-    stack = lambda d: np.stack([d[s] for s in BODY_SEGMENTS], axis=1)  # noqa: E731
-    return BodyMotion(R_out, stack(origin), stack(mid), poses.sample_rate_hz)
+        out[k] = _rigid_offset(R[:, poses.index(mapping.segments[s][0])], targets[s], weights[s])
+    return out
 
 
 def resample_motion(motion: BodyMotion, sample_rate_hz: float) -> BodyMotion:
@@ -527,14 +574,30 @@ def standing_height(body: Body) -> float:
     return float(span * 1.12)
 
 
-def read_body_motion(path: str | Path, mapping: SkeletonMapping | None = None, source: str = "") -> BodyMotion:
-    """A BVH file (plain or ``.gz``) on the canonical body, at its own rate; ``mapping`` or the source's."""
+def read_rig(path: str | Path, mapping: SkeletonMapping | None = None, source: str = ""):
+    """A BVH file (plain or ``.gz``) as (global joint poses, mapping, end sites in metres)."""
     from service.core.bvh import read_bvh
     from service.core.kinematics import forward_kinematics
 
     bvh = read_bvh(path)
     names = tuple(j.name for j in bvh.joints)
     mapping = mapping or (mapping_for_source(source, names) if source else detect_mapping(names))
+    mapping.check(names)
     poses = forward_kinematics(bvh, mapping.metres_per_unit)
     ends = {bvh.joints[j].name: off * mapping.metres_per_unit for j, off in bvh.end_sites.items()}
-    return body_motion(poses, mapping, ends)
+    return poses, mapping, ends
+
+
+def read_body_motion(
+    path: str | Path, mapping: SkeletonMapping | None = None, source: str = "", offsets: np.ndarray | None = None
+) -> BodyMotion:
+    """A BVH file on the canonical body, at its own rate; ``mapping`` or the source's; the rig's ``offsets``
+    (``rig_offsets``) or the clip's own."""
+    poses, mapping, ends = read_rig(path, mapping, source)
+    return body_motion(poses, mapping, ends, offsets)
+
+
+def read_clip_offsets(path: str | Path, mapping: SkeletonMapping | None = None, source: str = "") -> np.ndarray:
+    """The clip's own R_bone_segment per segment, the input of ``rig_offsets``."""
+    poses, mapping, ends = read_rig(path, mapping, source)
+    return clip_offsets(poses, mapping, ends)

@@ -276,3 +276,62 @@ def csv_recording(
         imu = resample_uniform(raw, rate_hz, MODEL_RATE_HZ)  # unchanged at the model rate
         sensors.append(RealSensor(f"{segment}:{path.name}", imu, segment_index(segment)))
     return RealRecording(name, "csv", "unknown", "unknown", sensors)
+
+
+@dataclass(frozen=True)
+class OrientedSensor:
+    """A real sensor with its own orientation output: acc (T, 3) m/s², gyr (T, 3) rad/s, q_world_sensor (T, 4)
+    w x y z in its world frame (z up), at ``rate_hz``."""
+
+    name: str
+    acc: np.ndarray
+    gyr: np.ndarray
+    q_world_sensor: np.ndarray
+    rate_hz: float
+
+
+MOVINGREALITY_SEGMENTS = {
+    "lumbar": "Pelvis",
+    "leftshank": "LeftLowerLeg",
+    "rightshank": "RightLowerLeg",
+    "leftfoot": "LeftFoot",
+    "rightfoot": "RightFoot",
+}
+
+
+def read_movingreality_trial(data_dir: Path, participant: str, trial: str) -> list[OrientedSensor]:
+    """One MovingReality treadmill trial (``imu_real/movingreality/<pp>/<trial>``): five Xsens MTw with their
+    orientation to ENU, 100 Hz (``../shared/data/README.md``). Sensors in ``MOVINGREALITY_SEGMENTS`` order."""
+    folder = data_dir / "imu_real" / "movingreality" / participant / trial
+    sensors = []
+    for name in MOVINGREALITY_SEGMENTS:
+        table = np.loadtxt(folder / f"{name}.csv.gz", delimiter=",", skiprows=1)
+        rate = 1.0 / float(np.median(np.diff(table[:, 0])))
+        sensors.append(OrientedSensor(name, table[:, 1:4], table[:, 4:7], table[:, 7:11], rate))
+    return sensors
+
+
+def read_capacitive_oriented(data_dir: Path, trial: str, source: str = "capacitive_sub01") -> dict[str, OrientedSensor]:
+    """A capacitive-study trial's IMUs with their orientations (``OpenSim_*_Orientations.sto``: quaternions w, x,
+    y, z of each sensor frame in a z-up world, checked: the rotated specific force averages +9.7-9.96 m/s² up),
+    keyed by segment (``CAPACITIVE_SEGMENTS``), at 100 Hz."""
+    folder = data_dir / "imu_real" / source / trial
+    (orient,) = folder.glob(f"OpenSim_*_{trial}_Orientations.sto")
+    lines = orient.read_text().splitlines()
+    head = next(k for k, line in enumerate(lines) if line.startswith("endheader"))
+    names = lines[head + 1].split("\t")[1:]
+    rows = [line.split("\t") for line in lines[head + 2 :] if line.strip()]
+    q = np.array([[[float(v) for v in cell.split(",")] for cell in row[1:]] for row in rows])
+    acc, acc_names, rate = _read_trc(folder / orient.name.replace("_Orientations.sto", "_Accel.trc"))
+    gyr, _, _ = _read_trc(folder / orient.name.replace("_Orientations.sto", "_Gyro.trc"))
+    n = min(len(q), len(acc), len(gyr))
+    out = {}
+    for k, column in enumerate(names):
+        seg = CAPACITIVE_SEGMENTS.get(column.removesuffix("_offset_imu").removesuffix("_imu"))
+        if seg is None:
+            continue
+        j = acc_names.index(column)
+        out[seg] = OrientedSensor(
+            column, acc[:n, 2 + 3 * j : 5 + 3 * j], gyr[:n, 2 + 3 * j : 5 + 3 * j], q[:n, k], rate
+        )
+    return out

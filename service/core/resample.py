@@ -27,3 +27,17 @@ def resample_timestamps(t_s: np.ndarray, x: np.ndarray, to_hz: float) -> tuple[n
     """Linear interpolation of an irregularly sampled stream onto a uniform grid; ``(T',)``, ``(T', C)``."""
     grid = np.arange(t_s[0], t_s[-1] + 1e-12, 1.0 / to_hz)
     return grid, interp_along_time(grid, t_s, x)
+
+
+def resample_pose_rows(
+    acc: np.ndarray, gyr: np.ndarray, q_wxyz: np.ndarray, from_hz: float, to_hz: float = 60.0
+) -> np.ndarray:
+    """A sensor's acc, gyr and orientation onto a uniform ``to_hz`` grid: rows of 10 values (acc xyz, gyr xyz,
+    q w x y z), linear for the vectors and slerp for the orientation; what a pose stream sends."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    t = np.arange(len(acc)) / from_hz
+    grid = np.minimum(np.arange(0.0, t[-1] + 1e-9, 1.0 / to_hz), t[-1])  # arange may overshoot by rounding
+    q = Slerp(t, Rotation.from_quat(q_wxyz, scalar_first=True))(grid).as_quat(scalar_first=True)
+    q = np.where(q[:, :1] < 0, -q, q)
+    return np.concatenate([interp_along_time(grid, t, acc), interp_along_time(grid, t, gyr), q], axis=1)

@@ -100,3 +100,25 @@ def test_resampling_bandai_to_60_hz_keeps_the_clip(data_dir: Path) -> None:
     # the spline passes through the samples (to the files' rounding of the frame time, 0.0333333 s)
     np.testing.assert_allclose(m60.origin_m[::2], m30.origin_m, atol=1e-4)
     np.testing.assert_allclose(m60.R_world_segment[::2], m30.R_world_segment, atol=1e-3)
+
+
+def test_the_clips_of_one_rig_share_their_segment_frames(data_dir: Path) -> None:
+    """Fitted per clip, an arm's twist follows what the clip does (raised arms, a dance); one offset per rig
+    gives every clip the same segment frame on the same bone."""
+    from service.core.body import read_clip_offsets, read_rig, rig_offsets
+
+    paths = [data_dir / "mocap/cmu_iclone" / n for n in ("05_02.bvh", "06_04.bvh", "07_01.bvh", "02_01.bvh")]
+    per_clip = [read_clip_offsets(p, source="cmu_iclone") for p in paths]
+    rig = rig_offsets(per_clip)
+    arm = BODY_SEGMENTS.index("LeftUpperArm")
+    spread = [np.degrees(np.arccos(np.clip((np.trace(rig[arm].T @ o[arm]) - 1) / 2, -1, 1))) for o in per_clip]
+    assert max(spread) > 3.0  # the clips disagree on their own ...
+    for p in paths[:2]:
+        poses, mapping, _ = read_rig(p, source="cmu_iclone")
+        motion = read_body_motion(p, source="cmu_iclone", offsets=rig)
+        R_bone = poses.R_world_joint[:, poses.index(mapping.segments["LeftUpperArm"][0])]
+        np.testing.assert_allclose(
+            np.einsum("tji,tjk->tik", R_bone, motion.R_world_segment[:, arm]),
+            rig[arm][None].repeat(len(R_bone), 0),
+            atol=1e-9,
+        )

@@ -17,13 +17,20 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from service.core.body import BodyMotion, SkeletonMapping, read_body_motion, resample_motion
+from service.core.body import (
+    BodyMotion,
+    SkeletonMapping,
+    read_body_motion,
+    read_clip_offsets,
+    resample_motion,
+    rig_offsets,
+)
 from service.core.rotations import matrix_from_quat, quat_from_matrix
 from training.data.catalog import CatalogEntry, read_catalog
 
 log = logging.getLogger(__name__)
 
-MOTION_VERSION = "2"  # 2: upright trunk frames for L5 and T8
+MOTION_VERSION = "4"  # 2: upright trunk frames for L5 and T8; 3: one set of segment offsets per rig; 4: from walks
 MODEL_RATE_HZ = 60.0
 BANDAI_LICENCE = "CC BY-NC 4.0 (Bandai Namco Research Motiondataset): non-commercial use only"
 
@@ -55,16 +62,71 @@ class MotionClip:
         return self.subject or f"{self.source}_unlabelled"
 
 
-def _digest(path: Path) -> str:
+def _digest(path: Path, offsets: np.ndarray | None = None) -> str:
     h = hashlib.sha256(path.read_bytes())
     h.update(f"|{MODEL_RATE_HZ}|v{MOTION_VERSION}".encode())
+    if offsets is not None:
+        h.update(np.round(offsets, 8).tobytes())
     return h.hexdigest()[:20]
 
 
-def load_motion(path: Path, source: str, skip_frames: int = 0, mapping: SkeletonMapping | None = None) -> BodyMotion:
-    """A BVH on the canonical body at the model rate, the first ``skip_frames`` (T-pose) dropped."""
-    motion = read_body_motion(path, mapping, source)
+def rig_key(entry: CatalogEntry) -> str:
+    """Clips that share one skeleton rig: a whole source, except cmu_raw, whose files are different people's
+    ASF skeletons (``../shared/data/README.md``)."""
+    return entry.path if entry.source == "cmu_raw" else entry.source
+
+
+def load_motion(
+    path: Path,
+    source: str,
+    skip_frames: int = 0,
+    mapping: SkeletonMapping | None = None,
+    offsets: np.ndarray | None = None,
+) -> BodyMotion:
+    """A BVH on the canonical body at the model rate, the first ``skip_frames`` (T-pose) dropped; ``offsets``:
+    its rig's segment offsets (``service.core.body.rig_offsets``), else the clip's own."""
+    motion = read_body_motion(path, mapping, source, offsets)
     return resample_motion(motion.crop(skip_frames), MODEL_RATE_HZ)
+
+
+def _clip_offsets_job(args: tuple[Path, CatalogEntry, Path]) -> np.ndarray | None:
+    data_dir, e, cache_dir = args
+    path = data_dir / e.path
+    cached = cache_dir / "clip_offsets" / f"{_digest(path)}.npy"
+    if cached.exists():
+        return np.load(cached)
+    try:
+        off = read_clip_offsets(path, None, e.source)
+    except Exception as exc:  # logged and left out of its rig's mean, as the clip itself is left out below
+        log.warning("no offsets for %s: %s", e.path, exc)
+        return None
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    np.save(cached, off)
+    return off
+
+
+def build_rig_offsets(data_dir: Path, entries: list[CatalogEntry], cache_dir: Path, workers: int = 2) -> dict:
+    """Per rig (``rig_key``), the segment offsets of ``rig_offsets`` over the rig's walking clips in the catalogue
+    (all its clips where it has fewer than three walks; never only ``entries``: the rig's frames must not depend on
+    which clips a run selects)."""
+    everything = pose_entries(data_dir)
+    wanted = {rig_key(e) for e in entries}
+    rig_entries = [e for e in everything if rig_key(e) in wanted]
+    jobs = [(data_dir, e, cache_dir) for e in rig_entries]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        offs = list(
+            tqdm(pool.map(_clip_offsets_job, jobs, chunksize=8), total=len(jobs), desc="rig frames", unit="clip")
+        )
+    per_rig: dict[str, list[np.ndarray]] = {}
+    walks: dict[str, list[np.ndarray]] = {}
+    for e, off in zip(rig_entries, offs, strict=True):
+        if off is not None:
+            per_rig.setdefault(rig_key(e), []).append(off)
+            if e.activity == "walk":
+                walks.setdefault(rig_key(e), []).append(off)
+    # Neutral stance defines the frames (DESIGN.md §2); walking is the nearest to it that every rig has: a rig's
+    # dances and raised arms would turn its arms' frames (iClone forearms by about 60° about their long axis).
+    return {rig: rig_offsets(walks[rig] if len(walks.get(rig, [])) >= 3 else v) for rig, v in per_rig.items()}
 
 
 def _save(path: Path, m: BodyMotion) -> None:
@@ -85,16 +147,16 @@ def _load(path: Path) -> BodyMotion:
         return BodyMotion(R, z["origin"].astype(np.float64), z["mid"].astype(np.float64), MODEL_RATE_HZ)
 
 
-def _load_or_compute(args: tuple[Path, CatalogEntry, Path]) -> MotionClip | None:
-    data_dir, e, cache_dir = args
+def _load_or_compute(args: tuple[Path, CatalogEntry, Path, np.ndarray | None]) -> MotionClip | None:
+    data_dir, e, cache_dir, offsets = args
     path = data_dir / e.path
-    digest = _digest(path)
+    digest = _digest(path, offsets)
     cached = cache_dir / f"{digest}.npz"
     if cached.exists():
         motion = _load(cached)
     else:
         try:
-            motion = load_motion(path, e.source, e.tpose_frames)
+            motion = load_motion(path, e.source, e.tpose_frames, offsets=offsets)
         except Exception as exc:  # one unreadable clip must not stop a build of thousands; it is logged
             log.warning("skipping %s: %s", e.path, exc)
             return None
@@ -106,8 +168,10 @@ def _load_or_compute(args: tuple[Path, CatalogEntry, Path]) -> MotionClip | None
 def build_motions(
     data_dir: Path, entries: list[CatalogEntry], cache_dir: Path, workers: int = 2, min_frames: int = 32
 ) -> list[MotionClip]:
-    """Every entry on the canonical body, from the cache where possible, with a progress bar."""
-    jobs = [(data_dir, e, cache_dir) for e in entries]
+    """Every entry on the canonical body, from the cache where possible, with a progress bar; each rig's clips
+    share one set of segment frames (``build_rig_offsets``)."""
+    rigs = build_rig_offsets(data_dir, entries, cache_dir, workers)
+    jobs = [(data_dir, e, cache_dir, rigs.get(rig_key(e))) for e in entries]
     with ProcessPoolExecutor(max_workers=workers) as pool:
         clips = list(tqdm(pool.map(_load_or_compute, jobs, chunksize=8), total=len(jobs), desc="mocap", unit="clip"))
     kept = [c for c in clips if c is not None and c.motion.n_frames >= min_frames]

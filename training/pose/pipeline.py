@@ -52,6 +52,7 @@ log = logging.getLogger(__name__)
 
 VAL_SEED, TEST_SEED, BASELINE_SEED = 1, 2, 3
 SELECTION_METRIC = "val_angle_unsensed_deg"
+HELD_OUT = "held-out subjects (simulated sensors)"
 
 
 @dataclass(frozen=True)
@@ -225,7 +226,7 @@ def run_pose_experiment(
             "stopped": result.stopped,
         }
         evaluation = evaluation_record(
-            "held-out subjects (simulated sensors)",
+            HELD_OUT,
             f"python -m training.cli evaluate-pose --model onnx_models/{cfg.name}/{version}",
             f"CMU subjects {', '.join(cfg.data.test_subjects)} and the li2018 run clips, never trained on or "
             "chosen by; "
@@ -296,10 +297,11 @@ def results_table(results: list[ClipResult]) -> str:
 
 def user_clips(paths: list[Path], mapping_file: Path | None) -> list[MotionClip]:
     """BVH files (plain or .gz), or folders of them, on the canonical body at 60 Hz; the activity is the folder's
-    name. Without a mapping file the skeleton must be one of the known families."""
+    name. Without a mapping file the skeleton must be one of the known families. All files are taken to share one
+    rig (their segment frames come from all of them together)."""
     import hashlib
 
-    from service.core.body import load_mapping
+    from service.core.body import load_mapping, read_clip_offsets, rig_offsets
     from training.pose.data import load_motion
 
     mapping = load_mapping(mapping_file) if mapping_file else None
@@ -308,10 +310,13 @@ def user_clips(paths: list[Path], mapping_file: Path | None) -> list[MotionClip]
         files += sorted(q for q in p.rglob("*") if q.name.endswith((".bvh", ".bvh.gz"))) if p.is_dir() else [p]
     if not files:
         raise ValueError(f"no .bvh or .bvh.gz files in {[str(p) for p in paths]}")
+    # the clips of one call share a rig: one set of segment frames for all of them (service.core.body.rig_offsets)
+    offsets = rig_offsets([read_clip_offsets(f, mapping) for f in files])
     clips = []
     for f in files:
         digest = hashlib.sha256(f.read_bytes()).hexdigest()[:20]
-        clips.append(MotionClip(str(f), "user", f.parent.name, f.parent.name, load_motion(f, "", 0, mapping), digest))
+        motion = load_motion(f, "", 0, mapping, offsets)
+        clips.append(MotionClip(str(f), "user", f.parent.name, f.parent.name, motion, digest))
     return clips
 
 

@@ -1,0 +1,39 @@
+"""Body frames from several sensors' packets: released when every sensor has them, gaps held, late dropped."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.core.pose_stream import MAX_LAG_FRAMES, FrameAligner, StreamLagError
+
+
+def _rows(start: int, n: int, sensor: int) -> np.ndarray:
+    return np.stack([np.full(3, 100 * sensor + start + i, dtype=np.float64) for i in range(n)])
+
+
+def test_frames_are_released_once_every_sensor_has_them_in_any_packet_sizes() -> None:
+    a = FrameAligner(2, 3)
+    assert len(a.push(0, 0, _rows(0, 5, 0)).frames) == 0
+    out = a.push(1, 0, _rows(0, 3, 1))
+    assert out.first_frame == 0 and out.frames.shape == (3, 2, 3)
+    np.testing.assert_array_equal(out.frames[:, 1, 0], [100, 101, 102])
+    out = a.push(1, 3, _rows(3, 4, 1))
+    assert out.first_frame == 3 and len(out.frames) == 2  # sensor 0 has only reached frame 4
+    np.testing.assert_array_equal(out.frames[:, 0, 0], [3, 4])
+
+
+def test_a_gap_holds_the_last_sample_and_a_late_packet_is_dropped() -> None:
+    a = FrameAligner(1, 3)
+    a.push(0, 0, _rows(0, 2, 0))
+    out = a.push(0, 5, _rows(5, 1, 0))
+    assert out.filled == 3
+    np.testing.assert_array_equal(out.frames[:, 0, 0], [1, 1, 1, 5])
+    late = a.push(0, 2, _rows(2, 2, 0))
+    assert late.late == (6, 2) and len(late.frames) == 0
+
+
+def test_a_sensor_that_falls_far_behind_stops_the_session() -> None:
+    a = FrameAligner(2, 3)
+    with pytest.raises(StreamLagError, match="sensor #1"):
+        a.push(0, 0, _rows(0, MAX_LAG_FRAMES + 1, 0))

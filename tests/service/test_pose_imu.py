@@ -1,0 +1,353 @@
+"""Pose from raw IMU readings with the shipped pose models: REST and the WebSocket of a real uvicorn server,
+both calibration routes, the I2S hand-over on a real recording, and the bad inputs."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import websockets
+from fastapi.testclient import TestClient
+from scipy.spatial.transform import Rotation
+
+from benchmarks.servers import REPO, start_service, stop
+from service.api.pose_routes import calibrate, read_sensors
+from service.api.schemas import PoseImuRequest
+from service.app import create_app
+from service.core.body import BODY_SEGMENTS, BodyMotion
+from service.core.calibration import pose_features, segment_readings
+from service.core.recordings import MOVINGREALITY_SEGMENTS, read_movingreality_trial
+from service.core.resample import resample_pose_rows
+from service.core.rotations import matrix_from_quat, quat_from_matrix
+from service.inference.pose import PoseModel
+from service.inference.registry import load_models
+from service.settings import Settings
+from training.pose.config import SIX_SENSORS
+from training.pose.data import load_motion
+from training.pose.simulate import SensorNoise, simulate_sensors, simulate_session
+
+MODELS = REPO / "onnx_models"
+WALK = "mocap/cmu_iclone/07_01.bvh"  # CMU subject 07: held out of every pose model's training
+LOWER = ["Pelvis", "LeftLowerLeg", "RightLowerLeg"]
+
+
+@pytest.fixture(scope="module")
+def pose_models() -> dict[str, PoseModel]:
+    return {n: PoseModel(m) for n, m in load_models(MODELS, 1).items() if m.manifest.task == "imu_pose"}
+
+
+@pytest.fixture(scope="module")
+def client():
+    with TestClient(create_app(Settings(models_dir=MODELS))) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def server():
+    proc, base = start_service(MODELS, threads=1)
+    yield base
+    stop(proc)
+
+
+@pytest.fixture(scope="module")
+def walk(data_dir: Path):
+    motion = load_motion(data_dir / WALK, "cmu_iclone")
+    return motion, simulate_sensors(motion, SIX_SENSORS, np.random.default_rng(7))
+
+
+def _body(raw, sensors: list[str], declared: bool = True, frames: slice = slice(None)) -> dict:
+    idx = [SIX_SENSORS.index(s) for s in sensors]
+    return {
+        "sample_rate_hz": 60.0,
+        "sensors": [
+            {
+                "sensor_id": s.lower(),
+                "segment": s,
+                "q_world_sensor": raw.q_world_sensor[frames, k].tolist(),
+                "acc": raw.acc_mps2[frames, k].tolist(),
+                "gyr": raw.gyr_rads[frames, k].tolist(),
+            }
+            | ({"q_segment_sensor": raw.q_segment_sensor[k].tolist()} if declared else {})
+            for s, k in zip(sensors, idx, strict=True)
+        ],
+    }
+
+
+def test_the_shipped_placements_are_served(pose_models: dict[str, PoseModel]) -> None:
+    placements = {(tuple(m.spec.sensors), m.spec.streaming) for m in pose_models.values()}
+    assert (tuple(SIX_SENSORS), False) in placements and (tuple(SIX_SENSORS), True) in placements
+    assert (tuple(LOWER), False) in placements and (tuple(LOWER), True) in placements
+
+
+def test_service_and_training_compute_the_same_features(walk, pose_models: dict[str, PoseModel]) -> None:
+    """The request path (rows → readings → declared calibration → features) is the simulator's path exactly."""
+    motion, _ = walk
+    model = pose_models["pose_full6"]
+    outputs = model.spec.output_segments
+    rng = np.random.default_rng(11)
+    session = simulate_session(motion, SIX_SENSORS, outputs, rng, SensorNoise(calibration_error_deg=0.0))
+    raw = simulate_sensors(motion, SIX_SENSORS, np.random.default_rng(11), SensorNoise(calibration_error_deg=0.0))
+    request = PoseImuRequest.model_validate(_body(raw, SIX_SENSORS))
+    readings = read_sensors(request, model)
+    features = pose_features(
+        *segment_readings(readings.q_world_sensor, readings.acc_mps2, calibrate(request, model, readings))
+    )
+    np.testing.assert_allclose(features, session.features, atol=2e-5)
+
+
+def test_rest_pose_from_declared_alignments_matches_the_model_and_the_truth(server: str, walk, pose_models) -> None:
+    motion, raw = walk
+    r = httpx.post(f"{server}/v1/pose/imu", json=_body(raw, SIX_SENSORS), timeout=60)
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["model"]["name"] == "pose_full6" and body["frames"] == motion.n_frames
+    assert set(body["segments"]) == set(BODY_SEGMENTS)
+    q = np.array([body["segments"][s]["q_world_segment"] for s in BODY_SEGMENTS]).transpose(1, 0, 2)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-4)
+    # against the truth (in the sensors' world frame): the unsensed segments, as evaluate-pose scores them
+    Rz = Rotation.from_rotvec([0.0, 0.0, raw.heading_rad]).as_matrix()
+    truth = quat_from_matrix(np.einsum("ij,tsjk->tsik", Rz, motion.R_world_segment))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)  # sent rounded to 5 decimals
+    unsensed = [BODY_SEGMENTS.index(s) for s in pose_models["pose_full6"].spec.output_segments]
+    angle = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(q * truth, -1)), 0, 1)))[:, unsensed]
+    print(f"REST walk, unsensed segments: mean {angle.mean():.1f} deg")
+    assert angle.mean() < 30.0
+    # the pelvis is at the origin; a 1.9 m body is scaled from the default
+    tall = httpx.post(f"{server}/v1/pose/imu", json=_body(raw, SIX_SENSORS) | {"body_height_m": 1.9}, timeout=60).json()
+    assert tall["body_height_m"] == pytest.approx(1.9, abs=1e-3)
+    head = np.array(body["segments"]["Head"]["joint_position_m"])
+    assert np.allclose(body["segments"]["Pelvis"]["joint_position_m"], 0.0) and 0.4 < np.median(head[:, 2]) < 0.8
+
+
+def test_rest_pose_with_a_still_npose_calibration(server: str, data_dir: Path) -> None:
+    """A 2 s N-pose before the walk: the service finds every mounting from it (no alignment declared)."""
+    walk = load_motion(data_dir / WALK, "cmu_iclone")
+    n = 120
+    heading = Rotation.from_rotvec([0.0, 0.0, 0.8]).as_matrix()
+    R_still = np.broadcast_to(heading, (n, len(BODY_SEGMENTS), 3, 3))
+    still = BodyMotion(R_still.copy(), np.repeat(walk.origin_m[:1], n, 0), np.repeat(walk.midpoint_m[:1], n, 0), 60.0)
+    motion = BodyMotion(
+        np.concatenate([still.R_world_segment, walk.R_world_segment]),
+        np.concatenate([still.origin_m, walk.origin_m]),
+        np.concatenate([still.midpoint_m, walk.midpoint_m]),
+        60.0,
+    )
+    raw = simulate_sensors(motion, LOWER, np.random.default_rng(3), SensorNoise(offset_m=0.0))
+    # the pelvis sensor's back axis, in its own frame: the pelvis's posterior (−x) seen from the sensor
+    back = matrix_from_quat(raw.q_segment_sensor[0]).T @ np.array([-1.0, 0.0, 0.0])
+    body = {
+        "sample_rate_hz": 60.0,
+        "sensors": [
+            {
+                "sensor_id": s,
+                "segment": s,
+                "q_world_sensor": raw.q_world_sensor[:, k].tolist(),
+                "acc": raw.acc_mps2[:, k].tolist(),
+            }
+            for k, s in enumerate(LOWER)
+        ],
+        "calibration": {
+            "method": "still_pose",
+            "pose": "npose",
+            "start": 10,
+            "stop": 110,
+            "pelvis_back_axis": back.tolist(),
+        },
+    }
+    r = httpx.post(f"{server}/v1/pose/imu", json=body, timeout=60)
+    assert r.status_code == 200, r.text
+    got = r.json()["q_segment_sensor"]
+    for k, s in enumerate(LOWER):
+        err = Rotation.from_quat(got[s], scalar_first=True).inv() * Rotation.from_quat(
+            raw.q_segment_sensor[k], scalar_first=True
+        )
+        assert np.degrees(err.magnitude()) < 8.0, s  # the sensors' own fusion errs by up to 2° tilt, 5° heading
+    body["calibration"] |= {"start": 130, "stop": 230}  # walking: not still
+    r = httpx.post(f"{server}/v1/pose/imu", json=body, timeout=60)
+    assert r.status_code == 422 and "not still" in r.json()["detail"]
+
+
+def _example(client: TestClient, raw, **change) -> dict:
+    body = _body(raw, LOWER, frames=slice(0, 90))
+    body.update(change)
+    return body
+
+
+@pytest.mark.parametrize(
+    "mutate, status, fragment",
+    [
+        (lambda b: b["sensors"].pop(), 422, "no offline pose model takes sensors on ['Pelvis', 'LeftLowerLeg']"),
+        (lambda b: b.update(model="pose_full6"), 422, "pose_full6 takes sensors on"),
+        (lambda b: b["sensors"][1].update(segment="Head"), 422, "no offline pose model takes sensors"),
+        (
+            lambda b: b["sensors"][0]["q_world_sensor"].__setitem__(5, [0.2, 0.0, 0.0, 0.0]),
+            422,
+            "sensors[0].q_world_sensor[5]: expected a unit quaternion",
+        ),
+        (lambda b: b.update(sample_rate_hz=1000.0), 422, "sample_rate_hz must be in [20, 400], got 1000"),
+        (
+            lambda b: b["sensors"][2].pop("q_segment_sensor"),
+            422,
+            "sensors[2].q_segment_sensor: calibration 'declared' needs",
+        ),
+        (lambda b: b["sensors"][1]["acc"].pop(), 422, "the same number of q_world_sensor and acc rows"),
+        (
+            lambda b: b.update(calibration={"method": "still_pose", "start": 50, "stop": 500}),
+            422,
+            "a still span needs 0 <= start < stop <= 90",
+        ),
+        (lambda b: b.update(model="nope"), 422, "no pose model 'nope'"),
+    ],
+)
+def test_bad_pose_requests_get_a_4xx_that_says_what_was_expected(
+    client: TestClient, walk, mutate, status, fragment
+) -> None:
+    _, raw = walk
+    body = _example(client, raw)
+    mutate(body)
+    r = client.post("/v1/pose/imu", json=body)
+    assert r.status_code == status, r.text
+    assert fragment in json.dumps(r.json()["detail"]), r.json()["detail"]
+
+
+def test_a_nan_reading_is_refused(client: TestClient, walk) -> None:
+    _, raw = walk
+    body = _example(client, raw)
+    body["sensors"][0]["acc"][3][1] = float("nan")
+    r = client.post("/v1/pose/imu", content=json.dumps(body), headers={"content-type": "application/json"})
+    assert r.status_code == 422 and "sensors[0].acc[3]: values must be finite" in r.json()["detail"]
+
+
+async def _stream(url: str, start: dict, packets: list[tuple[str, int, np.ndarray]]) -> tuple[list[dict], int, str]:
+    messages = []
+    async with websockets.connect(url, max_size=None) as ws:
+
+        async def send() -> None:
+            try:
+                await ws.send(json.dumps(start))
+                for sensor_id, seq, rows in packets:
+                    packet = {"type": "samples", "sensor_id": sensor_id, "seq": seq, "samples": rows.tolist()}
+                    await ws.send(json.dumps(packet))
+                await ws.send(json.dumps({"type": "stop"}))
+            except websockets.ConnectionClosed:  # the server closed on a mistake; its messages are read below
+                pass
+
+        sender = asyncio.create_task(send())
+        try:
+            async for text in ws:
+                messages.append(json.loads(text))
+        except websockets.ConnectionClosedError:  # closed with an error code: read below
+            pass
+        await sender
+        return messages, ws.close_code, ws.close_reason
+
+
+def _rows(raw, k: int) -> np.ndarray:
+    return np.concatenate([raw.acc_mps2[:, k], raw.gyr_rads[:, k], raw.q_world_sensor[:, k]], axis=1)
+
+
+def test_the_stream_answers_pose_as_the_streaming_model_does_offline(server: str, walk, pose_models) -> None:
+    motion, raw = walk
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    packets = [
+        (s.lower(), start, _rows(raw, k)[start : start + 8])
+        for start in range(0, motion.n_frames, 8)
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}
+    messages, code, reason = asyncio.run(_stream(server.replace("http", "ws") + "/v1/stream", start, packets))
+    assert code == 1000, reason
+    started = messages[0]
+    assert started["type"] == "started" and started["pose"]["model"] == "pose_full6_stream"
+    assert started["pose"]["look_ahead_frames"] == 5 and started["pose"]["segments"] == list(BODY_SEGMENTS)
+    poses = [m for m in messages if m["type"] == "pose"]
+    assert [p["first_frame"] for p in poses] == sorted(p["first_frame"] for p in poses)
+    q_live = np.concatenate([np.array(p["q_world_segment"]) for p in poses])
+    assert len(q_live) == motion.n_frames - 5  # the last 5 frames wait for their look-ahead
+    # offline, the same model on the same readings and calibration
+    model = pose_models["pose_full6_stream"]
+    R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
+    from service.inference.pose import whole_body
+
+    R_world = whole_body(R_w_seg, model.predict(pose_features(R_w_seg, a_w)), model.sensor_index, model.output_index)
+    q_off = quat_from_matrix(R_world)[: len(q_live)]
+    q_live /= np.linalg.norm(q_live, axis=-1, keepdims=True)  # sent rounded to 5 decimals
+    angle = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(q_live * q_off, -1)), 0, 1)))
+    assert angle.max() < 0.1, angle.max()
+
+
+def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str, data_dir: Path) -> None:
+    """MovingReality (a person after stroke on a treadmill, Xsens on lumbar, shanks and feet): no sensor's segment
+    and no alignment declared; the stream's own I2S assignment places the sensors and hands its alignments over."""
+    sensors = read_movingreality_trial(data_dir, "pp01", "1Reg")
+    rows = {s.name: resample_pose_rows(s.acc, s.gyr, s.q_world_sensor, s.rate_hz)[60 * 10 : 60 * 70] for s in sensors}
+    n = min(len(r) for r in rows.values())
+    packets = [(name, start, rows[name][start : min(start + 16, n)]) for start in range(0, n, 16) for name in rows]
+    start = {
+        "type": "start",
+        "sensors": [{"sensor_id": name} for name in rows],
+        # the lab knows which segments carry sensors, not which sensor is where (without it the assignment puts
+        # this person's left shank sensor on the thigh, a segment MovingReality has no sensor on)
+        "worn_segments": list(MOVINGREALITY_SEGMENTS.values()),
+        "pose": {"calibration": "assignment", "assignment_confidence": 0.8},
+    }
+    messages, code, reason = asyncio.run(_stream(server.replace("http", "ws") + "/v1/stream", start, packets))
+    assert code == 1000, reason
+    calibrated = [m for m in messages if m["type"] == "calibration" and m["status"] == "calibrated"]
+    assert calibrated, [m for m in messages if m["type"] == "assignment"][-1]
+    placed = calibrated[0]["segments"]
+    assert placed == {k: v for k, v in MOVINGREALITY_SEGMENTS.items() if v in LOWER}
+    poses = [m for m in messages if m["type"] == "pose"]
+    assert poses and poses[0]["first_frame"] > 0  # posed from the moment the assignment was sure
+    q = np.concatenate([np.array(p["q_world_segment"]) for p in poses])
+    R = matrix_from_quat(q)
+    thigh, shank = BODY_SEGMENTS.index("LeftUpperLeg"), BODY_SEGMENTS.index("LeftLowerLeg")
+    knee = np.degrees(Rotation.from_matrix(np.einsum("tji,tjk->tik", R[:, thigh], R[:, shank])).magnitude())
+    print(f"MovingReality pp01 left knee angle: p5 {np.percentile(knee, 5):.1f}, p95 {np.percentile(knee, 95):.1f} deg")
+    assert np.percentile(knee, 95) - np.percentile(knee, 5) > 10.0  # the knee bends in gait
+
+
+@pytest.mark.parametrize(
+    "start, fragment",
+    [
+        (
+            {"sensors": [{"sensor_id": "a", "segment": "Pelvis"}], "pose": {"calibration": "still_pose"}},
+            "no streaming pose model",
+        ),
+        (
+            {"sensors": [{"sensor_id": "a", "segment": "Pelvis", "sample_rate_hz": 100}], "pose": {}},
+            "pose sessions stream at 60 Hz",
+        ),
+        ({"sensors": [{"sensor_id": "a"}], "pose": {"calibration": "declared"}}, "needs each sensor's segment"),
+    ],
+)
+def test_bad_pose_sessions_close_with_1008_and_say_why(server: str, start: dict, fragment: str) -> None:
+    messages, code, reason = asyncio.run(
+        _stream(server.replace("http", "ws") + "/v1/stream", {"type": "start", **start}, [])
+    )
+    assert code == 1008 and fragment in reason + json.dumps(messages), (reason, messages)
+
+
+def test_a_non_unit_quaternion_on_the_stream_closes_it_after_the_accepted_frames(server: str, walk) -> None:
+    _, raw = walk
+    sensors = [
+        {"sensor_id": s, "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    good = [(s, 0, _rows(raw, k)[:30]) for k, s in enumerate(SIX_SENSORS)]
+    bad_rows = _rows(raw, 0)[30:40].copy()
+    bad_rows[3, 6:10] = [0.1, 0.0, 0.0, 0.0]
+    start = {"type": "start", "sensors": sensors, "pose": {}}
+    messages, code, reason = asyncio.run(
+        _stream(server.replace("http", "ws") + "/v1/stream", start, [*good, ("Pelvis", 30, bad_rows)])
+    )
+    assert code == 1008 and "unit quaternion" in reason
+    frames = sum(m["frames"] for m in messages if m["type"] == "pose")
+    assert frames == 25  # the 30 accepted frames, less the look-ahead, were answered before the close
