@@ -83,7 +83,7 @@ async def _stream(url: str, seconds: float, packet: int, lat: list[float], count
     q, acc = _readings(n + packet, seed=int(start_at * 1000) % 997)
     rows = np.concatenate([acc, np.zeros_like(acc), q], axis=2)  # (n, 6, 10)
     sent_at: dict[int, float] = {}
-    async with websockets.connect(url, max_size=None) as ws:
+    async with websockets.connect(url, max_size=None, ping_interval=None) as ws:
         sensors = [{"sensor_id": s, "segment": s, "q_segment_sensor": [1.0, 0.0, 0.0, 0.0]} for s in SIX]
         await ws.send(json.dumps({"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}))
         await ws.recv()  # started
@@ -118,10 +118,13 @@ async def bench_streams(base: str, n: int, seconds: float, packet: int) -> dict:
     start_at = time.perf_counter() + 2.0
     # staggered starts within one packet interval, as independent clients would be
     tasks = [_stream(url, seconds, packet, lat, counts, start_at + k * packet / 60.0 / n) for k in range(n)]
-    await asyncio.gather(*tasks)
+    outcomes = await asyncio.gather(*tasks, return_exceptions=True)
+    failed = [repr(o)[:120] for o in outcomes if isinstance(o, BaseException)]
     expected = n * (int(seconds * 60) - 5)
     return {
         "streams": n,
+        "streams_failed": len(failed),
+        "first_failure": failed[0] if failed else None,
         "packet_samples": packet,
         "pose_frames_received": counts[0],
         "pose_frames_expected": expected,

@@ -256,6 +256,7 @@ def _restore_registered_model(
             report.versions_without_model.append(label)
             continue
         rid = restored[version["run_id"]]
+        mlflow.set_experiment(experiment_id=client.get_run(rid).info.experiment_id)  # runs of several experiments
         with np.load(model_dir / "golden.npz") as z, mlflow.start_run(run_id=rid):
             end_time = client.get_run(rid).info.end_time
             info = log_onnx_model(

@@ -89,7 +89,7 @@ def _resample_quats(q: np.ndarray, from_hz: float, to_hz: float) -> np.ndarray:
     from scipy.spatial.transform import Rotation, Slerp
 
     t = np.arange(len(q)) / from_hz
-    t_new = np.arange(0.0, t[-1] + 1e-9, 1.0 / to_hz)
+    t_new = np.minimum(np.arange(0.0, t[-1] + 1e-9, 1.0 / to_hz), t[-1])  # arange may overshoot by rounding
     return Slerp(t, Rotation.from_quat(q, scalar_first=True))(t_new).as_quat(scalar_first=True)
 
 
@@ -169,11 +169,9 @@ def calibrate(body: PoseImuRequest, model: PoseModel, r: Readings) -> np.ndarray
     if stop - start < 30:
         raise InputError(f"calibration: the still span must last at least 0.5 s, got {(stop - start) / 60.0:.2f} s")
     span = slice(start, stop)
-    still, why = is_still(None if r.gyr_rads is None else r.gyr_rads[span], r.acc_mps2[span])
+    still, why = is_still(None if r.gyr_rads is None else r.gyr_rads[span], r.acc_mps2[span], model.spec.sensors)
     if not still:
-        raise InputError(
-            f"calibration: frames {cal.start}-{cal.stop} are not still: {why.replace('sensor ', 'sensor #')}"
-        )
+        raise InputError(f"calibration: samples {cal.start}-{cal.stop} are not still: {why}")
     acc_norm = float(np.median(np.linalg.norm(r.acc_mps2[span], axis=-1)))
     if abs(acc_norm - GRAVITY_MPS2) > STILL_ACC_NORM_TOLERANCE_MPS2:
         raise InputError(

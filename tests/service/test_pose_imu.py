@@ -136,7 +136,8 @@ def test_rest_pose_with_a_still_npose_calibration(server: str, data_dir: Path) -
         np.concatenate([still.midpoint_m, walk.midpoint_m]),
         60.0,
     )
-    raw = simulate_sensors(motion, LOWER, np.random.default_rng(3), SensorNoise(offset_m=0.0))
+    # a resting MEMS accelerometer is far quieter than the σ 1 m/s² that training adds (paper 000 §2.4.2)
+    raw = simulate_sensors(motion, LOWER, np.random.default_rng(3), SensorNoise(acc_sigma_mps2=0.05, offset_m=0.0))
     # the pelvis sensor's back axis, in its own frame: the pelvis's posterior (−x) seen from the sensor
     back = matrix_from_quat(raw.q_segment_sensor[0]).T @ np.array([-1.0, 0.0, 0.0])
     body = {
@@ -212,6 +213,14 @@ def test_bad_pose_requests_get_a_4xx_that_says_what_was_expected(
     r = client.post("/v1/pose/imu", json=body)
     assert r.status_code == status, r.text
     assert fragment in json.dumps(r.json()["detail"]), r.json()["detail"]
+
+
+def test_readings_at_another_rate_are_resampled_to_60_hz(client: TestClient, walk) -> None:
+    _, raw = walk
+    body = _example(client, raw)  # 90 samples, declared as 100 Hz: 0.89 s, 54 frames at 60 Hz
+    r = client.post("/v1/pose/imu", json=body | {"sample_rate_hz": 100.0})
+    assert r.status_code == 200, r.text
+    assert r.json()["frames"] == 54 and r.json()["sample_rate_hz"] == 60.0
 
 
 def test_a_nan_reading_is_refused(client: TestClient, walk) -> None:
