@@ -17,7 +17,7 @@ from service.core.calibration import (
     segment_readings,
     still_pose_calibration,
 )
-from service.core.resample import resample_uniform
+from service.core.resample import resample_quats, resample_uniform
 from service.core.rotations import canonical_quat
 from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS
 from service.inference.pose import PoseModel, covered_segments, pose_answer, whole_body
@@ -85,14 +85,6 @@ def _array(rows: list[list[float]], width: int, where: str) -> np.ndarray:
     return x
 
 
-def _resample_quats(q: np.ndarray, from_hz: float, to_hz: float) -> np.ndarray:
-    from scipy.spatial.transform import Rotation, Slerp
-
-    t = np.arange(len(q)) / from_hz
-    t_new = np.minimum(np.arange(0.0, t[-1] + 1e-9, 1.0 / to_hz), t[-1])  # arange may overshoot by rounding
-    return Slerp(t, Rotation.from_quat(q, scalar_first=True))(t_new).as_quat(scalar_first=True)
-
-
 def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
     rate = body.sample_rate_hz
     if not MIN_POSE_IMU_RATE_HZ <= rate <= MAX_POSE_IMU_RATE_HZ:
@@ -133,7 +125,7 @@ def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
     acc = np.stack(accs, axis=1)
     gyr = np.stack(gyrs, axis=1) if len(gyrs) == len(qs) else None
     if not np.isclose(rate, 60.0):
-        q = np.stack([_resample_quats(q[:, k], rate, 60.0) for k in range(q.shape[1])], axis=1)
+        q = np.stack([resample_quats(q[:, k], rate, 60.0) for k in range(q.shape[1])], axis=1)
         acc = resample_uniform(acc, rate, 60.0)[: len(q)]
         gyr = None if gyr is None else resample_uniform(gyr, rate, 60.0)[: len(q)]
         q = q[: len(acc)]

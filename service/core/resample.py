@@ -29,15 +29,22 @@ def resample_timestamps(t_s: np.ndarray, x: np.ndarray, to_hz: float) -> tuple[n
     return grid, interp_along_time(grid, t_s, x)
 
 
+def resample_quats(q_wxyz: np.ndarray, from_hz: float, to_hz: float = 60.0) -> np.ndarray:
+    """Orientations ``(T, 4)`` (w, x, y, z) onto a uniform ``to_hz`` grid by slerp, w >= 0."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    t = np.arange(len(q_wxyz)) / from_hz
+    grid = np.minimum(np.arange(0.0, t[-1] + 1e-9, 1.0 / to_hz), t[-1])  # arange may overshoot by rounding
+    q = Slerp(t, Rotation.from_quat(q_wxyz, scalar_first=True))(grid).as_quat(scalar_first=True)
+    return np.where(q[:, :1] < 0, -q, q)
+
+
 def resample_pose_rows(
     acc: np.ndarray, gyr: np.ndarray, q_wxyz: np.ndarray, from_hz: float, to_hz: float = 60.0
 ) -> np.ndarray:
     """A sensor's acc, gyr and orientation onto a uniform ``to_hz`` grid: rows of 10 values (acc xyz, gyr xyz,
     q w x y z), linear for the vectors and slerp for the orientation; what a pose stream sends."""
-    from scipy.spatial.transform import Rotation, Slerp
-
+    q = resample_quats(q_wxyz, from_hz, to_hz)
     t = np.arange(len(acc)) / from_hz
-    grid = np.minimum(np.arange(0.0, t[-1] + 1e-9, 1.0 / to_hz), t[-1])  # arange may overshoot by rounding
-    q = Slerp(t, Rotation.from_quat(q_wxyz, scalar_first=True))(grid).as_quat(scalar_first=True)
-    q = np.where(q[:, :1] < 0, -q, q)
+    grid = np.arange(len(q)) / to_hz
     return np.concatenate([interp_along_time(grid, t, acc), interp_along_time(grid, t, gyr), q], axis=1)
