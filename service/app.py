@@ -11,6 +11,8 @@ from fastapi import FastAPI, Request, Response
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 
+from service.api.flex_routes import router as flex_router
+from service.api.flex_stream import router as flex_stream_router
 from service.api.guard import Guard
 from service.api.metrics import ServiceMetrics
 from service.api.pose_routes import router as pose_router
@@ -18,6 +20,7 @@ from service.api.routes import router
 from service.api.stream import router as stream_router
 from service.core.units import UnitError
 from service.inference.batcher import MicroBatcher
+from service.inference.flex import FlexModel
 from service.inference.pose import PoseModel
 from service.inference.predict import InputError
 from service.inference.registry import load_models, load_registry_models
@@ -43,6 +46,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.pose_models = {
             name: PoseModel(m) for name, m in app.state.models.items() if m.manifest.task == "imu_pose"
         }
+        app.state.flex_models = {
+            name: FlexModel(m) for name, m in app.state.models.items() if m.manifest.task == "flex_pose"
+        }
         if not app.state.models:
             log.error("no valid model under %s", settings.models_dir.resolve())
         runner = app.state.runner = ModelRunner(
@@ -64,14 +70,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="0.1.0",
         lifespan=lifespan,
         description="Wearable motion capture served with onnxruntime: IMU-to-segment assignment and alignment "
-        "(Zimmermann et al. 2018) and whole-body pose from sparse IMUs (Zheng et al. 2021).",
+        "(Zimmermann et al. 2018), whole-body pose from sparse IMUs (Zheng et al. 2021) and joint angles from "
+        "flex sensors and capacitive sleeves (Chen et al. 2024).",
     )
     app.state.metrics = ServiceMetrics()
     app.state.settings = settings
     app.state.models = {}
     app.state.pose_models = {}
+    app.state.flex_models = {}
     app.include_router(router)
     app.include_router(pose_router)
+    app.include_router(flex_router)
+    app.include_router(flex_stream_router)
     app.include_router(stream_router)
 
     @app.exception_handler(InputError)

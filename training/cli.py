@@ -1,5 +1,6 @@
 """``wearmocap-train``: thin typer commands over the training library (I2S: simulate, train, register, export,
-evaluate; pose: pose-train, evaluate-pose; snapshot-export / snapshot-restore, ui).
+evaluate; pose: pose-train, evaluate-pose; flex: flex-train, evaluate-flex, capacitive-train,
+evaluate-capacitive; snapshot-export / snapshot-restore, ui).
 Run ``python -m training.cli --help``.
 """
 
@@ -377,6 +378,134 @@ def evaluate_pose(
     typer.echo(
         f"overall all {m['angle_all_deg']:.2f}°, unsensed {m['angle_unsensed_deg']:.2f}°, JPE {m['jpe_cm']:.2f} cm"
     )
+
+
+FLEX_TABLE5 = ["bilstm", "transformer", "fcn", "tcn", "bilstm_c", "bilstm_m", "bilstm_cm"]
+
+
+def _flex_configs(configs: list[Path], overrides: list[str]):
+    from training.flex.config import load_flex_config
+
+    return [load_flex_config(c, overrides) for c in configs]
+
+
+@app.command("flex-train")
+def flex_train(
+    configs: list[Path] = typer.Argument(
+        None, help="flex configs (default: the Table 5 set, training/configs/flex_*.yaml)"
+    ),
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+    overrides: list[str] = Override,
+    ship: str | None = typer.Option(None, help="ship the model of this config name under onnx_models/"),
+    version: str | None = typer.Option(None, help="the shipped version (default 0.0.0+<run id>)"),
+    models_dir: Path = typer.Option(Path("onnx_models")),
+) -> None:
+    """Train flex networks on simulated sensors (Chen et al. 2024 Table 5: one MLflow run each, then one summary
+    run with the table, bar chart and ageing curves), evaluated on held-out subjects."""
+    from training.flex.pipeline import (
+        build_sets,
+        load_flex_data,
+        log_summary_run,
+        markdown_table,
+        run_flex_experiment,
+        summary_table,
+    )
+
+    paths = configs or [Path(f"training/configs/flex_{v}.yaml") for v in FLEX_TABLE5]
+    cfgs = _flex_configs(paths, overrides)
+    data = load_flex_data(cfgs[0], resolve_data_dir(data_dir), cache_dir)
+    sets = build_sets(cfgs[0], data)
+    results = []
+    for cfg in cfgs:
+        shipping = ship == cfg.name
+        target = models_dir if shipping else None
+        results.append(run_flex_experiment(cfg, data, sets, target, version if shipping else None))
+        r = results[-1]
+        typer.echo(
+            f"{cfg.variant:12s} held-out {r['test']['mae_deg']:.2f}° (mean pose {r['mean_pose']['mae_deg']:.2f}°) "
+            f"jitter {r['test']['jitter_deg_s3'] / 1e4:.3f}e4 °/s³, {r['train_wall_time_s'] / 60:.1f} min"
+        )
+    if len(results) > 1:
+        run_id = log_summary_run(results, cfgs[0].tracking.experiment)
+        typer.echo(f"summary run {run_id}")
+        typer.echo(markdown_table(summary_table(results)))
+
+
+@app.command("evaluate-flex")
+def evaluate_flex(
+    model: Path = typer.Option(Path("onnx_models/flex_bilstm_cm/1.0.0"), help="a shipped flex model folder"),
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """A shipped flex model (its ONNX file through onnxruntime) on the held-out subjects' simulated suits: error
+    overall, per motion type and joint, jitter, and under ageing beyond the training range and a replaced sensor."""
+    import json
+
+    from service.inference.registry import load_model
+    from training.flex.config import FlexConfig
+    from training.flex.pipeline import evaluate_served, load_flex_data
+
+    loaded = load_model(model, 2)
+    cfg = FlexConfig(name=loaded.manifest.name)
+    out = evaluate_served(loaded, load_flex_data(cfg, resolve_data_dir(data_dir), cache_dir))
+    if as_json:
+        typer.echo(json.dumps(out, indent=1))
+        return
+    typer.echo(f"held-out: {out['test']['mae_deg']:.2f}° jitter {out['test']['jitter_deg_s3'] / 1e4:.3f}e4 °/s³")
+    for a, v in out["test"]["per_activity"].items():
+        typer.echo(f"  {a:18s} {v['mae_deg']:6.2f}°  ({v['frames']} frames)")
+    for j, v in out["test"]["per_joint"].items():
+        typer.echo(f"  {j:22s} {v:6.2f}°")
+    for b, v in out["ageing"].items():
+        typer.echo(f"ageing {b}: {v['mae_deg']:.2f}° jitter {v['jitter_deg_s3'] / 1e4:.3f}e4")
+    typer.echo(f"one sensor replaced mid-clip: {out['replaced']['mae_deg']:.2f}°")
+
+
+@app.command("capacitive-train")
+def capacitive_train(
+    configs: list[Path] = typer.Argument(None, help="default: training/configs/flex_capacitive_knee.yaml"),
+    data_dir: Path | None = DataDir,
+    overrides: list[str] = Override,
+    ship: bool = typer.Option(False, help="ship the model under onnx_models/<name>/<version>"),
+    version: str | None = typer.Option(None, help="the shipped version (default 0.0.0+<run id>)"),
+    models_dir: Path = typer.Option(Path("onnx_models")),
+) -> None:
+    """Train knee flexion from real capacitive sleeves (one trial type trains, the other is held out), log it to
+    MLflow and register it."""
+    from training.flex.capacitive import run_capacitive_experiment
+    from training.flex.config import load_capacitive_config
+
+    for path in configs or [Path("training/configs/flex_capacitive_knee.yaml")]:
+        cfg = load_capacitive_config(path, overrides)
+        out = run_capacitive_experiment(cfg, resolve_data_dir(data_dir), models_dir if ship else None, version)
+        m = out["metrics"]
+        typer.echo(
+            f"{cfg.name} ({cfg.variant}): validation {m['val_mae_deg']:.2f}°, held-out {cfg.test_trial} "
+            f"{m['test_mae_deg']:.2f}° (mean flexion {m['test_mean_flexion_mae_deg']:.2f}°), "
+            f"{m['train_wall_time_s']:.0f} s; run {out['run_id']}"
+        )
+
+
+@app.command("evaluate-capacitive")
+def evaluate_capacitive_command(
+    model: Path = typer.Option(Path("onnx_models/flex_capacitive_knee/1.0.0"), help="a shipped capacitive model"),
+    data_dir: Path | None = DataDir,
+    test_trial: str = typer.Option("CSStiffKnee"),
+    train_trial: str = typer.Option("CSBaseline", help="the trial the knee hinge reference is fitted on"),
+) -> None:
+    """A shipped capacitive knee model (onnxruntime) on a held-out trial: knee flexion MAE per leg and both."""
+    import json
+
+    from service.inference.registry import load_model
+    from training.flex.capacitive import evaluate_capacitive
+    from training.flex.config import CapacitiveConfig
+
+    loaded = load_model(model, 2)
+    rate = loaded.manifest.sample_rate_hz
+    cfg = CapacitiveConfig(name=loaded.manifest.name, train_trial=train_trial, test_trial=test_trial, rate_hz=rate)
+    typer.echo(json.dumps(evaluate_capacitive(loaded, cfg, resolve_data_dir(data_dir)), indent=1))
 
 
 @app.command("evaluate-csv")

@@ -1,5 +1,6 @@
 """Figures logged to MLflow: confusion matrix, error box plots (paper 000 §3.3 style), learning curves, pose
-errors per segment and skeleton snapshots."""
+errors per segment, skeleton snapshots, and the flex figures (errors per joint, angle traces, robustness curves,
+the ablation bars)."""
 
 from __future__ import annotations
 
@@ -158,5 +159,72 @@ def skeleton_snapshots_png(
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def flex_learning_curve_png(history: list[dict[str, float]], path: Path, title: str) -> Path:
+    """Training loss (standardised squared error, eq. 3 of Chen et al. 2024) and validation error per epoch."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot([h["train_loss"] for h in history], color="C0", label="train loss")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("train loss (standardised MSE)")
+    ax2 = ax.twinx()
+    ax2.plot([h["val_mae_deg"] for h in history], color="C1", label="validation error (deg)")
+    ax2.set_ylabel("validation mean tracking error (deg)")
+    fig.legend(loc="upper right")
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def bars_png(values: dict[str, float], path: Path, title: str, ylabel: str, highlight: list[str] | None = None) -> Path:
+    """One bar per key (joints, activities or models); ``highlight`` keys in a second colour."""
+    names = list(values)
+    fig, ax = plt.subplots(figsize=(max(6, 0.55 * len(names) + 2), 4))
+    colors = ["C1" if highlight and n in highlight else "C0" for n in names]
+    ax.bar(range(len(names)), [values[n] for n in names], color=colors)
+    ax.set_xticks(range(len(names)), names, rotation=50, ha="right", fontsize=8)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def curves_png(
+    x: list[float], curves: dict[str, list[float]], path: Path, title: str, xlabel: str, ylabel: str
+) -> Path:
+    """One line per model over a swept condition (e.g. error against sensor ageing)."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for k, (name, ys) in enumerate(curves.items()):
+        ax.plot(x, ys, marker="o", color=f"C{k}", label=name)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def traces_png(
+    t_s: np.ndarray, truth: dict[str, np.ndarray], pred: dict[str, np.ndarray], path: Path, title: str
+) -> Path:
+    """Predicted against true angle over time, one panel per named angle."""
+    fig, axes = plt.subplots(len(truth), 1, figsize=(9, 1.8 * len(truth) + 0.6), sharex=True, squeeze=False)
+    for ax, name in zip(axes[:, 0], truth, strict=True):
+        ax.plot(t_s, truth[name], color="0.3", label="truth")
+        ax.plot(t_s, pred[name], color="C1", label="predicted")
+        ax.set_ylabel(f"{name} (deg)", fontsize=8)
+    axes[0, 0].legend(fontsize=8, loc="upper right")
+    axes[0, 0].set_title(title)
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

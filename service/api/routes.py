@@ -22,9 +22,6 @@ from service.api.schemas import (
     AssignResponse,
     GyrUnit,
     ImuWindow,
-    PoseRequest,
-    PoseResponse,
-    PoseResult,
     SegmentName,
     SensorAssignment,
     WindowResult,
@@ -38,8 +35,6 @@ from service.core.segments import SEGMENTS, segment_index, segment_indices
 from service.inference.predict import (
     alignment_answer,
     mean_alignment,
-    pose_model_input,
-    pose_results,
     window_results,
     window_to_model_input,
     windows_to_model_input,
@@ -241,47 +236,6 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
             )
         )
     return _json(AssignResponse(sensors=out, model_versions=versions))
-
-
-POSE_DESCRIPTION = (
-    "Generic over the pose models that are loaded: the model of task `{task}` declares in its manifest "
-    "(`GET /v1/models`) the input channels and their order, the sample rate, the window length, the value "
-    "range and the output joints. Answers 503 while no `{task}` model is loaded."
-)
-
-
-async def _pose(task: str, body: PoseRequest, request: Request, settings: Settings) -> Response:
-    model = _require(_models(request), task)
-    _check_count(len(body.blocks), settings, "blocks")
-    blocks = enumerate(body.blocks)
-    x = np.stack([pose_model_input(b.samples, b.sample_rate_hz, model.manifest, f"blocks[{i}]") for i, b in blocks])
-    output = await request.app.state.runner.run_model(task, x)
-    return _json(
-        PoseResponse(
-            results=[PoseResult(**r) for r in pose_results(output, model.manifest)],
-            output_kind=model.manifest.output_kind,
-            model_versions={model.manifest.name: model.manifest.version},
-        )
-    )
-
-
-def _add_pose_route(path: str, task: str, source: str) -> None:
-    async def pose(body: PoseRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
-        return await _pose(task, body, request, settings)
-
-    pose.__name__ = f"pose_from_{path.rsplit('/', 1)[-1]}"  # FastAPI's operationId
-    loaded = "['i2s_alignment', 'i2s_assignment']"
-    router.post(
-        path,
-        response_model=PoseResponse,
-        tags=["pose"],
-        summary=f"Body pose from a block of {source} (task {task})",
-        description=POSE_DESCRIPTION.format(task=task),
-        responses=error_responses(401, 413, 422, 503, details={503: f"no {task} model is loaded; loaded: {loaded}"}),
-    )(pose)
-
-
-_add_pose_route("/v1/pose/flex", "flex_pose", "flex-sensor readings")
 
 
 @router.get(

@@ -219,58 +219,55 @@ class AssignResponse(BaseModel):
     model_versions: dict[str, str]
 
 
-EXAMPLE_FLEX_BLOCK = {"samples": [[2048.0, 1900.0, 2210.0, 2105.0]] * 100, "sample_rate_hz": 20.0}
+EXAMPLE_FLEX_SAMPLES = [[1850.0, 1790.0, 2210.0, 2105.0]] * 100
 
 
-class PoseBlock(BaseModel):
-    """One block of a pose model's input: rows of the channels its manifest lists (``GET /v1/models``:
-    ``channels``, ``sample_rate_hz``, ``window_samples``, ``value_range``), oldest first.
+class FlexRequest(BaseModel):
+    """A block of flex or capacitive readings, oldest first: one row per sample of the model's ``channels`` in
+    order (``GET /v1/models``), raw (``units``, ``value_range``). The block must cover the model's calibration
+    window (``window_samples`` at ``sample_rate_hz``); every sample from then on gets its joint angles."""
 
-    At the model's rate exactly ``window_samples`` rows; at another rate enough rows for that many after
-    resampling (the last ones are used). The pose is that of the block's last sample.
-    """
-
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_FLEX_BLOCK]})
+    model_config = ConfigDict(
+        extra="forbid", json_schema_extra={"examples": [{"model": "flex_bilstm_cm", "samples": EXAMPLE_FLEX_SAMPLES}]}
+    )
+    model: str | None = Field(
+        None, max_length=128, description="a flex_pose model's name; default: the one whose channel count fits"
+    )
+    channels: list[str] | None = Field(
+        None, max_length=64, description="optional check: the channel names in the order of each row"
+    )
+    sample_rate_hz: float | None = Field(None, gt=0, description="default: the model's rate; others are resampled")
     samples: list[list[float]] = Field(min_length=1)
-    sample_rate_hz: float | None = Field(None, gt=0, description="default: the model's rate")
 
 
-class PoseRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"blocks": [EXAMPLE_FLEX_BLOCK]}]})
-    blocks: list[PoseBlock] = Field(min_length=1)
+class FlexResponse(BaseModel):
+    """Joint angles per sample: ``angles_deg[joint][component]`` lists one value per answered sample, the first
+    for sample ``first_sample`` (at the model's rate; the samples before it fill the calibration window)."""
 
-
-class JointRotation(BaseModel):
-    q: list[float] = Field(description="rotation as a unit quaternion w, x, y, z (Hamilton, w ≥ 0)")
-    rotation_vector_deg: list[float] = Field(description="the same rotation as axis × angle, degrees")
-
-
-class PoseResult(BaseModel):
-    """Models with ``output_kind`` ``joint_angles_deg`` fill ``joint_angles_deg`` (joint → angle name → degrees);
-    ``joint_axis_angle_rad`` models fill ``joint_rotations``."""
-
-    joint_angles_deg: dict[str, dict[str, float]] | None = None
-    joint_rotations: dict[str, JointRotation] | None = None
-
-
-_EXAMPLE_POSE = {"joint_angles_deg": {"LeftKnee": {"flexion": 12.5}, "RightKnee": {"flexion": 48.0}}}
-
-
-class PoseResponse(BaseModel):
     model_config = ConfigDict(
         json_schema_extra={
             "examples": [
                 {
-                    "results": [_EXAMPLE_POSE],
-                    "output_kind": "joint_angles_deg",
-                    "model_versions": {"flex_pose": "1.0.0"},
+                    "model": {"name": "flex_bilstm_cm", "version": "1.0.0"},
+                    "sample_rate_hz": 20.0,
+                    "window_samples": 100,
+                    "latency_samples": 1,
+                    "first_sample": 98,
+                    "frames": 1,
+                    "angles_deg": {"LeftKnee": {"flexion": [12.5], "abduction": [0.4], "rotation": [-1.2]}},
+                    "angle_convention": "service.core.flex: ...",
                 }
             ]
         }
     )
-    results: list[PoseResult]
-    output_kind: str = Field(description="the model's output kind (manifest)")
-    model_versions: dict[str, str]
+    model: dict[str, str]
+    sample_rate_hz: float
+    window_samples: int
+    latency_samples: int = Field(description="each answer is for the sample this many before the newest it saw")
+    first_sample: int
+    frames: int
+    angles_deg: dict[str, dict[str, list[float]]]
+    angle_convention: str
 
 
 BodySegmentName = Literal[BODY_SEGMENTS]  # type: ignore[valid-type]

@@ -1,9 +1,10 @@
 """WebSocket ``/v1/stream`` (protocol in ``service.api.protocol``).
 
 A slow consumer never grows server memory without bound: outgoing messages go through a bounded
-queue; when it is full the oldest queued *result*, *moment* or *pose* is dropped (assignment, gap and error messages
-are kept), the drop is counted in ``wearmocap_stream_results_dropped_total`` and reported to the client
-in the next assignment message as ``results_dropped``.
+queue; when it is full the oldest queued *result*, *moment*, *pose* or *angles* (``/v1/stream/flex``) is
+dropped (assignment, gap and error messages are kept), the drop is counted in
+``wearmocap_stream_results_dropped_total`` and reported to the client in the next assignment message as
+``results_dropped``.
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ class Outbox:
         dropped = False
         if len(self.items) >= self.limit:
             for k, item in enumerate(self.items):
-                if item["type"] in ("result", "moment", "pose"):
+                if item["type"] in ("result", "moment", "pose", "angles"):
                     del self.items[k]
                     self.dropped += 1
                     dropped = True

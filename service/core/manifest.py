@@ -58,6 +58,22 @@ class PoseSpec(BaseModel):
     body_height_m: float
 
 
+class FlexSpec(BaseModel):
+    """What a ``flex_pose`` model needs and gives (Chen et al. 2024 §3.4): the input is ``(batch, window_samples,
+    channels)`` raw readings, the newest last; the answer is the pose ``latency_samples`` before the newest one.
+    The network sees the last ``steps`` samples after the dynamic calibration (if ``calibration``) has used the
+    whole window; a stream keeps the last ``window_samples`` rows per session."""
+
+    model_config = ConfigDict(extra="forbid")
+    architecture: str
+    calibration: bool
+    median: bool
+    steps: int
+    latency_samples: int
+    angle_convention: str
+    simulated_sensor: str = ""  # the sensor model trained on, for simulated-data models
+
+
 class Manifest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     schema_version: int = MANIFEST_SCHEMA_VERSION
@@ -94,6 +110,7 @@ class Manifest(BaseModel):
     )
     quaternion_convention: str | None = None
     pose: PoseSpec | None = None
+    flex: FlexSpec | None = None
     sha256: str
     training_data: dict[str, object] = Field(default_factory=dict)
     evaluations: list[Evaluation] = Field(default_factory=list)
@@ -119,8 +136,9 @@ class Manifest(BaseModel):
         expected_out = ["batch", len(self.joints), k]
         if len(self.outputs) != 1 or self.outputs[0].shape != expected_out or not self.joints or not k:
             raise ValueError(f"a {self.task} model gives one output of shape {expected_out} (joints × components)")
+        if self.flex is None or not 0 <= self.flex.latency_samples < self.window_samples:
+            raise ValueError(f"a {self.task} model needs a 'flex' section with 0 <= latency_samples < window_samples")
         return self
-
 
     def _imu_pose_contract(self) -> Manifest:
         from service.core.body import BODY_SEGMENTS

@@ -335,3 +335,42 @@ def read_capacitive_oriented(data_dir: Path, trial: str, source: str = "capaciti
             column, acc[:n, 2 + 3 * j : 5 + 3 * j], gyr[:n, 2 + 3 * j : 5 + 3 * j], q[:n, k], rate
         )
     return out
+
+
+# The capacitive sleeves' channels (Pearl et al. 2022, shank and thigh study), distal to proximal: four on the
+# shank, three on the thigh; the left and right files list them in different orders, so they are read by name.
+CAPACITIVE_CHANNELS: tuple[str, ...] = (
+    "Bot_Shank",
+    "2nd_Bot_Shank",
+    "2nd_Top_Shank",
+    "Top_Shank",
+    "Bot_Thigh",
+    "Med_Thigh",
+    "Top_Thigh",
+)
+CAPACITIVE_FAILURE = 0.5  # a read-out failure: a channel off its median of the first 10 s by over half of it
+
+
+def read_capacitive_sleeve(
+    data_dir: Path, trial: str, side: str, source: str = "capacitive_sub01"
+) -> tuple[np.ndarray, float]:
+    """One leg's sleeve (``side`` "Left" or "Right": ``*_LCS.mot`` / ``*_RCS.mot``) → ``(T, 7)`` raw capacitance
+    readings in ``CAPACITIVE_CHANNELS`` order and the rate (Hz, from the time column). The recording stops at its
+    first read-out failure (a channel not finite, or off its median over the first 10 s by more than
+    ``CAPACITIVE_FAILURE`` of it): Sub01's right sleeve fails from 39.7 s of the baseline trial on (readings
+    climbing to 1e6-1e8) and never recovers."""
+    folder = data_dir / "imu_real" / source / trial
+    (path,) = folder.glob(f"OpenSim_*_{trial}_{side[0]}CS.mot")
+    lines = path.read_text().splitlines()
+    head = next(k for k, line in enumerate(lines) if line.startswith("endheader"))
+    names = lines[head + 1].split("\t")
+    x = np.array([[float(v) for v in line.split("\t")] for line in lines[head + 2 :] if line.strip()])
+    cols = [names.index(c) for c in CAPACITIVE_CHANNELS]
+    cs = x[:, cols]
+    rate = 1.0 / float(np.median(np.diff(x[:, 0])))
+    ref = np.median(cs[: int(10 * rate)], axis=0)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(cs).all(axis=1) | (np.abs(cs - ref) > CAPACITIVE_FAILURE * np.abs(ref)).any(axis=1)
+    if bad.any():
+        cs = cs[: int(np.argmax(bad))]
+    return cs, rate

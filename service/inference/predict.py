@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from service.core.manifest import Manifest
 from service.core.resample import resample_uniform
 from service.core.rotations import canonical_quat, matrix_from_quat
 from service.core.segments import SEGMENTS
@@ -13,7 +11,6 @@ from service.core.units import to_contract_units
 from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES
 
 MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 2000.0
-MIN_POSE_RATE_HZ = 1.0  # flex sensors report at 20 Hz (paper 004), some slower
 
 
 class InputError(ValueError):
@@ -77,45 +74,6 @@ def fit_window(x: np.ndarray, rate_hz: float, model_rate_hz: float, window: int,
             f"({window} after resampling to {model_rate_hz:g} Hz), got {n_samples}"
         )
     return x[:, -window:].astype(np.float32)
-
-
-def pose_model_input(samples: list[list[float]], rate_hz: float | None, manifest: Manifest, where: str) -> np.ndarray:
-    """One block of a pose model's input rows (the manifest's ``channels``) → ``(window, C)`` float32."""
-    x = _rows(samples, len(manifest.channels), ", ".join(manifest.channels), where)[None]
-    rate = manifest.sample_rate_hz if rate_hz is None else rate_hz
-    _check_finite_and_rate(x, rate, MIN_POSE_RATE_HZ, where)
-    if manifest.value_range is not None:
-        lo, hi = manifest.value_range
-        if x.min() < lo or x.max() > hi:
-            raise InputError(f"{where}: values must lie in [{lo:g}, {hi:g}], got [{x.min():g}, {x.max():g}]")
-    return fit_window(x, rate, manifest.sample_rate_hz, manifest.window_samples, where)[0]
-
-
-def pose_results(output: np.ndarray, manifest: Manifest) -> list[dict]:
-    """Model output ``(B, joints, K)`` → per block ``joint_angles_deg`` (joint → angle name → degrees) or
-    ``joint_rotations`` (joint → quaternion w, x, y, z with w ≥ 0 and rotation vector in degrees)."""
-    if manifest.output_kind == "joint_angles_deg":
-        return [
-            {
-                "joint_angles_deg": {
-                    joint: dict(zip(manifest.joint_components, row, strict=True))
-                    for joint, row in zip(manifest.joints, block.tolist(), strict=True)
-                }
-            }
-            for block in output
-        ]
-    rotvec = output.reshape(-1, 3).astype(np.float64)
-    q = canonical_quat(Rotation.from_rotvec(rotvec).as_quat(scalar_first=True)).reshape(len(output), -1, 4)
-    degrees = np.degrees(rotvec).reshape(len(output), -1, 3)
-    return [
-        {
-            "joint_rotations": {
-                joint: {"q": qj, "rotation_vector_deg": vj}
-                for joint, qj, vj in zip(manifest.joints, qb.tolist(), vb.tolist(), strict=True)
-            }
-        }
-        for qb, vb in zip(q, degrees, strict=True)
-    ]
 
 
 def window_results(

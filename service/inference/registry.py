@@ -18,6 +18,7 @@ import onnxruntime as ort
 from service.core.manifest import Manifest, read_manifest, sha256_file
 
 log = logging.getLogger(__name__)
+POSE_TASKS = ("imu_pose", "flex_pose")
 
 
 class ModelMismatch(ValueError):
@@ -73,8 +74,8 @@ def version_key(version: str) -> tuple[int, ...]:
 
 
 def load_models(root: Path, threads: int, pins: dict[str, str] | None = None) -> dict[str, LoadedModel]:
-    """Newest valid version of every model below ``root`` (or the version ``pins`` names), keyed by task (imu_pose
-    models by name)."""
+    """Newest valid version of every model below ``root`` (or the version ``pins`` names), keyed by task (pose
+    models, imu_pose and flex_pose, by name)."""
     models: dict[str, LoadedModel] = {}
     pins = pins or {}
     for manifest_path in sorted(root.glob("*/*/manifest.json")):
@@ -86,8 +87,8 @@ def load_models(root: Path, threads: int, pins: dict[str, str] | None = None) ->
         except Exception as exc:  # any broken model is refused; the others are still served
             log.error("refusing model %s: %s", manifest_path.parent, exc)
             continue
-        # pose models are several per task (placements, offline and streaming): keyed by name
-        task = model.manifest.name if model.manifest.task == "imu_pose" else model.manifest.task
+        # pose models are several per task (placements, offline and streaming, sensor kinds): keyed by name
+        task = model.manifest.name if model.manifest.task in POSE_TASKS else model.manifest.task
         if task not in models or version_key(model.manifest.version) > version_key(models[task].manifest.version):
             models[task] = model
         log.info("loaded %s %s (%s)", model.manifest.name, model.manifest.version, task)
@@ -114,6 +115,6 @@ def load_registry_models(
             log.error("refusing registry model %s: %s", uri, exc)
             continue
         model.source = f"{uri} (version {model_dir.name}) at {tracking_uri}"
-        models[model.manifest.task] = model
+        models[model.manifest.name if model.manifest.task in POSE_TASKS else model.manifest.task] = model
         log.info("loaded %s from the registry (%s)", model.manifest.name, model.source)
     return models

@@ -1,0 +1,209 @@
+"""WebSocket ``/v1/stream/flex``: joint angles from a live stream of flex-sensor or capacitive-sleeve readings.
+
+Client → server
+  {"type": "start", "model": "flex_bilstm_cm", "channels": ["LeftKnee_flex", ...], "sample_rate_hz": 20}
+      (first message, once; ``model`` optional where one flex model is loaded; ``channels`` the declared order,
+      which must be the model's; ``sample_rate_hz`` the model's rate or an integer multiple of it: each group of
+      that many readings is averaged into one)
+  {"type": "samples", "seq": 0, "samples": [[c0, c1, ...], ...]}      rows of the declared channels, oldest first
+  binary packet (little-endian): uint16 0, uint16 n, uint32 seq, then n x C float32          8 + 4 C n bytes
+  {"type": "stop"}
+``seq`` counts readings at the stream's rate (the packet's first one); a packet that skips readings is a gap:
+the calibration window starts again, and a "gap" message says so. A packet that repeats readings is "late" and
+dropped.
+
+Server → client
+  started (model, version, channels, joints, joint_components, sample_rate_hz, window_samples, latency_samples,
+  decimation) · angles ({"first_sample": i, "frames": n, "angles_deg": n x joints x components}: sample i at
+  the model's rate is the first one answered; each answer is latency_samples behind the newest reading it saw;
+  nothing comes until the first window of window_samples is full) · gap / late · error (then close, after the
+  answers of every accepted packet).
+Close codes: 1003 unsupported data, 1008 protocol violation (wrong channels, values out of range, NaN), 1009
+message too big, 1011 no flex model loaded, 1000 after stop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+
+import numpy as np
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from service.api.protocol import ProtocolError, decode_binary
+from service.api.stream import Outbox, _close, _drain, _first_error, _parse_text, _sender
+from service.inference.flex import FlexModel, LiveFlex, check_rows
+from service.inference.predict import InputError
+
+log = logging.getLogger(__name__)
+router = APIRouter()
+MAX_DECIMATION = 20
+
+
+class FlexStart(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    type: str = Field(pattern="^start$")
+    model: str | None = Field(None, max_length=128)
+    channels: list[str] = Field(min_length=1, max_length=64)
+    sample_rate_hz: float | None = Field(None, gt=0.0, le=2000.0, description="default: the model's rate")
+
+
+class FlexSamples(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    type: str = Field(pattern="^samples$")
+    seq: int = Field(ge=0)
+    samples: list[list[float]] = Field(min_length=1)
+
+
+def _model_for(start: FlexStart, models: dict[str, FlexModel]) -> FlexModel:
+    listing = {n: m.manifest.channels for n, m in sorted(models.items())}
+    if start.model is not None:
+        if start.model not in models:
+            raise ProtocolError(f"model: no flex_pose model {start.model!r}; loaded: {listing}")
+        model = models[start.model]
+    else:
+        fitting = [m for m in models.values() if m.manifest.channels == start.channels]
+        if len(fitting) != 1:
+            raise ProtocolError(f"model: name one of the loaded flex models {listing}")
+        model = fitting[0]
+    if start.channels != model.manifest.channels:
+        raise ProtocolError(
+            f"channels: {model.name} takes {model.manifest.channels} in this order, got {start.channels}"
+        )
+    return model
+
+
+def _decimation(start: FlexStart, model: FlexModel) -> int:
+    model_rate = model.manifest.sample_rate_hz
+    rate = start.sample_rate_hz or model_rate
+    factor = rate / model_rate
+    if abs(factor - round(factor)) > 1e-6 or not 1 <= round(factor) <= MAX_DECIMATION:
+        raise ProtocolError(
+            f"sample_rate_hz: {model.name} runs at {model_rate:g} Hz; stream at that rate or an integer multiple of it "
+            f"up to {MAX_DECIMATION}x, got {rate:g}"
+        )
+    return int(round(factor))
+
+
+async def _receive_start(ws: WebSocket) -> tuple[LiveFlex, FlexStart]:
+    first = await ws.receive()
+    if first.get("text") is None:
+        raise ProtocolError("the first message must be a JSON 'start' message, got binary data", 1003)
+    try:
+        start = FlexStart.model_validate(_parse_text(first["text"]))
+    except ValidationError as exc:
+        raise ProtocolError(f"invalid start message: {_first_error(exc)}") from None
+    model = _model_for(start, ws.app.state.flex_models)
+    return LiveFlex(model, _decimation(start, model)), start
+
+
+def _started(live: LiveFlex) -> dict:
+    m = live.model.manifest
+    return {
+        "type": "started",
+        "model": m.name,
+        "version": m.version,
+        "channels": m.channels,
+        "joints": m.joints,
+        "joint_components": m.joint_components,
+        "sample_rate_hz": m.sample_rate_hz,
+        "window_samples": m.window_samples,
+        "latency_samples": live.model.latency,
+        "decimation": live.factor,
+    }
+
+
+async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, outbox: Outbox) -> None:
+    try:
+        check_rows(rows, live.model, f"packet seq {seq}: samples")
+    except InputError as exc:
+        raise ProtocolError(str(exc)) from None
+    if seq < live.samples_in:
+        outbox.put({"type": "late", "seq": seq, "expected_seq": live.samples_in, "samples_dropped": len(rows)})
+        return
+    if seq > live.samples_in:
+        outbox.put(
+            {
+                "type": "gap",
+                "expected_seq": live.samples_in,
+                "seq": seq,
+                "missing": seq - live.samples_in,
+                "detail": f"the calibration window starts again: answers resume after {live.model.window} samples",
+            }
+        )
+        live.reset()
+        live.samples_in = seq
+    first, angles = await ws.app.state.runner.run_call(live.push, rows)
+    if len(angles):
+        message = {
+            "type": "angles",
+            "first_sample": int(first),
+            "frames": len(angles),
+            "angles_deg": np.round(angles, 3),
+        }
+        if outbox.put(message):
+            ws.app.state.metrics.dropped.inc()
+
+
+async def _serve(ws: WebSocket, live: LiveFlex, outbox: Outbox) -> None:
+    max_samples = ws.app.state.settings.stream_max_samples_per_packet
+    width = len(live.model.manifest.channels)
+    while True:
+        message = await ws.receive()
+        if message["type"] == "websocket.disconnect":
+            raise WebSocketDisconnect(message.get("code", 1000))
+        if message.get("bytes") is not None:
+            _, seq, rows = decode_binary(message["bytes"], 1, max_samples, width)
+        else:
+            data = _parse_text(message["text"])
+            if data["type"] == "stop":
+                return
+            try:
+                packet = FlexSamples.model_validate(data)
+            except ValidationError as exc:
+                raise ProtocolError(f"invalid {data['type']!r} message: {_first_error(exc)}") from None
+            if len(packet.samples) > max_samples:
+                raise ProtocolError(f"at most {max_samples} samples per packet, got {len(packet.samples)}", 1009)
+            bad = next((len(r) for r in packet.samples if len(r) != width), None)
+            if bad is not None:
+                raise ProtocolError(
+                    f"every sample needs {width} values ({', '.join(live.model.manifest.channels)}), got {bad}"
+                )
+            seq, rows = packet.seq, np.asarray(packet.samples, dtype=np.float64)
+        await _accept(ws, live, seq, rows, outbox)
+
+
+@router.websocket("/v1/stream/flex")
+async def flex_stream(ws: WebSocket) -> None:
+    settings = ws.app.state.settings
+    if settings.api_key and ws.headers.get("x-api-key") != settings.api_key:
+        await ws.close(code=1008, reason="missing or wrong X-API-Key header")
+        return
+    await ws.accept()
+    if not ws.app.state.flex_models:
+        await ws.send_text(json.dumps({"type": "error", "detail": "no flex_pose model is loaded"}))
+        await ws.close(code=1011, reason="no flex model loaded")
+        return
+    metrics = ws.app.state.metrics
+    outbox = Outbox(settings.stream_queue_limit)
+    sender = asyncio.create_task(_sender(ws, outbox))
+    metrics.open_streams.inc()
+    code, reason = 1000, "stop"
+    try:
+        live, _ = await _receive_start(ws)
+        outbox.put(_started(live))
+        await _serve(ws, live, outbox)
+    except ProtocolError as exc:
+        code, reason = exc.code, str(exc)
+        outbox.put({"type": "error", "detail": reason, "close_code": code})
+    except WebSocketDisconnect:
+        code = -1
+    finally:
+        metrics.open_streams.dec()
+        if code != -1:
+            await _drain(outbox, sender)
+            await _close(ws, code, reason)
+        else:
+            sender.cancel()

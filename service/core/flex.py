@@ -1,0 +1,173 @@
+"""Joint angles for flex-sensor pose (Chen et al. 2024): the joints, their angle convention, the bend a strip
+sensor over a joint feels, a functional knee angle from two IMU orientations, and the per-stream ring buffer.
+
+Joint angles (``joint_angles_deg``). A joint is a (parent, child) pair of canonical body segments
+(``service.core.body``, frames as DESIGN.md §2: x anterior, y left, z superior in neutral stance). Its rotation
+R = R_world_parent⁻¹ · R_world_child is decomposed as intrinsic Cardan angles y-x'-z'' (R = R_y(a) R_x(b) R_z(c),
+the flexion axis first, as ISB recommends for the lower limb) and reported with anatomical signs
+(``FLEX_JOINTS``):
+
+- ``flexion``: s · a, about the parent's y (left) axis; s makes flexion positive for hip, knee, shoulder, elbow
+  and forward bending of the spine (the knee's a is positive when the shank turns back; the hip's and elbow's
+  a is negative when they flex);
+- ``abduction``: b about the x axis, positive away from the midline for both sides (right-side b is negated);
+  for the spine joints, lateral bending to the left;
+- ``rotation``: c about the child's z (long) axis, internal rotation positive for both sides; for the spine,
+  axial rotation to the left.
+
+All in degrees. In neutral stance every angle is zero.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from service.core.body import BODY_SEGMENTS
+
+JOINT_COMPONENTS: tuple[str, ...] = ("flexion", "abduction", "rotation")
+
+
+@dataclass(frozen=True)
+class FlexJoint:
+    parent: str
+    child: str
+    flexion_sign: float  # on a (about y)
+    abduction_sign: float  # on b (about x)
+    rotation_sign: float  # on c (about z)
+
+
+# The joints of Chen et al. 2024 Table 3 that the canonical body has: its three spine joints become our two
+# (lumbar: L5 against the pelvis; thoracic: T8 against L5), and its Shoulder/Arm/ForeArm/UpLeg/Leg are the
+# sternoclavicular, shoulder, elbow, hip and knee joints.
+FLEX_JOINTS: dict[str, FlexJoint] = {
+    "LumbarSpine": FlexJoint("Pelvis", "L5", 1.0, -1.0, 1.0),
+    "ThoracicSpine": FlexJoint("L5", "T8", 1.0, -1.0, 1.0),
+    "LeftSternoclavicular": FlexJoint("T8", "LeftShoulder", 1.0, 1.0, -1.0),
+    "RightSternoclavicular": FlexJoint("T8", "RightShoulder", 1.0, -1.0, 1.0),
+    "LeftShoulder": FlexJoint("LeftShoulder", "LeftUpperArm", -1.0, 1.0, -1.0),
+    "RightShoulder": FlexJoint("RightShoulder", "RightUpperArm", -1.0, -1.0, 1.0),
+    "LeftElbow": FlexJoint("LeftUpperArm", "LeftForeArm", -1.0, 1.0, -1.0),
+    "RightElbow": FlexJoint("RightUpperArm", "RightForeArm", -1.0, -1.0, 1.0),
+    "LeftHip": FlexJoint("Pelvis", "LeftUpperLeg", -1.0, 1.0, -1.0),
+    "RightHip": FlexJoint("Pelvis", "RightUpperLeg", -1.0, -1.0, 1.0),
+    "LeftKnee": FlexJoint("LeftUpperLeg", "LeftLowerLeg", 1.0, 1.0, -1.0),
+    "RightKnee": FlexJoint("RightUpperLeg", "RightLowerLeg", 1.0, -1.0, 1.0),
+}
+
+# Four resistive strips, over both knees and both elbows (Chen et al. 2024 §3.2), in channel order.
+FLEX_SENSOR_JOINTS: tuple[str, ...] = ("LeftKnee", "RightKnee", "LeftElbow", "RightElbow")
+
+
+def _relative(R_world_segment: np.ndarray, joint: FlexJoint) -> np.ndarray:
+    p, c = BODY_SEGMENTS.index(joint.parent), BODY_SEGMENTS.index(joint.child)
+    return np.einsum("...ji,...jk->...ik", R_world_segment[..., p, :, :], R_world_segment[..., c, :, :])
+
+
+def joint_angles_deg(R_world_segment: np.ndarray, joints: list[str] | tuple[str, ...]) -> np.ndarray:
+    """``(T, 21, 3, 3)`` segment orientations → ``(T, J, 3)`` flexion, abduction, rotation in degrees (module
+    docstring), the one definition training targets and evaluation use."""
+    out = np.empty((*R_world_segment.shape[:-3], len(joints), 3))
+    for k, name in enumerate(joints):
+        joint = FLEX_JOINTS[name]
+        rel = _relative(R_world_segment, joint)
+        # intrinsic y-x'-z'': a = atan2(R02, R22), b = asin(-R12), c = atan2(R10, R11)
+        a = np.arctan2(rel[..., 0, 2], rel[..., 2, 2])
+        b = np.arcsin(np.clip(-rel[..., 1, 2], -1.0, 1.0))
+        c = np.arctan2(rel[..., 1, 0], rel[..., 1, 1])
+        signs = (joint.flexion_sign, joint.abduction_sign, joint.rotation_sign)
+        out[..., k, :] = np.degrees(np.stack([a, b, c], axis=-1)) * np.array(signs)
+    return out
+
+
+def bend_angles_deg(R_world_segment: np.ndarray, joints: list[str] | tuple[str, ...]) -> np.ndarray:
+    """``(T, 21, 3, 3)`` → ``(T, J)`` the angle between the parent's and the child's long (z) axes in degrees:
+    what a strip glued along both segments bends by, whatever the plane of the bend."""
+    out = np.empty((*R_world_segment.shape[:-3], len(joints)))
+    for k, name in enumerate(joints):
+        joint = FLEX_JOINTS[name]
+        p, c = BODY_SEGMENTS.index(joint.parent), BODY_SEGMENTS.index(joint.child)
+        cos = np.einsum("...i,...i->...", R_world_segment[..., p, :, 2], R_world_segment[..., c, :, 2])
+        out[..., k] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return out
+
+
+@dataclass(frozen=True)
+class HingeCalibration:
+    """A knee's functional frame, fitted from one recording and reused for others of the same session."""
+
+    R_ref: np.ndarray  # (3, 3) relative sensor rotation taken as the reference posture
+    axis: np.ndarray  # (3,) hinge axis in the proximal sensor's frame
+    zero_deg: float  # the angle taken as full extension
+
+
+def _relative_sensor(q_proximal: np.ndarray, q_distal: np.ndarray) -> Rotation:
+    return Rotation.from_quat(q_proximal, scalar_first=True).inv() * Rotation.from_quat(q_distal, scalar_first=True)
+
+
+def fit_hinge(q_proximal: np.ndarray, q_distal: np.ndarray, extension_percentile: float = 2.0) -> HingeCalibration:
+    """Fit a hinge joint from the orientations (w, x, y, z, any common world) of a sensor on each side of it.
+
+    The relative rotation of the distal sensor in the proximal sensor's frame moves, for a hinge, about one
+    axis: the first principal axis of its rotation vectors about their mean is the hinge axis (a functional
+    axis, as Seel et al. 2014 fit knee axes from gyroscopes). The sign makes the larger excursion positive
+    (flexion in gait), and ``extension_percentile`` of the angles is taken as zero (full extension), so no
+    mounting or static pose needs to be known.
+    """
+    rel = _relative_sensor(q_proximal, q_distal)
+    R_ref = rel.mean()
+    v = (R_ref.inv() * rel).as_rotvec()
+    v0 = v - v.mean(axis=0)
+    axis = np.linalg.svd(v0, full_matrices=False)[2][0]
+    angle = v @ axis
+    med = np.median(angle)
+    if np.percentile(angle, 99) - med < med - np.percentile(angle, 1):
+        axis, angle = -axis, -angle
+    return HingeCalibration(R_ref.as_matrix(), axis, float(np.degrees(np.percentile(angle, extension_percentile))))
+
+
+def hinge_angle_deg(q_proximal: np.ndarray, q_distal: np.ndarray, cal: HingeCalibration) -> np.ndarray:
+    """The flexion (degrees, positive flexed) of a hinge fitted by ``fit_hinge``: the rotation vector of the
+    relative sensor rotation against the reference posture, projected onto the hinge axis."""
+    rel = _relative_sensor(q_proximal, q_distal)
+    v = (Rotation.from_matrix(cal.R_ref).inv() * rel).as_rotvec()
+    return np.degrees(v @ cal.axis) - cal.zero_deg
+
+
+class FlexWindow:
+    """The last ``window`` rows of one stream's channels: the state a flex model's dynamic calibration needs
+    (Chen et al. 2024 eq. 2 works on the last 100 samples), kept per session."""
+
+    def __init__(self, window: int, channels: int) -> None:
+        self.window = window
+        self.channels = channels
+        self._rows: deque[np.ndarray] = deque(maxlen=window)
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    @property
+    def full(self) -> bool:
+        return len(self._rows) == self.window
+
+    def push(self, rows: np.ndarray) -> list[np.ndarray]:
+        """Append ``(n, C)`` rows; the model inputs ``(window, C)`` that became complete, one per row once the
+        buffer is full, oldest first."""
+        out = []
+        for row in rows:
+            self._rows.append(np.asarray(row, np.float32))
+            if self.full:
+                out.append(np.stack(self._rows))
+        return out
+
+
+def block_windows(x: np.ndarray, window: int, hop: int = 1) -> np.ndarray:
+    """``(T, C)`` → ``(n, window, C)`` every ``hop`` samples, the last ending at the block's last sample."""
+    T = len(x)
+    if T < window:
+        raise ValueError(f"{T} samples, fewer than the window of {window}")
+    ends = np.arange(T, window - 1, -hop)[::-1]
+    return np.stack([x[e - window : e] for e in ends])

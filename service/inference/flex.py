@@ -1,0 +1,148 @@
+"""Running a ``flex_pose`` model (Chen et al. 2024): raw readings → joint angles per sample, offline over a block
+or live over a stream, with the model's calibration window of the last ``window_samples`` readings."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.core.flex import FlexWindow, block_windows
+from service.core.resample import resample_uniform
+from service.inference.predict import InputError
+from service.inference.registry import LoadedModel
+
+MIN_FLEX_RATE_HZ, MAX_FLEX_RATE_HZ = 1.0, 2000.0
+CHUNK_WINDOWS = 2048  # windows per onnxruntime call: a long block never holds all its windows at once
+
+
+@dataclass
+class FlexModel:
+    loaded: LoadedModel
+
+    def __post_init__(self) -> None:
+        m = self.loaded.manifest
+        if m.task != "flex_pose" or m.flex is None:
+            raise ValueError(f"{m.name} is not a flex_pose model")
+
+    @property
+    def name(self) -> str:
+        return self.loaded.manifest.name
+
+    @property
+    def manifest(self):
+        return self.loaded.manifest
+
+    @property
+    def window(self) -> int:
+        return self.manifest.window_samples
+
+    @property
+    def latency(self) -> int:
+        return self.manifest.flex.latency_samples
+
+    def run_windows(self, windows: np.ndarray) -> np.ndarray:
+        """``(n, window, C)`` → ``(n, joints, components)`` degrees."""
+        out = [
+            self.loaded.run(np.ascontiguousarray(windows[i : i + CHUNK_WINDOWS], np.float32))
+            for i in range(0, len(windows), CHUNK_WINDOWS)
+        ]
+        return (
+            np.concatenate(out)
+            if out
+            else np.zeros((0, len(self.manifest.joints), len(self.manifest.joint_components)))
+        )
+
+    def run_block(self, rows: np.ndarray) -> np.ndarray:
+        """Rows ``(T, C)`` at the model's rate, ``T >= window`` → angles of samples ``window - 1 - latency`` to
+        ``T - 1 - latency``: one answer per sample once the calibration window is full."""
+        out = []
+        step = CHUNK_WINDOWS
+        for start in range(self.window, len(rows) + 1, step):
+            stop = min(len(rows), start + step - 1)
+            out.append(self.run_windows(block_windows(rows[start - self.window : stop], self.window)))
+        return np.concatenate(out)
+
+
+def check_rows(x: np.ndarray, model: FlexModel, where: str) -> None:
+    """Finite values inside the manifest's value range, ``C`` per row; else an ``InputError`` naming the row."""
+    m = model.manifest
+    if x.ndim != 2 or x.shape[1] != len(m.channels):
+        got = x.shape[1] if x.ndim == 2 else "ragged rows"
+        raise InputError(f"{where}: every sample needs {len(m.channels)} values ({', '.join(m.channels)}), got {got}")
+    finite = np.isfinite(x).all(axis=1)
+    if not finite.all():
+        raise InputError(f"{where}[{int(np.argmin(finite))}]: samples must be finite numbers, got NaN or Inf")
+    if m.value_range is not None:
+        lo, hi = m.value_range
+        bad = ((x < lo) | (x > hi)).any(axis=1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(
+                f"{where}[{i}]: values must lie in [{lo:g}, {hi:g}] ({m.units.get(m.channels[0], '')}), "
+                f"got {[round(v, 3) for v in x[i].tolist()]}"
+            )
+
+
+def block_rows(samples: list[list[float]], rate_hz: float | None, model: FlexModel, max_samples: int) -> np.ndarray:
+    """A REST block → rows at the model's rate, validated; it must cover the calibration window."""
+    m = model.manifest
+    width = len(m.channels)
+    bad = next((k for k, r in enumerate(samples) if len(r) != width), None)
+    if bad is not None:
+        raise InputError(
+            f"samples[{bad}]: every sample needs {width} values ({', '.join(m.channels)}), got {len(samples[bad])}"
+        )
+    rate = m.sample_rate_hz if rate_hz is None else rate_hz
+    if not MIN_FLEX_RATE_HZ <= rate <= MAX_FLEX_RATE_HZ:
+        raise InputError(f"sample_rate_hz must be in [{MIN_FLEX_RATE_HZ:g}, {MAX_FLEX_RATE_HZ:g}], got {rate:g}")
+    n_model = int(round(len(samples) * m.sample_rate_hz / rate))
+    if n_model > max_samples:
+        raise InputError(
+            f"samples: at most {max_samples} samples at {m.sample_rate_hz:g} Hz per request, got {len(samples)} "
+            f"at {rate:g} Hz; send longer recordings in blocks or over /v1/stream/flex"
+        )
+    x = np.asarray(samples, dtype=np.float64)
+    check_rows(x, model, "samples")
+    if not np.isclose(rate, m.sample_rate_hz):
+        x = resample_uniform(x, rate, m.sample_rate_hz)
+    if len(x) < model.window:
+        need = int(np.ceil(model.window * rate / m.sample_rate_hz))
+        raise InputError(
+            f"samples: a block must cover the calibration window of {model.window} samples at "
+            f"{m.sample_rate_hz:g} Hz ({model.window / m.sample_rate_hz:g} s), i.e. at least {need} samples at "
+            f"{rate:g} Hz; got {len(samples)}"
+        )
+    return x.astype(np.float32)
+
+
+class LiveFlex:
+    """One stream's state: the calibration window and the decimation from the stream's rate (an integer multiple
+    of the model's: each ``factor`` readings are averaged into one)."""
+
+    def __init__(self, model: FlexModel, factor: int) -> None:
+        self.model = model
+        self.factor = factor
+        self.buffer = FlexWindow(model.window, len(model.manifest.channels))
+        self._pending = np.zeros((0, len(model.manifest.channels)))
+        self.samples_in = 0  # readings accepted, at the stream's rate
+        self.model_samples = 0  # samples pushed into the window, at the model's rate
+
+    def push(self, rows: np.ndarray) -> tuple[int, np.ndarray]:
+        """Accept readings at the stream's rate → (model-rate index of the first answer, answers ``(n, J, K)``)."""
+        self.samples_in += len(rows)
+        rows = np.concatenate([self._pending, rows])
+        usable = len(rows) // self.factor * self.factor
+        self._pending = rows[usable:]
+        reduced = rows[:usable].reshape(-1, self.factor, rows.shape[1]).mean(axis=1)
+        windows = self.buffer.push(reduced)
+        first = self.model_samples + len(reduced) - len(windows) - self.model.latency
+        self.model_samples += len(reduced)
+        if not windows:
+            return first, np.zeros((0, len(self.model.manifest.joints), len(self.model.manifest.joint_components)))
+        return first, self.model.run_windows(np.stack(windows))
+
+    def reset(self) -> None:
+        """After a gap: the window starts again (its calibration would mix readings from before and after)."""
+        self.buffer = FlexWindow(self.model.window, len(self.model.manifest.channels))
+        self._pending = self._pending[:0]

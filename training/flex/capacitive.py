@@ -1,0 +1,250 @@
+"""Knee flexion from real capacitive sleeves (Pearl et al. 2022; ``capacitive_sub01``), with the networks of Chen
+et al. 2024: seven sleeve channels on one leg's shank and thigh → that knee's flexion.
+
+The reference is the knee's functional hinge angle between the Xsens femur and tibia sensors
+(``service.core.flex.fit_hinge``), fitted per leg on the training trial and applied unchanged to the held-out
+trial (the same session and mounting). Both legs' sleeves train one model (each leg one recording); the last
+``val_share`` of the training trial of each leg is the validation part (early stopping, the choice between
+variants); the other trial type is the test and never chooses anything.
+
+The sleeves and the Xsens sensors are only roughly synchronised (the dataset's ReadMe): rows are paired by
+index at 100 Hz as the files give them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import onnx
+
+from service.core.flex import fit_hinge, hinge_angle_deg
+from service.core.manifest import Evaluation, sha256_file, write_manifest
+from service.core.recordings import CAPACITIVE_CHANNELS, read_capacitive_oriented, read_capacitive_sleeve
+from service.core.resample import resample_uniform
+from service.inference.registry import load_model
+from training.config import flatten
+from training.flex.config import CapacitiveConfig
+from training.flex.data import FlexClip, WindowSet, window_set
+from training.flex.evaluate import clip_metrics, mean_pose_predictor
+from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_parity
+from training.flex.train import torch_predictor, train_flex
+from training.plots import flex_learning_curve_png, traces_png
+from training.tracking import log_onnx_model, maybe_promote, setup_tracking
+
+log = logging.getLogger(__name__)
+
+SIDES = ("Left", "Right")
+CHANNEL_UNITS = "raw capacitance reading of the sleeve's read-out (about 9,000-16,000 on Sub01), unitless"
+
+
+@dataclass
+class LegRecording:
+    trial: str
+    side: str
+    readings: np.ndarray  # (T, 7) at the model rate
+    flexion_deg: np.ndarray  # (T,)
+
+
+def read_trials(cfg: CapacitiveConfig, data_dir: Path) -> dict[str, list[LegRecording]]:
+    """Both trials, both legs, at ``cfg.rate_hz``; the hinge of each knee fitted on the training trial."""
+    oriented = {t: read_capacitive_oriented(data_dir, t, cfg.source) for t in (cfg.train_trial, cfg.test_trial)}
+    out: dict[str, list[LegRecording]] = {cfg.train_trial: [], cfg.test_trial: []}
+    for side in SIDES:
+        thigh, shank = f"{side}UpperLeg", f"{side}LowerLeg"
+        fit = oriented[cfg.train_trial]
+        hinge = fit_hinge(fit[thigh].q_world_sensor, fit[shank].q_world_sensor)
+        for trial, sensors in oriented.items():
+            cs, rate = read_capacitive_sleeve(data_dir, trial, side, cfg.source)
+            angle = hinge_angle_deg(sensors[thigh].q_world_sensor, sensors[shank].q_world_sensor, hinge)
+            n = min(len(cs), len(angle))
+            x = resample_uniform(cs[:n], rate, cfg.rate_hz)
+            y = resample_uniform(angle[:n, None], sensors[thigh].rate_hz, cfg.rate_hz)[:, 0]
+            m = min(len(x), len(y))
+            out[trial].append(LegRecording(trial, side, x[:m].astype(np.float32), y[:m].astype(np.float32)))
+    return out
+
+
+def _clip(rec: LegRecording, window: int, part: str) -> FlexClip:
+    return FlexClip(
+        f"{rec.trial}/{rec.side}{part}",
+        "capacitive_sub01",
+        "capacitive_Sub01",
+        "walk_stiffknee" if "Stiff" in rec.trial else "walk",
+        rec.flexion_deg[:, None, None],
+        np.zeros((len(rec.readings), 0), np.float32),
+        window - 1,  # the first window - 1 samples only fill the calibration window: no answer there
+    )
+
+
+def leg_sets(recs: list[LegRecording], window: int, val_share: float | None) -> dict[str, WindowSet]:
+    """Window sets over the legs: ``train`` and ``val`` (the last ``val_share`` of each leg), or ``test``."""
+    parts: dict[str, list[tuple[FlexClip, np.ndarray]]] = {}
+    for rec in recs:
+        if val_share is None:
+            parts.setdefault("test", []).append((_clip(rec, window, ""), rec.readings))
+            continue
+        cut = int(len(rec.readings) * (1.0 - val_share))
+        head = LegRecording(rec.trial, rec.side, rec.readings[:cut], rec.flexion_deg[:cut])
+        tail = LegRecording(rec.trial, rec.side, rec.readings[cut:], rec.flexion_deg[cut:])
+        parts.setdefault("train", []).append((_clip(head, window, ""), head.readings))
+        parts.setdefault("val", []).append((_clip(tail, window, " (last part)"), tail.readings))
+    out = {}
+    for name, items in parts.items():
+        readings = {c.path: r for c, r in items}
+        out[name] = window_set([c for c, _ in items], 1, 0, window, counts_fn=lambda c, k, r=readings: r[c.path])
+    return out
+
+
+def run_capacitive_experiment(
+    cfg: CapacitiveConfig, data_dir: Path, ship_to: Path | None = None, version: str | None = None
+) -> dict:
+    """Train one network on the training trial's sleeves, report the held-out trial, log, register, ship."""
+    trials = read_trials(cfg, data_dir)
+    W = cfg.model.window
+    sets = leg_sets(trials[cfg.train_trial], W, cfg.val_share) | leg_sets(trials[cfg.test_trial], W, None)
+    setup_tracking(cfg.tracking.experiment)
+    with mlflow.start_run(run_name=cfg.name) as run, tempfile.TemporaryDirectory() as tmp_dir:
+        tmp = Path(tmp_dir)
+        mlflow.set_tags(
+            {
+                "task": "flex_pose",
+                "variant": cfg.variant,
+                "mlflow.note.content": f"{cfg.variant} on real capacitive sleeves ({cfg.source}): trained on "
+                f"{cfg.train_trial}, tested on {cfg.test_trial}, knee flexion of both legs.",
+            }
+        )
+        mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
+        result = train_flex(
+            cfg,
+            sets["train"],
+            sets["val"],
+            on_epoch=lambda e, row: mlflow.log_metrics(
+                {"train_loss": row["train_loss"], "val_mae_deg_epoch": row["val_mae_deg"]}, step=e
+            ),
+        )
+        net, lat = result.net, result.net.latency_samples
+        predict = torch_predictor(net)
+        val = clip_metrics(predict, sets["val"], 0, lat, cfg.joints, [])
+        test = clip_metrics(predict, sets["test"], 0, lat, cfg.joints, [])
+        traces = _per_clip(predict, sets["test"], lat)
+        per_leg = {leg: float(np.abs(p - t).mean()) for leg, (p, t) in traces.items()}
+        mean = mean_pose_predictor(sets["train"].angles.mean(axis=0))
+        baseline = clip_metrics(mean, sets["test"], 0, lat, cfg.joints, [])
+        metrics = {
+            "val_mae_deg": val["mae_deg"],
+            "test_mae_deg": test["mae_deg"],
+            "test_jitter_deg_s3": test["jitter_deg_s3"],
+            "test_mean_flexion_mae_deg": baseline["mae_deg"],
+            "train_wall_time_s": result.wall_s,
+            "best_epoch": result.best_epoch,
+        } | {f"test_{leg.lower()}_knee_mae_deg": v for leg, v in per_leg.items()}
+        mlflow.log_metrics(metrics)
+        mlflow.set_tag("stopped", result.stopped)
+        mlflow.log_artifact(str(flex_learning_curve_png(result.history, tmp / "learning_curve.png", cfg.name)), "plots")
+        n = min(len(p) for p, _ in traces.values())
+        n = min(n, int(20 * cfg.rate_hz))
+        mlflow.log_artifact(
+            str(
+                traces_png(
+                    np.arange(n) / cfg.rate_hz,
+                    {f"{leg} knee": t[:n] for leg, (_, t) in traces.items()},
+                    {f"{leg} knee": p[:n] for leg, (p, _) in traces.items()},
+                    tmp / "trace_test.png",
+                    f"{cfg.name}: held-out {cfg.test_trial}",
+                )
+            ),
+            "plots",
+        )
+        summary = {"variant": cfg.variant, "run_id": run.info.run_id, "metrics": metrics, "stopped": result.stopped}
+        (tmp / "summary.json").write_text(json.dumps(summary, indent=1))
+        mlflow.log_artifact(str(tmp / "summary.json"), "evaluation")
+
+        onnx_path = export_flex_onnx(net, tmp / "model.onnx")
+        x, _ = sets["test"].batch(np.zeros(8, int), sets["test"].ends[:: len(sets["test"].ends) // 8][:8], 1)
+        golden = {"counts": x.astype(np.float32), "expected": predict(x).astype(np.float32)}
+        parity = onnx_parity(onnx_path, golden)
+        if parity > 1e-3:
+            raise RuntimeError(f"onnxruntime differs from torch by {parity:.2e} deg on the golden input")
+        np.savez(tmp / "golden.npz", **golden)
+        version = version or "0.0.0+" + run.info.run_id[:8]
+        evaluation = Evaluation(
+            name=f"held-out trial {cfg.test_trial}",
+            command=f"python -m training.cli evaluate-capacitive --model onnx_models/{cfg.name}/{version}",
+            data=f"{cfg.source} {cfg.test_trial}, both legs (trained on {cfg.train_trial} only); reference: the "
+            "functional knee hinge angle between the Xsens femur and tibia sensors",
+            metrics={k: round(v, 4) for k, v in metrics.items() if k.startswith("test_")},
+        )
+        manifest = build_flex_manifest(
+            cfg,
+            net,
+            version,
+            sha256_file(onnx_path),
+            {
+                "sources": [cfg.source],
+                "train_trial": cfg.train_trial,
+                "test_trial": cfg.test_trial,
+                "subjects": ["Sub01"],
+                "licence": "capacitive sensing dataset of Pearl et al. 2022 (see the data's LICENSE)",
+                "train_wall_time_s": round(result.wall_s, 1),
+                "best_epoch": result.best_epoch,
+                "stopped": result.stopped,
+            },
+            [evaluation],
+            {"run_id": run.info.run_id, "experiment_id": run.info.experiment_id},
+            channels=list(CAPACITIVE_CHANNELS),
+            units={c: CHANNEL_UNITS for c in CAPACITIVE_CHANNELS},
+            value_range=None,
+            sample_rate_hz=cfg.rate_hz,
+            joints=["Knee"],
+            components=["flexion"],
+            simulated_sensor="",
+        )
+        proto = onnx.load(str(onnx_path))
+        info = log_onnx_model(proto, golden, manifest, input_key="counts")
+        registered = mlflow.register_model(info.model_uri, cfg.registered_model)
+        digest = f"{cfg.source}|{cfg.train_trial}|val{cfg.val_share}|{cfg.rate_hz}"
+        maybe_promote(cfg.registered_model, registered.version, "val_mae_deg", val["mae_deg"], False, digest)
+        manifest = manifest.model_copy(
+            update={
+                "mlflow": manifest.mlflow | {"model_uri": info.model_uri, "registered_version": str(registered.version)}
+            }
+        )
+        if ship_to is not None:
+            shipped = ship_to / cfg.name / version
+            shipped.mkdir(parents=True, exist_ok=True)
+            shutil.copy(onnx_path, shipped / "model.onnx")
+            shutil.copy(tmp / "golden.npz", shipped / "golden.npz")
+            write_manifest(manifest, shipped / "manifest.json")
+            served = load_model(shipped, 2)
+            a = clip_metrics(served.run, sets["test"], 0, lat, cfg.joints, [])["mae_deg"]
+            if abs(a - test["mae_deg"]) > 0.02:
+                raise RuntimeError(f"the shipped model scores {a:.3f}° where torch scored {test['mae_deg']:.3f}°")
+            summary["shipped"] = str(shipped)
+        return summary
+
+
+def _per_clip(predict, ws: WindowSet, latency: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Leg ("Left", "Right") → predicted and reference knee flexion over every answered sample."""
+    out = {}
+    for i, c in enumerate(ws.clips):
+        ends = ws.ends[ws.clip_of_end == i]
+        x, _ = ws.batch(np.zeros(len(ends), int), ends, 1)
+        out[c.path.split("/")[-1]] = (predict(x)[:, 0, 0], ws.angles[ends - 1 - latency][:, 0, 0])
+    return out
+
+
+def evaluate_capacitive(loaded, cfg: CapacitiveConfig, data_dir: Path) -> dict:
+    """A shipped capacitive model (through onnxruntime) on the held-out trial, per leg and both."""
+    trials = read_trials(cfg, data_dir)
+    test = leg_sets(trials[cfg.test_trial], loaded.manifest.window_samples, None)["test"]
+    lat = loaded.manifest.flex.latency_samples
+    legs = {leg: float(np.abs(p - t).mean()) for leg, (p, t) in _per_clip(loaded.run, test, lat).items()}
+    both = clip_metrics(loaded.run, test, 0, lat, ["Knee"], [])
+    return {"mae_deg": both["mae_deg"], "jitter_deg_s3": both["jitter_deg_s3"], "per_leg_mae_deg": legs}

@@ -1,0 +1,130 @@
+"""Flex experiment configuration (one YAML file per model in ``training/configs/flex_*.yaml``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from service.core.flex import FLEX_JOINTS, FLEX_SENSOR_JOINTS
+from training.config import Strict, TrackingConfig, read_yaml
+
+# Chen et al. 2024 Table 3's joints that the canonical body has (service.core.flex.FLEX_JOINTS).
+TABLE3_JOINTS = list(FLEX_JOINTS)
+
+
+class FlexDataConfig(Strict):
+    # As for pose: held-out subjects (the test set) and validation subjects (early stopping and every choice);
+    # Bandai-Namco names no actors and stays on the training side.
+    test_subjects: list[str] = Field(default_factory=lambda: ["cmu_05", "cmu_06", "cmu_07"])
+    val_subjects: list[str] = Field(default_factory=lambda: ["cmu_02", "cmu_03"])
+    test_activities_of_unlabelled: dict[str, list[str]] = Field(default_factory=lambda: {"cmu_li2018": ["run"]})
+    sources: list[str] | None = None
+    suits_per_clip: int = Field(3, ge=1)  # simulated suits (sensor draws) per training clip, fixed per build
+    activity_cap_frames: int = 24_000  # at 20 Hz; as pose's cap: Bandai's waves and hand raises drawn less often
+
+
+class FlexModelConfig(Strict):
+    kind: Literal["bilstm", "transformer", "fcn", "tcn"] = "bilstm"
+    calibration: bool = False  # C: Chen et al. 2024 eq. 2
+    median: bool = False  # M: Chen et al. 2024 §3.4.4
+    window: int = 100  # calibrated sequence length (§4.2.4, Table 6)
+    steps: int = 5  # input sequence length to the network (§4.2.4)
+    min_kernel: int = 15  # §4.2.4's final choice (§3.4.2 says 25)
+    avg_kernel: int = 10
+    avg_padding: int = 8
+    # minmax: the training set's per-channel bounds (§3.4.3). window_relative (ours, for real sleeves whose
+    # read-outs differ tenfold between legs): each channel over its window's mean, minus one, then min-max.
+    input_norm: Literal["minmax", "window_relative"] = "minmax"
+
+
+class FlexTrainConfig(Strict):
+    batch_size: int = 64  # §3.4.1
+    lr: float = 1e-3
+    lr_step_epochs: int = 10  # decays by 0.1 every 10 epochs (§3.4.1)
+    windows_per_epoch: int = 12_800
+    max_epochs: int = 40
+    # §3.4.1 stops when the error fell by less than 0.1° over 10 epochs; our CPU budget stops earlier.
+    min_improvement_deg: float = 0.1
+    patience: int = 10
+    time_budget_s: float = 300.0
+    threads: int = 2
+    grad_clip: float = 1.0
+
+
+class _FlexRun(Strict):
+    """What every flex experiment has: a name, the network (Chen et al. 2024 Table 5's variants) and training."""
+
+    name: str
+    seed: int = 0
+    model: FlexModelConfig = Field(default_factory=FlexModelConfig)
+    train: FlexTrainConfig = Field(default_factory=FlexTrainConfig)
+    tracking: TrackingConfig = Field(default_factory=lambda: TrackingConfig(experiment="flex"))
+
+    @model_validator(mode="after")
+    def _steps(self) -> _FlexRun:
+        if self.model.steps > self.model.window:
+            raise ValueError("model.steps must not exceed model.window")
+        return self
+
+    @property
+    def registered_model(self) -> str:
+        return self.tracking.registered_model or self.name
+
+    @property
+    def variant(self) -> str:
+        """Chen et al. 2024 Table 5's name: BiLSTM, Transformer, FCN, TCN, BiLSTM-C, -M, -CM."""
+        base = {"bilstm": "BiLSTM", "transformer": "Transformer", "fcn": "FCN", "tcn": "TCN"}[self.model.kind]
+        suffix = ("C" if self.model.calibration else "") + ("M" if self.model.median else "")
+        return f"{base}-{suffix}" if suffix else base
+
+
+class FlexConfig(_FlexRun):
+    """Simulated flex sensors over knees and elbows → the Table 3 joints, three angles each."""
+
+    sensors: list[str] = Field(default_factory=lambda: list(FLEX_SENSOR_JOINTS))
+    joints: list[str] = Field(default_factory=lambda: list(TABLE3_JOINTS))
+    data: FlexDataConfig = Field(default_factory=FlexDataConfig)
+
+    @model_validator(mode="after")
+    def _joints(self) -> FlexConfig:
+        unknown = sorted(set(self.sensors + self.joints) - set(FLEX_JOINTS))
+        if unknown:
+            raise ValueError(f"joints are {list(FLEX_JOINTS)}; unknown {unknown}")
+        return self
+
+    @property
+    def components(self) -> int:
+        return 3  # flexion, abduction, rotation (service.core.flex.JOINT_COMPONENTS)
+
+
+class CapacitiveConfig(_FlexRun):
+    """Real capacitive sleeves (seven channels on one leg's shank and thigh) → that knee's flexion. Both legs'
+    sleeves train one model; one trial type trains, the other is held out."""
+
+    source: str = "capacitive_sub01"
+    train_trial: str = "CSBaseline"
+    test_trial: str = "CSStiffKnee"
+    rate_hz: float = 50.0  # the sleeves record at 100 Hz; window 100 at 50 Hz holds about two strides
+    val_share: float = Field(0.2, gt=0.0, lt=0.5)  # the training trial's last part, per leg: early stopping
+
+    @property
+    def joints(self) -> list[str]:
+        return ["Knee"]
+
+    @property
+    def sensors(self) -> list[str]:
+        return []
+
+    @property
+    def components(self) -> int:
+        return 1
+
+
+def load_flex_config(path: str | Path, overrides: list[str] | None = None) -> FlexConfig:
+    return FlexConfig.model_validate(read_yaml(path, overrides))
+
+
+def load_capacitive_config(path: str | Path, overrides: list[str] | None = None) -> CapacitiveConfig:
+    return CapacitiveConfig.model_validate(read_yaml(path, overrides))

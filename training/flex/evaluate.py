@@ -1,0 +1,92 @@
+"""Chen et al. 2024 §4's metrics: mean tracking error (mean absolute joint-angle error, degrees) overall, per
+motion type (Table 2) and per joint (Table 3), and jitter as the mean jerk of the predicted angles (°/s³, the
+third derivative at the sensors' rate; Table 4 and 5 report it in 10⁴ °/s³)."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Callable
+
+import numpy as np
+
+from training.flex.data import WindowSet
+from training.flex.simulate import FLEX_RATE_HZ
+
+Predictor = Callable[[np.ndarray], np.ndarray]  # (B, window, S) counts → (B, J, 3) degrees
+
+
+def predict_windows(
+    predict: Predictor, ws: WindowSet, suit: int, latency: int, hop: int = 1, batch: int = 1024
+) -> tuple[np.ndarray, np.ndarray]:
+    """Answers for every ``hop``-th window of suit ``suit`` and the truth at the frame each one answers for
+    (``latency`` samples before the window's last)."""
+    ends = ws.ends[::hop]
+    preds = []
+    for i in range(0, len(ends), batch):
+        e = ends[i : i + batch]
+        x, _ = ws.batch(np.full(len(e), suit), e, 1)
+        preds.append(predict(x))
+    return np.concatenate(preds), ws.angles[ends - 1 - latency]
+
+
+def clip_metrics(
+    predict: Predictor, ws: WindowSet, suit: int, latency: int, joints: list[str], sensors: list[str]
+) -> dict:
+    """Per clip every frame answered (hop 1): errors per joint and the jitter."""
+    pred, truth = predict_windows(predict, ws, suit, latency)
+    err = np.abs(pred - truth)  # (W, J, 3)
+    rows = []
+    sensed = [joints.index(j) for j in sensors if j in joints]
+    for i, c in enumerate(ws.clips):
+        m = ws.clip_of_end == i
+        p = pred[m]
+        jerk = np.abs(np.diff(p, n=3, axis=0)).mean() * FLEX_RATE_HZ**3 if len(p) > 3 else np.nan
+        rows.append(
+            {
+                "clip": c.path,
+                "activity": c.activity,
+                "frames": int(m.sum()),
+                "per_joint": err[m].mean(axis=(0, 2)),
+                "sensed_flexion": err[m][:, sensed, 0].mean() if sensed else np.nan,
+                "jitter": jerk,
+            }
+        )
+    return summarise(rows, joints)
+
+
+def summarise(rows: list[dict], joints: list[str]) -> dict:
+    """Frame-weighted means over clips: overall, per activity, per joint."""
+    w = np.array([r["frames"] for r in rows], float)
+
+    def mean(key: str, sel: list[int]) -> float:
+        vals = np.array([np.mean(rows[i][key]) for i in sel])
+        ok = np.isfinite(vals)
+        return float(np.average(vals[ok], weights=w[sel][ok])) if ok.any() else float("nan")
+
+    everything = list(range(len(rows)))
+    per_joint = np.average(np.stack([r["per_joint"] for r in rows]), axis=0, weights=w)
+    by_activity = defaultdict(list)
+    for i, r in enumerate(rows):
+        by_activity[r["activity"]].append(i)
+    return {
+        "mae_deg": mean("per_joint", everything),
+        "sensed_flexion_mae_deg": mean("sensed_flexion", everything),
+        "jitter_deg_s3": mean("jitter", everything),
+        "frames": int(w.sum()),
+        "per_joint": dict(zip(joints, per_joint.round(4).tolist(), strict=True)),
+        "per_activity": {
+            a: {"mae_deg": mean("per_joint", s), "frames": int(w[s].sum())} for a, s in by_activity.items()
+        },
+    }
+
+
+def mean_pose_predictor(mean_deg: np.ndarray) -> Predictor:
+    """The training set's mean angles whatever the input: the floor every model must beat."""
+    return lambda x: np.broadcast_to(mean_deg, (len(x), *mean_deg.shape)).copy()
+
+
+def flat_metrics(summary: dict, prefix: str) -> dict[str, float]:
+    out = {f"{prefix}_{k}": summary[k] for k in ("mae_deg", "sensed_flexion_mae_deg", "jitter_deg_s3")}
+    out |= {f"{prefix}_joint_{j}_deg": v for j, v in summary["per_joint"].items()}
+    out |= {f"{prefix}_activity_{a}_deg": v["mae_deg"] for a, v in summary["per_activity"].items()}
+    return {k: float(v) for k, v in out.items() if np.isfinite(v)}

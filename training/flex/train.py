@@ -1,0 +1,118 @@
+"""Training of one flex network (Chen et al. 2024 §3.4.1 and §3.4.3): Adam 1e-3 decaying by 0.1 every 10 epochs,
+gradient clipping, batch 64, squared error over the short input sequence (eq. 3), the epoch best on the
+validation subjects kept; it stops when the validation error fell by less than 0.1° over 10 epochs, or at the
+time budget."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from training.flex.config import FlexConfig
+from training.flex.data import WindowSet
+from training.flex.evaluate import predict_windows
+from training.flex.models import FlexNet
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FlexTrainResult:
+    net: FlexNet
+    history: list[dict[str, float]]
+    best_epoch: int
+    wall_s: float
+    stopped: str
+
+
+def build_net(cfg: FlexConfig, train: WindowSet) -> FlexNet:
+    """A network with the training set's normalisation: counts min-max per channel (§3.4.3), targets
+    standardised per output."""
+    flat = train.counts.reshape(-1, train.counts.shape[-1])
+    if cfg.model.input_norm == "window_relative":
+        ends = np.random.default_rng(cfg.seed).choice(train.ends, size=min(4000, len(train.ends)), replace=False)
+        x, _ = train.batch(np.zeros(len(ends), int), ends, 1)
+        flat = (x / x.mean(axis=1, keepdims=True) - 1.0).reshape(-1, x.shape[-1])
+    y = train.angles.reshape(len(train.angles), -1)
+    return FlexNet(
+        cfg.model,
+        flat.shape[1],
+        len(cfg.joints),
+        cfg.components,
+        torch.from_numpy(flat.min(axis=0)),
+        torch.from_numpy(flat.max(axis=0)),
+        torch.from_numpy(y.mean(axis=0)),
+        torch.from_numpy(y.std(axis=0)),
+    )
+
+
+def validation_mae(net: FlexNet, val: WindowSet, hop: int = 2) -> float:
+    pred, truth = predict_windows(torch_predictor(net), val, 0, net.latency_samples, hop)
+    return float(np.abs(pred - truth).mean())
+
+
+def torch_predictor(net: FlexNet) -> Callable[[np.ndarray], np.ndarray]:
+    def predict(x: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return net(torch.from_numpy(x)).numpy()
+
+    return predict
+
+
+def train_flex(
+    cfg: FlexConfig, train: WindowSet, val: WindowSet, on_epoch: Callable[[int, dict], None] | None = None
+) -> FlexTrainResult:
+    torch.manual_seed(cfg.seed)
+    torch.set_num_threads(cfg.train.threads)
+    rng = np.random.default_rng(cfg.seed)
+    net = build_net(cfg, train)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.train.lr)
+    sched = torch.optim.lr_scheduler.StepLR(opt, cfg.train.lr_step_epochs, gamma=0.1)
+    steps, bs = cfg.model.steps, cfg.train.batch_size
+    n_suits = train.counts.shape[0]
+    history: list[dict[str, float]] = []
+    best, best_state, best_epoch, stopped = float("inf"), None, 0, "max_epochs"
+    t0 = time.monotonic()
+    for epoch in range(cfg.train.max_epochs):
+        net.train()
+        ends = rng.choice(train.ends, size=cfg.train.windows_per_epoch, p=train.weights)
+        suits = rng.integers(0, n_suits, size=len(ends))
+        losses = []
+        bar = tqdm(range(0, len(ends), bs), desc=f"{cfg.name} epoch {epoch}", unit="batch", leave=False)
+        for i in bar:
+            x, y = train.batch(suits[i : i + bs], ends[i : i + bs], steps)
+            x, y = torch.from_numpy(x), torch.from_numpy(y)
+            target = (y - net.target_mean) / net.target_std
+            loss = torch.mean((net.steps_standardised(x) - target) ** 2)  # eq. 3
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.train.grad_clip)
+            opt.step()
+            losses.append(loss.item())
+        sched.step()
+        net.eval()
+        val_mae = validation_mae(net, val)
+        row = {"train_loss": float(np.mean(losses)), "val_mae_deg": val_mae, "wall_s": time.monotonic() - t0}
+        history.append(row)
+        if on_epoch:
+            on_epoch(epoch, row)
+        log.info("%s epoch %d: loss %.4f, validation %.2f°", cfg.name, epoch, row["train_loss"], val_mae)
+        if val_mae < best:
+            best, best_epoch = val_mae, epoch
+            best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        p = cfg.train.patience
+        if len(history) > p and min(h["val_mae_deg"] for h in history[:-p]) - best < cfg.train.min_improvement_deg:
+            stopped = f"validation improved by less than {cfg.train.min_improvement_deg}° over {p} epochs"
+            break
+        if time.monotonic() - t0 > cfg.train.time_budget_s:
+            stopped = f"time budget {cfg.train.time_budget_s:.0f} s"
+            break
+    net.load_state_dict(best_state)
+    net.eval()
+    return FlexTrainResult(net, history, best_epoch, time.monotonic() - t0, stopped)
