@@ -133,8 +133,7 @@ async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, out
                 "detail": f"the calibration window starts again: answers resume after {live.model.window} samples",
             }
         )
-        live.reset()
-        live.samples_in = seq
+        live.jump_to(seq)
     first, angles = await ws.app.state.runner.run_call(live.push, rows)
     if len(angles):
         message = {

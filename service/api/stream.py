@@ -58,6 +58,7 @@ class Outbox:
         self.limit = limit
         self.event = asyncio.Event()
         self.dropped = 0
+        self.sending = False  # a message is taken off the queue and not yet handed to the socket
 
     def put(self, message: dict) -> bool:
         dropped = False
@@ -85,10 +86,13 @@ async def _sender(ws: WebSocket, outbox: Outbox) -> None:
         await outbox.event.wait()
         outbox.event.clear()
         while outbox.items:
+            outbox.sending = True
             try:
                 await ws.send_text(_encode(outbox.items.popleft()))
             except WebSocketDisconnect:  # the client left; the receive loop sees it and ends the session
                 return
+            finally:
+                outbox.sending = False
 
 
 @dataclass
@@ -554,6 +558,6 @@ async def _close(ws: WebSocket, code: int, reason: str) -> None:
 async def _drain(outbox: Outbox, sender: asyncio.Task, timeout_s: float = 5.0) -> None:
     """Let the sender flush what is queued (bounded), then stop it."""
     deadline = asyncio.get_running_loop().time() + timeout_s
-    while outbox.items and asyncio.get_running_loop().time() < deadline and not sender.done():
+    while (outbox.items or outbox.sending) and asyncio.get_running_loop().time() < deadline and not sender.done():
         await asyncio.sleep(0.005)
     sender.cancel()

@@ -78,8 +78,9 @@ def check_rows(x: np.ndarray, model: FlexModel, where: str) -> None:
         bad = ((x < lo) | (x > hi)).any(axis=1)
         if bad.any():
             i = int(np.argmax(bad))
+            unit = m.units.get(m.channels[0])
             raise InputError(
-                f"{where}[{i}]: values must lie in [{lo:g}, {hi:g}] ({m.units.get(m.channels[0], '')}), "
+                f"{where}[{i}]: values must lie in [{lo:g}, {hi:g}]{f' ({unit})' if unit else ''}, "
                 f"got {[round(v, 3) for v in x[i].tolist()]}"
             )
 
@@ -142,7 +143,10 @@ class LiveFlex:
             return first, np.zeros((0, len(self.model.manifest.joints), len(self.model.manifest.joint_components)))
         return first, self.model.run_windows(np.stack(windows))
 
-    def reset(self) -> None:
-        """After a gap: the window starts again (its calibration would mix readings from before and after)."""
+    def jump_to(self, seq: int) -> None:
+        """After a gap up to reading ``seq``: the window starts again (its calibration would mix readings from
+        before and after); sample indices keep counting the stream's time."""
         self.buffer = FlexWindow(self.model.window, len(self.model.manifest.channels))
         self._pending = self._pending[:0]
+        self.samples_in = seq
+        self.model_samples = seq // self.factor

@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from onnx import TensorProto, helper, numpy_helper
 
 from service.app import create_app
-from service.core.manifest import Manifest, TensorSpec, sha256_file, write_manifest
+from service.core.manifest import FlexSpec, Manifest, TensorSpec, sha256_file, write_manifest
 from service.core.segments import SEGMENTS
 from service.settings import Settings
 
@@ -153,6 +153,14 @@ def write_tiny_pose_model(root: Path, task: str) -> Path:
         joints=joints,
         joint_components=components if task == "flex_pose" else [],
         value_range=value_range,
+        flex=FlexSpec(
+            architecture="window mean times a matrix (a test model)",
+            calibration=False,
+            median=False,
+            steps=window,
+            latency_samples=0,
+            angle_convention="test",
+        ),
         sha256=sha256_file(target / "model.onnx"),
     )
     write_manifest(manifest, target / "manifest.json")

@@ -1,0 +1,212 @@
+"""POST /v1/pose/flex and /v1/stream/flex on a test model whose answers a test can recompute (the mean of each
+window times a matrix): one answer per sample once the calibration window is full, the stream equal to the
+block, and every client mistake a 4xx or a close code that says what was expected."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+
+from service.api.protocol import encode_binary
+from service.app import create_app
+from service.settings import Settings
+from tests.service.conftest import TINY_POSE, tiny_pose_weights, write_tiny_model, write_tiny_pose_model
+
+CHANNELS, RATE, WINDOW, VALUE_RANGE, JOINTS, COMPONENTS = TINY_POSE["flex_pose"]
+
+
+@pytest.fixture
+def flex_client(tmp_path: Path):
+    root = tmp_path / "onnx_models"
+    write_tiny_model(root, "i2s_assignment")
+    write_tiny_pose_model(root, "flex_pose")
+    with TestClient(create_app(Settings(models_dir=root))) as c:
+        yield c
+
+
+def _block(n: int = WINDOW, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(1000, 3000, size=(n, len(CHANNELS))).astype(float)
+
+
+def _expected(x: np.ndarray) -> np.ndarray:
+    """The test model's answer for every window ending at samples WINDOW-1 .. len(x)-1."""
+    means = np.stack([x[e - WINDOW : e].mean(axis=0) for e in range(WINDOW, len(x) + 1)])
+    return means @ tiny_pose_weights("flex_pose")
+
+
+def test_flex_routes_answer_503_while_no_flex_model_is_loaded(client: TestClient) -> None:
+    r = client.post("/v1/pose/flex", json={"samples": _block().tolist()})
+    assert r.status_code == 503 and r.json()["detail"] == "no flex_pose model is loaded"
+    with client.websocket_connect("/v1/stream/flex") as ws:
+        assert ws.receive_json()["detail"] == "no flex_pose model is loaded"
+        with pytest.raises(WebSocketDisconnect) as exc:
+            ws.receive_json()
+    assert exc.value.code == 1011
+
+
+def test_every_sample_after_the_calibration_window_gets_its_angles(flex_client: TestClient) -> None:
+    x = _block(130)
+    r = flex_client.post("/v1/pose/flex", json={"samples": x.tolist(), "channels": CHANNELS})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["frames"] == 31 and body["first_sample"] == WINDOW - 1 and body["latency_samples"] == 0
+    assert body["model"] == {"name": "flex_pose", "version": "0.0.1"}
+    got = np.stack([body["angles_deg"][j]["flexion"] for j in JOINTS], axis=1)
+    np.testing.assert_allclose(got, _expected(x), atol=2e-3)
+
+
+def test_a_block_at_twice_the_rate_is_resampled_to_the_model_rate(flex_client: TestClient) -> None:
+    x = np.repeat(_block(110), 2, axis=0)  # 220 readings at 40 Hz
+    r = flex_client.post("/v1/pose/flex", json={"samples": x.tolist(), "sample_rate_hz": 2 * RATE})
+    assert r.status_code == 200, r.text
+    assert 9 <= r.json()["frames"] <= 11
+
+
+@pytest.mark.parametrize(
+    "body, fragment",
+    [
+        ({"samples": _block()[:, :3].tolist()}, "rows of 3 values"),
+        ({"model": "flex_pose", "samples": _block()[:, :3].tolist()}, "every sample needs 4 values (left_elbow"),
+        ({"samples": _block(99).tolist()}, "must cover the calibration window of 100 samples at 20 Hz (5 s)"),
+        ({"samples": _block(150).tolist(), "sample_rate_hz": 40.0}, "at least 200 samples at 40 Hz; got 150"),
+        ({"samples": np.full((100, 4), 5000.0).tolist()}, "samples[0]: values must lie in [0, 4095]"),
+        ({"samples": np.full((100, 4), -1.0).tolist()}, "values must lie in [0, 4095]"),
+        ({"samples": _block().tolist(), "sample_rate_hz": 0.5}, "sample_rate_hz must be in [1, 2000]"),
+        ({"samples": _block().tolist(), "model": "nope"}, "no flex_pose model 'nope'"),
+        ({"samples": _block().tolist(), "channels": CHANNELS[::-1]}, "takes ['left_elbow'"),
+        ({"samples": _block(40_000).tolist()}, "at most 36000 samples at 20 Hz per request"),
+    ],
+)
+def test_bad_flex_blocks_get_a_422_that_says_why(flex_client: TestClient, body: dict, fragment: str) -> None:
+    r = flex_client.post("/v1/pose/flex", json=body)
+    assert r.status_code == 422
+    assert fragment in r.json()["detail"], r.json()["detail"]
+
+
+def test_a_nan_reading_is_named(flex_client: TestClient) -> None:
+    x = _block()
+    x[42, 1] = np.nan
+    text = json.dumps({"samples": x.tolist()})  # NaN literals: valid for Python's json, not for the standard
+    r = flex_client.post("/v1/pose/flex", content=text, headers={"content-type": "application/json"})
+    assert r.status_code == 422 and "samples[42]: samples must be finite" in r.json()["detail"]
+
+
+def _stream(ws, packets: list[tuple[int, np.ndarray]], binary: bool = False) -> list[dict]:
+    for seq, rows in packets:
+        if binary:
+            ws.send_bytes(encode_binary(0, seq, rows))
+        else:
+            ws.send_json({"type": "samples", "seq": seq, "samples": rows.tolist()})
+    ws.send_json({"type": "stop"})
+    out = []
+    while True:
+        try:
+            out.append(ws.receive_json())
+        except WebSocketDisconnect:
+            return out
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_the_stream_answers_as_the_block_does(flex_client: TestClient, binary: bool) -> None:
+    x = _block(160, seed=3)
+    with flex_client.websocket_connect("/v1/stream/flex") as ws:
+        ws.send_json({"type": "start", "channels": CHANNELS})
+        started = ws.receive_json()
+        assert started["type"] == "started" and started["window_samples"] == WINDOW and started["joints"] == JOINTS
+        messages = _stream(ws, [(k, x[k : k + 7]) for k in range(0, 160, 7)], binary)
+    angles = [m for m in messages if m["type"] == "angles"]
+    assert angles[0]["first_sample"] == WINDOW - 1
+    got = np.concatenate([np.asarray(m["angles_deg"])[:, :, 0] for m in angles])
+    np.testing.assert_allclose(got, _expected(x.astype(np.float32)), atol=2e-3)
+
+
+def test_a_stream_at_twice_the_model_rate_is_averaged_pairwise(flex_client: TestClient) -> None:
+    x = _block(120, seed=4)
+    fast = np.repeat(x, 2, axis=0)
+    with flex_client.websocket_connect("/v1/stream/flex") as ws:
+        ws.send_json({"type": "start", "channels": CHANNELS, "sample_rate_hz": 2 * RATE})
+        assert ws.receive_json()["decimation"] == 2
+        messages = _stream(ws, [(k, fast[k : k + 9]) for k in range(0, len(fast), 9)])
+    got = np.concatenate([np.asarray(m["angles_deg"])[:, :, 0] for m in messages if m["type"] == "angles"])
+    np.testing.assert_allclose(got, _expected(x), atol=2e-3)
+
+
+def test_a_gap_restarts_the_calibration_window_and_says_so(flex_client: TestClient) -> None:
+    x = _block(400, seed=5)
+    with flex_client.websocket_connect("/v1/stream/flex") as ws:
+        ws.send_json({"type": "start", "channels": CHANNELS})
+        ws.receive_json()
+        messages = _stream(ws, [(0, x[:120]), (150, x[150:260]), (100, x[100:110])])
+    kinds = [m["type"] for m in messages]
+    assert kinds == ["angles", "gap", "angles", "late"], kinds
+    assert messages[1]["missing"] == 30 and messages[2]["first_sample"] == 150 + 99  # in the stream's time
+    assert messages[2]["frames"] == 11 and messages[3]["samples_dropped"] == 10
+
+
+@pytest.mark.parametrize(
+    "start, packet, code, fragment",
+    [
+        ({"type": "start", "channels": ["a", "b"]}, None, 1008, "name one of the loaded flex models"),
+        ({"type": "start", "model": "flex_pose", "channels": CHANNELS[::-1]}, None, 1008, "in this order"),
+        ({"type": "start", "channels": CHANNELS, "sample_rate_hz": 30.0}, None, 1008, "an integer multiple"),
+        (
+            {"type": "start", "channels": CHANNELS},
+            {"type": "samples", "seq": 100, "samples": [[1, 2, 3]]},
+            1008,
+            "every sample needs 4 values",
+        ),
+        (
+            {"type": "start", "channels": CHANNELS},
+            {"type": "samples", "seq": 100, "samples": [[1, 2, 3, 5000]]},
+            1008,
+            "packet seq 100: samples[0]: values must lie in [0, 4095]",
+        ),
+    ],
+)
+def test_stream_mistakes_close_with_what_was_expected(flex_client, start, packet, code, fragment) -> None:
+    x = _block(100, seed=6)
+    with flex_client.websocket_connect("/v1/stream/flex") as ws:
+        ws.send_json(start)
+        if packet is not None:
+            assert ws.receive_json()["type"] == "started"
+            ws.send_json({"type": "samples", "seq": 0, "samples": x.tolist()})  # accepted: its answer must come
+            ws.send_json(packet)
+        messages = []
+        with pytest.raises(WebSocketDisconnect) as exc:
+            while True:
+                messages.append(ws.receive_json())
+    assert exc.value.code == code
+    assert fragment in messages[-1]["detail"], messages[-1]
+    if packet is not None:
+        assert [m["type"] for m in messages] == ["angles", "error"]
+
+
+def test_models_endpoint_lists_the_flex_contract(flex_client: TestClient) -> None:
+    flex = flex_client.get("/v1/models").json()["flex_pose"]
+    manifest = flex["manifest"] if "manifest" in flex else flex
+    assert manifest["channels"][0] == "left_elbow" and manifest["joints"][0] == "LeftElbow"
+    assert manifest["value_range"] == [0.0, 4095.0] and manifest["flex"]["latency_samples"] == 0
+
+
+def test_a_flex_manifest_that_does_not_describe_its_tensors_is_refused(tmp_path: Path) -> None:
+    from service.core.manifest import read_manifest
+    from service.inference.registry import load_models
+
+    root = tmp_path / "onnx_models"
+    target = write_tiny_pose_model(root, "flex_pose")
+    manifest = read_manifest(target / "manifest.json").model_dump()
+    manifest["joints"] = manifest["joints"][:3]  # the output has 4 joints
+    (target / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match=r"output of shape \['batch', 3, 1\]"):
+        read_manifest(target / "manifest.json")
+    manifest["joints"] = JOINTS
+    manifest["flex"] = None
+    (target / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match="needs a 'flex' section"):
+        read_manifest(target / "manifest.json")
+    assert load_models(root, 1) == {}  # refused with a log line, nothing served

@@ -1,0 +1,88 @@
+"""The Table 5 networks: shapes, the median layer, the calibration module, and ONNX parity for each variant."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from training.flex.config import FlexModelConfig
+from training.flex.export import export_flex_onnx
+from training.flex.models import DynamicCalibration, FlexNet, median3
+
+VARIANTS = [
+    ("bilstm", False, False),
+    ("transformer", False, False),
+    ("fcn", False, False),
+    ("tcn", False, False),
+    ("bilstm", True, False),
+    ("bilstm", False, True),
+    ("bilstm", True, True),
+]
+
+
+def _net(kind: str, calibration: bool, median: bool, channels: int = 4, joints: int = 3) -> FlexNet:
+    torch.manual_seed(0)
+    cfg = FlexModelConfig(kind=kind, calibration=calibration, median=median)
+    return FlexNet(
+        cfg,
+        channels,
+        joints,
+        3,
+        torch.zeros(channels),
+        torch.full((channels,), 4095.0),
+        torch.zeros(joints * 3),
+        torch.ones(joints * 3) * 20.0,
+    ).eval()
+
+
+def test_median3_is_the_median_of_each_step_and_its_neighbours() -> None:
+    p = torch.randn(5, 7, 4)
+    padded = torch.cat([p[:, :1], p, p[:, -1:]], dim=1)
+    expected = torch.stack([padded[:, :-2], padded[:, 1:-1], padded[:, 2:]]).median(dim=0).values
+    torch.testing.assert_close(median3(p), expected)
+
+
+def test_the_calibration_module_pools_as_eq_2_and_keeps_the_window() -> None:
+    cal = DynamicCalibration(100, 15, 10, 8)
+    assert cal.linear.in_features == (100 - 15 + 1) + 16 - 10 + 1  # min pool, then average pool padded by 8
+    assert cal(torch.rand(3, 100, 4)).shape == (3, 100, 4)
+    y = torch.full((3, 100, 4), 0.5)
+    # the baseline is built from the running minimum: a spike does not move it, a dip does
+    spiky, dipped = y.clone(), y.clone()
+    spiky[:, 50] += 5.0
+    dipped[:, 50] -= 5.0
+    torch.testing.assert_close(cal.baseline(spiky), cal.baseline(y))
+    assert not torch.allclose(cal.baseline(dipped), cal.baseline(y))
+
+
+@pytest.mark.parametrize("kind, calibration, median", VARIANTS)
+def test_each_variant_answers_one_pose_per_window_and_exports_with_parity(
+    kind, calibration, median, tmp_path: Path
+) -> None:
+    net = _net(kind, calibration, median)
+    x = torch.from_numpy(np.random.default_rng(0).uniform(500, 3500, size=(6, 100, 4)).astype(np.float32))
+    with torch.no_grad():
+        y = net(x)
+        steps = net.steps_deg(x)
+    assert y.shape == (6, 3, 3) and steps.shape == (6, 5, 9)
+    assert net.latency_samples == (1 if median else 0)
+    torch.testing.assert_close(y.reshape(6, 9), steps[:, net.answer_step])
+    path = export_flex_onnx(net, tmp_path / "model.onnx")
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"counts": x.numpy()[:3]})[0]
+    np.testing.assert_allclose(got, y.numpy()[:3], atol=1e-3)
+
+
+def test_only_the_last_steps_reach_the_network_without_calibration() -> None:
+    """Without the calibration module the answer depends on the last ``steps`` samples only; with it, on the
+    whole window (its baseline)."""
+    x = torch.from_numpy(np.random.default_rng(1).uniform(500, 3500, size=(2, 100, 4)).astype(np.float32))
+    earlier = x.clone()
+    earlier[:, :50] = 100.0
+    for calibration, same in ((False, True), (True, False)):
+        net = _net("bilstm", calibration, False)
+        with torch.no_grad():
+            assert torch.allclose(net(x), net(earlier)) is same
