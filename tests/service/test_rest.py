@@ -273,10 +273,10 @@ def test_openapi_documents_every_endpoint_with_examples(client: TestClient) -> N
     from service.api.schemas import (
         AssignRequest,
         AssignResponse,
+        FlexRequest,
+        FlexResponse,
         PoseImuRequest,
         PoseImuResponse,
-        PoseRequest,
-        PoseResponse,
         WindowsRequest,
         WindowsResponse,
     )
@@ -295,7 +295,7 @@ def test_openapi_documents_every_endpoint_with_examples(client: TestClient) -> N
             if "requestBody" in op:
                 assert has_example(op["requestBody"]), f"{method} {path}: no request example"
     # The examples are valid bodies.
-    bodies = (WindowsRequest, WindowsResponse, AssignRequest, AssignResponse, PoseRequest, PoseResponse)
+    bodies = (WindowsRequest, WindowsResponse, AssignRequest, AssignResponse, FlexRequest, FlexResponse)
     for model in (*bodies, PoseImuRequest, PoseImuResponse):
         for example in model.model_config["json_schema_extra"]["examples"]:
             model.model_validate(example)

@@ -37,6 +37,9 @@ class FlexModelConfig(Strict):
     # minmax: the training set's per-channel bounds (§3.4.3). window_relative (ours, for real sleeves whose
     # read-outs differ tenfold between legs): each channel over its window's mean, minus one, then min-max.
     input_norm: Literal["minmax", "window_relative"] = "minmax"
+    # bilstm: Dense1, Dense2, the LSTM's hidden units per direction, Dense3, Dense4 (appendix B: 100, 512, 512,
+    # 1024, 150)
+    bilstm_sizes: tuple[int, int, int, int, int] = (100, 512, 512, 1024, 150)
 
 
 class FlexTrainConfig(Strict):

@@ -57,12 +57,13 @@ def median3(p: torch.Tensor) -> torch.Tensor:
 
 
 class BiLSTMNet(nn.Module):
-    def __init__(self, channels: int, outputs: int) -> None:
+    def __init__(self, channels: int, outputs: int, sizes: tuple[int, int, int, int, int]) -> None:
         super().__init__()
-        self.pre = nn.Sequential(nn.Linear(channels, 100), nn.ReLU(), nn.Linear(100, 512), nn.ReLU())
-        self.lstm = nn.LSTM(512, 512, batch_first=True, bidirectional=True)
-        self.post = nn.Sequential(nn.Linear(1024, 1024), nn.ReLU(), nn.Linear(1024, 150), nn.ReLU())
-        self.out = nn.Linear(150, outputs)
+        d1, d2, hidden, d3, d4 = sizes
+        self.pre = nn.Sequential(nn.Linear(channels, d1), nn.ReLU(), nn.Linear(d1, d2), nn.ReLU())
+        self.lstm = nn.LSTM(d2, hidden, batch_first=True, bidirectional=True)
+        self.post = nn.Sequential(nn.Linear(2 * hidden, d3), nn.ReLU(), nn.Linear(d3, d4), nn.ReLU())
+        self.out = nn.Linear(d4, outputs)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h, _ = self.lstm(self.pre(x))
@@ -144,7 +145,7 @@ class FlexNet(nn.Module):
             DynamicCalibration(cfg.window, cfg.min_kernel, cfg.avg_kernel, cfg.avg_padding) if cfg.calibration else None
         )
         if cfg.kind == "bilstm":
-            self.net: nn.Module = BiLSTMNet(channels, outputs)
+            self.net: nn.Module = BiLSTMNet(channels, outputs, cfg.bilstm_sizes)
         elif cfg.kind == "transformer":
             self.net = TransformerNet(channels, outputs, cfg.steps)
         elif cfg.kind == "fcn":

@@ -1,0 +1,122 @@
+"""The flex jobs end to end against a real MLflow server: simulated suits from real BVH (the iClone CMU clips)
+and the real capacitive sleeves, with tiny training budgets; the shipped ONNX files score as torch did."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mlflow.tracking import MlflowClient
+
+from service.core.manifest import read_manifest
+from service.core.recordings import CAPACITIVE_CHANNELS, read_capacitive_sleeve
+from service.inference.flex import FlexModel
+from service.inference.registry import load_model
+from training.flex.capacitive import evaluate_capacitive, run_capacitive_experiment
+from training.flex.config import CapacitiveConfig, FlexConfig
+from training.flex.pipeline import build_sets, evaluate_served, load_flex_data, log_summary_run, run_flex_experiment
+
+TINY = {
+    "data": {"sources": ["cmu_iclone"], "test_subjects": ["cmu_07"], "val_subjects": ["cmu_03"], "suits_per_clip": 1},
+    "train": {"windows_per_epoch": 128, "max_epochs": 2, "patience": 5},
+    "tracking": {"experiment": "test-flex"},
+}
+
+
+@pytest.fixture(scope="module")
+def flex_runs(mlflow_server: str, data_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    models = tmp_path_factory.mktemp("onnx_models")
+    cache = tmp_path_factory.mktemp("pose_cache")
+    cfgs = [
+        FlexConfig.model_validate({"name": "tiny_flex_cm", "model": {"calibration": True, "median": True}, **TINY}),
+        FlexConfig.model_validate({"name": "tiny_flex_fcn", "model": {"kind": "fcn"}, **TINY}),
+    ]
+    data = load_flex_data(cfgs[0], data_dir, cache)
+    sets = build_sets(cfgs[0], data)
+    results = [run_flex_experiment(cfgs[0], data, sets, models, "0.0.1"), run_flex_experiment(cfgs[1], data, sets)]
+    return {"results": results, "summary": log_summary_run(results, "test-flex"), "data": data, "models": models}
+
+
+def test_each_network_is_a_run_with_its_metrics_plots_and_registered_model(flex_runs: dict) -> None:
+    client = MlflowClient()
+    for r in flex_runs["results"]:
+        run = client.get_run(r["run_id"])
+        m = run.data.metrics
+        for key in (
+            "test_mae_deg",
+            "test_jitter_deg_s3",
+            "val_mae_deg",
+            "test_meanpose_mae_deg",
+            "test_joint_LeftKnee_deg",
+            "test_replaced_mae_deg",
+            "test_other_lot_mae_deg",
+            "run_time_ms_per_window",
+            "train_wall_time_s",
+            "onnx_parity_max_abs",
+        ):
+            assert key in m and np.isfinite(m[key]), key
+        assert len(client.get_metric_history(run.info.run_id, "test_ageing_mae_deg")) == 6  # the ageing curve
+        assert len(client.get_metric_history(run.info.run_id, "val_mae_deg_epoch")) == 2
+        plots = {a.path for a in client.list_artifacts(run.info.run_id, "plots")}
+        assert {
+            "plots/learning_curve.png",
+            "plots/ageing_error.png",
+            "plots/joint_errors_test.png",
+            "plots/trace_walk.png",
+        } <= plots
+        assert run.data.tags["trains_on_bandai_namco"] == "False"
+    versions = client.search_model_versions("name='tiny_flex_cm'")
+    assert len(versions) == 1
+    summary = client.get_run(flex_runs["summary"])
+    assert {a.path for a in client.list_artifacts(summary.info.run_id, "table")} == {
+        "table/table5.csv",
+        "table/table5.md",
+    }
+    assert "BiLSTM-CM_test_mae_deg" in summary.data.metrics and "FCN_test_mae_deg" in summary.data.metrics
+
+
+def test_the_shipped_flex_model_is_served_and_scores_as_in_its_run(flex_runs: dict) -> None:
+    target = flex_runs["models"] / "tiny_flex_cm" / "0.0.1"
+    manifest = read_manifest(target / "manifest.json")
+    assert manifest.task == "flex_pose" and manifest.flex.calibration and manifest.flex.latency_samples == 1
+    assert manifest.channels == ["LeftKnee_flex", "RightKnee_flex", "LeftElbow_flex", "RightElbow_flex"]
+    assert manifest.value_range == [0.0, 4095.0] and manifest.sample_rate_hz == 20.0 and manifest.window_samples == 100
+    model = FlexModel(load_model(target, 1))
+    served = evaluate_served(model.loaded, flex_runs["data"])
+    logged = flat = flex_runs["results"][0]
+    assert served["test"]["mae_deg"] == pytest.approx(logged["test"]["mae_deg"], abs=0.02)
+    assert served["ageing"][0.3]["mae_deg"] == pytest.approx(flat["ageing"][0.3]["mae_deg"], abs=0.02)
+
+
+def test_sleeve_channels_are_read_by_name_and_a_failed_read_out_ends_the_recording(data_dir: Path) -> None:
+    left, rate = read_capacitive_sleeve(data_dir, "CSBaseline", "Left")
+    right, _ = read_capacitive_sleeve(data_dir, "CSBaseline", "Right")
+    assert rate == pytest.approx(100.0) and left.shape == (5950, len(CAPACITIVE_CHANNELS))
+    assert 3900 < len(right) < 4000  # the right sleeve fails at 39.7 s of this trial
+    assert np.all(np.abs(right / np.median(right, axis=0) - 1) < 0.5)
+    # the right file lists the channels the other way round (Top_Thigh first); by name Bot_Shank comes first
+    assert abs(np.median(left[:, 0]) - 9160) < 100
+    assert abs(np.median(right[:, 0]) - 911) < 30 and abs(np.median(right[:, 6]) - 1291) < 30
+
+
+def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
+    mlflow_server: str, data_dir: Path, tmp_path: Path
+) -> None:
+    cfg = CapacitiveConfig.model_validate(
+        {
+            "name": "tiny_capacitive",
+            "model": {"calibration": True, "median": True, "input_norm": "window_relative"},
+            "train": {"windows_per_epoch": 128, "max_epochs": 1},
+            "tracking": {"experiment": "test-flex-capacitive"},
+        }
+    )
+    out = run_capacitive_experiment(cfg, data_dir, tmp_path, "0.0.1")
+    m = out["metrics"]
+    assert {"test_left_knee_mae_deg", "test_right_knee_mae_deg", "test_mae_deg", "val_mae_deg"} <= set(m)
+    loaded = load_model(tmp_path / "tiny_capacitive" / "0.0.1", 1)
+    assert loaded.manifest.channels == list(CAPACITIVE_CHANNELS) and loaded.manifest.joints == ["Knee"]
+    assert loaded.manifest.sample_rate_hz == 50.0 and loaded.manifest.value_range is None
+    again = evaluate_capacitive(loaded, cfg, data_dir)
+    assert again["mae_deg"] == pytest.approx(m["test_mae_deg"], abs=0.02)
+    assert again["per_leg_mae_deg"]["Left"] == pytest.approx(m["test_left_knee_mae_deg"], abs=0.02)
