@@ -28,13 +28,14 @@ def server():
 
 
 def _suit_readings(data_dir: Path) -> np.ndarray:
-    """A CMU walk read by one simulated suit at 20 Hz (the simulator of the shipped model)."""
+    """CMU motion (the largest iClone clip, at most 30 s of it) read by one simulated suit at 20 Hz (the simulator
+    of the shipped model)."""
     from training.flex.simulate import draw_suit, simulate_counts
     from training.pose.data import load_motion
 
-    path = next((data_dir / "mocap" / "cmu_iclone").rglob("*.bvh*"))
+    path = max((data_dir / "mocap" / "cmu_iclone").rglob("*.bvh*"), key=lambda p: p.stat().st_size)
     motion = load_motion(path, "cmu_iclone")
-    bend = bend_angles_deg(motion.R_world_segment[::3], FLEX_SENSOR_JOINTS)
+    bend = bend_angles_deg(motion.R_world_segment[: 60 * 30 : 3], FLEX_SENSOR_JOINTS)
     return simulate_counts(bend, draw_suit(np.random.default_rng(0), 4), np.random.default_rng(1))
 
 
