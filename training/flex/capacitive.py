@@ -41,7 +41,11 @@ from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 log = logging.getLogger(__name__)
 
 SIDES = ("Left", "Right")
-CHANNEL_UNITS = "raw capacitance reading of the sleeve's read-out (about 9,000-16,000 on Sub01), unitless"
+CHANNEL_UNITS = "raw capacitance reading of the sleeve's read-out (Sub01: about 9,000-15,000 left, 900-1,300 right)"
+HINGE_CONVENTION = (
+    "knee flexion in degrees, positive flexed: the functional hinge angle between femur and tibia sensors "
+    "(service.core.flex.fit_hinge), zero at the training trial's 2nd percentile (full extension in walking)"
+)
 
 
 @dataclass
@@ -205,6 +209,7 @@ def run_capacitive_experiment(
             joints=["Knee"],
             components=["flexion"],
             simulated_sensor="",
+            angle_convention=HINGE_CONVENTION,
         )
         proto = onnx.load(str(onnx_path))
         info = log_onnx_model(proto, golden, manifest, input_key="counts")

@@ -63,6 +63,7 @@ def build_flex_manifest(
     joints: list[str] | None = None,
     components: list[str] | None = None,
     simulated_sensor: str = "training.flex.simulate (resistive strips, Chen et al. 2024 eq. 1, 12-bit)",
+    angle_convention: str = ANGLE_CONVENTION,
 ) -> Manifest:
     channels = channels or [f"{j}_flex" for j in cfg.sensors]
     joints = joints or list(cfg.joints)
@@ -106,7 +107,7 @@ def build_flex_manifest(
             median=cfg.model.median,
             steps=cfg.model.steps,
             latency_samples=net.latency_samples,
-            angle_convention=ANGLE_CONVENTION,
+            angle_convention=angle_convention,
             simulated_sensor=simulated_sensor,
         ),
         sha256=sha256,
