@@ -85,14 +85,12 @@ class Manifest(BaseModel):
     created_utc: str
     inputs: list[TensorSpec]
     outputs: list[TensorSpec]
-    # joint_angles_deg: output (batch, joints, components) in degrees; joint_axis_angle_rad: (batch, joints, 3),
-    # each joint's rotation as axis × angle in radians.
+    # joint_angles_deg: output (batch, joints, components) in degrees (flex_pose).
     output_kind: Literal[
         "probabilities",
         "logits",
         "quaternion_per_segment",
         "joint_angles_deg",
-        "joint_axis_angle_rad",
         "rotation_matrix_per_segment",
     ]
     sample_rate_hz: float
@@ -127,12 +125,12 @@ class Manifest(BaseModel):
             return self._imu_pose_contract()
         if self.task != "flex_pose":
             return self
-        if self.output_kind not in ("joint_angles_deg", "joint_axis_angle_rad"):
-            raise ValueError(f"a {self.task} model needs a joint output_kind, got {self.output_kind}")
+        if self.output_kind != "joint_angles_deg":
+            raise ValueError(f"a {self.task} model needs output_kind joint_angles_deg, got {self.output_kind}")
         expected_in = ["batch", self.window_samples, len(self.channels)]
         if len(self.inputs) != 1 or self.inputs[0].shape != expected_in:
             raise ValueError(f"a {self.task} model takes one input of shape {expected_in}")
-        k = len(self.joint_components) if self.output_kind == "joint_angles_deg" else 3
+        k = len(self.joint_components)
         expected_out = ["batch", len(self.joints), k]
         if len(self.outputs) != 1 or self.outputs[0].shape != expected_out or not self.joints or not k:
             raise ValueError(f"a {self.task} model gives one output of shape {expected_out} (joints × components)")

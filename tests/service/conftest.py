@@ -95,7 +95,7 @@ def write_tiny_model(root: Path, task: str) -> Path:
     return target
 
 
-# Two tiny pose models, one per output kind: (task, channels, rate Hz, window, value range, joints, components).
+# A tiny flex model: (channels, rate Hz, window, value range, joints, components) per task.
 TINY_POSE = {
     "flex_pose": (
         ["left_elbow", "right_elbow", "left_knee", "right_knee"],
@@ -143,15 +143,15 @@ def write_tiny_pose_model(root: Path, task: str) -> Path:
         created_utc=dt.datetime.now(dt.UTC).isoformat(),
         inputs=[TensorSpec(name="x", shape=["batch", window, len(channels)], dtype="float32")],
         outputs=[TensorSpec(name="pose", shape=["batch", len(joints), len(components)], dtype="float32")],
-        output_kind="joint_angles_deg" if task == "flex_pose" else "joint_axis_angle_rad",
+        output_kind="joint_angles_deg",
         sample_rate_hz=rate,
         window_samples=window,
         hop_samples=1,
         channels=channels,
-        units={"flex": "counts_12bit"} if task == "flex_pose" else {"features": "see channels"},
+        units={"flex": "counts_12bit"},
         classes=[],
         joints=joints,
-        joint_components=components if task == "flex_pose" else [],
+        joint_components=components,
         value_range=value_range,
         flex=FlexSpec(
             architecture="window mean times a matrix (a test model)",
