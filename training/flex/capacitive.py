@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +24,7 @@ import numpy as np
 import onnx
 
 from service.core.flex import fit_hinge, hinge_angle_deg
-from service.core.manifest import Evaluation, sha256_file, write_manifest
+from service.core.manifest import Evaluation, sha256_file
 from service.core.recordings import CAPACITIVE_CHANNELS, read_capacitive_oriented, read_capacitive_sleeve
 from service.core.resample import resample_uniform
 from service.inference.registry import load_model
@@ -36,6 +35,7 @@ from training.flex.evaluate import clip_metrics, mean_pose_predictor
 from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_parity
 from training.flex.train import torch_predictor, train_flex
 from training.plots import flex_learning_curve_png, traces_png
+from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 
 log = logging.getLogger(__name__)
@@ -216,17 +216,9 @@ def run_capacitive_experiment(
         registered = mlflow.register_model(info.model_uri, cfg.registered_model)
         digest = f"{cfg.source}|{cfg.train_trial}|val{cfg.val_share}|{cfg.rate_hz}"
         maybe_promote(cfg.registered_model, registered.version, "val_mae_deg", val["mae_deg"], False, digest)
-        manifest = manifest.model_copy(
-            update={
-                "mlflow": manifest.mlflow | {"model_uri": info.model_uri, "registered_version": str(registered.version)}
-            }
-        )
+        manifest = with_registry(manifest, info, registered)
         if ship_to is not None:
-            shipped = ship_to / cfg.name / version
-            shipped.mkdir(parents=True, exist_ok=True)
-            shutil.copy(onnx_path, shipped / "model.onnx")
-            shutil.copy(tmp / "golden.npz", shipped / "golden.npz")
-            write_manifest(manifest, shipped / "manifest.json")
+            shipped = ship_files(ship_to, manifest, onnx_path, tmp / "golden.npz")
             served = load_model(shipped, 2)
             a = clip_metrics(served.run, sets["test"], 0, lat, cfg.joints, [])["mae_deg"]
             if abs(a - test["mae_deg"]) > 0.02:

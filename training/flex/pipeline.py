@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import tempfile
 import time
 from dataclasses import dataclass
@@ -18,7 +17,7 @@ import numpy as np
 import onnx
 import pandas as pd
 
-from service.core.manifest import Evaluation, sha256_file, write_manifest
+from service.core.manifest import Evaluation, sha256_file
 from service.inference.registry import load_model
 from training.config import flatten
 from training.flex.config import FlexConfig
@@ -28,7 +27,8 @@ from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_par
 from training.flex.simulate import AGEING_BEYOND, FLEX_RATE_HZ, draw_sensor, draw_suit, simulate_counts
 from training.flex.train import FlexTrainResult, torch_predictor, train_flex
 from training.plots import bars_png, curves_png, flex_learning_curve_png, traces_png
-from training.pose.data import BANDAI_LICENCE, build_motions, dataset_digest, pose_entries, split_by_subject
+from training.pose.data import BANDAI_LICENCE, build_motions, dataset_digest, held_out_split, pose_entries
+from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 
 log = logging.getLogger(__name__)
@@ -50,12 +50,8 @@ class FlexData:
 
 def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> FlexData:
     clips = build_motions(data_dir, pose_entries(data_dir, cfg.data.sources), cache_dir, workers)
-    held = [
-        c.path
-        for c in clips
-        if not c.subject and c.activity in cfg.data.test_activities_of_unlabelled.get(c.source, [])
-    ]
-    train, val, test = split_by_subject(clips, cfg.data.test_subjects, cfg.data.val_subjects, held)
+    d = cfg.data
+    train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     log.info("flex split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
     conv = lambda cl: [flex_clip(c, cfg.joints, cfg.sensors, cfg.model.window) for c in cl]  # noqa: E731
     return FlexData(
@@ -285,17 +281,9 @@ def run_flex_experiment(
             cfg.registered_model, registered.version, SELECTION_METRIC, val["mae_deg"], False, data.digest_val
         )
         mlflow.set_tag("promoted_to_champion", str(promoted))
-        manifest = manifest.model_copy(
-            update={
-                "mlflow": manifest.mlflow | {"model_uri": info.model_uri, "registered_version": str(registered.version)}
-            }
-        )
+        manifest = with_registry(manifest, info, registered)
         if ship_to is not None:
-            shipped = ship_to / cfg.name / version
-            shipped.mkdir(parents=True, exist_ok=True)
-            shutil.copy(onnx_path, shipped / "model.onnx")
-            shutil.copy(tmp / "golden.npz", shipped / "golden.npz")
-            write_manifest(manifest, shipped / "manifest.json")
+            shipped = ship_files(ship_to, manifest, onnx_path, tmp / "golden.npz")
             served = load_model(shipped, 2)  # the served path must score as torch did
             a = clip_metrics(served.run, sets["test"], 0, lat, cfg.joints, cfg.sensors)["mae_deg"]
             if abs(a - test["mae_deg"]) > 0.02:

@@ -193,6 +193,17 @@ def split_by_subject(
     return train, val, test
 
 
+def held_out_split(
+    clips: list[MotionClip],
+    test_subjects: list[str],
+    val_subjects: list[str],
+    test_activities_of_unlabelled: dict[str, list[str]],
+) -> tuple[list[MotionClip], list[MotionClip], list[MotionClip]]:
+    """``split_by_subject`` with whole clips of unlabelled pools held out by activity (the li2018 runs)."""
+    held = [c.path for c in clips if not c.subject and c.activity in test_activities_of_unlabelled.get(c.source, [])]
+    return split_by_subject(clips, test_subjects, val_subjects, held)
+
+
 def dataset_digest(clips: list[MotionClip]) -> str:
     return hashlib.sha256("|".join(sorted(c.digest for c in clips)).encode()).hexdigest()[:20]
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +20,7 @@ import pandas as pd
 import torch
 
 from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, clip_body
-from service.core.manifest import Evaluation, sha256_file, write_manifest
+from service.core.manifest import Evaluation, sha256_file
 from service.inference.pose import PoseModel, whole_body
 from service.inference.registry import load_model
 from training.config import flatten
@@ -31,8 +30,8 @@ from training.pose.data import (
     MotionClip,
     build_motions,
     dataset_digest,
+    held_out_split,
     pose_entries,
-    split_by_subject,
     trains_on_bandai,
 )
 from training.pose.evaluate import (
@@ -46,6 +45,7 @@ from training.pose.evaluate import (
 from training.pose.export import build_pose_manifest, export_pose_onnx, golden_pair, is_streaming, onnx_parity
 from training.pose.simulate import Session
 from training.pose.train import PoseTrainResult, fixed_sessions, torch_predictor, train_pose
+from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 
 log = logging.getLogger(__name__)
@@ -64,12 +64,8 @@ class PoseData:
 
 def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> PoseData:
     clips = build_motions(data_dir, pose_entries(data_dir, cfg.data.sources), cache_dir, workers)
-    held_clips = [
-        c.path
-        for c in clips
-        if not c.subject and c.activity in cfg.data.test_activities_of_unlabelled.get(c.source, [])
-    ]
-    train, val, test = split_by_subject(clips, cfg.data.test_subjects, cfg.data.val_subjects, held_clips)
+    d = cfg.data
+    train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     log.info("pose split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
     return PoseData(train, val, test)
 
@@ -252,18 +248,10 @@ def run_pose_experiment(
             cfg.registered_model, registered.version, SELECTION_METRIC, val_value, False, dataset_digest(data.val)
         )
         mlflow.set_tag("promoted_to_champion", str(promoted))
-        manifest = manifest.model_copy(
-            update={
-                "mlflow": manifest.mlflow | {"model_uri": info.model_uri, "registered_version": str(registered.version)}
-            }
-        )
+        manifest = with_registry(manifest, info, registered)
         shipped = None
         if ship_to is not None:
-            shipped = ship_to / cfg.name / version
-            shipped.mkdir(parents=True, exist_ok=True)
-            shutil.copy(onnx_path, shipped / "model.onnx")
-            shutil.copy(tmp / "golden.npz", shipped / "golden.npz")
-            write_manifest(manifest, shipped / "manifest.json")
+            shipped = ship_files(ship_to, manifest, onnx_path, tmp / "golden.npz")
             served = PoseModel(load_model(shipped, 2))  # the served path: its numbers must equal torch's
             served_summary = summarise(
                 evaluate_clips(served.predict, data.test, test_sessions, cfg.sensors, cfg.outputs)

@@ -1,0 +1,28 @@
+"""What every task does to ship a model: its files under ``onnx_models/<name>/<version>/`` (DESIGN.md §1) and the
+registry entry recorded in its manifest."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from mlflow.entities.model_registry import ModelVersion
+from mlflow.models.model import ModelInfo
+
+from service.core.manifest import Manifest, write_manifest
+
+
+def with_registry(manifest: Manifest, info: ModelInfo, registered: ModelVersion) -> Manifest:
+    """The manifest naming the logged model and its registered version."""
+    extra = {"model_uri": info.model_uri, "registered_version": str(registered.version)}
+    return manifest.model_copy(update={"mlflow": manifest.mlflow | extra})
+
+
+def ship_files(ship_to: Path, manifest: Manifest, onnx_path: Path, golden_path: Path) -> Path:
+    """``model.onnx``, ``golden.npz`` and ``manifest.json`` under ``ship_to/<name>/<version>``; the folder."""
+    shipped = ship_to / manifest.name / manifest.version
+    shipped.mkdir(parents=True, exist_ok=True)
+    shutil.copy(onnx_path, shipped / "model.onnx")
+    shutil.copy(golden_path, shipped / "golden.npz")
+    write_manifest(manifest, shipped / "manifest.json")
+    return shipped
