@@ -40,7 +40,7 @@ def choose_flex_model(models: dict[str, FlexModel], name: str | None, width: int
 def flex_answer(model: FlexModel, rows: np.ndarray) -> FlexResponse:
     angles = model.run_block(rows)
     m = model.manifest
-    per_joint = np.round(angles, 3)
+    per_joint = np.round(angles.astype(np.float64), 3)
     return FlexResponse(
         model={"name": m.name, "version": m.version},
         sample_rate_hz=m.sample_rate_hz,

@@ -140,7 +140,7 @@ async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, out
             "type": "angles",
             "first_sample": int(first),
             "frames": len(angles),
-            "angles_deg": np.round(angles, 3),
+            "angles_deg": np.round(angles.astype(np.float64), 3),
         }
         if outbox.put(message):
             ws.app.state.metrics.dropped.inc()
