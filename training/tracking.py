@@ -35,10 +35,10 @@ def setup_tracking(experiment: str) -> str:
 def log_onnx_model(
     proto: onnx.ModelProto, golden: dict[str, np.ndarray], manifest: Manifest, input_key: str | None = None
 ) -> ModelInfo:
-    """Log the active run's ONNX model with its signature and input example (from the golden pair: ``imu`` for the
-    I2S models, ``features`` for pose). The manifest rides in the MLmodel metadata, so the service can serve the
-    model straight from the registry."""
-    input_key = input_key or ("imu" if "imu" in golden else "features")
+    """Log the active run's ONNX model with its signature and input example (from the golden pair, keyed by the
+    model's first input: ``imu`` for the I2S models, ``features`` for pose, ``counts`` for flex). The manifest
+    rides in the MLmodel metadata, so the service can serve the model straight from the registry."""
+    input_key = input_key or manifest.inputs[0].name
     return mlflow.onnx.log_model(
         onnx_model=proto,
         name="model",

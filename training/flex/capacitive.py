@@ -22,6 +22,7 @@ from pathlib import Path
 import mlflow
 import numpy as np
 import onnx
+import pandas as pd
 
 from service.core.flex import fit_hinge, hinge_angle_deg
 from service.core.manifest import Evaluation, sha256_file
@@ -33,6 +34,7 @@ from training.flex.config import CapacitiveConfig
 from training.flex.data import FlexClip, WindowSet, window_set
 from training.flex.evaluate import clip_metrics, mean_pose_predictor
 from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_parity
+from training.flex.pipeline import log_datasets
 from training.flex.train import torch_predictor, train_flex
 from training.plots import flex_learning_curve_png, traces_png
 from training.shipping import ship_files, with_registry
@@ -125,6 +127,7 @@ def run_capacitive_experiment(
             }
         )
         mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
+        log_datasets(sleeve_tables(cfg, sets), str(data_dir), "flex-capacitive")
         result = train_flex(
             cfg,
             sets["train"],
@@ -225,6 +228,22 @@ def run_capacitive_experiment(
                 raise RuntimeError(f"the shipped model scores {a:.3f}° where torch scored {test['mae_deg']:.3f}°")
             summary["shipped"] = str(shipped)
         return summary
+
+
+def sleeve_tables(cfg: CapacitiveConfig, sets: dict[str, WindowSet]) -> dict[str, pd.DataFrame]:
+    """The recordings of each part (train, validation, test) as MLflow dataset tables."""
+    out = {}
+    for context, key in (("train", "train"), ("validation", "val"), ("test", "test")):
+        ws = sets[key]
+        out[context] = pd.DataFrame(
+            {
+                "recording": [f"{cfg.source}/{c.path}" for c in ws.clips],
+                "activity": [c.activity for c in ws.clips],
+                "samples": [len(c.angles) for c in ws.clips],
+                "rate_hz": [cfg.rate_hz] * len(ws.clips),
+            }
+        )
+    return out
 
 
 def _per_clip(predict, ws: WindowSet, latency: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:

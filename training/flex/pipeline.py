@@ -5,6 +5,7 @@ summary run with the table and the bar chart. The validation subjects choose; th
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import tempfile
@@ -46,6 +47,7 @@ class FlexData:
     digest_train: str
     digest_val: str
     bandai: bool
+    source: str = ""  # the data directory
 
 
 def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> FlexData:
@@ -61,7 +63,29 @@ def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: in
         dataset_digest(train),
         dataset_digest(val),
         any(c.source.startswith("bandai_namco") for c in train),
+        str(data_dir),
     )
+
+
+def clip_table(clips: list[FlexClip]) -> pd.DataFrame:
+    return pd.DataFrame(
+        {
+            "path": [c.path for c in clips],
+            "source": [c.source for c in clips],
+            "subject": [c.group for c in clips],
+            "activity": [c.activity for c in clips],
+            "frames_20hz": [c.frames for c in clips],
+        }
+    )
+
+
+def log_datasets(tables: dict[str, pd.DataFrame], source: str, prefix: str) -> None:
+    """One MLflow dataset input per context (train, validation, test), named by its content's digest."""
+    for context, table in tables.items():
+        digest = hashlib.sha256(table.to_csv(index=False).encode()).hexdigest()[:20]
+        mlflow.log_input(
+            mlflow.data.from_pandas(table, source=source, name=f"{prefix}-{context}-{digest}"), context=context
+        )
 
 
 def ageing_set(ws: WindowSet, seed: int, baseline0: float) -> WindowSet:
@@ -149,6 +173,8 @@ def run_flex_experiment(
             }
         )
         mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
+        tables = {"train": clip_table(data.train), "validation": clip_table(data.val), "test": clip_table(data.test)}
+        log_datasets(tables, data.source, "flex")
         result: FlexTrainResult = train_flex(
             cfg,
             sets["train"],
