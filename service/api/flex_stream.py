@@ -33,6 +33,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from service.api.protocol import ProtocolError, decode_binary
+from service.api.schemas import Sample
 from service.api.stream import Outbox, _close, _drain, _first_error, _parse_text, _sender
 from service.inference.flex import FlexModel, LiveFlex, check_rows
 from service.inference.predict import InputError
@@ -54,7 +55,7 @@ class FlexSamples(BaseModel):
     model_config = ConfigDict(extra="forbid")
     type: str = Field(pattern="^samples$")
     seq: int = Field(ge=0)
-    samples: list[list[float]] = Field(min_length=1)
+    samples: list[Sample] = Field(min_length=1)
 
 
 def _model_for(start: FlexStart, models: dict[str, FlexModel]) -> FlexModel:

@@ -47,6 +47,7 @@ from service.api.schemas import (
     AccUnit,
     BodySegmentName,
     GyrUnit,
+    Sample,
     SegmentSet,
     check_declarations,
 )
@@ -127,7 +128,7 @@ class SamplesMessage(BaseModel):
     type: Literal["samples"]
     sensor_id: str
     seq: int = Field(ge=0)
-    samples: list[list[float]] = Field(min_length=1)
+    samples: list[Sample] = Field(min_length=1)
 
 
 def decode_binary(data: bytes, n_sensors: int, max_samples: int, width: int = 6) -> tuple[int, int, np.ndarray]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictFloat, model_validator
 
 from service.core.body import BODY_SEGMENTS
 from service.core.segments import SEGMENTS
@@ -13,6 +13,8 @@ from service.core.segments import SEGMENTS
 SegmentName = Literal[SEGMENTS]  # type: ignore[valid-type]
 AccUnit = Literal["m/s^2", "g"]
 GyrUnit = Literal["rad/s", "deg/s"]
+# One sample's values: numbers only (JSON integers too); true, false and "1.5" are refused, not coerced.
+Sample = list[StrictFloat]
 
 
 def _each_once(names: list[str]) -> list[str]:
@@ -66,7 +68,7 @@ class ImuWindow(BaseModel):
     """
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_WINDOW]})
-    samples: list[list[float]] = Field(min_length=1)
+    samples: list[Sample] = Field(min_length=1)
     sample_rate_hz: float = Field(60.0, gt=0, description="between 10 and 2000 Hz")
     acc_unit: AccUnit = "m/s^2"
     gyr_unit: GyrUnit = "rad/s"
@@ -237,7 +239,7 @@ class FlexRequest(BaseModel):
         None, max_length=64, description="optional check: the channel names in the order of each row"
     )
     sample_rate_hz: float | None = Field(None, gt=0, description="default: the model's rate; others are resampled")
-    samples: list[list[float]] = Field(min_length=1)
+    samples: list[Sample] = Field(min_length=1)
 
 
 class FlexResponse(BaseModel):
@@ -281,9 +283,9 @@ class PoseSensor(BaseModel):
     model_config = ConfigDict(extra="forbid")
     sensor_id: str = Field(min_length=1, max_length=64)
     segment: BodySegmentName = Field(description="the body segment the sensor is on (GET /v1/models: pose.sensors)")
-    q_world_sensor: list[list[float]] = Field(min_length=2, description="unit quaternions w, x, y, z per sample")
-    acc: list[list[float]] = Field(min_length=2, description="specific force x, y, z in the sensor frame per sample")
-    gyr: list[list[float]] | None = Field(None, description="angular rate x, y, z (rad/s), optional: checks stillness")
+    q_world_sensor: list[Sample] = Field(min_length=2, description="unit quaternions w, x, y, z per sample")
+    acc: list[Sample] = Field(min_length=2, description="specific force x, y, z in the sensor frame per sample")
+    gyr: list[Sample] | None = Field(None, description="angular rate x, y, z (rad/s), optional: checks stillness")
     q_segment_sensor: list[float] | None = Field(
         None,
         min_length=4,

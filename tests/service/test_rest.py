@@ -310,3 +310,19 @@ def test_lone_surrogates_in_json_get_a_422_not_a_500(client: TestClient, body: s
     r = client.post("/v1/imu/windows", content=body, headers={"content-type": "application/json"})
     assert r.status_code == 422, r.text
     assert r.json()["detail"]
+
+
+@pytest.mark.parametrize("value", [True, "1.5"])
+def test_samples_are_numbers_not_booleans_or_strings(client: TestClient, value) -> None:
+    """JSON integers are numbers; true and "1.5" are refused with where they are, never coerced to 1.0 and 1.5."""
+    rows = [[0, 0, 9.81, 0.1, 0.0, 0.0] for _ in range(128)]
+    rows[7][2] = value
+    r = client.post("/v1/imu/windows", json={"windows": [{"samples": rows}]})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"][-3:] == ["samples", 7, 2], r.json()
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_json({"type": "start", "sensors": [{"sensor_id": "a"}]})
+        assert ws.receive_json()["type"] == "started"
+        ws.send_json({"type": "samples", "sensor_id": "a", "seq": 0, "samples": rows[:8]})
+        message = ws.receive_json()
+    assert message["type"] == "error" and "samples.7.2" in message["detail"] and message["close_code"] == 1008
