@@ -26,7 +26,7 @@ done
 set -m  # each background job in its own process group, so that stopping it stops its children too
 python -m training.cli ui --host "$host" --port "$ui_port" &
 ui=$!
-python -m service --host "$host" --port "$port" &
+WEARMOCAP_UI_URL="http://$host:$ui_port" python -m service --host "$host" --port "$port" &
 svc=$!
 stop() {
   trap - INT TERM EXIT

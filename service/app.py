@@ -14,6 +14,7 @@ from fastapi.exceptions import RequestValidationError
 from service.api.flex_routes import router as flex_router
 from service.api.flex_stream import router as flex_stream_router
 from service.api.guard import Guard
+from service.api.landing import router as landing_router
 from service.api.metrics import ServiceMetrics
 from service.api.pose_routes import router as pose_router
 from service.api.routes import router
@@ -82,6 +83,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(pose_router)
     app.include_router(flex_router)
     app.include_router(flex_stream_router)
+    app.include_router(landing_router)
     app.include_router(stream_router)
 
     @app.exception_handler(InputError)

@@ -57,6 +57,7 @@ class Settings(BaseSettings):
     )
     registry_cache_dir: Path = Field(Path(".cache/registry_models"), description="where registry models are stored")
     api_key: str | None = Field(None, description="if set, requests must send it in the X-API-Key header")
+    ui_url: str = Field("http://127.0.0.1:5000", description="the MLflow UI that the landing page (GET /) links")
 
 
 def parse_pins(text: str) -> dict[str, str]:

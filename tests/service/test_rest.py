@@ -326,3 +326,17 @@ def test_samples_are_numbers_not_booleans_or_strings(client: TestClient, value) 
         ws.send_json({"type": "samples", "sensor_id": "a", "seq": 0, "samples": rows[:8]})
         message = ws.receive_json()
     assert message["type"] == "error" and "samples.7.2" in message["detail"] and message["close_code"] == 1008
+
+
+def test_the_landing_page_links_the_docs_models_and_mlflow_ui(client: TestClient) -> None:
+    r = client.get("/")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    for href in ("/docs", "/v1/models", "/metrics", "http://127.0.0.1:5000"):
+        assert f'href="{href}"' in r.text
+    assert "<td>i2s_assignment</td>" in r.text  # the loaded models
+
+
+def test_the_landing_page_does_not_list_models_behind_an_api_key(tiny_models: Path) -> None:
+    with TestClient(create_app(Settings(models_dir=tiny_models, api_key="k"))) as c:
+        r = c.get("/")
+    assert r.status_code == 200 and "i2s_assignment" not in r.text and "X-API-Key" in r.text
