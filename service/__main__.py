@@ -45,6 +45,11 @@ def main() -> None:
         port=args.port,
         access_log=args.access_log,
         ws_per_message_deflate=args.ws_compression,
+        # Dead peers are found by uvicorn's ping; a client that stops reading is closed earlier by the service with
+        # 1008 and a reason (WEARMOCAP_STREAM_SLOW_CONSUMER_S). A long pong timeout keeps uvicorn's own 1011 close,
+        # written ahead of anything the client has not read, from pre-empting that reason.
+        ws_ping_interval=20.0,
+        ws_ping_timeout=60.0,
     )
 
 

@@ -2,29 +2,28 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, Request, Response
-from fastapi.encoders import jsonable_encoder
-from fastapi.exceptions import RequestValidationError
+import numpy as np
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
 
+from service.api.errors import install_error_handlers
 from service.api.flex_routes import router as flex_router
 from service.api.flex_stream import router as flex_stream_router
-from service.api.guard import Guard
+from service.api.guard import Guard, allowed_origins
 from service.api.landing import router as landing_router
 from service.api.metrics import ServiceMetrics
 from service.api.pose_routes import router as pose_router
 from service.api.routes import router
 from service.api.stream import router as stream_router
-from service.core.units import UnitError
+from service.api.stream_admission import StreamAdmission
 from service.inference.batcher import MicroBatcher
 from service.inference.flex import FlexModel
 from service.inference.pose import PoseModel
-from service.inference.predict import InputError
-from service.inference.registry import load_models, load_registry_models
+from service.inference.registry import load_model_report, load_registry_models
 from service.inference.runner import ModelRunner
 from service.settings import Settings, get_settings, parse_pins
 
@@ -36,14 +35,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        app.state.models = load_models(settings.models_dir, threads=1, pins=parse_pins(settings.model_versions))
+        report = app.state.load_report = load_model_report(
+            settings.models_dir, threads=1, pins=parse_pins(settings.model_versions)
+        )
         uris = [u.strip() for u in settings.registry_models.split(",") if u.strip()]
         for task, model in load_registry_models(
-            settings.mlflow_tracking_uri, uris, settings.registry_cache_dir, threads=1
+            settings.mlflow_tracking_uri, uris, settings.registry_cache_dir, threads=1, report=report
         ).items():
-            if task in app.state.models:
-                log.info("registry model %s replaces %s for %s", model.source, app.state.models[task].source, task)
-            app.state.models[task] = model
+            if task in report.models:
+                log.info("registry model %s replaces %s for %s", model.source, report.models[task].source, task)
+            report.models[task] = model
+        if settings.strict_models and (report.refused or report.failed_pins):
+            problems = [f"{r.path}: {r.reason}" for r in report.refused] + list(report.failed_pins.values())
+            raise RuntimeError(f"WEARMOCAP_STRICT_MODELS: refusing to start; {'; '.join(problems)}")
+        app.state.models = report.models
         app.state.pose_models = {
             name: PoseModel(m) for name, m in app.state.models.items() if m.manifest.task == "imu_pose"
         }
@@ -55,15 +60,22 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         runner = app.state.runner = ModelRunner(
             app.state.models, settings.inference_threads, settings.inference_chunk_windows
         )
-        app.state.batcher = MicroBatcher(
-            runner.run_async,
-            settings.batch_max_windows,
+        batcher = app.state.batcher = MicroBatcher(
+            runner.run_chunk_async,
+            settings.inference_threads,
+            settings.inference_chunk_windows,
             settings.batch_max_wait_ms,
             app.state.metrics.observe_batch,
         )
-        app.state.batcher.start()
+        batcher.start()
+        if settings.capacity_windows_per_s:
+            batcher.set_capacity(settings.capacity_windows_per_s)
+        elif "i2s_assignment" in app.state.models:
+            capacity = await batcher.probe(lambda n: np.zeros((n, 128, 6), np.float32))
+            log.info("capacity probe: %.0f windows/s on %d workers", capacity, settings.inference_threads)
+        app.state.metrics.watch_load(batcher, app.state.streams)
         yield
-        await app.state.batcher.stop()
+        await batcher.stop()
         runner.close()
 
     app = FastAPI(
@@ -79,6 +91,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.models = {}
     app.state.pose_models = {}
     app.state.flex_models = {}
+    app.state.streams = StreamAdmission(settings.stream_capacity_fraction)
     app.include_router(router)
     app.include_router(pose_router)
     app.include_router(flex_router)
@@ -86,21 +99,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(landing_router)
     app.include_router(stream_router)
 
-    @app.exception_handler(InputError)
-    @app.exception_handler(UnitError)
-    async def _bad_input(request: Request, exc: ValueError) -> Response:
-        return _ascii_json({"detail": str(exc)}, 422)
-
-    @app.exception_handler(RequestValidationError)
-    async def _invalid_request(request: Request, exc: RequestValidationError) -> Response:
-        return _ascii_json({"detail": jsonable_encoder(exc.errors())}, 422)
-
-    app.add_middleware(Guard, settings=settings, metrics=app.state.metrics)
+    install_error_handlers(app)
+    app.add_middleware(Guard, settings=settings, metrics=app.state.metrics, state=app.state)
+    if allowed_origins(settings):  # outermost: a browser's preflight carries no key
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=allowed_origins(settings),
+            allow_methods=["GET", "POST"],
+            allow_headers=["*"],
+            max_age=600,
+        )
 
     return app
 
-
-def _ascii_json(content: object, status: int) -> Response:
-    """Error answers echo client input; escaped to ASCII, a lone surrogate in it (valid JSON: "\\ud800") cannot
-    make the answer unencodable, which FastAPI's default handler turns into a 500."""
-    return Response(json.dumps(content, ensure_ascii=True), status_code=status, media_type="application/json")

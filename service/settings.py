@@ -19,12 +19,35 @@ class Settings(BaseSettings):
     inference_chunk_windows: int = Field(8, ge=1, description="windows per onnxruntime call within a batch")
     max_windows_per_request: int = Field(4096, ge=1)
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024)
-    batch_max_windows: int = Field(512, ge=1, description="micro-batch size limit")
     batch_max_wait_ms: float = Field(
         0.0,
         ge=0,
-        description="extra wait for company after a batch's first window; 0: windows queued while a "
-        "batch runs form the next one",
+        description="extra wait for company for a part-filled chunk of REST windows; 0: windows queued while "
+        "chunks run fill the next ones",
+    )
+    request_deadline_s: float = Field(
+        2.0,
+        gt=0,
+        description="longest a REST request may wait before its work starts; when the estimated wait of the "
+        "inference queue passes it, the answer is 503 with Retry-After at once",
+    )
+    capacity_windows_per_s: float = Field(
+        0.0,
+        ge=0,
+        description="windows/s the inference workers hold; 0: measured by a start-up probe (then refined by every "
+        "full chunk)",
+    )
+    stream_capacity_fraction: float = Field(
+        0.8,
+        gt=0,
+        le=1,
+        description="share of the capacity that live streams may take; a new stream beyond it is refused with 1013",
+    )
+    stream_slow_consumer_s: float = Field(
+        5.0,
+        gt=0,
+        description="a WebSocket client that has not taken a message for this long while messages wait for it, or "
+        "whose results were dropped for this long, is closed with 1008 and a reason",
     )
     stream_batch_wait_ms: float = Field(
         10.0,
@@ -57,6 +80,16 @@ class Settings(BaseSettings):
     )
     registry_cache_dir: Path = Field(Path(".cache/registry_models"), description="where registry models are stored")
     api_key: str | None = Field(None, description="if set, requests must send it in the X-API-Key header")
+    metrics_require_key: bool = Field(False, description="/metrics also asks for the API key (when one is set)")
+    allowed_origins: str = Field(
+        "",
+        description="comma-separated browser origins (https://app.example.org) allowed to call the API (CORS) and "
+        "to open WebSockets; empty: no CORS headers, and WebSockets from any origin",
+    )
+    strict_models: bool = Field(
+        False, description="refuse to start when any model file under models_dir is refused (bad sha256, unreadable, "
+        "no manifest) instead of serving the others with /ready 'degraded'"
+    )
     ui_url: str = Field("http://127.0.0.1:5000", description="the MLflow UI that the landing page (GET /) links")
 
 

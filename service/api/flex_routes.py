@@ -8,13 +8,11 @@ from fastapi import APIRouter, Depends, HTTPException, Request, Response
 
 from service.api.routes import _json, _Route, _settings
 from service.api.schemas import FlexRequest, FlexResponse, error_responses
-from service.inference.flex import FlexModel, block_rows
+from service.inference.flex import MAX_FLEX_SAMPLES, FlexModel, block_rows
 from service.inference.predict import InputError
 from service.settings import Settings
 
 router = APIRouter(route_class=_Route)
-
-MAX_FLEX_SAMPLES = 36_000  # per request at the model's rate: 30 minutes at 20 Hz
 
 
 def flex_models(app) -> dict[str, FlexModel]:
@@ -65,7 +63,17 @@ def flex_answer(model: FlexModel, rows: np.ndarray) -> FlexResponse:
     "value range, rate, calibration window (`window_samples`), joints and angle convention. Every sample from the "
     "end of the first window on gets its angles (`latency_samples` behind the newest reading it saw). Other "
     "rates are resampled to the model's. Answers 503 while no flex_pose model is loaded.",
-    responses=error_responses(401, 413, 422, 503, details={503: "no flex_pose model is loaded"}),
+    responses=error_responses(
+        400,
+        401,
+        413,
+        422,
+        503,
+        details={
+            422: {"a rule": "samples: a block must cover the calibration window of 100 samples at 20 Hz (5 s), ..."},
+            503: {"no model": "no flex_pose model is loaded"},
+        },
+    ),
 )
 async def pose_from_flex(body: FlexRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
     width = len(body.samples[0])

@@ -19,7 +19,8 @@ Server → client
   nothing comes until the first window of window_samples is full) · gap / late · error (then close, after the
   answers of every accepted packet).
 Close codes: 1003 unsupported data, 1008 protocol violation (wrong channels, values out of range, NaN), 1009
-message too big, 1011 no flex model loaded, 1000 after stop.
+message too big, 1011 no flex model loaded, 1013 at capacity (try again later), 1000 after stop; 1008 also for a
+wrong key or origin and for a consumer that stays behind (``service.api.outbox``).
 """
 
 from __future__ import annotations
@@ -32,9 +33,10 @@ import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from service.api.outbox import Outbox, SlowConsumer, accept, close, close_slow, drain, sender, serve_watched
 from service.api.protocol import ProtocolError, decode_binary
 from service.api.schemas import Sample
-from service.api.stream import Outbox, _close, _drain, _first_error, _parse_text, _sender
+from service.api.stream import _first_error, _parse_text
 from service.inference.flex import FlexModel, LiveFlex, check_rows
 from service.inference.predict import InputError
 
@@ -135,7 +137,8 @@ async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, out
             }
         )
         live.jump_to(seq)
-    first, angles = await ws.app.state.runner.run_call(live.push, rows)
+    (first, angles), seconds = await ws.app.state.runner.run_call_timed(live.push, rows)
+    ws.app.state.streams.observe(live.model.name, len(rows) // live.factor, seconds)
     if len(angles):
         message = {
             "type": "angles",
@@ -177,33 +180,53 @@ async def _serve(ws: WebSocket, live: LiveFlex, outbox: Outbox) -> None:
 
 @router.websocket("/v1/stream/flex")
 async def flex_stream(ws: WebSocket) -> None:
-    settings = ws.app.state.settings
-    if settings.api_key and ws.headers.get("x-api-key") != settings.api_key:
-        await ws.close(code=1008, reason="missing or wrong X-API-Key header")
+    if not await accept(ws):
         return
-    await ws.accept()
     if not ws.app.state.flex_models:
         await ws.send_text(json.dumps({"type": "error", "detail": "no flex_pose model is loaded"}))
-        await ws.close(code=1011, reason="no flex model loaded")
+        await close(ws, 1011, "no flex model loaded")
         return
-    metrics = ws.app.state.metrics
+    settings, metrics = ws.app.state.settings, ws.app.state.metrics
     outbox = Outbox(settings.stream_queue_limit)
-    sender = asyncio.create_task(_sender(ws, outbox))
+    sending = asyncio.create_task(sender(ws, outbox))
     metrics.open_streams.inc()
     code, reason = 1000, "stop"
+    admitted: int | None = None
     try:
         live, _ = await _receive_start(ws)
+        admitted = _admit(ws, live)
         outbox.put(_started(live))
-        await _serve(ws, live, outbox)
+        await serve_watched(_serve(ws, live, outbox), outbox, settings.stream_slow_consumer_s)
     except ProtocolError as exc:
         code, reason = exc.code, str(exc)
         outbox.put({"type": "error", "detail": reason, "close_code": code})
+    except SlowConsumer as exc:
+        code, reason = 1008, str(exc)
     except WebSocketDisconnect:
         code = -1
     finally:
         metrics.open_streams.dec()
-        if code != -1:
-            await _drain(outbox, sender)
-            await _close(ws, code, reason)
+        ws.app.state.streams.release(admitted)
+        if code == 1008 and reason.startswith("consumer too slow"):
+            await close_slow(ws, outbox, sending, reason)
+        elif code != -1:
+            metrics.streams_closed.labels(str(code)).inc()
+            await drain(outbox, sending)
+            await close(ws, code, reason)
         else:
-            sender.cancel()
+            metrics.streams_closed.labels("client").inc()
+            sending.cancel()
+
+
+def _admit(ws: WebSocket, live: LiveFlex) -> int:
+    """The session's admission key; ProtocolError 1013 when the streams are at capacity."""
+    app = ws.app
+    rate = live.model.manifest.sample_rate_hz
+    key, why = app.state.streams.admit(
+        app.state.batcher, app.state.streams.model_demand(app.state.batcher, live.model.name, rate)
+    )
+    if key is None:
+        app.state.metrics.streams_refused.labels("capacity").inc()
+        raise ProtocolError(why, 1013)
+    app.state.metrics.streams_admitted.inc()
+    return key

@@ -1,4 +1,16 @@
-"""Pure ASGI middleware in front of every HTTP request: body-size limit, optional API key, metrics.
+"""Pure ASGI middleware in front of every HTTP request: API key, body-size limit on the bytes received, early load
+shedding, metrics.
+
+- The key is compared in constant time (``hmac.compare_digest``) on ``/v1/*`` and, with
+  ``WEARMOCAP_METRICS_REQUIRE_KEY``, on ``/metrics``. WebSockets check it themselves (``websocket_refusal``): a
+  refused WebSocket is accepted and closed with 1008 and a reason, which a bare HTTP 403 cannot carry.
+- The body limit counts the bytes actually received, chunked or not: reading stops at the limit with a 413, so a
+  client cannot make the process hold more than ``max_body_bytes`` of one body. The body is read here, once, and
+  handed on to the route.
+- Load shedding: a POST to ``/v1/*`` whose estimated wait (the inference queue plus the requests admitted before
+  it whose bodies are still being read) passes ``request_deadline_s`` gets a 503 with ``Retry-After`` before its
+  body is read or parsed. Admitted requests carry their deadline (``scope["state"]["start_by"]``) to the scheduler,
+  which checks it again with the exact number of windows.
 
 Plain ASGI rather than ``@app.middleware("http")``: that wrapper costs about a millisecond per request
 (measured with ``benchmarks.bench_service``), a fifth of the single-window latency budget.
@@ -6,12 +18,17 @@ Plain ASGI rather than ``@app.middleware("http")``: that wrapper costs about a m
 
 from __future__ import annotations
 
-import json
+import asyncio
+import hmac
 import time
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
+from starlette.datastructures import State
+
+from service.api.errors import error_response
 from service.api.metrics import ServiceMetrics
+from service.inference.batcher import Overloaded
 from service.settings import Settings
 
 Scope = MutableMapping[str, Any]
@@ -19,11 +36,40 @@ Message = MutableMapping[str, Any]
 Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+JSON_BYTES_PER_WINDOW = 6144  # for the estimate before parsing: 768 numbers of about 8 characters
+BINARY_BYTES_PER_WINDOW = 3072  # 128 samples × 6 float32
+DRAIN_SECONDS, DRAIN_BYTES = 5.0, 1 << 30  # how much of an over-limit body is read and discarded after the 413
+
+
+def key_matches(settings: Settings, sent: str | bytes | None) -> bool:
+    """True when no key is set, or ``sent`` is the key (constant-time comparison)."""
+    if not settings.api_key:
+        return True
+    if sent is None:
+        return False
+    given = sent if isinstance(sent, bytes) else sent.encode(errors="replace")
+    return hmac.compare_digest(given, settings.api_key.encode())
+
+
+def allowed_origins(settings: Settings) -> list[str]:
+    return [o.strip() for o in settings.allowed_origins.split(",") if o.strip()]
+
+
+def websocket_refusal(settings: Settings, headers: MutableMapping[str, str] | Any) -> str | None:
+    """Why a WebSocket handshake with these headers is refused (key, origin), or None."""
+    if not key_matches(settings, headers.get("x-api-key")):
+        return "missing or wrong X-API-Key header"
+    origins = allowed_origins(settings)
+    origin = headers.get("origin")
+    if origins and origin is not None and origin not in origins:
+        return f"origin {origin[:80]!r} is not allowed; allowed: {origins}"
+    return None
 
 
 class Guard:
-    def __init__(self, app: ASGIApp, settings: Settings, metrics: ServiceMetrics) -> None:
-        self.app, self.settings, self.metrics = app, settings, metrics
+    def __init__(self, app: ASGIApp, settings: Settings, metrics: ServiceMetrics, state: State) -> None:
+        self.app, self.settings, self.metrics, self.state = app, settings, metrics, state
+        self.arrivals = 0  # requests seen so far
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -31,9 +77,6 @@ class Guard:
             return
         start = time.perf_counter()
         status = 500
-        headers = dict(scope["headers"])
-        length = headers.get(b"content-length", b"")
-        key = self.settings.api_key
 
         async def tracked(message: Message) -> None:
             nonlocal status
@@ -41,22 +84,136 @@ class Guard:
                 status = message["status"]
             await send(message)
 
-        if length.isdigit() and int(length) > self.settings.max_body_bytes:
-            detail = f"body of {int(length)} bytes exceeds the limit of {self.settings.max_body_bytes} bytes"
-            await _reply(tracked, 413, detail)
-        elif key and scope["path"].startswith("/v1/") and headers.get(b"x-api-key") != key.encode():
-            await _reply(tracked, 401, "missing or wrong X-API-Key header")
-        else:
-            await self.app(scope, receive, tracked)
-        # The route template, not the raw path: label values stay bounded whatever clients send.
-        route = scope.get("route")
-        path = getattr(route, "path", None) or "unmatched"
-        self.metrics.requests.labels(path, str(status)).inc()
-        self.metrics.latency.labels(path).observe(time.perf_counter() - start)
+        try:
+            await self._handle(scope, receive, tracked)
+        finally:
+            # The route template, not the raw path: label values stay bounded whatever clients send.
+            route = scope.get("route")
+            path = getattr(route, "path", None) or "unmatched"
+            self.metrics.requests.labels(path, str(status)).inc()
+            self.metrics.latency.labels(path).observe(time.perf_counter() - start)
+
+    async def _handle(self, scope: Scope, receive: Receive, send: Send) -> None:
+        self.arrivals += 1
+        headers = dict(scope["headers"])
+        path, limit = scope["path"], self.settings.max_body_bytes
+        guarded = path.startswith("/v1/") or (path == "/metrics" and self.settings.metrics_require_key)
+        if guarded and not key_matches(self.settings, headers.get(b"x-api-key")):
+            await _reply(send, 401, "missing or wrong X-API-Key header")
+            return
+        length = headers.get(b"content-length", b"")
+        if length.isdigit() and int(length) > limit:
+            await _reply(send, 413, f"body of {int(length)} bytes exceeds the limit of {limit} bytes")
+            return
+        if scope["method"] not in ("POST", "PUT", "PATCH"):
+            await self.app(scope, receive, send)
+            return
+        if not self._admit(scope, headers, int(length) if length.isdigit() else 0):
+            self.metrics.shed.inc()
+            await _shed(send, self.state.batcher.estimated_wait_s(), self.settings.request_deadline_s)
+            return
+        try:
+            await self._after_arrivals()
+            body = await _read_body(receive, limit)
+            if body is None:  # the client left while sending
+                return
+            scope["state"]["body_read"] = time.perf_counter()
+            if isinstance(body, int):
+                detail = f"body exceeds the limit of {limit} bytes (stopped reading after {body} bytes)"
+                await _reply(send, 413, detail, drain=receive)
+                return
+            await self.app(scope, _replay(body, receive), send)
+        finally:
+            batcher = getattr(self.state, "batcher", None)
+            if batcher is not None and scope["state"].get("reserved"):
+                batcher.release(scope["state"])
+
+    async def _after_arrivals(self) -> None:
+        """Wait until a turn of the event loop passes with no new request: the requests of a burst all pass their
+        admission (and the refused ones are answered) before the admitted ones are parsed, which takes a few
+        milliseconds each. Without a burst this costs one turn of the loop."""
+        while True:
+            seen = self.arrivals
+            await asyncio.sleep(0)
+            if self.arrivals == seen:
+                return
+
+    def _admit(self, scope: Scope, headers: dict[bytes, bytes], length: int) -> bool:
+        """Reserve the request's estimated first turn in the queue (False: shed it). Only POSTs to ``/v1/*``."""
+        scope.setdefault("state", {})
+        batcher = getattr(self.state, "batcher", None)
+        if batcher is None or not scope["path"].startswith("/v1/"):
+            return True
+        deadline_s = self.settings.request_deadline_s
+        binary = headers.get(b"content-type", b"").startswith(b"application/octet-stream")
+        windows = max(1, length // (BINARY_BYTES_PER_WINDOW if binary else JSON_BYTES_PER_WINDOW))
+        first_turn = min(windows, batcher.chunk)
+        if batcher.estimated_wait_s(first_turn, requests=1) > deadline_s:
+            batcher.shed += 1
+            return False
+        batcher.reserved += first_turn
+        batcher.reserved_requests += 1
+        scope["state"]["reserved"] = first_turn
+        scope["state"]["start_by"] = time.monotonic() + deadline_s
+        return True
 
 
-async def _reply(send: Send, status: int, detail: str) -> None:
-    body = json.dumps({"detail": detail}).encode()
-    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-    await send({"type": "http.response.start", "status": status, "headers": headers})
-    await send({"type": "http.response.body", "body": body})
+async def _read_body(receive: Receive, limit: int) -> bytes | int | None:
+    """The whole body; or, past ``limit``, the number of bytes read when reading stopped (the rest is never read and
+    what was read is let go at once); None if the client left."""
+    chunks: list[bytes] = []
+    size = 0
+    while True:
+        message = await receive()
+        if message["type"] == "http.disconnect":
+            return None
+        chunk = message.get("body", b"")
+        size += len(chunk)
+        if size > limit:
+            return size
+        if not message.get("more_body", False):
+            return chunk if not chunks else b"".join([*chunks, chunk])  # one message (the usual case): no copy
+        chunks.append(chunk)
+
+
+def _replay(body: bytes, receive: Receive) -> Receive:
+    """A ``receive`` that hands the route the body read already, then the client's later messages (disconnect)."""
+    sent = False
+
+    async def replay() -> Message:
+        nonlocal sent
+        if not sent:
+            sent = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()
+
+    return replay
+
+
+async def _shed(send: Send, wait_s: float, deadline_s: float) -> None:
+    exc = Overloaded(wait_s, deadline_s)
+    await _send(send, error_response(503, str(exc), {"Retry-After": str(exc.retry_after_s)}))
+
+
+async def _reply(send: Send, status: int, detail: str, drain: Receive | None = None) -> None:
+    await _send(send, error_response(status, detail), drain)
+
+
+async def _send(send: Send, response: Any, drain: Receive | None = None) -> None:
+    """Send ``response``; with ``drain``, read and discard what the client still sends (bounded) before ending it.
+
+    A server that closes a connection with unread request bytes makes the kernel answer with a reset, which can
+    destroy the error answer before the client reads it; reading the rest first (and throwing it away: memory
+    stays flat) lets a client that writes its whole body before reading see the 413.
+    """
+    await send({"type": "http.response.start", "status": response.status_code, "headers": response.raw_headers})
+    await send({"type": "http.response.body", "body": response.body, "more_body": drain is not None})
+    if drain is None:
+        return
+    deadline, discarded = time.monotonic() + DRAIN_SECONDS, 0
+    while time.monotonic() < deadline and discarded < DRAIN_BYTES:
+        message = await drain()
+        discarded += len(message.get("body", b""))
+        if message["type"] == "http.disconnect" or not message.get("more_body", False):
+            break
+    await send({"type": "http.response.body", "body": b""})

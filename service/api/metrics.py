@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+if TYPE_CHECKING:
+    from service.api.stream_admission import StreamAdmission
+    from service.inference.batcher import MicroBatcher
 
 
 class ServiceMetrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
+        self.load_source: tuple[MicroBatcher, StreamAdmission] | None = None
+        self.load_gauges: list[Gauge] = []
         self.requests = Counter("wearmocap_requests_total", "HTTP requests", ["path", "status"], registry=self.registry)
         self.latency = Histogram("wearmocap_request_seconds", "HTTP request latency", ["path"], registry=self.registry)
         self.batch = Histogram(
@@ -36,6 +44,53 @@ class ServiceMetrics:
         self.dropped = Counter(
             "wearmocap_stream_results_dropped_total", "results dropped for slow consumers", registry=self.registry
         )
+
+        self.shed = Counter(
+            "wearmocap_requests_shed_total",
+            "requests answered 503 at once because the estimated wait passed their deadline",
+            registry=self.registry,
+        )
+        self.streams_admitted = Counter(
+            "wearmocap_streams_admitted_total", "WebSocket sessions admitted", registry=self.registry
+        )
+        self.streams_refused = Counter(
+            "wearmocap_streams_refused_total",
+            "WebSocket sessions refused (1013 at capacity, 1008 key or origin)",
+            ["reason"],
+            registry=self.registry,
+        )
+        self.streams_closed = Counter(
+            "wearmocap_streams_closed_total",
+            "WebSocket sessions closed, by close code",
+            ["code"],
+            registry=self.registry,
+        )
+        self.notices_merged = Counter(
+            "wearmocap_stream_notices_merged_total",
+            "gap and late notices merged into one already queued for the same sensor",
+            registry=self.registry,
+        )
+
+    def watch_load(self, batcher: MicroBatcher, streams: StreamAdmission) -> None:
+        """Gauges read at scrape time from the scheduler and the stream admission (registered once per app)."""
+        self.load_source = (batcher, streams)
+        if self.load_gauges:
+            return
+        self.load_gauges = [
+            Gauge(name, text, registry=self.registry)
+            for name, text in (
+                ("wearmocap_capacity_windows_per_second", "measured inference capacity"),
+                ("wearmocap_estimated_wait_seconds", "estimated wait of a request queued now"),
+                ("wearmocap_stream_demand_windows_per_second", "admitted streams' demand"),
+            )
+        ]
+        readers = (
+            lambda b, s: b.capacity_windows_per_s or 0.0,
+            lambda b, s: b.estimated_wait_s(),
+            lambda b, s: s.total,
+        )
+        for gauge, read in zip(self.load_gauges, readers, strict=True):
+            gauge.set_function(lambda read=read: read(*self.load_source))
 
     def observe_batch(self, n: int, seconds: float) -> None:
         self.batch.observe(n)

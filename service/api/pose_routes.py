@@ -20,15 +20,21 @@ from service.core.calibration import (
 from service.core.resample import resample_quats, resample_uniform
 from service.core.rotations import canonical_quat
 from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS
-from service.inference.pose import PoseModel, covered_segments, pose_answer, whole_body
+from service.inference.pose import (
+    MAX_POSE_FRAMES,
+    MAX_POSE_IMU_RATE_HZ,
+    MIN_POSE_IMU_RATE_HZ,
+    QUAT_NORM_TOLERANCE,
+    PoseModel,
+    covered_segments,
+    pose_answer,
+    whole_body,
+)
 from service.inference.predict import InputError
 from service.settings import Settings
 
 router = APIRouter(route_class=_Route)
 
-MIN_POSE_IMU_RATE_HZ, MAX_POSE_IMU_RATE_HZ = 20.0, 400.0
-QUAT_NORM_TOLERANCE = 0.1  # |q| within 1 ± this is normalised; further off is a client error
-MAX_POSE_FRAMES = 60 * 60 * 10  # ten minutes at 60 Hz per request
 STILL_ACC_NORM_TOLERANCE_MPS2 = 1.5
 
 
@@ -217,7 +223,15 @@ def pose_response(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, heigh
         "`body_height_m`). The model is the offline one whose sensors match, or the one `model` names."
     ),
     responses=error_responses(
-        401, 413, 422, 503, details={422: "sensors: no offline pose model takes sensors on ['Pelvis', 'Head']; ..."}
+        400,
+        401,
+        413,
+        422,
+        503,
+        details={
+            422: {"a rule": "sensors: no offline pose model takes sensors on ['Pelvis', 'Head']; ..."},
+            503: {"no model": "no imu_pose model is loaded"},
+        },
     ),
 )
 async def pose_from_imu(body: PoseImuRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:

@@ -30,7 +30,11 @@ Server → client
   the assignment is sure of the model's segments) · pose (from the streaming model, as frames complete: first_frame,
   frames, q_world_segment and joint_positions_m per frame in "started"'s pose.segments order; each frame answers
   look_ahead_frames late).
-Close codes: 1003 unsupported data, 1008 protocol violation, 1009 message too big, 1000 after stop.
+  gap / late notices of a sensor that are still queued are merged into one ("count" notices; "missing" summed), and
+  only the newest assignment is queued.
+Close codes: 1003 unsupported data, 1008 protocol violation (also a wrong X-API-Key or a browser Origin not allowed,
+and a consumer that stays behind: nothing taken for WEARMOCAP_STREAM_SLOW_CONSUMER_S while messages wait), 1009
+message too big, 1011 no model loaded or inference failed, 1013 at capacity (try again later), 1000 after stop.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ from service.api.schemas import (
     SegmentSet,
     check_declarations,
 )
+from service.inference.predict import MAX_ABS_READING
 
 HEADER = struct.Struct("<HHI")
 
@@ -158,6 +163,11 @@ def check_samples(samples: np.ndarray, max_samples: int, where: str, width: int 
         raise ProtocolError(f"{where}: at most {max_samples} samples per packet, got {len(samples)}", 1009)
     if not np.all(np.isfinite(samples)):
         raise ProtocolError(f"{where}: samples must be finite, got NaN or Inf")
+    if np.abs(samples).max(initial=0.0) > MAX_ABS_READING:
+        raise ProtocolError(
+            f"{where}: samples must lie in [-{MAX_ABS_READING:g}, {MAX_ABS_READING:g}] (in their unit), "
+            f"got {np.abs(samples).max():g}"
+        )
     if width == 10:
         norm = np.linalg.norm(samples[:, 6:10], axis=1)
         if np.any(np.abs(norm - 1.0) > 0.1):

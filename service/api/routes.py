@@ -2,26 +2,33 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
+import time
 from collections.abc import Callable, Coroutine
 from typing import Any
 
 import numpy as np
 import orjson
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.routing import APIRoute
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 
+from service.api.errors import ClientGone
 from service.api.schemas import (
     EXAMPLE_VERSIONS,
+    MAX_WINDOWS_PER_REQUEST,
+    WINDOW_ROWS_RULE,
     AccUnit,
     Alignment,
     AssignRequest,
     AssignResponse,
     GyrUnit,
     ImuWindow,
+    Readiness,
+    RefusedModel,
     SegmentName,
     SensorAssignment,
     WindowResult,
@@ -32,7 +39,12 @@ from service.api.schemas import (
 )
 from service.core.assignment import is_moving, joint_assignment, turns_about_vertical, window_joint_assignment
 from service.core.segments import SEGMENTS, segment_index, segment_indices
+from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES
 from service.inference.predict import (
+    MAX_ABS_READING,
+    MAX_RATE_HZ,
+    MIN_RATE_HZ,
+    MIN_WINDOW_ROWS,
     alignment_answer,
     mean_alignment,
     window_results,
@@ -69,6 +81,8 @@ class _Route(APIRoute):
 
 
 router = APIRouter(route_class=_Route)
+TOO_MANY_WINDOWS = {413: {"too many windows": f"at most {MAX_WINDOWS_PER_REQUEST} windows per request, got 5000"}}
+WINDOWS_ERRORS = error_responses(400, 401, 413, 422, 503, details=TOO_MANY_WINDOWS)
 
 
 def _models(request: Request) -> dict[str, LoadedModel]:
@@ -101,11 +115,33 @@ def _inputs(windows: list[ImuWindow], prefix: str) -> np.ndarray:
 
 
 async def _infer(request: Request, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, dict[str, str]]:
+    """The models' rows for ``imu``, scheduled with the request's deadline; the work is dropped if the client
+    goes away while it waits (``ClientGone``)."""
     models = _models(request)
     _require(models, "i2s_assignment")
-    probs, quats = await request.app.state.batcher.infer(imu)
+    batcher = request.app.state.batcher
+    state = request.scope.get("state", {})
+    batcher.release(state)  # the exact windows replace the Guard's estimate
+    if "body_read" in state:
+        batcher.observe_request_overhead(time.perf_counter() - state["body_read"])
+    work = asyncio.ensure_future(batcher.infer(imu, start_by=state.get("start_by")))
+    gone = asyncio.ensure_future(_disconnected(request))
+    try:
+        await asyncio.wait((work, gone), return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        gone.cancel()
+    if not work.done():
+        work.cancel()
+        raise ClientGone()
+    probs, quats = work.result()
     versions = {m.manifest.name: m.manifest.version for m in models.values()}
     return probs, quats, versions
+
+
+async def _disconnected(request: Request) -> None:
+    """Returns when the client has gone (the body is read already: the next message is the disconnect)."""
+    while (await request.receive())["type"] != "http.disconnect":
+        pass
 
 
 def _json(body: BaseModel) -> Response:
@@ -125,7 +161,7 @@ def _window_results(
     response_model=WindowsResponse,
     tags=["imu"],
     summary="Segment class and alignment per 128-sample IMU window",
-    responses=error_responses(401, 413, 422, 503),
+    responses=WINDOWS_ERRORS,
 )
 async def classify_windows(body: WindowsRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
     _check_count(len(body.windows), settings)
@@ -137,8 +173,12 @@ async def classify_windows(body: WindowsRequest, request: Request, settings: Set
 
 BINARY_BODY = (
     "little-endian float32, windows × samples_per_window × 6 values, row-major: for each window its samples "
-    "in time order, each sample acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z in the units given by the query"
+    "in time order, each sample acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z in the units given by the query. "
+    "The length is a positive multiple of samples_per_window × 24 bytes (that many windows); every value is "
+    f"finite and within ±{MAX_ABS_READING:g}"
 )
+# One 60 Hz window of zeros, 128 × 6 float32: the example body that goes with the query's defaults.
+EXAMPLE_BINARY_BODY = "\0" * (WINDOW_SAMPLES * 6 * 4)
 
 
 @router.post(
@@ -149,16 +189,17 @@ BINARY_BODY = (
     description="Body: " + BINARY_BODY + ". All windows of one request share rate, units and length; the "
     "number of windows is the body length / (samples_per_window × 24 bytes). Example: "
     "`curl --data-binary @windows.f32 -H 'content-type: application/octet-stream' "
-    "'localhost:8000/v1/imu/windows/binary?sample_rate_hz=100&samples_per_window=214&acc_unit=g'`.",
-    responses=error_responses(401, 413, 422, 503),
+    "'localhost:8000/v1/imu/windows/binary?sample_rate_hz=100&samples_per_window=214&acc_unit=g'`. "
+    f"The example body is one {MODEL_RATE_HZ:g} Hz window of zeros: "
+    f"{WINDOW_SAMPLES * 24} zero bytes.",
+    responses=error_responses(401, 413, 422, 503, details=TOO_MANY_WINDOWS),
     openapi_extra={
         "requestBody": {
             "required": True,
             "content": {
                 "application/octet-stream": {
-                    "schema": {"type": "string", "format": "binary"},
-                    "example": "3072 bytes per 60 Hz window: 128 × (acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z) "
-                    "as little-endian float32",
+                    "schema": {"type": "string", "format": "binary", "description": BINARY_BODY},
+                    "example": EXAMPLE_BINARY_BODY,
                 }
             },
         }
@@ -166,10 +207,16 @@ BINARY_BODY = (
 )
 async def classify_windows_binary(
     request: Request,
-    sample_rate_hz: float = Query(60.0, gt=0, description="between 10 and 2000 Hz"),
+    sample_rate_hz: float = Query(MODEL_RATE_HZ, ge=MIN_RATE_HZ, le=MAX_RATE_HZ, examples=[MODEL_RATE_HZ]),
     acc_unit: AccUnit = "m/s^2",
     gyr_unit: GyrUnit = "rad/s",
-    samples_per_window: int = Query(128, ge=1, le=65536, description="128 at 60 Hz; more at higher rates"),
+    samples_per_window: int = Query(
+        WINDOW_SAMPLES,
+        ge=MIN_WINDOW_ROWS,
+        le=65536,
+        examples=[WINDOW_SAMPLES],
+        description=f"rows per window. {WINDOW_ROWS_RULE}",
+    ),
     segment: SegmentName | None = Query(None, description="known segment of every window: alignment given for it"),
     settings: Settings = Depends(_settings),
 ) -> Response:
@@ -194,7 +241,7 @@ async def classify_windows_binary(
     response_model=AssignResponse,
     tags=["imu"],
     summary="Joint one-to-one assignment of simultaneously worn sensors to segments",
-    responses=error_responses(401, 413, 422, 503),
+    responses=WINDOWS_ERRORS,
 )
 async def assign_sensors(body: AssignRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
     ids = [s.sensor_id for s in body.sensors]
@@ -242,7 +289,8 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     "/v1/models",
     tags=["ops"],
     summary="Loaded models with their manifests",
-    responses={
+    responses=error_responses(401)
+    | {
         200: {
             "content": {
                 "application/json": {
@@ -278,23 +326,43 @@ async def health() -> dict[str, str]:
     "/ready",
     tags=["ops"],
     summary="Readiness: at least the assignment model is loaded",
+    response_model=Readiness,
     responses={
-        200: {"content": {"application/json": {"example": {"ready": True, "models": EXAMPLE_VERSIONS}}}},
-        503: {"content": {"application/json": {"example": {"ready": False, "models": {}}}}},
+        200: {
+            "content": {
+                "application/json": {"example": {"ready": True, "status": "ok", "models": EXAMPLE_VERSIONS}}
+            }
+        },
+        503: {
+            "model": Readiness,
+            "description": "not ready: no i2s_assignment model is loaded, or a pinned version cannot be served",
+            "content": {"application/json": {"example": {"ready": False, "status": "unavailable", "models": {}}}},
+        },
     },
 )
 async def ready(request: Request) -> JSONResponse:
     models = _models(request)
-    ok = "i2s_assignment" in models
-    body = {"ready": ok, "models": {t: m.manifest.version for t, m in models.items()}}
-    return JSONResponse(body, status_code=200 if ok else 503)
+    report = getattr(request.app.state, "load_report", None)
+    failed_pins = report.failed_pins if report else {}
+    ok = "i2s_assignment" in models and not failed_pins
+    status = "unavailable" if not ok else "degraded" if report and report.newer_refused() else "ok"
+    body = Readiness(
+        ready=ok,
+        status=status,
+        models={t: m.manifest.version for t, m in models.items()},
+        refused=[RefusedModel(**vars(r)) for r in (report.refused if report else [])],
+        failed_pins=failed_pins,
+    )
+    return JSONResponse(body.model_dump(), status_code=200 if ok else 503)
 
 
 @router.get(
     "/metrics",
     tags=["ops"],
     summary="Prometheus metrics",
-    responses={
+    response_class=PlainTextResponse,
+    responses=error_responses(401)
+    | {
         200: {
             "content": {
                 "text/plain": {"example": 'wearmocap_requests_total{path="/v1/imu/windows",status="200"} 42.0\n'}

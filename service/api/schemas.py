@@ -1,20 +1,40 @@
-"""Request and response bodies of the REST API (pydantic v2)."""
+"""Request and response bodies of the REST API (pydantic v2).
+
+The request models publish the rules the service enforces: ranges, lengths and uniqueness as JSON Schema keywords;
+rules across fields (rows against rate, rows against a loaded model) in the field's description. Request models are
+strict: a number is a JSON number, a boolean ``true`` or ``false``; ``"60"`` and ``0`` are refused, not coerced.
+"""
 
 from __future__ import annotations
 
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictFloat, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool, StrictFloat, model_validator
 
 from service.core.body import BODY_SEGMENTS
 from service.core.segments import SEGMENTS
+from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES
+from service.inference.flex import MAX_FLEX_RATE_HZ, MAX_FLEX_SAMPLES, MIN_FLEX_RATE_HZ
+from service.inference.pose import MAX_POSE_FRAMES, MAX_POSE_IMU_RATE_HZ, MIN_POSE_IMU_RATE_HZ, QUAT_NORM_TOLERANCE
+from service.inference.predict import MAX_ABS_READING, MAX_RATE_HZ, MIN_RATE_HZ, MIN_WINDOW_ROWS
+from service.settings import Settings
 
 SegmentName = Literal[SEGMENTS]  # type: ignore[valid-type]
 AccUnit = Literal["m/s^2", "g"]
 GyrUnit = Literal["rad/s", "deg/s"]
 # One sample's values: numbers only (JSON integers too); true, false and "1.5" are refused, not coerced.
 Sample = list[StrictFloat]
+# An IMU reading in its unit; larger magnitudes are no sensor's and would overflow float32 in the models.
+Reading = Annotated[StrictFloat, Field(ge=-MAX_ABS_READING, le=MAX_ABS_READING, allow_inf_nan=False)]
+ImuSample = Annotated[
+    list[Reading], Field(min_length=6, max_length=6, description="acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z")
+]
+Quaternion = Annotated[list[Reading], Field(min_length=4, max_length=4, description="w, x, y, z")]
+Vector3 = Annotated[list[Reading], Field(min_length=3, max_length=3, description="x, y, z")]
+MAX_WINDOWS_PER_REQUEST = Settings.model_fields["max_windows_per_request"].default
+# Request bodies: extra fields refused, no coercion between JSON types.
+REQUEST = ConfigDict(extra="forbid", strict=True)
 
 
 def _each_once(names: list[str]) -> list[str]:
@@ -23,18 +43,45 @@ def _each_once(names: list[str]) -> list[str]:
     return names
 
 
-SegmentSet = Annotated[list[SegmentName], Field(min_length=1, max_length=len(SEGMENTS)), AfterValidator(_each_once)]
+SegmentSet = Annotated[
+    list[SegmentName],
+    Field(min_length=1, max_length=len(SEGMENTS), json_schema_extra={"uniqueItems": True}),
+    AfterValidator(_each_once),
+]
 WORN_SEGMENTS_DESCRIPTION = (
     "the segments the sensors are known to be on, when the user knows that but not which sensor is where (e.g. "
     '["LeftFoot", "RightFoot"]): the joint and per-moment answers are then drawn from these segments only. '
-    "Default: any of the seven"
+    "Each segment once. Default: any of the seven"
 )
 
 CANDIDATE_SEGMENTS_DESCRIPTION = (
     "the segments this sensor may be on, when the user knows that much of it (e.g. "
     '["LeftFoot", "RightFoot"] for a foot sensor whose side is not known, ["Pelvis"] for the pelvis sensor): its '
-    "joint and per-moment answers are drawn from these only, and from `worn_segments` where both are given. "
-    "Default: any"
+    "joint and per-moment answers are drawn from these only, and from `worn_segments` where both are given "
+    "(then the two must have a segment in common). Each segment once. Default: any"
+)
+WINDOW_ROWS_RULE = (
+    f"How many depends on `sample_rate_hz` r: at {MODEL_RATE_HZ:g} Hz exactly {WINDOW_SAMPLES}; at another rate "
+    f"enough for {WINDOW_SAMPLES} after resampling to {MODEL_RATE_HZ:g} Hz (polyphase by {MODEL_RATE_HZ:g}/r "
+    f"written as a fraction p/q with q <= 1000: ceil(rows * p / q) >= {WINDOW_SAMPLES}, about "
+    f"{WINDOW_SAMPLES} * r / {MODEL_RATE_HZ:g} rows, {MIN_WINDOW_ROWS} at {MIN_RATE_HZ:g} Hz); the last "
+    f"{WINDOW_SAMPLES} resampled samples are used"
+)
+# The part of that rule JSON Schema can state: at the model's rate (also the default; within np.isclose's
+# tolerance, as fit_window compares) a window has exactly 128 rows.
+AT_MODEL_RATE_ROWS = {
+    "if": {
+        "properties": {
+            "sample_rate_hz": {
+                "minimum": MODEL_RATE_HZ * (1 - 1e-5) - 1e-8,
+                "maximum": MODEL_RATE_HZ * (1 + 1e-5) + 1e-8,
+            }
+        }
+    },
+    "then": {"properties": {"samples": {"minItems": WINDOW_SAMPLES, "maxItems": WINDOW_SAMPLES}}},
+}
+WINDOWS_LIMIT_RULE = (
+    f"at most WEARMOCAP_MAX_WINDOWS_PER_REQUEST windows per request (default {MAX_WINDOWS_PER_REQUEST}; more: 413)"
 )
 
 
@@ -67,17 +114,21 @@ class ImuWindow(BaseModel):
     (the last 128 resampled samples are used).
     """
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_WINDOW]})
-    samples: list[Sample] = Field(min_length=1)
-    sample_rate_hz: float = Field(60.0, gt=0, description="between 10 and 2000 Hz")
+    model_config = REQUEST | ConfigDict(json_schema_extra={"examples": [EXAMPLE_WINDOW], **AT_MODEL_RATE_ROWS})
+    samples: list[ImuSample] = Field(
+        min_length=MIN_WINDOW_ROWS, description=f"rows of 6 finite numbers, oldest first. {WINDOW_ROWS_RULE}"
+    )
+    sample_rate_hz: float = Field(MODEL_RATE_HZ, ge=MIN_RATE_HZ, le=MAX_RATE_HZ)
     acc_unit: AccUnit = "m/s^2"
     gyr_unit: GyrUnit = "rad/s"
     segment: SegmentName | None = Field(None, description="known segment: the alignment is given for it")
 
 
 class WindowsRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"windows": [EXAMPLE_WINDOW]}]})
-    windows: list[ImuWindow] = Field(min_length=1)
+    model_config = REQUEST | ConfigDict(json_schema_extra={"examples": [{"windows": [EXAMPLE_WINDOW]}]})
+    windows: list[ImuWindow] = Field(
+        min_length=1, json_schema_extra={"maxItems": MAX_WINDOWS_PER_REQUEST}, description=WINDOWS_LIMIT_RULE
+    )
 
 
 _EXAMPLE_PROBS = dict(zip(SEGMENTS, [0.001, 0.002, 0.004, 0.985, 0.004, 0.002, 0.002], strict=True))
@@ -99,8 +150,10 @@ EXAMPLE_VERSIONS = {"i2s_assignment": "1.9.0", "i2s_alignment": "3.3.0"}
 
 class Alignment(BaseModel):
     segment: SegmentName
-    q_segment_imu: list[float] = Field(description="unit quaternion w, x, y, z (w >= 0): v_segment = R(q) v_imu")
-    R_segment_imu: list[list[float]]
+    q_segment_imu: list[float] = Field(
+        min_length=4, max_length=4, description="unit quaternion w, x, y, z (w >= 0): v_segment = R(q) v_imu"
+    )
+    R_segment_imu: list[Annotated[list[float], Field(min_length=3, max_length=3)]] = Field(min_length=3, max_length=3)
 
 
 class WindowResult(BaseModel):
@@ -127,9 +180,14 @@ class WindowsResponse(BaseModel):
 
 
 class SensorWindows(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    sensor_id: str = Field(min_length=1, max_length=128)
-    windows: list[ImuWindow] = Field(min_length=1)
+    model_config = REQUEST
+    sensor_id: str = Field(min_length=1, max_length=128, description="unique within the request")
+    windows: list[ImuWindow] = Field(
+        min_length=1,
+        json_schema_extra={"maxItems": MAX_WINDOWS_PER_REQUEST},
+        description=f"in time order; window k of each sensor is the same moment. The request's sensors together "
+        f"have {WINDOWS_LIMIT_RULE}",
+    )
     candidate_segments: SegmentSet | None = Field(None, description=CANDIDATE_SEGMENTS_DESCRIPTION)
 
 
@@ -141,8 +199,7 @@ class AssignRequest(BaseModel):
     segments to choose from for all sensors, a sensor's ``candidate_segments`` for that sensor.
     """
 
-    model_config = ConfigDict(
-        extra="forbid",
+    model_config = REQUEST | ConfigDict(
         json_schema_extra={
             "examples": [
                 {
@@ -155,8 +212,8 @@ class AssignRequest(BaseModel):
             ]
         },
     )
-    sensors: list[SensorWindows] = Field(min_length=1, max_length=64)
-    allow_shared: bool = False
+    sensors: list[SensorWindows] = Field(min_length=1, max_length=64, description="each sensor_id once")
+    allow_shared: StrictBool = False
     worn_segments: SegmentSet | None = Field(None, description=WORN_SEGMENTS_DESCRIPTION)
 
     @model_validator(mode="after")
@@ -229,17 +286,34 @@ class FlexRequest(BaseModel):
     order (``GET /v1/models``), raw (``units``, ``value_range``). The block must cover the model's calibration
     window (``window_samples`` at ``sample_rate_hz``); every sample from then on gets its joint angles."""
 
-    model_config = ConfigDict(
-        extra="forbid", json_schema_extra={"examples": [{"model": "flex_bilstm_cm", "samples": EXAMPLE_FLEX_SAMPLES}]}
+    model_config = REQUEST | ConfigDict(
+        json_schema_extra={"examples": [{"model": "flex_bilstm_cm", "samples": EXAMPLE_FLEX_SAMPLES}]}
     )
     model: str | None = Field(
-        None, max_length=128, description="a flex_pose model's name; default: the one whose channel count fits"
+        None,
+        max_length=128,
+        description="a loaded flex_pose model's name (GET /v1/models); default: the one model whose channel count "
+        "is the rows' length (when none or several fit: 422)",
     )
     channels: list[str] | None = Field(
-        None, max_length=64, description="optional check: the channel names in the order of each row"
+        None,
+        max_length=64,
+        description="optional check: the channel names in the order of each row; must equal the model's channels",
     )
-    sample_rate_hz: float | None = Field(None, gt=0, description="default: the model's rate; others are resampled")
-    samples: list[Sample] = Field(min_length=1)
+    sample_rate_hz: float | None = Field(
+        None,
+        ge=MIN_FLEX_RATE_HZ,
+        le=MAX_FLEX_RATE_HZ,
+        description="default: the model's rate; others are resampled to it",
+    )
+    samples: list[Annotated[Sample, Field(min_length=1)]] = Field(
+        min_length=1,
+        description="rows of finite numbers, oldest first, all as long as the model has channels, each value in the "
+        "model's value_range (GET /v1/models). At the model's rate (its sample_rate_hz, after resampling from "
+        "this request's) the block holds at least the model's window_samples (the calibration window: about "
+        f"window_samples * sample_rate_hz / model rate rows) and at most {MAX_FLEX_SAMPLES} samples "
+        "(round(rows * model rate / sample_rate_hz)); send longer recordings in blocks or over /v1/stream/flex",
+    )
 
 
 class FlexResponse(BaseModel):
@@ -280,17 +354,29 @@ class PoseSensor(BaseModel):
     """One sensor's raw readings, oldest first, one row per sample: its fusion's orientation in its own world
     frame (any frame with z up: ENU, NWU, …; the pose does not depend on its heading) and its accelerometer."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = REQUEST
     sensor_id: str = Field(min_length=1, max_length=64)
-    segment: BodySegmentName = Field(description="the body segment the sensor is on (GET /v1/models: pose.sensors)")
-    q_world_sensor: list[Sample] = Field(min_length=2, description="unit quaternions w, x, y, z per sample")
-    acc: list[Sample] = Field(min_length=2, description="specific force x, y, z in the sensor frame per sample")
-    gyr: list[Sample] | None = Field(None, description="angular rate x, y, z (rad/s), optional: checks stillness")
-    q_segment_sensor: list[float] | None = Field(
+    segment: BodySegmentName = Field(
+        description="the body segment the sensor is on (GET /v1/models: pose.sensors); one sensor per segment"
+    )
+    q_world_sensor: list[Quaternion] = Field(
+        min_length=2,
+        description=f"unit quaternions w, x, y, z per sample (norm within 1 ± {QUAT_NORM_TOLERANCE:g}); as many rows "
+        "as `acc` and as every other sensor's",
+    )
+    acc: list[Vector3] = Field(
+        min_length=2,
+        description="specific force x, y, z in the sensor frame per sample (`acc_unit`); as many rows as "
+        "`q_world_sensor`",
+    )
+    gyr: list[Vector3] | None = Field(
         None,
-        min_length=4,
-        max_length=4,
-        description="declared alignment (calibration method 'declared'): v_segment = R(q) v_sensor, w, x, y, z; "
+        description="angular rate x, y, z (`gyr_unit`), optional: checks stillness; as many rows as `q_world_sensor`",
+    )
+    q_segment_sensor: Quaternion | None = Field(
+        None,
+        description="declared alignment (calibration method 'declared', which needs it on every sensor): "
+        f"v_segment = R(q) v_sensor, w, x, y, z, a unit quaternion (norm within 1 ± {QUAT_NORM_TOLERANCE:g}); "
         "e.g. /v1/imu/assign's alignment of a lower-body sensor",
     )
 
@@ -301,12 +387,17 @@ class PoseCalibration(BaseModel):
     sideways) of 2-3 s; each sensor's alignment and the body's heading are computed from it (the pelvis sensor's
     ``pelvis_back_axis``, in its own frame, must point out of the lower back)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = REQUEST
     method: Literal["declared", "still_pose"] = "declared"
     pose: Literal["npose", "tpose"] = "npose"
-    start: int = Field(0, ge=0)
-    stop: int | None = Field(None, ge=1)
-    pelvis_back_axis: list[float] = Field(default_factory=lambda: [0.0, 0.0, 1.0], min_length=3, max_length=3)
+    start: int = Field(0, ge=0, description="still_pose: the span's first sample")
+    stop: int | None = Field(
+        None,
+        ge=1,
+        description="still_pose (required there): the sample after the span; start < stop <= the number of rows, "
+        "and the span lasts at least 0.5 s with every sensor still and reading gravity",
+    )
+    pelvis_back_axis: Vector3 = Field(default_factory=lambda: [0.0, 0.0, 1.0])
 
 
 EXAMPLE_POSE_IMU = {
@@ -327,13 +418,26 @@ EXAMPLE_POSE_IMU = {
 
 
 class PoseImuRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [EXAMPLE_POSE_IMU]})
-    sample_rate_hz: float = Field(60.0, description="between 20 and 400 Hz; resampled to the model's 60 Hz")
+    model_config = REQUEST | ConfigDict(json_schema_extra={"examples": [EXAMPLE_POSE_IMU]})
+    sample_rate_hz: float = Field(
+        MODEL_RATE_HZ,
+        ge=MIN_POSE_IMU_RATE_HZ,
+        le=MAX_POSE_IMU_RATE_HZ,
+        description=f"resampled to the model's 60 Hz; at most {MAX_POSE_FRAMES} frames at 60 Hz per request "
+        "(rows * 60 / sample_rate_hz)",
+    )
     acc_unit: AccUnit = "m/s^2"
     gyr_unit: GyrUnit = "rad/s"
-    sensors: list[PoseSensor] = Field(min_length=1, max_length=len(BODY_SEGMENTS))
+    sensors: list[PoseSensor] = Field(
+        min_length=1,
+        max_length=len(BODY_SEGMENTS),
+        description="one per segment; their segments are exactly a loaded offline pose model's sensors (GET "
+        "/v1/models: pose.sensors), or those of `model`",
+    )
     calibration: PoseCalibration = Field(default_factory=PoseCalibration)
-    model: str | None = Field(None, description="a pose model's name; default: the offline model for these sensors")
+    model: str | None = Field(
+        None, description="a loaded pose model's name; default: the offline model for these sensors"
+    )
     body_height_m: float | None = Field(None, ge=0.5, le=2.5, description="scale the default body to this height")
 
 
@@ -374,16 +478,86 @@ class PoseImuResponse(BaseModel):
     segments: dict[str, SegmentTrack]
 
 
-def error_responses(*codes: int, details: dict[int, str] | None = None) -> dict[int | str, dict]:
-    """OpenAPI entries for the 4xx/5xx answers of a route, each with an example ``detail`` (``details``
-    replaces the default example of a code)."""
-    examples = {
-        401: "missing or wrong X-API-Key header",
-        413: "at most 4096 windows per request, got 5000",
-        422: "windows[0]: at 60 Hz a window has 128 samples, got 127",
-        503: "no i2s_assignment model is loaded; loaded: none",
-    } | (details or {})
-    return {
-        code: {"description": examples[code], "content": {"application/json": {"example": {"detail": examples[code]}}}}
-        for code in codes
+class FieldError(BaseModel):
+    loc: list[str | int]
+    msg: str
+    type: str
+    input: str | None = Field(None, description="at most 200 characters of what arrived")
+
+
+class ErrorBody(BaseModel):
+    detail: str = Field(description="what was expected and what arrived")
+    errors: list[FieldError] | None = Field(None, description="field errors of a 422 (at most 20)")
+    errors_total: int | None = None
+
+
+class RefusedModel(BaseModel):
+    name: str
+    version: str
+    path: str
+    reason: str
+
+
+class Readiness(BaseModel):
+    ready: bool = Field(
+        description="false (503): no i2s_assignment model is loaded, or a version pinned with "
+        "WEARMOCAP_MODEL_VERSIONS cannot be served"
+    )
+    status: Literal["ok", "degraded", "unavailable"] = Field(
+        description="degraded (still 200): a newer version than the one served was refused (see `refused`)"
+    )
+    models: dict[str, str] = Field(description="the loaded models' versions by name")
+    refused: list[RefusedModel] = Field(
+        default_factory=list, description="model files that are not served (bad sha256, unreadable, no manifest)"
+    )
+    failed_pins: dict[str, str] = Field(default_factory=dict, description="pinned models that cannot be served")
+
+
+_FIELD_ERROR = {"loc": ["body"], "msg": "Field required", "type": "missing", "input": None}
+_ERROR_EXAMPLES: dict[int, dict[str, dict]] = {
+    400: {"not UTF-8": {"detail": "There was an error parsing the body"}},
+    401: {"no key": {"detail": "missing or wrong X-API-Key header"}},
+    413: {"too large": {"detail": "body of 40000000 bytes exceeds the limit of 33554432 bytes"}},
+    422: {
+        "a rule": {"detail": "windows[0]: at 60 Hz a window has 128 samples, got 127"},
+        "a field": {"detail": "body: Field required", "errors": [_FIELD_ERROR], "errors_total": 1},
+    },
+    503: {
+        "no model": {"detail": "no i2s_assignment model is loaded; loaded: none"},
+        "overloaded": {
+            "detail": "overloaded: the estimated wait of 2.40 s passes this request's deadline (time left 1.00 s); "
+            "retry in 2 s"
+        },
+    },
+}
+_ERROR_DESCRIPTIONS = {
+    400: "the body is not UTF-8 text",
+    401: "missing or wrong X-API-Key header (when the service has an API key)",
+    413: "too large: a body over WEARMOCAP_MAX_BODY_BYTES (or, where the examples say so, too many windows)",
+    422: "the body is not JSON, or the request breaks a rule of the schema or one stated in a field's description",
+    503: "no model for this route is loaded, or the service is overloaded (then with Retry-After)",
+}
+RETRY_AFTER = {
+    "Retry-After": {
+        "description": "seconds to wait before retrying, when the service is overloaded",
+        "schema": {"type": "integer", "minimum": 0},
     }
+}
+
+
+def error_responses(*codes: int, details: dict[int, dict[str, str]] | None = None) -> dict[int | str, dict]:
+    """OpenAPI entries for the 4xx/5xx answers of a route: the ``ErrorBody`` schema with an example body per cause
+    (``details``: this route's ``detail`` per code and cause, replacing or adding to the default causes)."""
+    out: dict[int | str, dict] = {}
+    for code in codes:
+        ours = {name: {"detail": detail} for name, detail in (details or {}).get(code, {}).items()}
+        examples = _ERROR_EXAMPLES[code] | ours
+        entry = {
+            "model": ErrorBody,
+            "description": _ERROR_DESCRIPTIONS[code],
+            "content": {"application/json": {"examples": {k: {"value": v} for k, v in examples.items()}}},
+        }
+        if code == 503:
+            entry["headers"] = RETRY_AFTER
+        out[code] = entry
+    return out

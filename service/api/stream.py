@@ -1,10 +1,8 @@
 """WebSocket ``/v1/stream`` (protocol in ``service.api.protocol``).
 
-A slow consumer never grows server memory without bound: outgoing messages go through a bounded
-queue; when it is full the oldest queued *result*, *moment*, *pose* or *angles* (``/v1/stream/flex``) is
-dropped (assignment, gap and error messages are kept), the drop is counted in
-``wearmocap_stream_results_dropped_total`` and reported to the client in the next assignment message as
-``results_dropped``.
+A slow consumer never grows server memory without bound: every outgoing message type is bounded and a consumer
+that stays behind is closed with 1008 and a reason (``service.api.outbox``). A new session is admitted against
+the measured inference capacity or refused with 1013 (``service.api.stream_admission``).
 """
 
 from __future__ import annotations
@@ -17,11 +15,10 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-import orjson
 from fastapi import APIRouter, FastAPI, WebSocket, WebSocketDisconnect
 from pydantic import ValidationError
-from starlette.websockets import WebSocketState
 
+from service.api.outbox import Outbox, SlowConsumer, accept, close, close_slow, drain, sender, serve_watched
 from service.api.protocol import (
     ProtocolError,
     SamplesMessage,
@@ -30,6 +27,7 @@ from service.api.protocol import (
     decode_binary,
 )
 from service.api.schemas import finite_or_none
+from service.api.stream_admission import I2S_WINDOWS_PER_SENSOR_S
 from service.core.assignment import (
     MomentAssembler,
     allowed_segments,
@@ -48,51 +46,6 @@ from service.inference.predict import RunningAlignment, alignment_answer, window
 
 log = logging.getLogger(__name__)
 router = APIRouter()
-
-
-class Outbox:
-    """Bounded outgoing queue; drops the oldest result when full."""
-
-    def __init__(self, limit: int) -> None:
-        self.items: deque[dict] = deque()
-        self.limit = limit
-        self.event = asyncio.Event()
-        self.dropped = 0
-        self.sending = False  # a message is taken off the queue and not yet handed to the socket
-
-    def put(self, message: dict) -> bool:
-        dropped = False
-        if len(self.items) >= self.limit:
-            for k, item in enumerate(self.items):
-                if item["type"] in ("result", "moment", "pose", "angles"):
-                    del self.items[k]
-                    self.dropped += 1
-                    dropped = True
-                    break
-        self.items.append(message)
-        self.event.set()
-        return dropped
-
-
-def _encode(message: dict) -> str:
-    try:
-        return orjson.dumps(message, option=orjson.OPT_SERIALIZE_NUMPY).decode()
-    except orjson.JSONEncodeError:  # an error detail echoing a lone surrogate that the client sent ("\\ud800")
-        return json.dumps(message, ensure_ascii=True)
-
-
-async def _sender(ws: WebSocket, outbox: Outbox) -> None:
-    while True:
-        await outbox.event.wait()
-        outbox.event.clear()
-        while outbox.items:
-            outbox.sending = True
-            try:
-                await ws.send_text(_encode(outbox.items.popleft()))
-            except WebSocketDisconnect:  # the client left; the receive loop sees it and ends the session
-                return
-            finally:
-                outbox.sending = False
 
 
 @dataclass
@@ -309,7 +262,8 @@ async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples
         return
     received = time.perf_counter()
     frames = joined.frames[:, session.pose_order]
-    messages = await app.state.runner.run_call(session.pose.process, frames, joined.first_frame)
+    messages, seconds = await app.state.runner.run_call_timed(session.pose.process, frames, joined.first_frame)
+    app.state.streams.observe(session.pose.model.name, len(frames), seconds)
     for message in messages:
         if outbox.put(message):
             app.state.metrics.dropped.inc()
@@ -476,57 +430,78 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
 
 @router.websocket("/v1/stream")
 async def stream(ws: WebSocket) -> None:
-    settings = ws.app.state.settings
-    if settings.api_key and ws.headers.get("x-api-key") != settings.api_key:
-        await ws.close(code=1008, reason="missing or wrong X-API-Key header")
+    if not await accept(ws):
         return
-    await ws.accept()
-    metrics = ws.app.state.metrics
+    settings, metrics = ws.app.state.settings, ws.app.state.metrics
     if "i2s_assignment" not in ws.app.state.models:
         await ws.send_text(json.dumps({"type": "error", "detail": "no i2s_assignment model is loaded"}))
-        await ws.close(code=1011, reason="no model loaded")
+        await close(ws, 1011, "no model loaded")
         return
     outbox = Outbox(settings.stream_queue_limit)
-    sender = asyncio.create_task(_sender(ws, outbox))
+    sending = asyncio.create_task(sender(ws, outbox))
     metrics.open_streams.inc()
     code, reason = 1000, "stop"
     session: Session | None = None
     worker: asyncio.Task | None = None
+    admitted: int | None = None
     try:
         session = await _receive_start(ws)
+        admitted = _admit(ws.app, session)
         session.outbox = outbox
         worker = asyncio.create_task(_infer_loop(ws.app, session, outbox))
-        outbox.put(
-            {
-                "pose": _pose_started(session),
-                "type": "started",
-                "sensors": [s.sensor_id for s in session.streams],
-                "window_samples": 128,
-                "hop_samples": 16,
-                "model_rate_hz": 60.0,
-                "worn_segments": segment_names(session.worn),
-                "candidate_segments": {
-                    s.sensor_id: segment_names(c) for s, c in zip(session.streams, session.candidates, strict=True)
-                },
-            }
-        )
-        await _serve(ws, session, outbox)
+        outbox.put(_started(session))
+        await serve_watched(_serve(ws, session, outbox), outbox, settings.stream_slow_consumer_s)
     except ProtocolError as exc:
         code, reason = exc.code, str(exc)
-        if session is not None and session.failure is None:
+        if session is not None and session.failure is None and code != 1013:
             await session.flush()  # the results of every packet accepted before the mistake still go out
         outbox.put({"type": "error", "detail": reason, "close_code": code})
+    except SlowConsumer as exc:
+        code, reason = 1008, str(exc)
     except WebSocketDisconnect:
         code = -1
     finally:
         metrics.open_streams.dec()
+        ws.app.state.streams.release(admitted)
         if worker is not None:
             worker.cancel()
-        if code != -1:
-            await _drain(outbox, sender)
-            await _close(ws, code, reason)
+        if code == 1008 and reason.startswith("consumer too slow"):
+            await close_slow(ws, outbox, sending, reason)
+        elif code != -1:
+            metrics.streams_closed.labels(str(code)).inc()
+            await drain(outbox, sending)
+            await close(ws, code, reason)
         else:
-            sender.cancel()
+            metrics.streams_closed.labels("client").inc()
+            sending.cancel()
+
+
+def _admit(app: FastAPI, session: Session) -> int:
+    """The session's admission key; ProtocolError 1013 when it would take the streams past their capacity."""
+    demand = len(session.streams) * I2S_WINDOWS_PER_SENSOR_S if session.run_i2s else 0.0
+    if session.pose is not None:
+        demand += app.state.streams.model_demand(app.state.batcher, session.pose.model.name, 60.0)
+    key, why = app.state.streams.admit(app.state.batcher, demand)
+    if key is None:
+        app.state.metrics.streams_refused.labels("capacity").inc()
+        raise ProtocolError(why, 1013)
+    app.state.metrics.streams_admitted.inc()
+    return key
+
+
+def _started(session: Session) -> dict:
+    return {
+        "pose": _pose_started(session),
+        "type": "started",
+        "sensors": [s.sensor_id for s in session.streams],
+        "window_samples": 128,
+        "hop_samples": 16,
+        "model_rate_hz": 60.0,
+        "worn_segments": segment_names(session.worn),
+        "candidate_segments": {
+            s.sensor_id: segment_names(c) for s, c in zip(session.streams, session.candidates, strict=True)
+        },
+    }
 
 
 def _pose_started(session: Session) -> dict | None:
@@ -543,21 +518,3 @@ def _pose_started(session: Session) -> dict | None:
         "still_frames": live.still_frames if live.method == "still_pose" else 0,
         "body_height_m": round(live.body.height_m, 3),
     }
-
-
-async def _close(ws: WebSocket, code: int, reason: str) -> None:
-    """Close with ``code``, unless the client has gone already (then there is nobody to tell)."""
-    if WebSocketState.DISCONNECTED in (ws.application_state, ws.client_state):
-        return
-    try:
-        await ws.close(code=code, reason=reason.encode(errors="replace")[:120].decode(errors="ignore"))
-    except (WebSocketDisconnect, RuntimeError):  # the client left while we were closing
-        log.debug("stream client left before the close frame")
-
-
-async def _drain(outbox: Outbox, sender: asyncio.Task, timeout_s: float = 5.0) -> None:
-    """Let the sender flush what is queued (bounded), then stop it."""
-    deadline = asyncio.get_running_loop().time() + timeout_s
-    while (outbox.items or outbox.sending) and asyncio.get_running_loop().time() < deadline and not sender.done():
-        await asyncio.sleep(0.005)
-    sender.cancel()

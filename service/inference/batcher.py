@@ -1,43 +1,106 @@
-"""Micro-batching: concurrent requests and streams share onnxruntime calls.
+"""Fair, deadline-aware scheduling of IMU windows onto the onnxruntime workers.
 
-Callers ``await batcher.infer(windows)``; a single worker task takes every window already queued (up
-to ``max_batch``), runs the models in ``run``'s worker threads (never on the event loop) and hands each caller
-its rows. It does not wait for company by default (``max_wait_ms`` = 0): a lone request runs at once,
-and whatever arrives while a batch runs forms the next batch, so batches grow with load by themselves.
-A positive wait (the batcher's default, or per call: streams pass a longer one) keeps a batch open for
-more windows until the deadline of its most impatient caller: larger batches cost less CPU per window.
+Callers ``await batcher.infer(windows)``. Windows run in chunks of at most ``chunk`` windows, one chunk per
+worker thread at a time (``workers`` chunks in flight), and each caller gets its rows as soon as its own chunks
+are done.
+
+Fairness rule: the queued callers (REST requests and stream sessions alike) take turns. A turn takes at most one
+chunk of a caller's windows; callers with fewer windows share a chunk. A caller with windows left goes to the back
+of the line after its turn, and a new caller goes ahead of every caller that has had a turn already, in a chunk of
+new callers only. So a single window waits for the chunks already running and for the new callers ahead of it,
+never for the rest of a 4,096-window batch.
+
+Batching for company: by default a lone window runs at once, and whatever arrives while chunks run fills the
+next ones (``max_wait_ms`` = 0). A positive wait (the batcher's default, or per call: streams pass a longer one)
+lets a part-filled chunk wait for more windows until its most impatient caller's deadline.
+
+Deadlines and load shedding: a REST caller passes the monotonic time by which its work must start. If the
+estimated wait (the windows ahead of it, one turn each, at the measured seconds per window) passes it, ``infer``
+raises ``Overloaded`` at once instead of queueing; a caller whose deadline passes while queued anyway (the
+estimate was wrong) gets ``Overloaded`` when its turn comes. A caller that is cancelled (its client went away)
+leaves the line: none of its remaining windows are computed.
 """
 
 from __future__ import annotations
 
 import asyncio
+import math
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-RunModels = Callable[[np.ndarray], Awaitable[tuple[np.ndarray, np.ndarray | None]]]
+RunChunk = Callable[[np.ndarray], Awaitable[tuple[np.ndarray, np.ndarray | None]]]
+EWMA_WEIGHT = 0.2  # of the newest full chunk in the seconds-per-window estimate
 
 
-@dataclass
-class _Pending:
-    imu: np.ndarray
+class Overloaded(Exception):
+    """The estimated wait passes the caller's deadline: answer 503 with ``Retry-After``."""
+
+    def __init__(self, wait_s: float, budget_s: float) -> None:
+        self.wait_s, self.budget_s = wait_s, budget_s
+        self.retry_after_s = max(1, math.ceil(wait_s - max(budget_s, 0.0)))
+        super().__init__(
+            f"overloaded: the estimated wait of {wait_s:.2f} s passes this request's deadline "
+            f"(time left {max(budget_s, 0.0):.2f} s); retry in {self.retry_after_s} s"
+        )
+
+
+@dataclass(eq=False)
+class _Job:
+    imu: np.ndarray  # (n, 128, 6)
     future: asyncio.Future
-    deadline: float  # monotonic time by which this caller's windows must be running
+    company_until: float  # monotonic time until which its windows may wait for company
+    start_by: float | None  # monotonic time by which its first chunk must start (REST); None: no deadline
+    next: int = 0  # first window not yet dispatched
+    done: int = 0
+    probs: np.ndarray | None = None
+    quats: np.ndarray | None = None
+
+    @property
+    def remaining(self) -> int:
+        return len(self.imu) - self.next
+
+    def store(self, lo: int, hi: int, probs: np.ndarray, quats: np.ndarray | None) -> None:
+        if self.probs is None:
+            self.probs = np.empty((len(self.imu), *probs.shape[1:]), probs.dtype)
+            if quats is not None:
+                self.quats = np.empty((len(self.imu), *quats.shape[1:]), quats.dtype)
+        self.probs[lo:hi] = probs
+        if quats is not None and self.quats is not None:
+            self.quats[lo:hi] = quats
+        self.done += hi - lo
+        if self.done == len(self.imu) and not self.future.done():
+            self.future.set_result((self.probs, self.quats))
 
 
 class MicroBatcher:
     def __init__(
-        self, run: RunModels, max_batch: int, max_wait_ms: float, on_batch: Callable[[int, float], None] | None = None
+        self,
+        run_chunk: RunChunk,
+        workers: int,
+        chunk: int,
+        max_wait_ms: float,
+        on_batch: Callable[[int, float], None] | None = None,
     ) -> None:
-        self.run, self.max_batch, self.max_wait_s = run, max_batch, max_wait_ms / 1000.0
+        self.run_chunk, self.workers, self.chunk = run_chunk, workers, chunk
+        self.max_wait_s = max_wait_ms / 1000.0
         self.on_batch = on_batch
-        self.queue: asyncio.Queue[_Pending] = asyncio.Queue()
+        self.jobs: deque[_Job] = deque()
+        self.in_flight_windows: list[int] = []
+        self.wake = asyncio.Event()
         self.task: asyncio.Task | None = None
+        self.seconds_per_window: float | None = None  # one worker's time per window, from full chunks
+        self.reserved = 0  # windows of admitted requests whose bodies are still being read or parsed
+        self.reserved_requests = 0
+        self.request_overhead_s = 0.0  # event-loop time to parse one request (EWMA, measured by the routes)
+        self.shed = 0  # callers refused with Overloaded
+        self.abandoned = 0  # windows not computed because their caller went away
 
     def start(self) -> None:
-        self.task = asyncio.create_task(self._worker())
+        self.task = asyncio.create_task(self._dispatch())
 
     async def stop(self) -> None:
         if self.task:
@@ -47,49 +110,144 @@ class MicroBatcher:
             except asyncio.CancelledError:
                 pass
 
-    async def infer(self, imu: np.ndarray, max_wait_ms: float | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-        """Rows of the models' outputs for ``imu``; ``max_wait_ms`` overrides the batcher's wait for company
-        (streams, whose next window is 16 samples away, can wait longer than a request that someone awaits)."""
+    @property
+    def capacity_windows_per_s(self) -> float | None:
+        return None if not self.seconds_per_window else self.workers / self.seconds_per_window
+
+    def set_capacity(self, windows_per_s: float) -> None:
+        self.seconds_per_window = self.workers / windows_per_s
+
+    async def probe(self, make_chunk: Callable[[int], np.ndarray]) -> float:
+        """Measure a full chunk on one worker (after a warm-up call); returns the capacity in windows/s."""
+        x = make_chunk(self.chunk)
+        await self.run_chunk(x)
+        start = time.perf_counter()
+        await self.run_chunk(x)
+        self.seconds_per_window = max((time.perf_counter() - start) / self.chunk, 1e-7)
+        return self.workers / self.seconds_per_window
+
+    def estimated_wait_s(self, extra_windows: int = 0, requests: int = 0) -> float:
+        """Seconds before a caller queued now (after ``extra_windows`` more) gets its first turn: the windows ahead of
+        it at the measured seconds per window, plus the event loop's time to parse the admitted requests ahead (and
+        ``requests`` more) that have not reached the queue yet."""
+        if not self.seconds_per_window:
+            return 0.0
+        ahead = sum(min(job.remaining, self.chunk) for job in self.jobs) + sum(self.in_flight_windows)
+        inference = (ahead + self.reserved + extra_windows) * self.seconds_per_window / self.workers
+        return inference + (self.reserved_requests + requests) * self.request_overhead_s
+
+    def release(self, state: dict) -> None:
+        """An admitted request reached the queue or ended: its reservation (``state``: the Guard's) is returned."""
+        if state.get("reserved"):
+            self.reserved -= state["reserved"]
+            self.reserved_requests -= 1
+            state["reserved"] = 0
+
+    def observe_request_overhead(self, seconds: float) -> None:
+        """One request's parse and validation time on the event loop (EWMA)."""
+        old = self.request_overhead_s
+        self.request_overhead_s = seconds if not old else (1 - EWMA_WEIGHT) * old + EWMA_WEIGHT * seconds
+
+    async def infer(
+        self, imu: np.ndarray, max_wait_ms: float | None = None, start_by: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Rows of the models' outputs for ``imu`` ``(n, 128, 6)``. ``max_wait_ms`` overrides the batcher's wait for
+        company; ``start_by`` (monotonic seconds) is the deadline by which the work must start, else
+        ``Overloaded``."""
+        now = time.monotonic()
+        if start_by is not None:
+            wait = self.estimated_wait_s(min(len(imu), self.chunk))
+            if now + wait > start_by:
+                self.shed += 1
+                raise Overloaded(wait, start_by - now)
         wait_s = self.max_wait_s if max_wait_ms is None else max_wait_ms / 1000.0
-        future: asyncio.Future = asyncio.get_running_loop().create_future()
-        await self.queue.put(_Pending(imu, future, time.monotonic() + wait_s))
-        return await future
+        job = _Job(imu, asyncio.get_running_loop().create_future(), now + wait_s, start_by)
+        # New callers go ahead of those that have had a turn already (and behind earlier new callers).
+        served = next((k for k, other in enumerate(self.jobs) if other.next > 0), len(self.jobs))
+        self.jobs.insert(served, job)
+        self.wake.set()
+        try:
+            return await job.future
+        except asyncio.CancelledError:
+            self.abandoned += job.remaining
+            job.next = len(job.imu)  # nothing more of it is dispatched
+            raise
 
-    async def _worker(self) -> None:
+    def _take_chunk(self, now: float) -> list[tuple[_Job, int, int]]:
+        """One turn each, in line order, until a chunk is full; callers with windows left go to the back."""
+        parts: list[tuple[_Job, int, int]] = []
+        size, again = 0, []
+        while self.jobs and size < self.chunk:
+            job = self.jobs.popleft()
+            if job.future.done() or not job.remaining:
+                continue
+            if parts and job.next > 0 and parts[0][1] == 0:
+                self.jobs.appendleft(job)  # a chunk of new callers is not padded with a large caller's windows
+                break
+            if job.start_by is not None and job.next == 0 and now > job.start_by:
+                self.shed += 1
+                job.future.set_exception(Overloaded(now - job.start_by, 0.0))
+                continue
+            n = min(job.remaining, self.chunk - size)
+            parts.append((job, job.next, job.next + n))
+            job.next += n
+            size += n
+            if job.remaining:
+                again.append(job)
+        self.jobs.extend(again)
+        return parts
+
+    def _company_wait_s(self, now: float) -> float:
+        """How long a part-filled chunk may still wait for more windows (0: dispatch now)."""
+        queued = sum(job.remaining for job in self.jobs if not job.future.done())
+        if queued >= self.chunk or not self.jobs:
+            return 0.0
+        return max(0.0, min(job.company_until for job in self.jobs) - now)
+
+    async def _dispatch(self) -> None:
         while True:
-            batch = [await self.queue.get()]
-            size, deadline = len(batch[0].imu), batch[0].deadline
-            while size < self.max_batch:
-                # Take what is queued at once; then wait only until the most impatient caller's deadline.
-                if self.queue.empty():
-                    timeout = deadline - time.monotonic()
-                    if timeout <= 0:
-                        break
-                    try:
-                        item = await asyncio.wait_for(self.queue.get(), timeout)
-                    except TimeoutError:
-                        break
-                else:
-                    item = self.queue.get_nowait()
-                batch.append(item)
-                size, deadline = size + len(item.imu), min(deadline, item.deadline)
-            await self._run(batch)
+            if not self.jobs or len(self.in_flight_windows) >= self.workers:
+                self.wake.clear()
+                await self.wake.wait()
+                continue
+            now = time.monotonic()
+            wait = self._company_wait_s(now)
+            if wait > 0:
+                self.wake.clear()
+                try:
+                    await asyncio.wait_for(self.wake.wait(), wait)
+                except TimeoutError:
+                    pass
+                if self._company_wait_s(time.monotonic()) > 0:
+                    continue  # something arrived, but not enough: look again
+            parts = self._take_chunk(time.monotonic())
+            if parts:
+                size = sum(hi - lo for _, lo, hi in parts)
+                self.in_flight_windows.append(size)
+                asyncio.ensure_future(self._run(parts, size))
 
-    async def _run(self, batch: list[_Pending]) -> None:
-        imu = np.concatenate([p.imu for p in batch])
+    async def _run(self, parts: list[tuple[_Job, int, int]], size: int) -> None:
+        imu = np.concatenate([job.imu[lo:hi] for job, lo, hi in parts])
         start = time.perf_counter()
         try:
-            probs, quats = await self.run(imu)
-        except Exception as exc:  # a model failure reaches every waiting caller
-            for p in batch:
-                if not p.future.done():
-                    p.future.set_exception(exc)
+            probs, quats = await self.run_chunk(imu)
+        except Exception as exc:  # a model failure reaches every caller in the chunk
+            for job, _, _ in parts:
+                if not job.future.done():
+                    job.future.set_exception(exc)
             return
+        finally:
+            self.in_flight_windows.remove(size)
+            self.wake.set()
+        seconds = time.perf_counter() - start
+        if size == self.chunk:
+            per_window = seconds / size
+            old = self.seconds_per_window
+            self.seconds_per_window = per_window if old is None else (1 - EWMA_WEIGHT) * old + EWMA_WEIGHT * per_window
         if self.on_batch:
-            self.on_batch(len(imu), time.perf_counter() - start)
-        lo = 0
-        for p in batch:
-            hi = lo + len(p.imu)
-            if not p.future.done():
-                p.future.set_result((probs[lo:hi], None if quats is None else quats[lo:hi]))
-            lo = hi
+            self.on_batch(size, seconds)
+        row = 0
+        for job, lo, hi in parts:
+            if not job.future.done():
+                job.store(lo, hi, probs[row : row + hi - lo], None if quats is None else quats[row : row + hi - lo])
+            row += hi - lo

@@ -13,6 +13,7 @@ from service.inference.predict import InputError
 from service.inference.registry import LoadedModel
 
 MIN_FLEX_RATE_HZ, MAX_FLEX_RATE_HZ = 1.0, 2000.0
+MAX_FLEX_SAMPLES = 36_000  # per REST block at the model's rate: 30 minutes at 20 Hz
 CHUNK_WINDOWS = 2048  # windows per onnxruntime call: a long block never holds all its windows at once
 
 

@@ -17,6 +17,11 @@ from service.inference.registry import LoadedModel
 
 Predictor = Callable[[np.ndarray], np.ndarray]  # features (T, F) → R_root_segment (T, S_out, 3, 3)
 
+# What an offline request may hold: readings at 20-400 Hz (resampled to the models' 60 Hz), at most ten minutes.
+MIN_POSE_IMU_RATE_HZ, MAX_POSE_IMU_RATE_HZ = 20.0, 400.0
+MAX_POSE_FRAMES = 60 * 60 * 10  # frames at 60 Hz per request
+QUAT_NORM_TOLERANCE = 0.1  # |q| within 1 ± this is normalised; further off is a client error
+
 
 def chunk_plan(n_frames: int, window: int, context: int) -> list[tuple[int, int, int, int]]:
     """Chunks ``(start, stop, keep_from, keep_to)`` (absolute frames) that cover ``n_frames``: each chunk is at most

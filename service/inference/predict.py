@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from service.core.resample import resample_uniform
@@ -11,6 +13,11 @@ from service.core.units import to_contract_units
 from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES
 
 MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 2000.0
+# The largest magnitude of a reading in its unit: far beyond what IMUs measure (±16 g and ±2000 °/s are typical
+# ranges), small enough that a window cannot overflow float32 on its way through unit conversion and the models.
+MAX_ABS_READING = 1e6
+# The fewest rows a window can have: at the lowest rate, the rows that resample to 128 at 60 Hz (22).
+MIN_WINDOW_ROWS = math.ceil(WINDOW_SAMPLES * MIN_RATE_HZ / MODEL_RATE_HZ)
 
 
 class InputError(ValueError):
@@ -30,6 +37,13 @@ def _check_finite_and_rate(x: np.ndarray, rate_hz: float, min_rate_hz: float, wh
     finite = np.isfinite(x).reshape(len(x), -1).all(axis=1)
     if not finite.all():
         raise InputError(f"{where.format(i=int(np.argmin(finite)))}: samples must be finite numbers, got NaN or Inf")
+    peak = np.abs(x).reshape(len(x), -1).max(axis=1)
+    if (peak > MAX_ABS_READING).any():
+        i = int(np.argmax(peak > MAX_ABS_READING))
+        raise InputError(
+            f"{where.format(i=i)}: samples must lie in [-{MAX_ABS_READING:g}, {MAX_ABS_READING:g}] (in their unit), "
+            f"got {peak[i]:g}"
+        )
     if not min_rate_hz <= rate_hz <= MAX_RATE_HZ:
         raise InputError(
             f"{where.format(i=0)}: sample_rate_hz must be in [{min_rate_hz:g}, {MAX_RATE_HZ:g}], got {rate_hz}"

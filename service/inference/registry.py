@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -73,35 +73,83 @@ def version_key(version: str) -> tuple[int, ...]:
     return tuple(int(part) for part in re.findall(r"\d+", version))
 
 
+@dataclass(frozen=True)
+class Refusal:
+    """A model version under the models directory that is not served, and why."""
+
+    name: str
+    version: str
+    path: str
+    reason: str
+
+
+@dataclass
+class LoadReport:
+    """What ``load_models`` served, what it refused, and the pins it could not honour."""
+
+    models: dict[str, LoadedModel] = field(default_factory=dict)
+    refused: list[Refusal] = field(default_factory=list)
+    failed_pins: dict[str, str] = field(default_factory=dict)  # name → why the pinned version is not served
+
+    def newer_refused(self) -> list[Refusal]:
+        """Refused versions newer than the version of their name that is served (or of a name not served)."""
+        served = {m.manifest.name: m.manifest.version for m in self.models.values()}
+        return [r for r in self.refused if r.name not in served or version_key(r.version) > version_key(served[r.name])]
+
+
 def load_models(root: Path, threads: int, pins: dict[str, str] | None = None) -> dict[str, LoadedModel]:
     """Newest valid version of every model below ``root`` (or the version ``pins`` names), keyed by task (pose
     models, imu_pose and flex_pose, by name)."""
-    models: dict[str, LoadedModel] = {}
+    return load_model_report(root, threads, pins).models
+
+
+def load_model_report(root: Path, threads: int, pins: dict[str, str] | None = None) -> LoadReport:
+    """``load_models`` with the refusals: every ``<name>/<version>/`` folder holding a model file or a manifest is
+    tried; one that cannot be served (no manifest, unreadable, sha256 or shapes differ) is logged as an error and
+    listed, never silently passed over."""
+    report = LoadReport()
     pins = pins or {}
-    for manifest_path in sorted(root.glob("*/*/manifest.json")):
-        name, version = manifest_path.parent.parent.name, manifest_path.parent.name
+    folders = sorted({p.parent for pattern in ("*/*/manifest.json", "*/*/model.onnx") for p in root.glob(pattern)})
+    for folder in folders:
+        name, version = folder.parent.name, folder.name
         if name in pins and pins[name] != version:
             continue
         try:
-            model = load_model(manifest_path.parent, threads)
-        except Exception as exc:  # any broken model is refused; the others are still served
-            log.error("refusing model %s: %s", manifest_path.parent, exc)
+            if not (folder / "manifest.json").is_file():
+                raise ModelMismatch(f"no manifest.json beside {folder / 'model.onnx'}")
+            model = load_model(folder, threads)
+        except Exception as exc:  # any broken model is refused, listed and logged; the others are still served
+            log.error("refusing model %s: %s", folder, exc)
+            report.refused.append(Refusal(name, version, str(folder), str(exc)))
+            if name in pins:
+                report.failed_pins[name] = f"pinned {name} {version} refused: {exc}"
             continue
         # pose models are several per task (placements, offline and streaming, sensor kinds): keyed by name
         task = model.manifest.name if model.manifest.task in POSE_TASKS else model.manifest.task
+        models = report.models
         if task not in models or version_key(model.manifest.version) > version_key(models[task].manifest.version):
             models[task] = model
         log.info("loaded %s %s (%s)", model.manifest.name, model.manifest.version, task)
     for name, version in pins.items():
-        if not (root / name / version / "manifest.json").is_file():
+        if not (root / name / version).is_dir():
+            report.failed_pins[name] = f"pinned {name} {version} is not under {root}"
             log.error("pinned model %s %s is not under %s", name, version, root)
-    return models
+    for refusal in report.newer_refused():
+        log.error(
+            "serving an older %s than the newest on disk: %s %s was refused (%s)",
+            refusal.name,
+            refusal.name,
+            refusal.version,
+            refusal.reason,
+        )
+    return report
 
 
 def load_registry_models(
-    tracking_uri: str | None, model_uris: list[str], cache_dir: Path, threads: int
+    tracking_uri: str | None, model_uris: list[str], cache_dir: Path, threads: int, report: LoadReport | None = None
 ) -> dict[str, LoadedModel]:
-    """Models named by MLflow registry URIs, keyed by task; each failure is logged and skipped."""
+    """Models named by MLflow registry URIs, keyed by task; each failure is logged, skipped and added to
+    ``report``'s refusals (the local model of its task, if any, is then served: /ready says so)."""
     from service.inference.mlflow_registry import fetch_registry_model
 
     models: dict[str, LoadedModel] = {}
@@ -113,6 +161,8 @@ def load_registry_models(
             model = load_model(model_dir, threads)
         except Exception as exc:  # a registry problem must not stop the service from serving the others
             log.error("refusing registry model %s: %s", uri, exc)
+            if report is not None:
+                report.refused.append(Refusal(uri, "registry", uri, str(exc)))
             continue
         model.source = f"{uri} (version {model_dir.name}) at {tracking_uri}"
         models[model.manifest.name if model.manifest.task in POSE_TASKS else model.manifest.task] = model

@@ -5,11 +5,16 @@ onnxruntime session per model with one intra-op thread, called concurrently from
 chunks of ``chunk`` windows, beats one call with two intra-op threads — the recurrent layers parallelise
 poorly inside a call, small chunks stay in cache, and a single window runs its two models side by side.
 onnxruntime sessions are safe to call from several threads at once.
+
+The service's scheduler (``service.inference.batcher``) hands the pool one chunk at a time per worker
+(``run_chunk_async``: both models in one thread), so that it can interleave callers fairly; ``__call__`` runs a
+whole batch at once (chunks × models over the pool), for offline use.
 """
 
 from __future__ import annotations
 
 import asyncio
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
@@ -34,13 +39,14 @@ class ModelRunner:
         out = {task: np.concatenate([f.result() for f in fs]) for task, fs in self._submit(imu).items()}
         return out[ASSIGNMENT], out.get(ALIGNMENT)
 
-    async def run_async(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """The same without blocking the event loop: it awaits the pool's futures directly."""
-        out = {}
-        for task, futures in self._submit(imu).items():
-            parts = await asyncio.gather(*(asyncio.wrap_future(f) for f in futures))
-            out[task] = np.concatenate(parts)
-        return out[ASSIGNMENT], out.get(ALIGNMENT)
+    def run_chunk(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """One chunk through every I2S model in the calling thread: probabilities and, if loaded, alignments."""
+        probs = self.models[ASSIGNMENT].run(imu)
+        return probs, self.models[ALIGNMENT].run(imu) if ALIGNMENT in self.models else None
+
+    async def run_chunk_async(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``run_chunk`` on one worker thread, off the event loop (the scheduler's unit of work)."""
+        return await asyncio.wrap_future(self.pool.submit(self.run_chunk, imu))
 
     async def run_model(self, task: str, x: np.ndarray) -> np.ndarray:
         """One model (e.g. a pose model) on its input, in the same worker threads, without batching."""
@@ -49,6 +55,16 @@ class ModelRunner:
     async def run_call(self, fn, *args):
         """Any call (a pose request's whole computation) in the same worker threads, off the event loop."""
         return await asyncio.wrap_future(self.pool.submit(fn, *args))
+
+    async def run_call_timed(self, fn, *args):
+        """``run_call`` and the seconds the call itself took in its worker thread (not its wait for one)."""
+
+        def timed():
+            start = time.perf_counter()
+            result = fn(*args)
+            return result, time.perf_counter() - start
+
+        return await asyncio.wrap_future(self.pool.submit(timed))
 
     def close(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)

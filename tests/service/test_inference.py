@@ -1,9 +1,8 @@
-"""The micro-batcher's batching policy and the parallel runner's chunking (real onnxruntime sessions)."""
+"""The parallel runner's chunking, model loading and alignment averaging (real onnxruntime sessions)."""
 
 from __future__ import annotations
 
 import asyncio
-import time
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +10,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from service.core.manifest import read_manifest, write_manifest
-from service.inference.batcher import MicroBatcher
 from service.inference.predict import RunningAlignment, mean_alignment
 from service.inference.registry import load_models, version_key
 from service.inference.runner import ModelRunner
@@ -24,59 +22,10 @@ def test_runner_chunks_equal_one_call(tiny_models: Path) -> None:
     probs, quats = runner(x)
     np.testing.assert_allclose(probs, models["i2s_assignment"].run(x), atol=1e-6)
     np.testing.assert_allclose(quats, models["i2s_alignment"].run(x), atol=1e-6)
-    p_async, q_async = asyncio.run(runner.run_async(x))
-    np.testing.assert_array_equal(p_async, probs)
-    np.testing.assert_array_equal(q_async, quats)
+    p_chunk, q_chunk = asyncio.run(runner.run_chunk_async(x[:8]))  # the scheduler's unit: one chunk, one thread
+    np.testing.assert_array_equal(p_chunk, probs[:8])
+    np.testing.assert_array_equal(q_chunk, quats[:8])
     runner.close()
-
-
-class _Recorder:
-    """A stand-in for the models that records the batch sizes it is called with."""
-
-    def __init__(self, seconds: float = 0.0) -> None:
-        self.sizes: list[int] = []
-        self.seconds = seconds
-
-    async def __call__(self, imu: np.ndarray) -> tuple[np.ndarray, None]:
-        self.sizes.append(len(imu))
-        await asyncio.sleep(self.seconds)
-        return imu[:, 0, :1].copy(), None
-
-
-def _run(batcher_wait_ms: float, calls: list[tuple[float, float | None]], seconds: float = 0.0) -> list[int]:
-    """``calls``: (start delay s, per-call wait ms); every caller must get its own rows back."""
-
-    async def main() -> list[int]:
-        rec = _Recorder(seconds)
-        batcher = MicroBatcher(rec, max_batch=64, max_wait_ms=batcher_wait_ms)
-        batcher.start()
-
-        async def one(k: int, delay: float, wait: float | None) -> None:
-            await asyncio.sleep(delay)
-            x = np.full((1, 128, 6), float(k), dtype=np.float32)
-            out, _ = await batcher.infer(x, wait)
-            assert out[0, 0] == k
-
-        await asyncio.gather(*(one(k, d, w) for k, (d, w) in enumerate(calls)))
-        await batcher.stop()
-        return rec.sizes
-
-    return asyncio.run(main())
-
-
-def test_a_lone_request_runs_at_once_and_load_forms_batches() -> None:
-    assert _run(0.0, [(0.0, None)]) == [1]
-    # While the first call runs (50 ms), the next ones queue and run together.
-    assert _run(0.0, [(0.0, None)] + [(0.01, None)] * 5, seconds=0.05) == [1, 5]
-
-
-def test_a_stream_window_waits_for_company_until_the_most_impatient_deadline() -> None:
-    # Two stream windows (wait 100 ms) arriving 20 ms apart share one batch ...
-    assert _run(0.0, [(0.0, 100.0), (0.02, 100.0)]) == [2]
-    # ... and a REST request (no wait) arriving meanwhile releases the batch at once.
-    start = time.monotonic()
-    sizes = _run(0.0, [(0.0, 1000.0), (0.02, 0.0)])
-    assert sizes == [2] and time.monotonic() - start < 0.5
 
 
 def test_versions_compare_numerically() -> None:

@@ -189,7 +189,7 @@ def _example(client: TestClient, raw, **change) -> dict:
             422,
             "sensors[0].q_world_sensor[5]: expected a unit quaternion",
         ),
-        (lambda b: b.update(sample_rate_hz=1000.0), 422, "sample_rate_hz must be in [20, 400], got 1000"),
+        (lambda b: b.update(sample_rate_hz=1000.0), 422, "sample_rate_hz: Input should be less than or equal to 400"),
         (
             lambda b: b["sensors"][2].pop("q_segment_sensor"),
             422,
@@ -228,7 +228,7 @@ def test_a_nan_reading_is_refused(client: TestClient, walk) -> None:
     body = _example(client, raw)
     body["sensors"][0]["acc"][3][1] = float("nan")
     r = client.post("/v1/pose/imu", content=json.dumps(body), headers={"content-type": "application/json"})
-    assert r.status_code == 422 and "sensors[0].acc[3]: values must be finite" in r.json()["detail"]
+    assert r.status_code == 422 and "sensors.0.acc.3.1: Input should be a finite number" in r.json()["detail"]
 
 
 async def _stream(url: str, start: dict, packets: list[tuple[str, int, np.ndarray]]) -> tuple[list[dict], int, str]:

@@ -64,11 +64,15 @@ def test_other_rates_are_resampled(client: TestClient) -> None:
     "window, fragment",
     [
         (_window(127), "128 samples, got 127"),
-        ({"samples": [[0.0] * 5] * 128}, "6 values"),
-        (_window(rate=5.0), "sample_rate_hz must be in"),
+        ({"samples": [[0.0] * 5] * 128}, "samples.0: List should have at least 6 items"),
+        (_window(rate=5.0), "sample_rate_hz: Input should be greater than or equal to 10"),
         (_window(acc_unit="ft/s^2"), "acc_unit"),
         (_window(gyr_unit="rpm"), "gyr_unit"),
         (_window(segment="Head"), "segment"),
+        (
+            {"samples": [[2e6, 0.0, 9.81, 0.0, 0.0, 0.0]] * 128},
+            "samples.0.0: Input should be less than or equal to 1000000",
+        ),
     ],
 )
 def test_bad_windows_are_422_with_a_message(client: TestClient, window: dict, fragment: str) -> None:
@@ -89,6 +93,21 @@ def test_malformed_json_and_oversized_bodies(client: TestClient) -> None:
     assert r.status_code == 422
     big = {"windows": [_window()] * 200}
     assert client.post("/v1/imu/windows", json=big).status_code == 413
+
+
+def test_the_document_states_what_the_service_refuses(client: TestClient) -> None:
+    """Rates, row widths, unique segments and strict booleans are in the OpenAPI document, and enforced."""
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    window = schemas["ImuWindow"]["properties"]
+    assert (window["sample_rate_hz"]["minimum"], window["sample_rate_hz"]["maximum"]) == (10, 2000)
+    assert window["samples"]["items"]["minItems"] == window["samples"]["items"]["maxItems"] == 6
+    assert schemas["AssignRequest"]["properties"]["worn_segments"]["anyOf"][0]["uniqueItems"] is True
+    assert schemas["AssignRequest"]["properties"]["allow_shared"]["type"] == "boolean"
+    sensors = [{"sensor_id": "a", "windows": [_window()]}]
+    r = client.post("/v1/imu/assign", json={"sensors": sensors, "allow_shared": 0})
+    assert r.status_code == 422 and "allow_shared: Input should be a valid boolean" in r.text, r.text
+    r = client.post("/v1/imu/windows", json={"windows": [_window() | {"sample_rate_hz": "60"}]})
+    assert r.status_code == 422 and "sample_rate_hz: Input should be a valid number" in r.text, r.text
 
 
 def test_joint_assignment_endpoint(client: TestClient) -> None:
@@ -254,10 +273,15 @@ def test_binary_windows_equal_json_windows(client: TestClient) -> None:
         ("", b"", "got 0 bytes"),
         ("", b"\0" * (128 * 24 + 4), "3076 bytes"),
         ("?samples_per_window=100", b"\0" * (100 * 24), "128 samples, got 100"),
-        ("?sample_rate_hz=5", b"\0" * (128 * 24), "sample_rate_hz must be in"),
+        ("?sample_rate_hz=5", b"\0" * (128 * 24), "sample_rate_hz: Input should be greater than or equal to 10"),
         ("?acc_unit=ft", b"\0" * (128 * 24), "acc_unit"),
         ("?segment=Head", b"\0" * (128 * 24), "segment"),
         ("", np.full((2, 128, 6), np.nan, "<f4").tobytes(), "window 0: samples must be finite"),
+        (
+            "",
+            np.full((2, 128, 6), -3e6, "<f4").tobytes(),
+            "window 0: samples must lie in [-1e+06, 1e+06] (in their unit), got 3e+06",
+        ),
     ],
 )
 def test_bad_binary_bodies_are_422_with_a_message(client: TestClient, query: str, body: bytes, fragment: str) -> None:
@@ -319,7 +343,7 @@ def test_samples_are_numbers_not_booleans_or_strings(client: TestClient, value) 
     rows[7][2] = value
     r = client.post("/v1/imu/windows", json={"windows": [{"samples": rows}]})
     assert r.status_code == 422
-    assert r.json()["detail"][0]["loc"][-3:] == ["samples", 7, 2], r.json()
+    assert r.json()["errors"][0]["loc"][-3:] == ["samples", 7, 2], r.json()
     with client.websocket_connect("/v1/stream") as ws:
         ws.send_json({"type": "start", "sensors": [{"sensor_id": "a"}]})
         assert ws.receive_json()["type"] == "started"

@@ -1,0 +1,93 @@
+"""Every error answer in one shape and of bounded size: ``{"detail": str}``, and for a 422 of the request schema
+also ``errors`` (at most ``MAX_FIELD_ERRORS``, each quoting at most ``MAX_EXCERPT_CHARS`` of what arrived) and
+``errors_total``. A 30 MB invalid body gets a short answer, never its own echo."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from fastapi import FastAPI, Request, Response
+from fastapi.exceptions import RequestValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from service.core.units import UnitError
+from service.inference.batcher import Overloaded
+from service.inference.predict import InputError
+
+MAX_FIELD_ERRORS = 20
+MAX_EXCERPT_CHARS = 200
+MAX_DETAIL_CHARS = 1000
+
+
+class ClientGone(Exception):
+    """The client closed the connection before its answer was ready; its queued work was dropped."""
+
+
+def excerpt(text: str, limit: int = MAX_EXCERPT_CHARS) -> str:
+    """``text`` cut to ``limit`` characters, saying how long it was."""
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text)} characters)"
+
+
+def _input_excerpt(value: Any) -> str | None:
+    if value is None:
+        return None
+    try:
+        text = json.dumps(value, ensure_ascii=True, default=str)
+    except (TypeError, ValueError):
+        text = repr(value)
+    return excerpt(text)
+
+
+def field_errors(errors: list[dict]) -> dict[str, Any]:
+    """pydantic's errors → the bounded body of a 422."""
+    shown = [
+        {
+            "loc": [p if isinstance(p, int) else str(p) for p in err.get("loc", ())],
+            "msg": excerpt(str(err.get("msg", "")), MAX_EXCERPT_CHARS),
+            "type": str(err.get("type", "")),
+            "input": _input_excerpt(err.get("input")),
+        }
+        for err in errors[:MAX_FIELD_ERRORS]
+    ]
+    first = shown[0] if shown else {"loc": [], "msg": "invalid request"}
+    where = ".".join(str(p) for p in first["loc"])
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    return {
+        "detail": f"{where}: {first['msg']}{more}" if where else first["msg"],
+        "errors": shown,
+        "errors_total": len(errors),
+    }
+
+
+def error_response(status: int, detail: str, headers: dict[str, str] | None = None, **extra: Any) -> Response:
+    """The one error body; escaped to ASCII, so a lone surrogate echoed from the client cannot make it
+    unencodable."""
+    body = {"detail": excerpt(detail, MAX_DETAIL_CHARS), **extra}
+    return Response(json.dumps(body, ensure_ascii=True), status, headers, media_type="application/json")
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(InputError)
+    @app.exception_handler(UnitError)
+    async def _bad_input(request: Request, exc: ValueError) -> Response:
+        return error_response(422, str(exc))
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid_request(request: Request, exc: RequestValidationError) -> Response:
+        body = field_errors(list(exc.errors()))
+        return error_response(422, body.pop("detail"), **body)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> Response:
+        return error_response(exc.status_code, str(exc.detail), dict(exc.headers or {}))
+
+    @app.exception_handler(ClientGone)
+    async def _gone(request: Request, exc: ClientGone) -> Response:
+        # Nobody reads it; 499 ("client closed request", as nginx logs it) keeps /metrics honest.
+        return error_response(499, "the client closed the connection; its work was dropped")
+
+    @app.exception_handler(Overloaded)
+    async def _overloaded(request: Request, exc: Overloaded) -> Response:
+        request.app.state.metrics.shed.inc()
+        return error_response(503, str(exc), {"Retry-After": str(exc.retry_after_s)})

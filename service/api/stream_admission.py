@@ -1,0 +1,64 @@
+"""Admission of live streams against the measured inference capacity.
+
+A stream's demand is counted in windows per second of the I2S models (a 60 Hz sensor: one window per 16-sample
+hop, 3.75 windows/s, whatever rate it is sent at, since it is resampled to 60 Hz). Pose and flex sessions run
+other models; their demand is converted to the same unit through their models' measured seconds per frame (an
+EWMA over every call of that model, REST or stream) and the I2S seconds per window. A model not yet measured
+counts as free until its first call: the first session of a model is admitted on the I2S demand alone.
+
+A new stream is refused (close code 1013, "try again later") when its demand would take the admitted streams'
+total past ``fraction`` × capacity: beyond it every admitted stream's answers would fall behind, as they did
+when 51 sensors on a 26-sensor machine all got answers 8–50 s late.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+from service.inference.batcher import MicroBatcher
+
+I2S_WINDOWS_PER_SENSOR_S = 60.0 / 16  # model rate / hop
+EWMA_WEIGHT = 0.2
+
+
+class StreamAdmission:
+    def __init__(self, fraction: float) -> None:
+        self.fraction = fraction
+        self.demand: dict[int, float] = {}  # session → windows/s
+        self.seconds_per_frame: dict[str, float] = {}  # pose or flex model name → seconds per frame (one worker)
+        self.ids = itertools.count()
+
+    @property
+    def total(self) -> float:
+        return sum(self.demand.values())
+
+    def model_demand(self, batcher: MicroBatcher, model: str, frames_per_s: float) -> float:
+        """Windows/s equivalent of running ``model`` on ``frames_per_s`` (0 until the model has been measured)."""
+        spw = batcher.seconds_per_window
+        cost = self.seconds_per_frame.get(model)
+        return 0.0 if not spw or cost is None else frames_per_s * cost / spw
+
+    def observe(self, model: str, frames: int, seconds: float) -> None:
+        """A call of a pose or flex model on ``frames`` frames took ``seconds``."""
+        if frames <= 0:
+            return
+        per_frame = seconds / frames
+        old = self.seconds_per_frame.get(model)
+        self.seconds_per_frame[model] = per_frame if old is None else (1 - EWMA_WEIGHT) * old + EWMA_WEIGHT * per_frame
+
+    def admit(self, batcher: MicroBatcher, windows_per_s: float) -> tuple[int | None, str]:
+        """(a session key, "") if admitted, else (None, why)."""
+        capacity = batcher.capacity_windows_per_s
+        limit = None if capacity is None else self.fraction * capacity
+        if limit is not None and self.total + windows_per_s > limit:
+            return None, (
+                f"at capacity: this stream needs {windows_per_s:.1f} windows/s, the admitted streams take "
+                f"{self.total:.1f} of {limit:.1f} windows/s; try again later"
+            )
+        key = next(self.ids)
+        self.demand[key] = windows_per_s
+        return key, ""
+
+    def release(self, key: int | None) -> None:
+        if key is not None:
+            self.demand.pop(key, None)

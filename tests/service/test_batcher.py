@@ -1,0 +1,116 @@
+"""The scheduler's policy: batching for company, one turn per caller, deadlines, dropped callers."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+
+from service.inference.batcher import MicroBatcher, Overloaded
+
+
+class _Recorder:
+    """A stand-in for one worker's chunk run that records the chunks it gets (as the callers' ids)."""
+
+    def __init__(self, seconds: float = 0.0) -> None:
+        self.chunks: list[list[int]] = []
+        self.seconds = seconds
+
+    async def __call__(self, imu: np.ndarray) -> tuple[np.ndarray, None]:
+        self.chunks.append(imu[:, 0, 0].astype(int).tolist())
+        await asyncio.sleep(self.seconds)
+        return imu[:, 0, :1].copy(), None
+
+
+def _windows(k: int, n: int = 1) -> np.ndarray:
+    return np.full((n, 128, 6), float(k), dtype=np.float32)
+
+
+def _run(calls: list[tuple[float, int, float | None]], seconds: float = 0.0, wait_ms: float = 0.0) -> list[list[int]]:
+    """``calls``: (start delay s, windows, per-call wait ms); every caller must get its own rows back, in order."""
+
+    async def main() -> list[list[int]]:
+        rec = _Recorder(seconds)
+        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=wait_ms)
+        batcher.start()
+
+        async def one(k: int, delay: float, n: int, wait: float | None) -> None:
+            await asyncio.sleep(delay)
+            out, _ = await batcher.infer(_windows(k, n), wait)
+            assert out.shape == (n, 1) and (out == k).all()
+
+        await asyncio.gather(*(one(k, d, n, w) for k, (d, n, w) in enumerate(calls)))
+        await batcher.stop()
+        return rec.chunks
+
+    return asyncio.run(main())
+
+
+def test_a_lone_request_runs_at_once_and_load_fills_chunks() -> None:
+    assert _run([(0.0, 1, None)]) == [[0]]
+    # While the first chunk runs (50 ms), the next five callers queue and share one chunk.
+    assert _run([(0.0, 1, None)] + [(0.01, 1, None)] * 5, seconds=0.05) == [[0], [1, 2, 3, 4, 5]]
+
+
+def test_a_stream_window_waits_for_company_until_the_most_impatient_deadline() -> None:
+    # Two stream windows (wait 100 ms) arriving 20 ms apart share one chunk ...
+    assert _run([(0.0, 1, 100.0), (0.02, 1, 100.0)]) == [[0, 1]]
+    # ... and a REST request (no wait) arriving meanwhile releases the chunk at once.
+    start = time.monotonic()
+    assert _run([(0.0, 1, 1000.0), (0.02, 1, 0.0)]) == [[0, 1]]
+    assert time.monotonic() - start < 0.5
+
+
+def test_a_single_window_takes_its_turn_between_the_chunks_of_a_large_batch() -> None:
+    # A 64-window batch (8 chunks of 10 ms) starts first; a single window arriving 15 ms later runs on its own in
+    # the next chunk, not after the whole batch (nor padded with the batch's windows).
+    chunks = _run([(0.0, 64, None), (0.015, 1, None)], seconds=0.01)
+    assert chunks[:2] == [[0] * 8, [0] * 8]
+    assert chunks[2] == [1]
+    assert sum(len(c) for c in chunks) == 65
+
+
+def test_a_request_whose_wait_passes_its_deadline_is_refused_at_once_with_a_retry_time() -> None:
+    async def main() -> None:
+        rec = _Recorder(0.05)
+        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0)
+        batcher.set_capacity(80.0)  # 12.5 ms per window
+        batcher.start()
+        big = asyncio.ensure_future(batcher.infer(_windows(0, 400)))
+        await asyncio.sleep(0.001)
+        # Ahead of a new caller: the chunk running (8 windows) and the batch's next turn (8): 0.2 s.
+        assert batcher.estimated_wait_s() == pytest.approx(16 * 0.0125)
+        batcher.reserved = 200  # admitted requests still being read count too: 2.7 s ahead
+        start = time.monotonic()
+        with pytest.raises(Overloaded) as refused:
+            await batcher.infer(_windows(1), start_by=time.monotonic() + 1.0)
+        assert time.monotonic() - start < 0.01
+        assert refused.value.retry_after_s == 2  # ceil(2.7125 - 1.0)
+        batcher.reserved = 0
+        out, _ = await batcher.infer(_windows(2), start_by=time.monotonic() + 1.0)  # 0.21 s: admitted
+        assert out[0, 0] == 2
+        big.cancel()
+        await batcher.stop()
+
+    asyncio.run(main())
+
+
+def test_the_windows_of_a_caller_that_went_away_are_not_computed() -> None:
+    async def main() -> None:
+        rec = _Recorder(0.02)
+        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0)
+        batcher.start()
+        first = asyncio.ensure_future(batcher.infer(_windows(0, 8)))
+        gone = asyncio.ensure_future(batcher.infer(_windows(1, 80)))
+        await asyncio.sleep(0.03)  # the first chunk of each has run or is running
+        gone.cancel()
+        await first
+        await asyncio.sleep(0.1)
+        computed = sum(c.count(1) for c in rec.chunks)
+        assert computed <= 16 and batcher.abandoned >= 64
+        assert batcher.estimated_wait_s() == 0.0 or not batcher.jobs
+        await batcher.stop()
+
+    asyncio.run(main())

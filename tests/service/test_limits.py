@@ -1,0 +1,172 @@
+"""What one client can cost the service: body size on the bytes received, error size, load shedding with
+Retry-After, dropped work of clients that left, and the key, metrics and origin settings."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from benchmarks.servers import start_service, stop
+from service.app import create_app
+from service.settings import Settings
+
+WINDOW = {"samples": [[0.0, 0.0, 9.81, 0.5, 0.0, 0.0]] * 128}
+
+
+def _vm_kib(pid: int, field: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise KeyError(field)
+
+
+def _chunked_post(port: int, path: str, total_bytes: int, chunk: int = 1 << 20) -> tuple[int, bytes]:
+    """POST ``total_bytes`` of a JSON-looking body with Transfer-Encoding: chunked; the status and body of the
+    answer (read once the server answers or stops reading)."""
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.sendall(
+        f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n".encode()
+        + b"Transfer-Encoding: chunked\r\n\r\n"
+    )
+    piece = b"[" + b"0.0," * (chunk // 4 - 1) + b"0]"
+    sent = 0
+    try:
+        while sent < total_bytes:
+            sock.sendall(f"{len(piece):x}\r\n".encode() + piece + b"\r\n")
+            sent += len(piece)
+        sock.sendall(b"0\r\n\r\n")
+    except (BrokenPipeError, ConnectionResetError):
+        pass
+    sock.settimeout(10)
+    answer = b""
+    try:
+        while b"\r\n\r\n" not in answer or len(answer.split(b"\r\n\r\n", 1)[1]) < _length(answer):
+            data = sock.recv(65536)
+            if not data:
+                break
+            answer += data
+    finally:
+        sock.close()
+    head, _, body = answer.partition(b"\r\n\r\n")
+    return int(head.split()[1]), body
+
+
+def _length(answer: bytes) -> int:
+    for line in answer.split(b"\r\n\r\n", 1)[0].split(b"\r\n"):
+        if line.lower().startswith(b"content-length:"):
+            return int(line.split(b":")[1])
+    return 0
+
+
+def test_a_chunked_body_over_the_limit_is_413_and_never_held(tiny_models: Path) -> None:
+    server, base = start_service(tiny_models, max_body_bytes="1000000")
+    try:
+        port = int(base.rsplit(":", 1)[1])
+        before = _vm_kib(server.pid, "VmHWM")
+        status, body = _chunked_post(port, "/v1/imu/windows", 200 << 20)  # 200 MB, 200× the limit
+        grown_mib = (_vm_kib(server.pid, "VmHWM") - before) / 1024
+        assert status == 413, body[:300]
+        assert "exceeds the limit of 1000000 bytes" in json.loads(body)["detail"]
+        assert grown_mib < 20, f"peak RSS grew {grown_mib:.0f} MiB for a 200 MB body"
+        # Within the limit, chunked works as before.
+        body = iter([json.dumps({"windows": [WINDOW]}).encode()])
+        ok = httpx.post(f"{base}/v1/imu/windows", content=body, headers={"content-type": "application/json"})
+        assert ok.status_code == 200, ok.text
+    finally:
+        stop(server)
+
+
+def test_an_invalid_body_gets_a_bounded_error_in_one_shape(client: TestClient) -> None:
+    bad = {"windows": [{"samples": [["x"] * 6] * 128}] * 200}  # 153,600 wrong values, a 1.2 MB body
+    r = client.post("/v1/imu/windows", json=bad)
+    assert r.status_code == 422
+    body = r.json()
+    assert set(body) == {"detail", "errors", "errors_total"} and isinstance(body["detail"], str)
+    assert len(body["errors"]) == 20 and body["errors_total"] == 153_600
+    assert len(r.content) < 10_000
+    assert all(e["input"] is None or len(e["input"]) <= 230 for e in body["errors"])
+    # A whole wrong body is quoted as an excerpt, not echoed.
+    r = client.post("/v1/imu/windows", json={"windowz": "y" * 500_000})
+    assert r.status_code == 422 and len(r.content) < 5_000, len(r.content)
+    assert "characters)" in r.text
+    # Other errors have the same shape.
+    r = client.post("/v1/imu/assign", json={"sensors": [{"sensor_id": "a", "windows": [WINDOW]}] * 2})
+    assert r.status_code == 422 and isinstance(r.json()["detail"], str) and "unique" in r.json()["detail"]
+
+
+def test_requests_beyond_the_deadline_are_shed_at_once_with_retry_after(tiny_models: Path) -> None:
+    settings = Settings(models_dir=tiny_models, capacity_windows_per_s=10.0, request_deadline_s=0.5)
+    with TestClient(create_app(settings)) as c:
+        batcher = c.app.state.batcher
+        assert batcher.capacity_windows_per_s == pytest.approx(10.0)
+        batcher.reserved = 20  # 2 s of work admitted ahead (bodies being read)
+        start = time.monotonic()
+        r = c.post("/v1/imu/windows", json={"windows": [WINDOW]})
+        assert r.status_code == 503 and time.monotonic() - start < 0.1
+        assert int(r.headers["Retry-After"]) == 2  # ceil(2.1 - 0.5)
+        assert "overloaded" in r.json()["detail"]
+        assert c.post("/v1/pose/imu", json={}).status_code == 503  # every /v1 POST is shed the same way
+        batcher.reserved = 0
+        assert c.post("/v1/imu/windows", json={"windows": [WINDOW]}).status_code == 200
+        metrics = c.get("/metrics").text
+        assert "wearmocap_requests_shed_total 2.0" in metrics
+        assert "wearmocap_capacity_windows_per_second 10.0" in metrics
+
+
+def test_the_work_of_a_client_that_gave_up_is_dropped(tiny_models: Path) -> None:
+    # A slow service (capacity forced to 5 windows/s against a deadline of 60 s) and clients that give up after
+    # 0.3 s: their queued windows are never computed.
+    server, base = start_service(
+        tiny_models,
+        capacity_windows_per_s="5",
+        request_deadline_s="60",
+        inference_chunk_windows="1",
+        inference_threads="1",
+    )
+    try:
+
+        async def main() -> None:
+            async with httpx.AsyncClient(timeout=0.3) as http:
+                # Each binary body of 64 zero windows; the tiny models are fast, so the dispatcher is slowed by the
+                # 64 turns only: give up before they are through.
+                body = np.zeros((2048, 128, 6), "<f4").tobytes()
+                results = await asyncio.gather(
+                    *(http.post(f"{base}/v1/imu/windows/binary", content=body) for _ in range(4)),
+                    return_exceptions=True,
+                )
+                assert any(isinstance(r, httpx.TimeoutException) for r in results), results
+
+        asyncio.run(main())
+        time.sleep(1.0)
+        metrics = httpx.get(f"{base}/metrics").text
+        assert 'status="499"' in metrics, [line for line in metrics.splitlines() if "requests_total" in line]
+    finally:
+        stop(server)
+
+
+def test_the_key_guards_metrics_when_asked_and_origins_are_checked(tiny_models: Path) -> None:
+    settings = Settings(
+        models_dir=tiny_models, api_key="k" * 32, metrics_require_key=True, allowed_origins="https://lab.example.org"
+    )
+    with TestClient(create_app(settings)) as c:
+        assert c.get("/metrics").status_code == 401
+        assert c.get("/metrics", headers={"X-API-Key": "k" * 32}).status_code == 200
+        assert c.get("/metrics", headers={"X-API-Key": "k" * 31 + "j"}).status_code == 401
+        assert c.get("/health").status_code == 200 and c.get("/ready").status_code == 200
+        pre = c.options(
+            "/v1/imu/windows",
+            headers={"Origin": "https://lab.example.org", "Access-Control-Request-Method": "POST"},
+        )
+        assert pre.headers["access-control-allow-origin"] == "https://lab.example.org"
+        other = c.options(
+            "/v1/imu/windows", headers={"Origin": "https://evil.example", "Access-Control-Request-Method": "POST"}
+        )
+        assert "access-control-allow-origin" not in other.headers
