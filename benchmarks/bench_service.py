@@ -1,7 +1,8 @@
 """Service benchmark on this machine, all measured in one run and written to benchmarks/results/service.json:
 
 (a) single-window POST latency and batched POST throughput (assignment + alignment), JSON and raw float32;
-(b) N concurrent WebSocket streams at 60 Hz: samples/s sustained, result latency p50/p99, samples lost;
+(b) N concurrent WebSocket streams at 60 Hz: samples/s sustained, result latency p50/p99, samples lost, and how
+    many the service refused at its capacity (close code 1013: the admitted ones keep their latency);
 (c) each shipped assignment ONNX file behind our service vs behind ``mlflow models serve``, same batches, as a
     ratio (ours with JSON and with raw float32 bodies; MLflow takes JSON).
 
@@ -83,12 +84,16 @@ def bench_rest(base: str, n_single: int, batch: int, n_batches: int) -> dict:
     return out
 
 
+class Refused(Exception):
+    """The service refused the stream with 1013 (at capacity)."""
+
+
 async def _one_stream(
     url: str, seconds: float, lat_ms: list[float], sent: list[int], start_at: float, failures: list[str]
 ) -> None:
     try:
         await _stream_body(url, seconds, lat_ms, sent, start_at)
-    except (websockets.ConnectionClosed, OSError) as exc:
+    except (websockets.ConnectionClosed, OSError, Refused) as exc:
         failures.append(type(exc).__name__ + ": " + str(exc)[:120])
 
 
@@ -98,7 +103,9 @@ async def _stream_body(url: str, seconds: float, lat_ms: list[float], sent: list
     pending: dict[float, float] = {}
     async with websockets.connect(url, max_size=2**24, ping_interval=None) as ws:
         await ws.send(json.dumps({"type": "start", "sensors": [{"sensor_id": "s"}]}))
-        await ws.recv()
+        started = orjson.loads(await ws.recv())
+        if started["type"] == "error" and started.get("close_code") == 1013:
+            raise Refused(started["detail"])  # admission: the service is at its stream capacity
 
         async def receive() -> None:
             async for raw in ws:
@@ -139,8 +146,11 @@ async def bench_streams(base: str, n: int, seconds: float) -> dict:
     wall = time.perf_counter() - t
     server = {k: v - before.get(k, 0.0) for k, v in _server_metrics(base).items()}
     received = server["wearmocap_stream_samples_total"]
+    refused = sum(f.startswith("Refused") for f in failures)
+    failures = [f for f in failures if not f.startswith("Refused")]
     return {
         "streams": n,
+        "streams_refused_at_capacity": refused,
         "streams_failed": len(failures),
         "failures": sorted(set(failures))[:5],
         "stream_seconds": seconds,
@@ -170,6 +180,7 @@ def summarize_streams(runs: list[dict]) -> dict:
         "runs": len(runs),
         "samples_lost_per_run": lost,
         "streams_failed_per_run": [r["streams_failed"] for r in runs],
+        "streams_refused_at_capacity_per_run": [r["streams_refused_at_capacity"] for r in runs],
         "result_latency_ms_p50_per_run": [r["result_latency_ms_p50"] for r in runs],
         "result_latency_ms_p99_per_run": p99,
         "result_latency_ms_p99_median_of_runs": float(np.median(p99)),

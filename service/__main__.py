@@ -9,6 +9,8 @@ import logging
 import uvicorn
 
 from service.app import create_app
+from service.settings import get_settings
+from service.websocket_protocol import WebSocketProtocol
 
 GC_GEN0_THRESHOLD = 50_000
 
@@ -39,17 +41,16 @@ def main() -> None:
     # figures). Only reference cycles wait longer; everything else is freed at once.
     gc.set_threshold(args.gc_threshold, 20, 100)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    settings = get_settings()
     uvicorn.run(
-        create_app(),
+        create_app(settings),
         host=args.host,
         port=args.port,
         access_log=args.access_log,
         ws_per_message_deflate=args.ws_compression,
-        # Dead peers are found by uvicorn's ping; a client that stops reading is closed earlier by the service with
-        # 1008 and a reason (WEARMOCAP_STREAM_SLOW_CONSUMER_S). A long pong timeout keeps uvicorn's own 1011 close,
-        # written ahead of anything the client has not read, from pre-empting that reason.
-        ws_ping_interval=20.0,
-        ws_ping_timeout=60.0,
+        ws=WebSocketProtocol,  # a client that stops answering pings (it stopped reading) is closed with 1008
+        ws_ping_interval=settings.ws_ping_interval_s,
+        ws_ping_timeout=settings.ws_ping_timeout_s,
     )
 
 

@@ -91,7 +91,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.models = {}
     app.state.pose_models = {}
     app.state.flex_models = {}
-    app.state.streams = StreamAdmission(settings.stream_capacity_fraction)
+    app.state.streams = StreamAdmission(settings.stream_capacity_fraction, settings.stream_latency_target_ms)
     app.include_router(router)
     app.include_router(pose_router)
     app.include_router(flex_router)
@@ -111,4 +111,3 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
 
     return app
-

@@ -38,10 +38,16 @@ class Settings(BaseSettings):
         "full chunk)",
     )
     stream_capacity_fraction: float = Field(
-        0.8,
+        0.5,
         gt=0,
         le=1,
         description="share of the capacity that live streams may take; a new stream beyond it is refused with 1013",
+    )
+    stream_latency_target_ms: float = Field(
+        100.0,
+        gt=0,
+        description="a new stream is refused with 1013 while the admitted streams' packet-to-answer p99 over the last "
+        "10 s passes this",
     )
     stream_slow_consumer_s: float = Field(
         5.0,
@@ -69,6 +75,13 @@ class Settings(BaseSettings):
         description="a streamed sensor's alignment in the assignment message is the robust mean over its last this "
         "many moving windows (450: about two minutes at 60 Hz, hop 16)",
     )
+    ws_ping_interval_s: float = Field(10.0, gt=0, description="WebSocket ping interval (python -m service)")
+    ws_ping_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        description="a WebSocket client that does not answer a ping within this is closed with 1008 and a reason (it "
+        "has stopped reading)",
+    )
     model_versions: str = Field(
         "", description="comma-separated <name>=<version> pins, e.g. i2s_alignment=1.0.0; default: newest version"
     )
@@ -87,8 +100,9 @@ class Settings(BaseSettings):
         "to open WebSockets; empty: no CORS headers, and WebSockets from any origin",
     )
     strict_models: bool = Field(
-        False, description="refuse to start when any model file under models_dir is refused (bad sha256, unreadable, "
-        "no manifest) instead of serving the others with /ready 'degraded'"
+        False,
+        description="refuse to start when any model file under models_dir is refused (bad sha256, unreadable, "
+        "no manifest) instead of serving the others with /ready 'degraded'",
     )
     ui_url: str = Field("http://127.0.0.1:5000", description="the MLflow UI that the landing page (GET /) links")
 

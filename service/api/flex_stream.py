@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import time
 
 import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
@@ -119,6 +120,7 @@ def _started(live: LiveFlex) -> dict:
 
 
 async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, outbox: Outbox) -> None:
+    received = time.perf_counter()
     try:
         check_rows(rows, live.model, f"packet seq {seq}: samples")
     except InputError as exc:
@@ -148,6 +150,8 @@ async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, out
         }
         if outbox.put(message):
             ws.app.state.metrics.dropped.inc()
+        ws.app.state.metrics.stream_result.observe(time.perf_counter() - received)
+        ws.app.state.streams.observe_latency(time.perf_counter() - received)
 
 
 async def _serve(ws: WebSocket, live: LiveFlex, outbox: Outbox) -> None:

@@ -38,6 +38,7 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 JSON_BYTES_PER_WINDOW = 6144  # for the estimate before parsing: 768 numbers of about 8 characters
 BINARY_BYTES_PER_WINDOW = 3072  # 128 samples × 6 float32
+MAX_PARSE_WAIT_S = 0.05  # an admitted request waits at most this long for a quiet turn before it is parsed
 DRAIN_SECONDS, DRAIN_BYTES = 5.0, 1 << 30  # how much of an over-limit body is read and discarded after the 413
 
 
@@ -70,6 +71,7 @@ class Guard:
     def __init__(self, app: ASGIApp, settings: Settings, metrics: ServiceMetrics, state: State) -> None:
         self.app, self.settings, self.metrics, self.state = app, settings, metrics, state
         self.arrivals = 0  # requests seen so far
+        self.parse_turn_taken = False  # a request has started parsing in this turn of the event loop
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -129,14 +131,26 @@ class Guard:
                 batcher.release(scope["state"])
 
     async def _after_arrivals(self) -> None:
-        """Wait until a turn of the event loop passes with no new request: the requests of a burst all pass their
-        admission (and the refused ones are answered) before the admitted ones are parsed, which takes a few
-        milliseconds each. Without a burst this costs one turn of the loop."""
+        """Wait for this request's turn to be parsed, which takes a few milliseconds on the event loop: one request
+        per turn of the loop, and only once a turn has passed with no new request (or ``MAX_PARSE_WAIT_S`` has).
+        In a burst, every request passes its admission, and the refused ones are answered, before the admitted ones
+        hold the loop; without a burst this costs two turns of the loop."""
+        loop = asyncio.get_running_loop()
+        since = time.monotonic()
         while True:
             seen = self.arrivals
+            # Two turns: in the first, this task runs before the requests whose bytes arrived in that turn
+            # have started; in the second, after they have passed their admission.
             await asyncio.sleep(0)
-            if self.arrivals == seen:
+            await asyncio.sleep(0)
+            quiet = self.arrivals == seen or time.monotonic() - since > MAX_PARSE_WAIT_S
+            if quiet and not self.parse_turn_taken:
+                self.parse_turn_taken = True
+                loop.call_soon(self._free_parse_turn)
                 return
+
+    def _free_parse_turn(self) -> None:
+        self.parse_turn_taken = False
 
     def _admit(self, scope: Scope, headers: dict[bytes, bytes], length: int) -> bool:
         """Reserve the request's estimated first turn in the queue (False: shed it). Only POSTs to ``/v1/*``."""

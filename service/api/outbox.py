@@ -145,8 +145,8 @@ async def sender(ws: WebSocket, outbox: Outbox) -> None:
             try:
                 await ws.send_text(outbox.pop())
                 outbox.last_sent = time.monotonic()
-            except WebSocketDisconnect:  # the client left; the receive loop sees it and ends the session
-                return
+            except (WebSocketDisconnect, RuntimeError, OSError):  # the client left or was closed; the receive loop
+                return  # sees it and ends the session
             finally:
                 outbox.sending = False
 
@@ -207,7 +207,7 @@ async def close(ws: WebSocket, code: int, reason: str) -> None:
         return
     try:
         await ws.close(code=code, reason=reason.encode(errors="replace")[:120].decode(errors="ignore"))
-    except (WebSocketDisconnect, RuntimeError):  # the client left while we were closing
+    except (WebSocketDisconnect, RuntimeError, OSError):  # the client left, or the server closed it, meanwhile
         log.debug("stream client left before the close frame")
 
 

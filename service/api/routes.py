@@ -329,9 +329,7 @@ async def health() -> dict[str, str]:
     response_model=Readiness,
     responses={
         200: {
-            "content": {
-                "application/json": {"example": {"ready": True, "status": "ok", "models": EXAMPLE_VERSIONS}}
-            }
+            "content": {"application/json": {"example": {"ready": True, "status": "ok", "models": EXAMPLE_VERSIONS}}}
         },
         503: {
             "model": Readiness,

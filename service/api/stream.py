@@ -269,6 +269,7 @@ async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples
             app.state.metrics.dropped.inc()
         if message["type"] == "pose":
             app.state.metrics.stream_result.observe(time.perf_counter() - received)
+            app.state.streams.observe_latency(time.perf_counter() - received)
 
 
 async def _accept_packet(app: FastAPI, session: Session, k: int, seq: int, samples: np.ndarray) -> None:
@@ -352,6 +353,7 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
             row += 1
         if item.windows:
             app.state.metrics.stream_result.observe(time.perf_counter() - item.received)
+            app.state.streams.observe_latency(time.perf_counter() - item.received)
     for moment in session.moment_messages():
         if outbox.put(moment):
             app.state.metrics.dropped.inc()

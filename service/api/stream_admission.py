@@ -8,22 +8,33 @@ counts as free until its first call: the first session of a model is admitted on
 
 A new stream is refused (close code 1013, "try again later") when its demand would take the admitted streams'
 total past ``fraction`` × capacity: beyond it every admitted stream's answers would fall behind, as they did
-when 51 sensors on a 26-sensor machine all got answers 8–50 s late.
+when 51 sensors on a 26-sensor machine all got answers 8–50 s late. It is refused too while the admitted streams'
+answers are already late: when the p99 of their packet-to-answer times over the last ``WINDOW_S`` seconds passes
+``latency_target_ms`` (the capacity estimate does not see the event loop's own work for many streams, nor other
+programs on the machine).
 """
 
 from __future__ import annotations
 
 import itertools
+import time
+from collections import deque
+
+import numpy as np
 
 from service.inference.batcher import MicroBatcher
 
 I2S_WINDOWS_PER_SENSOR_S = 60.0 / 16  # model rate / hop
 EWMA_WEIGHT = 0.2
+WINDOW_S = 10.0  # of recent answer latencies
+MIN_LATENCIES = 50  # fewer than this in the window: too few to judge
 
 
 class StreamAdmission:
-    def __init__(self, fraction: float) -> None:
+    def __init__(self, fraction: float, latency_target_ms: float = 100.0) -> None:
         self.fraction = fraction
+        self.latency_target_ms = latency_target_ms
+        self.latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # (monotonic time, seconds)
         self.demand: dict[int, float] = {}  # session → windows/s
         self.seconds_per_frame: dict[str, float] = {}  # pose or flex model name → seconds per frame (one worker)
         self.ids = itertools.count()
@@ -46,9 +57,28 @@ class StreamAdmission:
         old = self.seconds_per_frame.get(model)
         self.seconds_per_frame[model] = per_frame if old is None else (1 - EWMA_WEIGHT) * old + EWMA_WEIGHT * per_frame
 
+    def observe_latency(self, seconds: float) -> None:
+        """A stream packet's answers were queued ``seconds`` after it arrived."""
+        self.latencies.append((time.monotonic(), seconds))
+
+    def recent_p99_ms(self) -> float | None:
+        """p99 of the admitted streams' recent answer latencies; None without enough of them (or streams)."""
+        if not self.demand:
+            self.latencies.clear()  # no stream is open: what was measured is over
+            return None
+        since = time.monotonic() - WINDOW_S
+        recent = [s for t, s in self.latencies if t >= since]
+        return None if len(recent) < MIN_LATENCIES else 1000 * float(np.percentile(recent, 99))
+
     def admit(self, batcher: MicroBatcher, windows_per_s: float) -> tuple[int | None, str]:
         """(a session key, "") if admitted, else (None, why)."""
-        capacity = batcher.capacity_windows_per_s
+        p99 = self.recent_p99_ms()
+        if p99 is not None and p99 > self.latency_target_ms:
+            return None, (
+                f"at capacity: the admitted streams' answers take {p99:.0f} ms at p99 (target "
+                f"{self.latency_target_ms:.0f} ms); try again later"
+            )
+        capacity = batcher.stream_capacity_windows_per_s
         limit = None if capacity is None else self.fraction * capacity
         if limit is not None and self.total + windows_per_s > limit:
             return None, (

@@ -137,3 +137,48 @@ async def _slow_consumer(url: str) -> None:
     assert closed.value.rcvd is not None, "no close frame reached the client"
     assert closed.value.rcvd.code == 1008 and "consumer too slow" in closed.value.rcvd.reason
     assert messages and messages[0]["type"] == "started"
+
+
+def test_a_consumer_that_stops_answering_pings_is_closed_with_1008_before_its_buffers_fill(tiny_models: Path) -> None:
+    # Real time, little output: the kernel's buffers take it all, but the client, which reads nothing, answers no
+    # ping either.
+    server, base = start_service(tiny_models, ws_ping_interval_s="0.5", ws_ping_timeout_s="1")
+    try:
+        asyncio.run(_not_reading(base.replace("http", "ws") + "/v1/stream"))
+    finally:
+        stop(server)
+
+
+async def _not_reading(url: str) -> None:
+    async with websockets.connect(url, max_queue=1, ping_interval=None) as ws:
+        await ws.send(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+        x = np.random.default_rng(0).normal(size=(16, 6))
+        for seq in range(0, 60 * 5, 16):  # 5 s in real time, reading nothing; sending goes on working throughout
+            await ws.send(encode_binary(0, seq, x))
+            await asyncio.sleep(16 / 60)
+        with pytest.raises(websockets.ConnectionClosed) as closed:  # now read: the backlog, then why it was closed
+            while True:
+                await asyncio.wait_for(ws.recv(), 5)
+    assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+    assert "no answer to a ping" in closed.value.rcvd.reason
+
+
+def test_streams_are_refused_while_the_admitted_ones_answer_late(tiny_models: Path) -> None:
+    with TestClient(create_app(Settings(models_dir=tiny_models, stream_latency_target_ms=100.0))) as c:
+        admission = c.app.state.streams
+        start = {"type": "start", "sensors": [{"sensor_id": "a"}]}
+        with c.websocket_connect("/v1/stream") as first:
+            first.send_text(json.dumps(start))
+            assert json.loads(first.receive_text())["type"] == "started"
+            for _ in range(60):
+                admission.observe_latency(0.02)
+            for _ in range(10):
+                admission.observe_latency(0.4)  # the slowest 1 % of the last 10 s: 400 ms
+            with c.websocket_connect("/v1/stream") as ws:
+                ws.send_text(json.dumps(start))
+                error = json.loads(ws.receive_text())
+                assert error["close_code"] == 1013 and "answers take 400 ms at p99" in error["detail"]
+        # Once no stream is open, what was measured is over.
+        with c.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps(start))
+            assert json.loads(ws.receive_text())["type"] == "started"
