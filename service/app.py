@@ -15,6 +15,7 @@ from service.api.flex_routes import router as flex_router
 from service.api.flex_stream import router as flex_stream_router
 from service.api.guard import Guard, allowed_origins
 from service.api.landing import router as landing_router
+from service.api.landing import static_files
 from service.api.metrics import ServiceMetrics
 from service.api.pose_routes import router as pose_router
 from service.api.routes import router
@@ -79,6 +80,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         runner.close()
 
     app = FastAPI(
+        docs_url=None,  # served by service.api.landing from the package's own Swagger UI files, not a CDN
+        redoc_url=None,
         title="wearmocap",
         version="0.1.0",
         lifespan=lifespan,
@@ -97,6 +100,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(flex_router)
     app.include_router(flex_stream_router)
     app.include_router(landing_router)
+    app.mount("/static", static_files(), name="static")
     app.include_router(stream_router)
 
     install_error_handlers(app)

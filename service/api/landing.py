@@ -1,13 +1,36 @@
-"""``GET /``: a small landing page linking what a newcomer looks for (API docs, models, metrics, the MLflow UI)."""
+"""The pages a person opens: ``GET /``, a small landing page linking what a newcomer looks for (API docs, models,
+metrics, the MLflow UI), and ``GET /docs``, the Swagger UI, served from the service package
+(``service/static/swagger-ui``: swagger-ui-dist 5.35.0 from npm, Apache-2.0), so it works with no network."""
 
 from __future__ import annotations
 
 from html import escape
+from pathlib import Path
 
 from fastapi import APIRouter, Request
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse
+from fastapi.staticfiles import StaticFiles
 
 router = APIRouter()
+STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
+SWAGGER_UI = "/static/swagger-ui"
+
+
+def static_files() -> StaticFiles:
+    """``/static``: the files the pages use, from the service package."""
+    return StaticFiles(directory=STATIC_DIR)
+
+
+@router.get("/docs", response_class=HTMLResponse, include_in_schema=False)
+async def swagger_ui(request: Request) -> HTMLResponse:
+    return get_swagger_ui_html(
+        openapi_url=request.app.openapi_url,
+        title=f"{request.app.title}: API",
+        swagger_js_url=f"{SWAGGER_UI}/swagger-ui-bundle.js",
+        swagger_css_url=f"{SWAGGER_UI}/swagger-ui.css",
+        swagger_favicon_url=f"{SWAGGER_UI}/favicon-32x32.png",
+    )
 
 LINKS = (
     ("/docs", "API documentation (OpenAPI, try requests in the browser)"),

@@ -39,6 +39,7 @@ from service.api.schemas import (
 )
 from service.core.assignment import is_moving, joint_assignment, turns_about_vertical, window_joint_assignment
 from service.core.segments import SEGMENTS, segment_index, segment_indices
+from service.core.units import unit_warnings
 from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES
 from service.inference.predict import (
     MAX_ABS_READING,
@@ -168,7 +169,10 @@ async def classify_windows(body: WindowsRequest, request: Request, settings: Set
     imu = _inputs(body.windows, "windows")
     probs, quats, versions = await _infer(request, imu)
     segments = [segment_index(w.segment) if w.segment else None for w in body.windows]
-    return _json(WindowsResponse(results=_window_results(imu, probs, quats, segments), model_versions=versions))
+    units = sorted({(w.acc_unit, w.gyr_unit) for w in body.windows})
+    warnings = [text for acc, gyr in units for text in unit_warnings(imu, acc, gyr)] if len(units) == 1 else []
+    results = _window_results(imu, probs, quats, segments)
+    return _json(WindowsResponse(results=results, model_versions=versions, warnings=warnings))
 
 
 BINARY_BODY = (
@@ -233,7 +237,10 @@ async def classify_windows_binary(
     imu = windows_to_model_input(raw.astype(np.float64), sample_rate_hz, acc_unit, gyr_unit, "window {i}")
     probs, quats, versions = await _infer(request, imu)
     segments = [segment_index(segment) if segment else None] * len(imu)
-    return _json(WindowsResponse(results=_window_results(imu, probs, quats, segments), model_versions=versions))
+    results = _window_results(imu, probs, quats, segments)
+    return _json(
+        WindowsResponse(results=results, model_versions=versions, warnings=unit_warnings(imu, acc_unit, gyr_unit))
+    )
 
 
 @router.post(
@@ -282,7 +289,13 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
                 window_segments=[SEGMENTS[g] if g >= 0 else None for g in at_moment[k].tolist()],
             )
         )
-    return _json(AssignResponse(sensors=out, model_versions=versions))
+    warnings = [
+        f"sensors[{k}] ({sensor.sensor_id}): {text}"
+        for k, sensor in enumerate(body.sensors)
+        if len({(w.acc_unit, w.gyr_unit) for w in sensor.windows}) == 1
+        for text in unit_warnings(per_sensor[k], sensor.windows[0].acc_unit, sensor.windows[0].gyr_unit)
+    ]
+    return _json(AssignResponse(sensors=out, model_versions=versions, warnings=warnings))
 
 
 @router.get(

@@ -177,6 +177,11 @@ class WindowsResponse(BaseModel):
     )
     results: list[WindowResult]
     model_versions: dict[str, str]
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="the input looks implausible for its declared units (gravity far from 9.81 m/s² over the "
+        "windows, a gyroscope faster than a human segment turns): the answer is given, but check the units",
+    )
 
 
 class SensorWindows(BaseModel):
@@ -276,6 +281,11 @@ class AssignResponse(BaseModel):
     )
     sensors: list[SensorAssignment]
     model_versions: dict[str, str]
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="the input looks implausible for its declared units (gravity far from 9.81 m/s² over the "
+        "windows, a gyroscope faster than a human segment turns): the answer is given, but check the units",
+    )
 
 
 EXAMPLE_FLEX_SAMPLES = [[1850.0, 1790.0, 2210.0, 2105.0]] * 100

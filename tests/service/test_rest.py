@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -364,3 +365,29 @@ def test_the_landing_page_does_not_list_models_behind_an_api_key(tiny_models: Pa
     with TestClient(create_app(Settings(models_dir=tiny_models, api_key="k"))) as c:
         r = c.get("/")
     assert r.status_code == 200 and "i2s_assignment" not in r.text and "X-API-Key" in r.text
+
+
+def test_the_api_docs_work_with_no_network(client: TestClient) -> None:
+    """/docs loads the Swagger UI from the service package, not from a CDN."""
+    page = client.get("/docs")
+    assert page.status_code == 200
+    assert "cdn" not in page.text and "https://" not in page.text
+    assets = re.findall(r"""(?:src|href)=['"](/static/[^'"]+)['"]""", page.text)
+    assert {"/static/swagger-ui/swagger-ui-bundle.js", "/static/swagger-ui/swagger-ui.css"} <= set(assets)
+    for asset in assets:
+        r = client.get(asset)
+        assert r.status_code == 200 and len(r.content) > 500, asset
+    assert "SwaggerUIBundle" in client.get("/static/swagger-ui/swagger-ui-bundle.js").text
+    assert client.get("/openapi.json").json()["openapi"].startswith("3.1")  # Swagger UI 5 reads OpenAPI 3.1
+
+
+def test_an_implausible_unit_is_answered_with_a_warning(client: TestClient) -> None:
+    window = _window()
+    assert client.post("/v1/imu/windows", json={"windows": [window]}).json()["warnings"] == []
+    in_g = dict(window, samples=(np.array(window["samples"]) / 9.80665).tolist())  # g, declared as m/s²
+    r = client.post("/v1/imu/windows", json={"windows": [in_g]})
+    assert r.status_code == 200 and len(r.json()["results"]) == 1
+    [warning] = r.json()["warnings"]
+    assert warning.startswith("acc_unit:") and "'g'" in warning
+    r = client.post("/v1/imu/assign", json={"sensors": [{"sensor_id": "s1", "windows": [in_g]}]})
+    assert r.json()["warnings"][0].startswith("sensors[0] (s1): acc_unit:")
