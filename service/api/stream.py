@@ -460,8 +460,8 @@ async def stream(ws: WebSocket) -> None:
         outbox.put({"type": "error", "detail": reason, "close_code": code})
     except SlowConsumer as exc:
         code, reason = 1008, str(exc)
-    except WebSocketDisconnect:
-        code = -1
+    except WebSocketDisconnect as exc:
+        code, reason = -1, "1008-slow" if exc.code == 1008 else "client"  # 1008: closed for not answering a ping
     finally:
         metrics.open_streams.dec()
         ws.app.state.streams.release(admitted)
@@ -474,7 +474,7 @@ async def stream(ws: WebSocket) -> None:
             await drain(outbox, sending)
             await close(ws, code, reason)
         else:
-            metrics.streams_closed.labels("client").inc()
+            metrics.streams_closed.labels(reason).inc()
             sending.cancel()
 
 

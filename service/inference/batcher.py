@@ -1,8 +1,8 @@
 """Fair, deadline-aware scheduling of IMU windows onto the onnxruntime workers.
 
 Callers ``await batcher.infer(windows)``. Windows run in chunks of at most ``chunk`` windows, one chunk per
-worker thread at a time (``workers`` chunks in flight), and each caller gets its rows as soon as its own chunks
-are done.
+worker thread at a time plus ``spare`` (1) waiting in the pool, so that no worker idles while the event loop is
+busy parsing a request, and each caller gets its rows as soon as its own chunks are done.
 
 Fairness rule: the queued callers (REST requests and stream sessions alike) take turns. A turn takes at most one
 chunk of a caller's windows; callers with fewer windows share a chunk. A caller with windows left goes to the back
@@ -32,7 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-RunChunk = Callable[[np.ndarray], Awaitable[tuple[np.ndarray, np.ndarray | None]]]
+# One chunk → (probabilities, alignments or None, worker-seconds it took in the workers' threads).
+RunChunk = Callable[[np.ndarray], Awaitable[tuple[np.ndarray, np.ndarray | None, float]]]
 EWMA_WEIGHT = 0.2  # of the newest chunk in the seconds-per-window estimates
 SMALL_CHUNK = 2  # windows: the chunk size that stands for live streams' (a few windows at a time)
 
@@ -89,15 +90,16 @@ class MicroBatcher:
         chunk: int,
         max_wait_ms: float,
         on_batch: Callable[[int, float], None] | None = None,
+        spare: int = 2,
     ) -> None:
-        self.run_chunk, self.workers, self.chunk = run_chunk, workers, chunk
+        self.run_chunk, self.workers, self.chunk, self.spare = run_chunk, workers, chunk, spare
         self.max_wait_s = max_wait_ms / 1000.0
         self.on_batch = on_batch
         self.jobs: deque[_Job] = deque()
         self.in_flight_windows: list[int] = []
         self.wake = asyncio.Event()
         self.task: asyncio.Task | None = None
-        self.seconds_per_window: float | None = None  # one worker's time per window, from full chunks
+        self.seconds_per_window: float | None = None  # worker-seconds per window in full chunks (in their threads)
         self.seconds_per_small_window: float | None = None  # the same in chunks of SMALL_CHUNK windows
         self.reserved = 0  # windows of admitted requests whose bodies are still being read or parsed
         self.reserved_requests = 0
@@ -130,9 +132,8 @@ class MicroBatcher:
         for size in (self.chunk, min(SMALL_CHUNK, self.chunk)):
             x = make_chunk(size)
             await asyncio.gather(*(self.run_chunk(x) for _ in range(self.workers)))
-            start = time.perf_counter()
-            await asyncio.gather(*(self.run_chunk(x) for _ in range(2 * self.workers)))
-            per_window = max((time.perf_counter() - start) * self.workers / (2 * self.workers * size), 1e-7)
+            runs = await asyncio.gather(*(self.run_chunk(x) for _ in range(2 * self.workers)))
+            per_window = max(sum(seconds for _, _, seconds in runs) / (2 * self.workers * size), 1e-7)
             if size == self.chunk:
                 self.seconds_per_window = per_window
             else:
@@ -226,7 +227,7 @@ class MicroBatcher:
 
     async def _dispatch(self) -> None:
         while True:
-            if not self.jobs or len(self.in_flight_windows) >= self.workers:
+            if not self.jobs or len(self.in_flight_windows) >= self.workers + self.spare:
                 self.wake.clear()
                 await self.wake.wait()
                 continue
@@ -248,9 +249,8 @@ class MicroBatcher:
 
     async def _run(self, parts: list[tuple[_Job, int, int]], size: int) -> None:
         imu = np.concatenate([job.imu[lo:hi] for job, lo, hi in parts])
-        start = time.perf_counter()
         try:
-            probs, quats = await self.run_chunk(imu)
+            probs, quats, seconds = await self.run_chunk(imu)
         except Exception as exc:  # a model failure reaches every caller in the chunk
             for job, _, _ in parts:
                 if not job.future.done():
@@ -259,7 +259,6 @@ class MicroBatcher:
         finally:
             self.in_flight_windows.remove(size)
             self.wake.set()
-        seconds = time.perf_counter() - start
         if size == self.chunk:
             self.seconds_per_window = _ewma(self.seconds_per_window, seconds / size)
         elif size == SMALL_CHUNK:

@@ -6,9 +6,9 @@ chunks of ``chunk`` windows, beats one call with two intra-op threads — the re
 poorly inside a call, small chunks stay in cache, and a single window runs its two models side by side.
 onnxruntime sessions are safe to call from several threads at once.
 
-The service's scheduler (``service.inference.batcher``) hands the pool one chunk at a time per worker
-(``run_chunk_async``: both models in one thread), so that it can interleave callers fairly; ``__call__`` runs a
-whole batch at once (chunks × models over the pool), for offline use.
+The service's scheduler (``service.inference.batcher``) hands the pool about one chunk per worker at a time
+(``run_chunk_async``), so that it can interleave callers fairly; ``__call__`` runs a whole batch at once (chunks ×
+models over the pool), for offline use.
 """
 
 from __future__ import annotations
@@ -39,14 +39,18 @@ class ModelRunner:
         out = {task: np.concatenate([f.result() for f in fs]) for task, fs in self._submit(imu).items()}
         return out[ASSIGNMENT], out.get(ALIGNMENT)
 
-    def run_chunk(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """One chunk through every I2S model in the calling thread: probabilities and, if loaded, alignments."""
-        probs = self.models[ASSIGNMENT].run(imu)
-        return probs, self.models[ALIGNMENT].run(imu) if ALIGNMENT in self.models else None
-
-    async def run_chunk_async(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """``run_chunk`` on one worker thread, off the event loop (the scheduler's unit of work)."""
-        return await asyncio.wrap_future(self.pool.submit(self.run_chunk, imu))
+    async def run_chunk_async(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, float]:
+        """One chunk through every I2S model, each model a task of the pool (a lone window runs its two models side
+        by side), off the event loop: the scheduler's unit of work. Also the worker-seconds the models took in
+        their threads (not their wait for a thread)."""
+        futures = {
+            task: self.pool.submit(_timed, self.models[task].run, imu)
+            for task in (ASSIGNMENT, ALIGNMENT)
+            if task in self.models
+        }
+        out = {task: await asyncio.wrap_future(f) for task, f in futures.items()}
+        seconds = sum(t for _, t in out.values())
+        return out[ASSIGNMENT][0], out[ALIGNMENT][0] if ALIGNMENT in out else None, seconds
 
     async def run_model(self, task: str, x: np.ndarray) -> np.ndarray:
         """One model (e.g. a pose model) on its input, in the same worker threads, without batching."""
@@ -58,13 +62,14 @@ class ModelRunner:
 
     async def run_call_timed(self, fn, *args):
         """``run_call`` and the seconds the call itself took in its worker thread (not its wait for one)."""
-
-        def timed():
-            start = time.perf_counter()
-            result = fn(*args)
-            return result, time.perf_counter() - start
-
-        return await asyncio.wrap_future(self.pool.submit(timed))
+        return await asyncio.wrap_future(self.pool.submit(_timed, fn, *args))
 
     def close(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _timed(fn, *args):  # type: ignore[no-untyped-def]
+    """``fn(*args)`` and the seconds it took, measured in the thread that runs it."""
+    start = time.perf_counter()
+    result = fn(*args)
+    return result, time.perf_counter() - start

@@ -18,10 +18,10 @@ class _Recorder:
         self.chunks: list[list[int]] = []
         self.seconds = seconds
 
-    async def __call__(self, imu: np.ndarray) -> tuple[np.ndarray, None]:
+    async def __call__(self, imu: np.ndarray) -> tuple[np.ndarray, None, float]:
         self.chunks.append(imu[:, 0, 0].astype(int).tolist())
         await asyncio.sleep(self.seconds)
-        return imu[:, 0, :1].copy(), None
+        return imu[:, 0, :1].copy(), None, self.seconds
 
 
 def _windows(k: int, n: int = 1) -> np.ndarray:
@@ -33,7 +33,7 @@ def _run(calls: list[tuple[float, int, float | None]], seconds: float = 0.0, wai
 
     async def main() -> list[list[int]]:
         rec = _Recorder(seconds)
-        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=wait_ms)
+        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=wait_ms, spare=0)
         batcher.start()
 
         async def one(k: int, delay: float, n: int, wait: float | None) -> None:
@@ -75,7 +75,7 @@ def test_a_single_window_takes_its_turn_between_the_chunks_of_a_large_batch() ->
 def test_a_request_whose_wait_passes_its_deadline_is_refused_at_once_with_a_retry_time() -> None:
     async def main() -> None:
         rec = _Recorder(0.05)
-        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0)
+        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0, spare=0)
         batcher.set_capacity(80.0)  # 12.5 ms per window
         batcher.start()
         big = asyncio.ensure_future(batcher.infer(_windows(0, 400)))
@@ -100,7 +100,7 @@ def test_a_request_whose_wait_passes_its_deadline_is_refused_at_once_with_a_retr
 def test_the_windows_of_a_caller_that_went_away_are_not_computed() -> None:
     async def main() -> None:
         rec = _Recorder(0.02)
-        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0)
+        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0, spare=0)
         batcher.start()
         first = asyncio.ensure_future(batcher.infer(_windows(0, 8)))
         gone = asyncio.ensure_future(batcher.infer(_windows(1, 80)))
@@ -114,3 +114,18 @@ def test_the_windows_of_a_caller_that_went_away_are_not_computed() -> None:
         await batcher.stop()
 
     asyncio.run(main())
+
+
+def test_a_spare_chunk_waits_in_the_pool_so_no_worker_idles() -> None:
+    async def main() -> list[int]:
+        rec = _Recorder(0.02)
+        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0, spare=1)
+        batcher.start()
+        task = asyncio.ensure_future(batcher.infer(_windows(0, 64)))
+        await asyncio.sleep(0.005)
+        in_flight = list(batcher.in_flight_windows)
+        await task
+        await batcher.stop()
+        return in_flight
+
+    assert asyncio.run(main()) == [8, 8]  # one running, one waiting
