@@ -34,10 +34,11 @@ import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from service.api.outbox import Outbox, SlowConsumer, accept, close, close_slow, drain, sender, serve_watched
+from service.api.outbox import Outbox, SlowConsumer, accept, close, end_session, sender, serve_watched
 from service.api.protocol import ProtocolError, decode_binary
 from service.api.schemas import Sample
 from service.api.stream import _first_error, _parse_text
+from service.api.stream_admission import admit_or_refuse
 from service.inference.flex import FlexModel, LiveFlex, check_rows
 from service.inference.predict import InputError
 
@@ -211,26 +212,11 @@ async def flex_stream(ws: WebSocket) -> None:
     finally:
         metrics.open_streams.dec()
         ws.app.state.streams.release(admitted)
-        if code == 1008 and reason.startswith("consumer too slow"):
-            await close_slow(ws, outbox, sending, reason)
-        elif code != -1:
-            metrics.streams_closed.labels(str(code)).inc()
-            await drain(outbox, sending)
-            await close(ws, code, reason)
-        else:
-            metrics.streams_closed.labels(reason).inc()
-            sending.cancel()
+        await end_session(ws, outbox, sending, code, reason)
 
 
 def _admit(ws: WebSocket, live: LiveFlex) -> int:
     """The session's admission key; ProtocolError 1013 when the streams are at capacity."""
     app = ws.app
     rate = live.model.manifest.sample_rate_hz
-    key, why = app.state.streams.admit(
-        app.state.batcher, app.state.streams.model_demand(app.state.batcher, live.model.name, rate)
-    )
-    if key is None:
-        app.state.metrics.streams_refused.labels("capacity").inc()
-        raise ProtocolError(why, 1013)
-    app.state.metrics.streams_admitted.inc()
-    return key
+    return admit_or_refuse(app, app.state.streams.model_demand(app.state.batcher, live.model.name, rate))

@@ -32,6 +32,7 @@ async def swagger_ui(request: Request) -> HTMLResponse:
         swagger_favicon_url=f"{SWAGGER_UI}/favicon-32x32.png",
     )
 
+
 LINKS = (
     ("/docs", "API documentation (OpenAPI, try requests in the browser)"),
     ("/v1/models", "the loaded models and their manifests (JSON)"),

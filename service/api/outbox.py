@@ -201,6 +201,22 @@ async def close_slow(ws: WebSocket, outbox: Outbox, sender_task: asyncio.Task, r
     await close(ws, 1008, reason)
 
 
+async def end_session(ws: WebSocket, outbox: Outbox, sender_task: asyncio.Task, code: int, reason: str) -> None:
+    """The one way a session ends: a slow consumer is cut short with its reason; a session closed by the service
+    (stop, protocol error, refusal) first sends what is queued, then the close; a client that left (``code`` -1,
+    ``reason`` says why) has nobody to tell. Counted in ``wearmocap_streams_closed_total``."""
+    metrics = ws.app.state.metrics
+    if code == 1008 and reason.startswith("consumer too slow"):
+        await close_slow(ws, outbox, sender_task, reason)
+    elif code != -1:
+        metrics.streams_closed.labels(str(code)).inc()
+        await drain(outbox, sender_task)
+        await close(ws, code, reason)
+    else:
+        metrics.streams_closed.labels(reason).inc()
+        sender_task.cancel()
+
+
 async def close(ws: WebSocket, code: int, reason: str) -> None:
     """Close with ``code``, unless the client has gone already (then there is nobody to tell)."""
     if WebSocketState.DISCONNECTED in (ws.application_state, ws.client_state):

@@ -18,7 +18,7 @@ import numpy as np
 from fastapi import APIRouter, FastAPI, WebSocket, WebSocketDisconnect
 from pydantic import ValidationError
 
-from service.api.outbox import Outbox, SlowConsumer, accept, close, close_slow, drain, sender, serve_watched
+from service.api.outbox import Outbox, SlowConsumer, accept, close, end_session, sender, serve_watched
 from service.api.protocol import (
     ProtocolError,
     SamplesMessage,
@@ -27,7 +27,7 @@ from service.api.protocol import (
     decode_binary,
 )
 from service.api.schemas import finite_or_none
-from service.api.stream_admission import I2S_WINDOWS_PER_SENSOR_S
+from service.api.stream_admission import I2S_WINDOWS_PER_SENSOR_S, admit_or_refuse
 from service.core.assignment import (
     MomentAssembler,
     allowed_segments,
@@ -467,15 +467,7 @@ async def stream(ws: WebSocket) -> None:
         ws.app.state.streams.release(admitted)
         if worker is not None:
             worker.cancel()
-        if code == 1008 and reason.startswith("consumer too slow"):
-            await close_slow(ws, outbox, sending, reason)
-        elif code != -1:
-            metrics.streams_closed.labels(str(code)).inc()
-            await drain(outbox, sending)
-            await close(ws, code, reason)
-        else:
-            metrics.streams_closed.labels(reason).inc()
-            sending.cancel()
+        await end_session(ws, outbox, sending, code, reason)
 
 
 def _admit(app: FastAPI, session: Session) -> int:
@@ -483,12 +475,7 @@ def _admit(app: FastAPI, session: Session) -> int:
     demand = len(session.streams) * I2S_WINDOWS_PER_SENSOR_S if session.run_i2s else 0.0
     if session.pose is not None:
         demand += app.state.streams.model_demand(app.state.batcher, session.pose.model.name, 60.0)
-    key, why = app.state.streams.admit(app.state.batcher, demand)
-    if key is None:
-        app.state.metrics.streams_refused.labels("capacity").inc()
-        raise ProtocolError(why, 1013)
-    app.state.metrics.streams_admitted.inc()
-    return key
+    return admit_or_refuse(app, demand)
 
 
 def _started(session: Session) -> dict:

@@ -19,9 +19,11 @@ from __future__ import annotations
 import itertools
 import time
 from collections import deque
+from typing import Any
 
 import numpy as np
 
+from service.api.protocol import ProtocolError
 from service.inference.batcher import MicroBatcher
 
 I2S_WINDOWS_PER_SENSOR_S = 60.0 / 16  # model rate / hop
@@ -92,3 +94,14 @@ class StreamAdmission:
     def release(self, key: int | None) -> None:
         if key is not None:
             self.demand.pop(key, None)
+
+
+def admit_or_refuse(app: Any, windows_per_s: float) -> int:
+    """Admit a session of this demand (its key) or raise ``ProtocolError`` 1013 with the reason; counted in
+    ``/metrics``."""
+    key, why = app.state.streams.admit(app.state.batcher, windows_per_s)
+    if key is None:
+        app.state.metrics.streams_refused.labels("capacity").inc()
+        raise ProtocolError(why, 1013)
+    app.state.metrics.streams_admitted.inc()
+    return key
