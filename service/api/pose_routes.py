@@ -100,6 +100,9 @@ def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
     by_segment = {s.segment: (k, s) for k, s in enumerate(body.sensors)}
     if len(by_segment) != len(body.sensors):
         raise InputError(f"sensors: one sensor per segment, got segments {[s.segment for s in body.sensors]}")
+    ids = [s.sensor_id for s in body.sensors]
+    if len(set(ids)) != len(ids):  # the answer's calibration is keyed by sensor_id
+        raise InputError(f"sensors: sensor_id values must be unique, got {ids}")
     lengths = {len(s.q_world_sensor) for s in body.sensors} | {len(s.acc) for s in body.sensors}
     if len(lengths) != 1:
         raise InputError(

@@ -202,6 +202,11 @@ def _example(client: TestClient, raw, **change) -> dict:
             "a still span needs 0 <= start < stop <= 90",
         ),
         (lambda b: b.update(model="nope"), 422, "no pose model 'nope'"),
+        (
+            lambda b: b["sensors"][1].update(sensor_id=b["sensors"][0]["sensor_id"]),
+            422,
+            "sensor_id values must be unique",
+        ),
     ],
 )
 def test_bad_pose_requests_get_a_4xx_that_says_what_was_expected(
