@@ -37,7 +37,7 @@ RESULTS = REPO / "benchmarks" / "results"
 SUIT_SENSORS = 6
 
 
-def _vm_mib(pid: int, field: str) -> float:
+def vm_mib(pid: int, field: str) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith(field + ":"):
             return int(line.split()[1]) / 1024
@@ -71,40 +71,59 @@ def _post(path: str, body: bytes, ctype: str = "application/json") -> bytes:
     return head.encode() + body
 
 
+def chunked_post(port: int, path: str, total_bytes: int, chunk: int = 1 << 20) -> tuple[int | None, bytes, int]:
+    """POST ``total_bytes`` of a JSON-looking body with Transfer-Encoding: chunked (no Content-Length): the answer's
+    status and body, and the bytes sent before the server stopped reading (or all of them)."""
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.sendall(
+        f"POST {path} HTTP/1.1\r\nHost: bench\r\nContent-Type: application/json\r\n".encode()
+        + b"Transfer-Encoding: chunked\r\n\r\n"
+    )
+    piece = b"[" + b"0.0," * (chunk // 4 - 1) + b"0]"
+    sent = 0
+    try:
+        while sent < total_bytes:
+            sock.sendall(f"{len(piece):x}\r\n".encode() + piece + b"\r\n")
+            sent += len(piece)
+        sock.sendall(b"0\r\n\r\n")
+    except (BrokenPipeError, ConnectionResetError):
+        pass
+    sock.settimeout(30)
+    answer = b""
+    try:
+        while b"\r\n\r\n" not in answer or len(answer.split(b"\r\n\r\n", 1)[1]) < _content_length(answer):
+            data = sock.recv(65536)
+            if not data:
+                break
+            answer += data
+    except (ConnectionResetError, TimeoutError):
+        pass
+    finally:
+        sock.close()
+    head, _, body = answer.partition(b"\r\n\r\n")
+    return (int(head.split()[1]) if head.startswith(b"HTTP/") else None), body, sent
+
+
+def _content_length(answer: bytes) -> int:
+    for line in answer.split(b"\r\n\r\n", 1)[0].split(b"\r\n"):
+        if line.lower().startswith(b"content-length:"):
+            return int(line.split(b":")[1])
+    return 0
+
+
 def chunked_bodies(pid: int, port: int, sizes_mb: list[int]) -> list[dict]:
     out = []
     for size in sizes_mb:
-        before = _vm_mib(pid, "VmHWM")
-        sock = socket.create_connection(("127.0.0.1", port))
-        sock.sendall(
-            b"POST /v1/imu/windows HTTP/1.1\r\nHost: bench\r\nContent-Type: application/json\r\n"
-            b"Transfer-Encoding: chunked\r\n\r\n"
-        )
-        piece = b"[" + b"0.0," * ((1 << 20) // 4 - 1) + b"0]"
-        start, sent = time.perf_counter(), 0
-        try:
-            while sent < size << 20:
-                sock.sendall(f"{len(piece):x}\r\n".encode() + piece + b"\r\n")
-                sent += len(piece)
-            sock.sendall(b"0\r\n\r\n")
-        except (BrokenPipeError, ConnectionResetError):
-            pass
-        sock.settimeout(30)
-        answer = b""
-        try:
-            while chunk := sock.recv(65536):
-                answer += chunk
-        except (ConnectionResetError, TimeoutError):
-            pass
-        sock.close()
-        status = int(answer.split()[1]) if answer.startswith(b"HTTP/") else None
+        before = vm_mib(pid, "VmHWM")
+        start = time.perf_counter()
+        status, _, sent = chunked_post(port, "/v1/imu/windows", size << 20)
         out.append(
             {
                 "body_mb": size,
                 "bytes_sent_before_the_server_stopped_reading": sent,
                 "status": status,
                 "seconds": time.perf_counter() - start,
-                "peak_rss_growth_mb": _vm_mib(pid, "VmHWM") - before,
+                "peak_rss_growth_mb": vm_mib(pid, "VmHWM") - before,
                 "goal_peak_rss_growth_mb": 100,
             }
         )
@@ -235,7 +254,7 @@ async def _slow_consumer(url: str, seconds: float, k: int) -> dict:
 
 async def slow_consumers(base: str, pid: int, n: int, seconds: float) -> dict:
     url = base.replace("http", "ws") + "/v1/stream"
-    rss_before = _vm_mib(pid, "VmRSS")
+    rss_before = vm_mib(pid, "VmRSS")
     lat: list[float] = []
     sent: list[int] = []
     healthy = asyncio.ensure_future(_stream_body(url, seconds, lat, sent, time.perf_counter() + 1.0))
@@ -244,7 +263,7 @@ async def slow_consumers(base: str, pid: int, n: int, seconds: float) -> dict:
 
     async def watch_rss() -> None:
         while not healthy.done():
-            peak.append(_vm_mib(pid, "VmRSS"))
+            peak.append(vm_mib(pid, "VmRSS"))
             await asyncio.sleep(0.5)
 
     watcher = asyncio.ensure_future(watch_rss())

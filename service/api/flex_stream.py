@@ -38,7 +38,7 @@ from service.api.outbox import Outbox, SlowConsumer, accept, close, end_session,
 from service.api.protocol import ProtocolError, decode_binary
 from service.api.schemas import Sample
 from service.api.stream import _first_error, _parse_text
-from service.api.stream_admission import admit_or_refuse
+from service.api.stream_admission import admit_or_refuse, record_answer_latency
 from service.inference.flex import FlexModel, LiveFlex, check_rows
 from service.inference.predict import InputError
 
@@ -151,8 +151,7 @@ async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, out
         }
         if outbox.put(message):
             ws.app.state.metrics.dropped.inc()
-        ws.app.state.metrics.stream_result.observe(time.perf_counter() - received)
-        ws.app.state.streams.observe_latency(time.perf_counter() - received)
+        record_answer_latency(ws.app, time.perf_counter() - received)
 
 
 async def _serve(ws: WebSocket, live: LiveFlex, outbox: Outbox) -> None:

@@ -163,7 +163,6 @@ class Guard:
         windows = max(1, length // (BINARY_BYTES_PER_WINDOW if binary else JSON_BYTES_PER_WINDOW))
         first_turn = min(windows, batcher.chunk)
         if batcher.estimated_wait_s(first_turn, requests=1) > deadline_s:
-            batcher.shed += 1
             return False
         batcher.reserved += first_turn
         batcher.reserved_requests += 1

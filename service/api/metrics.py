@@ -65,11 +65,6 @@ class ServiceMetrics:
             ["code"],
             registry=self.registry,
         )
-        self.notices_merged = Counter(
-            "wearmocap_stream_notices_merged_total",
-            "gap and late notices merged into one already queued for the same sensor",
-            registry=self.registry,
-        )
 
     def watch_load(self, batcher: MicroBatcher, streams: StreamAdmission) -> None:
         """Gauges read at scrape time from the scheduler and the stream admission (registered once per app)."""

@@ -58,7 +58,6 @@ class Outbox:
         self.droppable = 0
         self.event = asyncio.Event()
         self.dropped = 0
-        self.merged = 0
         self.sending = False  # a message is taken off the queue and not yet handed to the socket
         self.last_sent = time.monotonic()  # when a message last left (or the queue last became non-empty)
         self.dropping_since: float | None = None
@@ -91,7 +90,6 @@ class Outbox:
             self.items.append((kind, key))
             self.live[key] = message
         else:
-            self.merged += 1
             queued["count"] += 1
             for field in ("received_seq", "seq", "action", "detail"):
                 if field in message:

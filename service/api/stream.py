@@ -27,7 +27,7 @@ from service.api.protocol import (
     decode_binary,
 )
 from service.api.schemas import finite_or_none
-from service.api.stream_admission import I2S_WINDOWS_PER_SENSOR_S, admit_or_refuse
+from service.api.stream_admission import I2S_WINDOWS_PER_SENSOR_S, admit_or_refuse, record_answer_latency
 from service.core.assignment import (
     MomentAssembler,
     allowed_segments,
@@ -268,8 +268,7 @@ async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples
         if outbox.put(message):
             app.state.metrics.dropped.inc()
         if message["type"] == "pose":
-            app.state.metrics.stream_result.observe(time.perf_counter() - received)
-            app.state.streams.observe_latency(time.perf_counter() - received)
+            record_answer_latency(app, time.perf_counter() - received)
 
 
 async def _accept_packet(app: FastAPI, session: Session, k: int, seq: int, samples: np.ndarray) -> None:
@@ -352,8 +351,7 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
                 app.state.metrics.dropped.inc()
             row += 1
         if item.windows:
-            app.state.metrics.stream_result.observe(time.perf_counter() - item.received)
-            app.state.streams.observe_latency(time.perf_counter() - item.received)
+            record_answer_latency(app, time.perf_counter() - item.received)
     for moment in session.moment_messages():
         if outbox.put(moment):
             app.state.metrics.dropped.inc()

@@ -105,3 +105,9 @@ def admit_or_refuse(app: Any, windows_per_s: float) -> int:
         raise ProtocolError(why, 1013)
     app.state.metrics.streams_admitted.inc()
     return key
+
+
+def record_answer_latency(app: Any, seconds: float) -> None:
+    """A stream packet's answers were queued ``seconds`` after it arrived: for ``/metrics`` and for admission."""
+    app.state.metrics.stream_result.observe(seconds)
+    app.state.streams.observe_latency(seconds)

@@ -104,7 +104,6 @@ class MicroBatcher:
         self.reserved = 0  # windows of admitted requests whose bodies are still being read or parsed
         self.reserved_requests = 0
         self.request_overhead_s = 0.0  # event-loop time to parse one request (EWMA, measured by the routes)
-        self.shed = 0  # callers refused with Overloaded
         self.abandoned = 0  # windows not computed because their caller went away
 
     def start(self) -> None:
@@ -179,7 +178,6 @@ class MicroBatcher:
         if start_by is not None:
             wait = self.estimated_wait_s(min(len(imu), self.chunk))
             if now + wait > start_by:
-                self.shed += 1
                 raise Overloaded(wait, start_by - now)
         wait_s = self.max_wait_s if max_wait_ms is None else max_wait_ms / 1000.0
         job = _Job(imu, asyncio.get_running_loop().create_future(), now + wait_s, start_by)
@@ -206,7 +204,6 @@ class MicroBatcher:
                 self.jobs.appendleft(job)  # a chunk of new callers is not padded with a large caller's windows
                 break
             if job.start_by is not None and job.next == 0 and now > job.start_by:
-                self.shed += 1
                 job.future.set_exception(Overloaded(now - job.start_by, 0.0))
                 continue
             n = min(job.remaining, self.chunk - size)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 import time
 from pathlib import Path
 
@@ -14,6 +13,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from benchmarks.bench_faults import chunked_post, vm_mib
 from benchmarks.servers import start_service, stop
 from service.app import create_app
 from service.settings import Settings
@@ -21,58 +21,13 @@ from service.settings import Settings
 WINDOW = {"samples": [[0.0, 0.0, 9.81, 0.5, 0.0, 0.0]] * 128}
 
 
-def _vm_kib(pid: int, field: str) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1])
-    raise KeyError(field)
-
-
-def _chunked_post(port: int, path: str, total_bytes: int, chunk: int = 1 << 20) -> tuple[int, bytes]:
-    """POST ``total_bytes`` of a JSON-looking body with Transfer-Encoding: chunked; the status and body of the
-    answer (read once the server answers or stops reading)."""
-    sock = socket.create_connection(("127.0.0.1", port))
-    sock.sendall(
-        f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n".encode()
-        + b"Transfer-Encoding: chunked\r\n\r\n"
-    )
-    piece = b"[" + b"0.0," * (chunk // 4 - 1) + b"0]"
-    sent = 0
-    try:
-        while sent < total_bytes:
-            sock.sendall(f"{len(piece):x}\r\n".encode() + piece + b"\r\n")
-            sent += len(piece)
-        sock.sendall(b"0\r\n\r\n")
-    except (BrokenPipeError, ConnectionResetError):
-        pass
-    sock.settimeout(10)
-    answer = b""
-    try:
-        while b"\r\n\r\n" not in answer or len(answer.split(b"\r\n\r\n", 1)[1]) < _length(answer):
-            data = sock.recv(65536)
-            if not data:
-                break
-            answer += data
-    finally:
-        sock.close()
-    head, _, body = answer.partition(b"\r\n\r\n")
-    return int(head.split()[1]), body
-
-
-def _length(answer: bytes) -> int:
-    for line in answer.split(b"\r\n\r\n", 1)[0].split(b"\r\n"):
-        if line.lower().startswith(b"content-length:"):
-            return int(line.split(b":")[1])
-    return 0
-
-
 def test_a_chunked_body_over_the_limit_is_413_and_never_held(tiny_models: Path) -> None:
     server, base = start_service(tiny_models, max_body_bytes="1000000")
     try:
         port = int(base.rsplit(":", 1)[1])
-        before = _vm_kib(server.pid, "VmHWM")
-        status, body = _chunked_post(port, "/v1/imu/windows", 200 << 20)  # 200 MB, 200× the limit
-        grown_mib = (_vm_kib(server.pid, "VmHWM") - before) / 1024
+        before = vm_mib(server.pid, "VmHWM")
+        status, body, _ = chunked_post(port, "/v1/imu/windows", 200 << 20)  # 200 MB, 200× the limit
+        grown_mib = vm_mib(server.pid, "VmHWM") - before
         assert status == 413, body[:300]
         assert "exceeds the limit of 1000000 bytes" in json.loads(body)["detail"]
         assert grown_mib < 20, f"peak RSS grew {grown_mib:.0f} MiB for a 200 MB body"
