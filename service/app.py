@@ -21,6 +21,7 @@ from service.api.pose_routes import router as pose_router
 from service.api.routes import router
 from service.api.stream import router as stream_router
 from service.api.stream_admission import StreamAdmission
+from service.core.assignment import ConfidenceModel
 from service.inference.batcher import MicroBatcher
 from service.inference.flex import FlexModel
 from service.inference.pose import PoseModel
@@ -56,6 +57,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.flex_models = {
             name: FlexModel(m) for name, m in app.state.models.items() if m.manifest.task == "flex_pose"
         }
+        assignment = app.state.models.get("i2s_assignment")
+        app.state.confidence = ConfidenceModel.from_spec(assignment.manifest.confidence if assignment else None)
         if not app.state.models:
             log.error("no valid model under %s", settings.models_dir.resolve())
         runner = app.state.runner = ModelRunner(
@@ -94,6 +97,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.models = {}
     app.state.pose_models = {}
     app.state.flex_models = {}
+    app.state.confidence = None
     app.state.streams = StreamAdmission(settings.stream_capacity_fraction, settings.stream_latency_target_ms)
     app.include_router(router)
     app.include_router(pose_router)

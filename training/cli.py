@@ -67,16 +67,17 @@ def real_loso(
     cache_dir: Path = DEFAULT_CACHE,
     overrides: list[str] = Override,
     eval_max_windows: int | None = typer.Option(None, help="cap each fold's simulated test evaluation"),
+    person: list[str] = typer.Option([], "--person", help="run this person's fold only (repeatable; default all)"),
 ) -> None:
-    """Real-data leave-one-source-out (paper 000 §4.3): one tracked fine-tune per real source, trained on the
-    others and scored on it; a summary run pools the held-out windows."""
+    """Real-data leave-one-person-out (paper 000 §4.3): one tracked fine-tune per real person, trained on
+    everyone else and scored on that person; a summary run pools the held-out windows."""
     from training.i2s.pipeline import run_real_loso
 
     cfg = load_config(config, overrides)
-    run_id, folds = run_real_loso(cfg, resolve_data_dir(data_dir), cache_dir, eval_max_windows)
-    for source, fold in folds.items():
+    run_id, folds = run_real_loso(cfg, resolve_data_dir(data_dir), cache_dir, eval_max_windows, person or None)
+    for name, fold in folds.items():
         shown = {k: round(float(v), 4) for k, v in fold.items() if k != "run_id"}
-        typer.echo(f"{source}: {shown}" + (f" (run {fold['run_id']})" if "run_id" in fold else ""))
+        typer.echo(f"{name}: {shown}" + (f" (run {fold['run_id']})" if "run_id" in fold else ""))
     typer.echo(f"run_id={run_id}")
 
 
@@ -212,6 +213,47 @@ def evaluate(
             if "/" not in k and not k.startswith(("precision", "recall", "f1_")) and "_ax" not in k
         }
         typer.echo(f"{ev.name}: {headline}")
+
+
+@app.command()
+def calibrate(
+    model_dir: Path,
+    loso_run: str = typer.Option(..., help="the real-loso summary run whose folds predict their held-out people"),
+    data_dir: Path | None = DataDir,
+) -> None:
+    """Calibrate the confidence of the joint assignment on the held-out people of a real-loso run and write it
+    into a shipped assignment model's manifest (``confidence``); logs the reliability diagram, the expected
+    calibration error, the selective accuracy and the time to answer to MLflow (training.i2s.calibration)."""
+    import json
+    import math
+
+    import mlflow
+
+    from service.core.assignment import CONFIDENCE_FEATURES
+    from service.core.manifest import ConfidenceSpec, read_manifest, write_manifest
+    from training.i2s.calibration import calibrate as run_calibration
+    from training.tracking import default_tracking_uri
+
+    mlflow.set_tracking_uri(default_tracking_uri())
+    model, metrics, timing = run_calibration(loso_run, resolve_data_dir(data_dir))
+    manifest = read_manifest(model_dir / "manifest.json")
+    if manifest.task != "i2s_assignment":
+        raise typer.BadParameter(f"{model_dir} is a {manifest.task} model; calibrate takes i2s_assignment models")
+    run_id = str(metrics.pop("run"))
+    manifest.confidence = ConfidenceSpec(
+        features=list(CONFIDENCE_FEATURES),
+        coef=list(model.coef),
+        intercept=model.intercept,
+        threshold=model.threshold,
+        min_moving_windows=model.min_moving_windows,
+        fitted_on=f"sessions of the held-out people of real-loso run {loso_run}; figures cross-fitted by person "
+        f"(MLflow run {run_id})",
+        metrics={k: round(float(v), 5) for k, v in metrics.items() if math.isfinite(v)},
+        command=f"python -m training.cli calibrate {model_dir} --loso-run {loso_run}",
+    )
+    write_manifest(manifest, model_dir / "manifest.json")
+    typer.echo(json.dumps(metrics, indent=1))
+    typer.echo(json.dumps(timing, indent=1))
 
 
 @app.command("evaluate-real")

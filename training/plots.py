@@ -77,7 +77,7 @@ def learning_curves_png(history: list[dict[str, float]], path: Path, title: str)
 
 
 def held_out_bars_png(folds: dict[str, dict[str, float]], path: Path, title: str) -> Path:
-    """Real-data leave-one-source-out: per held-out source, accuracy per window and one-to-one per moment, each
+    """Real-data leave-one-person-out: per held-out person, accuracy per window and one-to-one per moment, each
     with and without left/right (``training.i2s.pipeline.run_real_loso``)."""
     keys = [
         ("real_accuracy", "per window"),
@@ -86,12 +86,17 @@ def held_out_bars_png(folds: dict[str, dict[str, float]], path: Path, title: str
         ("real_window_joint_accuracy_ignoring_side", "per moment, ignoring left/right"),
     ]
     names = list(folds)
-    fig, ax = plt.subplots(figsize=(1.8 + 1.6 * len(names), 5.0))
+    fig, ax = plt.subplots(figsize=(2.4 + 1.1 * len(names), 5.5))
     width = 0.8 / len(keys)
     for k, (key, label) in enumerate(keys):
         x = np.arange(len(names)) + (k - (len(keys) - 1) / 2) * width
         ax.bar(x, [100 * folds[n][key] for n in names], width, label=label)
-    ax.set_xticks(range(len(names)), [f"{n}\n(n={int(folds[n]['n_windows'])})" for n in names])
+    ax.set_xticks(
+        range(len(names)),
+        [f"{n}\n(n={int(folds[n]['n_windows'])})" for n in names],
+        rotation=30 if len(names) > 4 else 0,
+        fontsize=8,
+    )
     ax.set_ylim(0, 100)
     ax.set_ylabel("held-out accuracy (%)")
     ax.set_title(title)
@@ -224,6 +229,28 @@ def traces_png(
     axes[0, 0].legend(fontsize=8, loc="upper right")
     axes[0, 0].set_title(title)
     axes[-1, 0].set_xlabel("time (s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def reliability_png(p: np.ndarray, correct: np.ndarray, path: Path, title: str, bins: int = 10) -> Path:
+    """Reliability diagram: per probability bin, the share right against the mean probability, with counts."""
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    which = np.clip(np.digitize(p, edges[1:-1]), 0, bins - 1)
+    fig, (ax, bx) = plt.subplots(2, 1, figsize=(5.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    ax.plot([0, 1], [0, 1], color="grey", lw=1, ls="--", label="calibrated")
+    xs = [p[which == b].mean() for b in range(bins) if (which == b).any()]
+    ys = [correct[which == b].mean() for b in range(bins) if (which == b).any()]
+    ax.plot(xs, ys, "o-", label="held-out people")
+    ax.set_ylabel("share of assignments right")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper left")
+    bx.bar((edges[:-1] + edges[1:]) / 2, [(which == b).sum() for b in range(bins)], width=0.09)
+    bx.set_yscale("log")
+    bx.set_xlabel("p_correct (calibrated on the other people)")
+    bx.set_ylabel("sensors")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -37,7 +37,15 @@ from service.api.schemas import (
     error_responses,
     finite_or_none,
 )
-from service.core.assignment import is_moving, joint_assignment, turns_about_vertical, window_joint_assignment
+from service.core.assignment import (
+    ConfidenceModel,
+    assignment_confidence,
+    is_moving,
+    joint_assignment,
+    turns_about_vertical,
+    vote_counts,
+    window_joint_assignment,
+)
 from service.core.segments import SEGMENTS, segment_index, segment_indices
 from service.core.units import unit_warnings
 from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES
@@ -88,6 +96,10 @@ WINDOWS_ERRORS = error_responses(400, 401, 413, 422, 503, details=TOO_MANY_WINDO
 
 def _models(request: Request) -> dict[str, LoadedModel]:
     return request.app.state.models
+
+
+def _confidence(request: Request) -> ConfidenceModel | None:
+    return request.app.state.confidence
 
 
 async def _settings(request: Request) -> Settings:
@@ -266,6 +278,9 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     candidates = [segment_indices(s.candidate_segments) for s in body.sensors]
     joint = joint_assignment(evidence, body.allow_shared, worn, candidates)
     at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates)
+    votes = np.stack([vote_counts(lp[m], len(SEGMENTS)) for lp, m in zip(log_probs, moving, strict=True)])
+    n_moving = np.array([int(m.sum()) for m in moving])
+    p_correct, status = assignment_confidence(_confidence(request), joint, votes, n_moving)
     out = []
     for k, sensor in enumerate(body.sensors):
         seg = int(joint.segment[k])
@@ -280,6 +295,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
                 sensor_id=sensor.sensor_id,
                 segment=SEGMENTS[seg] if seg >= 0 else None,
                 confidence=float(joint.confidence[k]),
+                p_correct=None if p_correct is None else float(p_correct[k]),
                 margin=finite_or_none(joint.margin[k]),
                 windows=len(per_sensor[k]),
                 moving_windows=int(moving[k].sum()),
@@ -295,7 +311,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
         if len({(w.acc_unit, w.gyr_unit) for w in sensor.windows}) == 1
         for text in unit_warnings(per_sensor[k], sensor.windows[0].acc_unit, sensor.windows[0].gyr_unit)
     ]
-    return _json(AssignResponse(sensors=out, model_versions=versions, warnings=warnings))
+    return _json(AssignResponse(sensors=out, status=status, model_versions=versions, warnings=warnings))
 
 
 @router.get(

@@ -230,7 +230,16 @@ class AssignRequest(BaseModel):
 class SensorAssignment(BaseModel):
     sensor_id: str
     segment: SegmentName | None
-    confidence: float
+    confidence: float = Field(
+        description="softmax of the summed window log-probabilities at the assigned segment: near 1 after a few "
+        "windows whatever the truth (windows overlap and agree with each other); see `p_correct`"
+    )
+    p_correct: float | None = Field(
+        None,
+        description="calibrated probability that `segment` is right, from the share of moving windows that "
+        "favour it, the margin per window and the number of moving windows, fitted on sessions of people the "
+        "model never trained on (the model's manifest, `confidence`); null for a model without calibration",
+    )
     margin: float | None = Field(
         description="summed log-probability lead of the assigned segment over the sensor's best other segment "
         "(among those declared for it); negative when the one-to-one constraint overrode the sensor's own "
@@ -265,6 +274,7 @@ class AssignResponse(BaseModel):
                             "sensor_id": "pelvis",
                             "segment": "Pelvis",
                             "confidence": 0.999,
+                            "p_correct": 0.998,
                             "margin": 41.2,
                             "windows": 12,
                             "moving_windows": 11,
@@ -274,12 +284,18 @@ class AssignResponse(BaseModel):
                             "window_segments": ["Pelvis"] * 11 + [None],
                         }
                     ],
+                    "status": "assigned",
                     "model_versions": EXAMPLE_VERSIONS,
                 }
             ]
         }
     )
     sensors: list[SensorAssignment]
+    status: Literal["assigned", "not_enough_walking", "uncalibrated"] = Field(
+        description="`assigned`: every assigned sensor's `p_correct` reaches the model's threshold (its manifest, "
+        "`confidence.threshold`) on enough moving windows; `not_enough_walking`: not yet, walk on (or the motion "
+        "is not gait); `uncalibrated`: the model carries no calibration"
+    )
     model_versions: dict[str, str]
     warnings: list[str] = Field(
         default_factory=list,

@@ -29,8 +29,10 @@ from service.api.protocol import (
 from service.api.schemas import finite_or_none
 from service.api.stream_admission import I2S_WINDOWS_PER_SENSOR_S, admit_or_refuse, record_answer_latency
 from service.core.assignment import (
+    ConfidenceModel,
     MomentAssembler,
     allowed_segments,
+    assignment_confidence,
     is_moving,
     joint_assignment,
     turns_about_vertical,
@@ -66,7 +68,13 @@ class Session:
     in one round trip instead of one round trip per packet. At most ``max_pending`` windows wait; beyond
     that the receive loop stops reading the socket until the worker catches up (TCP back-pressure)."""
 
-    def __init__(self, start: StartMessage, max_pending: int, alignment_windows: int = 450) -> None:
+    def __init__(
+        self,
+        start: StartMessage,
+        max_pending: int,
+        alignment_windows: int = 450,
+        confidence: ConfidenceModel | None = None,
+    ) -> None:
         ids = [s.sensor_id for s in start.sensors]
         if len(set(ids)) != len(ids):
             raise ProtocolError(f"sensor_id values must be unique, got {ids}")
@@ -79,6 +87,8 @@ class Session:
         allowed = allowed_segments(len(self.streams), len(SEGMENTS), self.worn, self.candidates)
         self.known = [int(row.argmax()) if row.sum() == 1 else None for row in allowed]
         self.evidence = np.zeros((len(self.streams), len(SEGMENTS)))
+        self.votes = np.zeros((len(self.streams), len(SEGMENTS)), dtype=np.int64)  # moving windows ranking each first
+        self.confidence = confidence
         # A one-sensor session without declarations: its moment is its window's own answer, already in the result.
         many = len(self.streams) > 1 or self.worn is not None or self.candidates[0] is not None
         self.moments = (
@@ -212,6 +222,7 @@ class Session:
         joint = joint_assignment(
             [e[None] for e in self.evidence], self.allow_shared, worn=self.worn, candidates=self.candidates
         )
+        p_correct, status = assignment_confidence(self.confidence, joint, self.votes, self.windows)
         sensors = []
         for k, (s, g, n) in enumerate(zip(self.streams, joint.segment.tolist(), self.windows, strict=True)):
             mean = self.alignments[k].mean(g) if g >= 0 and n else None
@@ -220,13 +231,14 @@ class Session:
                     "sensor_id": s.sensor_id,
                     "segment": SEGMENTS[g] if g >= 0 and n else None,
                     "confidence": float(joint.confidence[k]) if n else 0.0,
+                    "p_correct": None if p_correct is None else float(p_correct[k]),
                     "margin": finite_or_none(joint.margin[k]) if n else 0.0,
                     "windows": int(n),
                     "alignment": None if mean is None else alignment_answer(g, mean[0]),
                     "alignment_spread_deg": None if mean is None else mean[1],
                 }
             )
-        return {"type": "assignment", "sensors": sensors, "results_dropped": dropped}
+        return {"type": "assignment", "sensors": sensors, "status": status, "results_dropped": dropped}
 
 
 async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples: np.ndarray, outbox: Outbox) -> None:
@@ -344,6 +356,7 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
                 session.moments.add(item.sensor, end_s, log_probs[row], bool(moving[row]))
             if moving[row]:
                 session.evidence[item.sensor] += log_probs[row]
+                session.votes[item.sensor, int(log_probs[row].argmax())] += 1
                 session.windows[item.sensor] += 1
                 if quats is not None:
                     session.alignments[item.sensor].add(quats[row])
@@ -382,7 +395,9 @@ async def _receive_start(ws: WebSocket) -> Session:
     except ValidationError as exc:
         raise ProtocolError(f"invalid start message: {_first_error(exc)}") from None
     settings = ws.app.state.settings
-    session = Session(start, settings.stream_max_pending_windows, settings.stream_alignment_windows)
+    session = Session(
+        start, settings.stream_max_pending_windows, settings.stream_alignment_windows, ws.app.state.confidence
+    )
     if start.pose is not None:
         session.start_pose(start, ws.app.state.pose_models)
     return session

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from service.core.manifest import ConfidenceSpec
 from service.core.segments import SEGMENTS
 
 # A window whose gyroscope norm stays under this mean carries no gait information (DESIGN.md §5).
@@ -230,3 +231,76 @@ class MomentAssembler:
         candidates = [self.candidates[s] for s in sensors]
         answer = window_joint_assignment(log_probs, moving, self.allow_shared, self.worn, candidates)
         return key, {s: int(a[0]) for s, a in zip(sensors, answer, strict=True)}
+
+
+# What the calibrated confidence of a joint assignment reads, per sensor (``confidence_features``).
+CONFIDENCE_FEATURES = ("vote_share", "margin_per_window", "log_moving_windows")
+_MARGIN_CLIP = 10.0  # per window; a sensor the declarations leave one segment (margin +inf) reads as this
+
+
+@dataclass(frozen=True)
+class ConfidenceModel:
+    """The probability that a sensor's joint assignment is right: a logistic function of ``confidence_features``,
+    fitted on sessions of people the model never trained on (``training.i2s.calibration``), and the probability
+    above which the service commits to a session's answer. Below it, or with fewer than ``min_moving_windows``
+    moving windows on any sensor, the session's status is ``not_enough_walking``."""
+
+    coef: tuple[float, ...]
+    intercept: float
+    threshold: float
+    min_moving_windows: int
+
+    @classmethod
+    def from_spec(cls, spec: ConfidenceSpec | None) -> ConfidenceModel | None:
+        """From a manifest's ``confidence`` section (``service.core.manifest.ConfidenceSpec``), None without one;
+        ``ValueError`` if its features are not ``CONFIDENCE_FEATURES``."""
+        if spec is None:
+            return None
+        if tuple(spec.features) != CONFIDENCE_FEATURES or len(spec.coef) != len(CONFIDENCE_FEATURES):
+            raise ValueError(f"confidence features must be {CONFIDENCE_FEATURES}, got {spec.features}")
+        return cls(tuple(spec.coef), spec.intercept, spec.threshold, spec.min_moving_windows)
+
+    def p_correct(self, features: np.ndarray) -> np.ndarray:
+        """``(S, len(CONFIDENCE_FEATURES))`` → ``(S,)`` probabilities."""
+        z = features @ np.asarray(self.coef) + self.intercept
+        return 1.0 / (1.0 + np.exp(-np.clip(z, -50.0, 50.0)))
+
+    def status(self, p_correct: np.ndarray, moving_windows: np.ndarray, assigned: np.ndarray) -> str:
+        """``assigned`` when every sensor that got a segment has ``min_moving_windows`` moving windows and a
+        probability of at least ``threshold``; ``not_enough_walking`` otherwise (and with no assigned sensor)."""
+        if not assigned.any():
+            return "not_enough_walking"
+        enough = (moving_windows[assigned] >= self.min_moving_windows).all()
+        return "assigned" if enough and (p_correct[assigned] >= self.threshold).all() else "not_enough_walking"
+
+
+def confidence_features(segment: np.ndarray, margin: np.ndarray, votes: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """Per sensor of a ``JointAssignment``: the share of its moving windows whose own most likely segment is the
+    assigned one (``votes`` ``(S, K)``: per class, the moving windows that rank it first), the margin per moving
+    window (clipped to ±10), and log(1 + moving windows). A sensor with no segment or no moving window reads 0, the
+    clipped margin and 0."""
+    n = np.maximum(moving, 1).astype(np.float64)
+    rows = np.arange(len(segment))
+    share = np.where((segment >= 0) & (moving > 0), votes[rows, np.maximum(segment, 0)] / n, 0.0)
+    per_window = np.clip(
+        np.nan_to_num(margin / n, posinf=_MARGIN_CLIP, neginf=-_MARGIN_CLIP), -_MARGIN_CLIP, _MARGIN_CLIP
+    )
+    return np.stack([share, np.where(moving > 0, per_window, 0.0), np.log1p(moving)], axis=1)
+
+
+def vote_counts(log_probs: np.ndarray, n_classes: int) -> np.ndarray:
+    """``(N, K)`` window log-probabilities → ``(K,)``: how many windows rank each class first."""
+    return np.bincount(log_probs.argmax(axis=1), minlength=n_classes) if len(log_probs) else np.zeros(n_classes, int)
+
+
+def assignment_confidence(
+    model: ConfidenceModel | None, joint: JointAssignment, votes: np.ndarray, moving: np.ndarray
+) -> tuple[np.ndarray | None, str]:
+    """A session's calibrated answer: per sensor the probability that its segment is right (0 for a sensor left
+    without one) and the session's status (``ConfidenceModel.status``); ``(None, "uncalibrated")`` for a model
+    whose manifest has no ``confidence`` section."""
+    if model is None:
+        return None, "uncalibrated"
+    assigned = joint.segment >= 0
+    p = np.where(assigned, model.p_correct(confidence_features(joint.segment, joint.margin, votes, moving)), 0.0)
+    return p, model.status(p, moving, assigned)

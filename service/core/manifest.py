@@ -74,6 +74,22 @@ class FlexSpec(BaseModel):
     simulated_sensor: str = ""  # the sensor model trained on, for simulated-data models
 
 
+class ConfidenceSpec(BaseModel):
+    """An ``i2s_assignment`` model's calibrated confidence of a session's joint assignment
+    (``service.core.assignment.ConfidenceModel``): logistic coefficients over ``features``, the probability the
+    service commits at, and what it was fitted and scored on (``training.i2s.calibration``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    features: list[str]
+    coef: list[float]
+    intercept: float
+    threshold: float = Field(gt=0.0, lt=1.0)
+    min_moving_windows: int = Field(ge=1)
+    fitted_on: str
+    metrics: dict[str, float] = Field(default_factory=dict)
+    command: str = ""
+
+
 class Manifest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     schema_version: int = MANIFEST_SCHEMA_VERSION
@@ -109,6 +125,7 @@ class Manifest(BaseModel):
     quaternion_convention: str | None = None
     pose: PoseSpec | None = None
     flex: FlexSpec | None = None
+    confidence: ConfidenceSpec | None = None
     sha256: str
     training_data: dict[str, object] = Field(default_factory=dict)
     evaluations: list[Evaluation] = Field(default_factory=list)

@@ -198,6 +198,8 @@ def recording_names(data_dir: Path) -> list[str]:
     - ``ximu3_*/`` holding device folders with ``Inertial.csv``: ``ximu3_*``
     - ``gaitmap_foot/<file>.csv`` in gaitmap's two-header-row IMU layout, but for ``GAITMAP_SKIPPED``:
       ``gaitmap_foot/<file>`` (the published four first, in ``GAITMAP_FILES`` order)
+    - ``movingreality/<participant>/<trial>/`` holding the five sensors' ``<segment>.csv.gz`` (or ``.csv``):
+      ``movingreality/<participant>/<trial>``
     """
     root = data_dir / "imu_real"
     names = [p.name for p in sorted(root.glob("ximu3_*")) if any(p.glob("*/Inertial.csv"))]
@@ -208,7 +210,10 @@ def recording_names(data_dir: Path) -> list[str]:
     extra = sorted(p.name for p in gaitmap.glob("*.csv") if p.name not in GAITMAP_FILES) if gaitmap.is_dir() else []
     files = [f for f in GAITMAP_FILES if (gaitmap / f).is_file()]
     files += [f for f in extra if f not in GAITMAP_SKIPPED and _is_gaitmap_imu(gaitmap / f)]
-    return names + [f"gaitmap_foot/{f.removesuffix('.csv')}" for f in files]
+    names += [f"gaitmap_foot/{f.removesuffix('.csv')}" for f in files]
+    movingreality = root / "movingreality"
+    trials = sorted(movingreality.glob("*/*")) if movingreality.is_dir() else []
+    return names + [f"movingreality/{t.parent.name}/{t.name}" for t in trials if _is_movingreality_trial(t)]
 
 
 def read_recording(data_dir: Path, name: str) -> RealRecording:
@@ -227,6 +232,9 @@ def _read(data_dir: Path, name: str) -> RealRecording:
         return read_ximu3(data_dir, source)
     if source.startswith("capacitive_"):
         return read_capacitive(data_dir, part, source)
+    if source == "movingreality":
+        participant, trial = part.split("/")
+        return read_movingreality(data_dir, participant, trial)
     return read_gaitmap(data_dir, f"{part}.csv")
 
 
@@ -235,6 +243,7 @@ RECORDING_NAMES = (
     ["ximu3_lowerbody"]
     + [f"capacitive_sub01/{t}" for t in CAPACITIVE_TRIALS]
     + [f"gaitmap_foot/{f.removesuffix('.csv')}" for f in GAITMAP_FILES]
+    + [f"movingreality/pp0{n}/{trial}" for n in range(1, 9) for trial in ("1Reg", "FBPO" if n == 6 else "2Reg")]
 )
 
 
@@ -299,13 +308,50 @@ MOVINGREALITY_SEGMENTS = {
 }
 
 
+def _is_movingreality_trial(folder: Path) -> bool:
+    return folder.is_dir() and all(_csv_or_gz(folder / name) is not None for name in MOVINGREALITY_SEGMENTS)
+
+
+def _csv_or_gz(stem: Path) -> Path | None:
+    """``<stem>.csv.gz`` or ``<stem>.csv``, whichever exists (the data directory may hold either form)."""
+    for path in (stem.with_name(f"{stem.name}.csv.gz"), stem.with_name(f"{stem.name}.csv")):
+        if path.is_file():
+            return path
+    return None
+
+
+def read_movingreality(data_dir: Path, participant: str, trial: str) -> RealRecording:
+    """One MovingReality treadmill trial as a labelled recording: the five Xsens MTw (m/s², rad/s, 100 Hz; lumbar
+    → Pelvis, shanks, feet: ``MOVINGREALITY_SEGMENTS``) resampled to 60 Hz over the rows all five recorded (the
+    files of a trial share one packet counter; a few end a row early)."""
+    sensors = read_movingreality_trial(data_dir, participant, trial)
+    n = min(len(s.acc) for s in sensors)
+    return RealRecording(
+        f"movingreality/{participant}/{trial}",
+        "movingreality",
+        f"movingreality_{participant}",
+        "walk",
+        [
+            RealSensor(
+                s.name,
+                resample_uniform(np.concatenate([s.acc[:n], s.gyr[:n]], axis=1), s.rate_hz, MODEL_RATE_HZ),
+                segment_index(MOVINGREALITY_SEGMENTS[s.name]),
+            )
+            for s in sensors
+        ],
+    )
+
+
 def read_movingreality_trial(data_dir: Path, participant: str, trial: str) -> list[OrientedSensor]:
     """One MovingReality treadmill trial (``imu_real/movingreality/<pp>/<trial>``): five Xsens MTw with their
     orientation to ENU, 100 Hz (``../shared/data/README.md``). Sensors in ``MOVINGREALITY_SEGMENTS`` order."""
     folder = data_dir / "imu_real" / "movingreality" / participant / trial
     sensors = []
     for name in MOVINGREALITY_SEGMENTS:
-        table = np.loadtxt(folder / f"{name}.csv.gz", delimiter=",", skiprows=1)
+        path = _csv_or_gz(folder / name)
+        if path is None:
+            raise FileNotFoundError(f"{folder}: no {name}.csv.gz or {name}.csv")
+        table = np.loadtxt(path, delimiter=",", skiprows=1)
         rate = 1.0 / float(np.median(np.diff(table[:, 0])))
         sensors.append(OrientedSensor(name, table[:, 1:4], table[:, 4:7], table[:, 7:11], rate))
     return sensors

@@ -150,55 +150,76 @@ HELD_OUT_METRICS = (
 
 
 def run_real_loso(
-    cfg: ExperimentConfig, data_dir: Path, cache_dir: Path, eval_max_windows: int | None = None
+    cfg: ExperimentConfig,
+    data_dir: Path,
+    cache_dir: Path,
+    eval_max_windows: int | None = None,
+    people: list[str] | None = None,
 ) -> tuple[str, dict[str, dict[str, float]]]:
-    """Paper 000 §4.3 on the real recordings: leave one source out. A source is one sensor system of one lab
-    (``RealRecording.source``: the capacitive subject, the x-IMU3 person, gaitmap's feet), so each fold is scored on
-    people and sensors it never trained on. Each fold is a full tracked run of ``cfg`` (simulated data plus the
-    other sources' recordings, ``data.real_fraction`` of each batch), tagged ``real_loso_held_out``; a summary run
-    pools the held-out windows (``pooled_*``, weighted by window count) and logs the per-source bars. Returns the
-    summary run id and the per-source figures (key ``pooled`` for all)."""
+    """Paper 000 §4.3 on the real recordings: leave one person out. A person is a ``RealRecording.subject`` (the
+    capacitive subject, the x-IMU3 person, each of gaitmap's walkers, each MovingReality participant), so every
+    fold is scored on a person no real training window came from. Each fold is a full tracked run of ``cfg``
+    (simulated data plus every other person's recordings, ``data.real_fraction`` of each batch), tagged
+    ``real_loso_held_out``; a summary run pools the held-out windows (``pooled_*``, weighted by window count; and
+    per source, ``<source>.pooled_*``) and logs the per-person bars. ``people`` runs those folds only (each still
+    trains on everyone else). Returns the summary run id and the per-person figures (keys ``pooled`` and
+    ``pooled/<source>``)."""
     if cfg.task != "assignment" or cfg.data.real_fraction <= 0.0:
         raise ValueError(
             f"real-data folds train assignment with data.real_fraction > 0; got task {cfg.task}, "
             f"real_fraction {cfg.data.real_fraction}"
         )
-    sources: dict[str, list[str]] = {}
+    persons: dict[str, list[RealRecording]] = {}
     for recording in read_all_real(data_dir):
-        sources.setdefault(recording.source, []).append(recording.name)
+        persons.setdefault(recording.subject, []).append(recording)
+    if unknown := sorted(set(people or []) - set(persons)):
+        raise ValueError(f"no real recordings of {unknown}; the people are {sorted(persons)}")
     folds: dict[str, dict[str, float]] = {}
-    for held_out, names in sources.items():
-        others = [name for source, group in sources.items() if source != held_out for name in group]
+    source_of: dict[str, str] = {}
+    chosen = [p for p in persons if people is None or p in people]
+    for held_out in chosen:
+        others = [r.name for person, group in persons.items() if person != held_out for r in group]
         fold_cfg = ExperimentConfig.model_validate(
             cfg.model_dump() | {"data": cfg.data.model_dump() | {"real_train_recordings": others}}
         )
-        log.info("real-data fold %d/%d: %s held out", len(folds) + 1, len(sources), held_out)
+        log.info("real-data fold %d/%d: %s held out", len(folds) + 1, len(chosen), held_out)
         run_id = run_training(
             fold_cfg, data_dir, cache_dir, False, eval_max_windows, tags={"real_loso_held_out": held_out}
         )
         metrics = MlflowClient().get_run(run_id).data.metrics
-        n_windows = sum(metrics[f"n_windows.{name.replace('/', '.')}"] for name in names)
+        names = [r.name.replace("/", ".") for r in persons[held_out]]
+        n_windows = sum(metrics.get(f"n_windows.{name}", 0.0) for name in names)
         folds[held_out] = {"n_windows": n_windows} | {k: metrics[k] for k in HELD_OUT_METRICS}
         folds[held_out]["run_id"] = run_id  # type: ignore[assignment]
-    total = sum(f["n_windows"] for f in folds.values())
-    pooled = {k: sum(f[k] * f["n_windows"] for f in folds.values()) / total for k in HELD_OUT_METRICS}
+        source_of[held_out] = persons[held_out][0].source
+    pooled = {"pooled": _pooled(list(folds.values()))}
+    for source in dict.fromkeys(source_of.values()):
+        pooled[f"pooled/{source}"] = _pooled([f for p, f in folds.items() if source_of[p] == source])
     with mlflow.start_run(run_name=f"{cfg.name}_real_loso") as run, tempfile.TemporaryDirectory() as tmp_dir:
         mlflow.log_params(
             {k: str(v) for k, v in flatten(cfg.model_dump()).items() if k != "data.real_train_recordings"}
         )
         mlflow.set_tags(
-            {"task": cfg.task, "real_loso": "summary"} | {f"fold_run.{s}": str(f["run_id"]) for s, f in folds.items()}
+            {"task": cfg.task, "real_loso": "summary"} | {f"fold_run.{p}": str(f["run_id"]) for p, f in folds.items()}
         )
-        mlflow.log_metrics({f"pooled_{k}": v for k, v in pooled.items()} | {"pooled_n_windows": total})
-        for source, fold in folds.items():
-            mlflow.log_metrics({f"{source}.{k}": fold[k] for k in (*HELD_OUT_METRICS, "n_windows")})
-        mlflow.log_dict(folds, "evaluation/real_loso.json")
+        for name, figures in pooled.items():
+            prefix = "" if name == "pooled" else f"{name.removeprefix('pooled/')}."
+            mlflow.log_metrics({f"{prefix}pooled_{k}": v for k, v in figures.items()})
+        for person, fold in folds.items():
+            mlflow.log_metrics({f"{person}.{k}": fold[k] for k in (*HELD_OUT_METRICS, "n_windows")})
+        mlflow.log_dict(folds | pooled, "evaluation/real_loso.json")
         png = held_out_bars_png(
-            folds, Path(tmp_dir) / "real_loso.png", f"{cfg.name}: real recordings, one source held out"
+            folds, Path(tmp_dir) / "real_loso.png", f"{cfg.name}: real recordings, one person held out"
         )
         mlflow.log_artifact(str(png), "plots")
         summary_id = run.info.run_id
-    return summary_id, folds | {"pooled": pooled | {"n_windows": total}}
+    return summary_id, folds | pooled
+
+
+def _pooled(folds: list[dict[str, float]]) -> dict[str, float]:
+    """Held-out figures of several folds, weighted by their window counts."""
+    total = sum(f["n_windows"] for f in folds)
+    return {k: sum(f[k] * f["n_windows"] for f in folds) / total for k in HELD_OUT_METRICS} | {"n_windows": total}
 
 
 def _fitted_elsewhere(
