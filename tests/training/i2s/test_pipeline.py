@@ -241,11 +241,11 @@ def test_fit_mixes_in_the_real_recordings_its_pack_carries_and_is_tracked_only_w
         load_fitted(fitted, cfg, dataset_digest(train_clips), dataset_digest(val_clips), recordings_digest([]))
 
 
-def test_real_loso_holds_each_source_out_once_and_pools_its_windows(
+def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
     mlflow_server: str, data_dir: Path, kinematics_cache: Path
 ) -> None:
-    """Three real sources, three fold runs: each trains on the other sources' recordings only and is scored on
-    its own; the summary's pooled figures are the window-weighted means of the folds' held-out figures."""
+    """Two of the real people, two fold runs: each trains on every other person's recordings and is scored on
+    their own only; the summary's pooled figures are the window-weighted means of the folds' held-out figures."""
     from service.core.recordings import read_all_real
     from training.i2s.pipeline import HELD_OUT_METRICS, run_real_loso
 
@@ -253,26 +253,33 @@ def test_real_loso_holds_each_source_out_once_and_pools_its_windows(
         REPO / "training/configs/i2s_assignment.yaml",
         TINY + ["tracking.experiment=test-i2s", "data.real_fraction=0.25", "train.max_epochs=1"],
     )
-    summary_id, folds = run_real_loso(cfg, data_dir, kinematics_cache, eval_max_windows=300)
-    sources: dict[str, set[str]] = {}
+    chosen = ["ximu3_unknown", "movingreality_pp03"]
+    summary_id, folds = run_real_loso(cfg, data_dir, kinematics_cache, eval_max_windows=300, people=chosen)
+    persons: dict[str, set[str]] = {}
     for recording in read_all_real(data_dir):
-        sources.setdefault(recording.source, set()).add(recording.name)
-    assert set(folds) == set(sources) | {"pooled"} and len(sources) == 3
+        persons.setdefault(recording.subject, set()).add(recording.name)
+    assert (
+        len(persons) == 13
+    )  # the capacitive subject, the x-IMU3 person, three gaitmap walkers, eight in MovingReality
+    assert set(folds) == {*chosen, "pooled", "pooled/ximu3_lowerbody", "pooled/movingreality"}
     client = MlflowClient()
-    for source, names in sources.items():
-        run = client.get_run(str(folds[source]["run_id"]))
-        assert run.data.tags["real_loso_held_out"] == source
+    for person in chosen:
+        run = client.get_run(str(folds[person]["run_id"]))
+        assert run.data.tags["real_loso_held_out"] == person
         trained_on = set(ast.literal_eval(run.data.params["data.real_train_recordings"]))
-        assert trained_on == set().union(*sources.values()) - names  # every other source, none of its own
+        assert trained_on == set().union(*persons.values()) - persons[person]  # everyone else, none of their own
         held_out = {k.removeprefix("n_windows.") for k in run.data.metrics if k.startswith("n_windows.")}
-        assert held_out == {name.replace("/", ".") for name in names}  # scored on its own recordings only
-    total = sum(folds[s]["n_windows"] for s in sources)
-    assert folds["pooled"]["n_windows"] == total > 7000
+        assert held_out == {name.replace("/", ".") for name in persons[person]}  # scored on their own only
+    total = sum(folds[p]["n_windows"] for p in chosen)
+    assert folds["pooled"]["n_windows"] == total > 1000
     summary = client.get_run(summary_id)
     for key in HELD_OUT_METRICS:
-        expected = sum(folds[s][key] * folds[s]["n_windows"] for s in sources) / total
+        expected = sum(folds[p][key] * folds[p]["n_windows"] for p in chosen) / total
         assert summary.data.metrics[f"pooled_{key}"] == pytest.approx(expected)
+        assert summary.data.metrics[f"movingreality.pooled_{key}"] == pytest.approx(folds["movingreality_pp03"][key])
         assert 0.0 <= expected <= 1.0
     assert "plots/real_loso.png" in {a.path for a in client.list_artifacts(summary_id, "plots")}
     with pytest.raises(ValueError, match="real_fraction > 0"):
         run_real_loso(load_config(REPO / "training/configs/i2s_assignment.yaml", TINY), data_dir, kinematics_cache)
+    with pytest.raises(ValueError, match="no real recordings of \\['nobody'\\]"):
+        run_real_loso(cfg, data_dir, kinematics_cache, people=["nobody"])
