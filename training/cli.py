@@ -195,16 +195,21 @@ def evaluate(
     data_dir: Path | None = DataDir,
     cache_dir: Path = DEFAULT_CACHE,
     max_windows: int | None = typer.Option(None, help="cap the simulated evaluation (quick checks)"),
+    loso_run: str | None = typer.Option(
+        None, help="also record this real-loso summary run's held-out figures (the model's recipe, per person)"
+    ),
 ) -> None:
     """Evaluate a shipped model (LOSO fold on simulated data, real recordings) and record it in its manifest."""
     import mlflow
 
-    from training.i2s.ship import evaluate_shipped
+    from training.i2s.ship import evaluate_shipped, record_real_loso
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
     _restore_into_empty_store()  # a fresh clone: the runs the manifests name
     command = f"python -m training.cli evaluate {model_dir}" + (f" --max-windows {max_windows}" if max_windows else "")
+    if loso_run:
+        record_real_loso(model_dir, loso_run, f"python -m training.cli evaluate {model_dir} --loso-run {loso_run}")
     manifest = evaluate_shipped(model_dir, resolve_data_dir(data_dir), cache_dir, command, max_windows)
     for ev in manifest.evaluations:
         headline = {

@@ -5,6 +5,7 @@ golden.npz, then evaluate the shipped file and record the numbers (and their com
 from __future__ import annotations
 
 import datetime as dt
+import json
 import logging
 import shutil
 import tempfile
@@ -222,6 +223,11 @@ def evaluate_shipped(
             )
             metrics_to_log.update({f"{prefix}braced_knee_{k}": v for k, v in knees.metrics.items()})
         held_out = held_out_recordings(cfg, data_dir)
+        if not held_out:  # trained on every real person: the real figures are its recipe's folds (loso_run)
+            _log_to_run(run_id, metrics_to_log, None)
+            manifest.evaluations = evaluations + [e for e in manifest.evaluations if e.name == REAL_LOSO]
+            write_manifest(manifest, model_dir / "manifest.json")
+            return manifest
         real_metrics, cm = evaluate_real(predict, held_out)
         evaluations.append(
             Evaluation(
@@ -254,6 +260,37 @@ def evaluate_shipped(
         metrics_to_log.update({f"{prefix}{k.replace('/', '.')}": v for k, v in real_metrics.items()})
         _log_to_run(run_id, metrics_to_log, None)
     manifest.evaluations = evaluations
+    write_manifest(manifest, model_dir / "manifest.json")
+    return manifest
+
+
+REAL_LOSO = "real_leave_one_person_out"
+
+
+def record_real_loso(model_dir: Path, summary_run_id: str, command: str) -> Manifest:
+    """Copy a ``real-loso`` summary run's held-out figures (per person, per source and pooled) into a shipped
+    model's manifest as the evaluation ``real_leave_one_person_out``: the figures of the recipe that made the
+    model, each fold trained without the person it is scored on."""
+    from training.i2s.pipeline import HELD_OUT_METRICS
+
+    summary = mlflow.get_run(summary_run_id)
+    if summary.data.tags.get("real_loso") != "summary":
+        raise ValueError(f"run {summary_run_id} is not a real-loso summary run")
+    folds = json.loads(mlflow.artifacts.load_text(f"runs:/{summary_run_id}/evaluation/real_loso.json"))
+    metrics = {}
+    for name, fold in folds.items():
+        for key in (*HELD_OUT_METRICS, "n_windows"):
+            metrics[f"{key}/{name}"] = round(float(fold[key]), 5)
+    manifest = read_manifest(model_dir / "manifest.json")
+    evaluation = Evaluation(
+        name=REAL_LOSO,
+        command=command,
+        data=f"real recordings, leave one person out: real-loso summary run {summary_run_id}, "
+        f"{sum(1 for n in folds if not n.startswith('pooled'))} people, each fold fine-tuned by the same recipe "
+        "without the person it is scored on; moving windows; per window and one-to-one per moment",
+        metrics=metrics,
+    )
+    manifest.evaluations = [e for e in manifest.evaluations if e.name != REAL_LOSO] + [evaluation]
     write_manifest(manifest, model_dir / "manifest.json")
     return manifest
 
