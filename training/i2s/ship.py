@@ -259,7 +259,7 @@ def evaluate_shipped(
         )
         metrics_to_log.update({f"{prefix}{k.replace('/', '.')}": v for k, v in real_metrics.items()})
         _log_to_run(run_id, metrics_to_log, None)
-    manifest.evaluations = evaluations
+    manifest.evaluations = evaluations + [e for e in manifest.evaluations if e.name == REAL_LOSO]
     write_manifest(manifest, model_dir / "manifest.json")
     return manifest
 
