@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
 
+from service.api.protocol import encode_binary
 from service.app import create_app
 from service.core.segments import SEGMENTS
 from service.settings import Settings
@@ -391,3 +394,65 @@ def test_an_implausible_unit_is_answered_with_a_warning(client: TestClient) -> N
     assert warning.startswith("acc_unit:") and "'g'" in warning
     r = client.post("/v1/imu/assign", json={"sensors": [{"sensor_id": "s1", "windows": [in_g]}]})
     assert r.json()["warnings"][0].startswith("sensors[0] (s1): acc_unit:")
+
+
+def _calibrated_client(tiny_models: Path, min_moving_windows: int = 3) -> TestClient:
+    """The tiny models, the assignment one with a confidence section that reads the vote share only."""
+    from service.core.assignment import CONFIDENCE_FEATURES
+    from service.core.manifest import ConfidenceSpec, read_manifest, write_manifest
+
+    path = tiny_models / "i2s_assignment" / "0.0.1" / "manifest.json"
+    manifest = read_manifest(path)
+    manifest.confidence = ConfidenceSpec(
+        features=list(CONFIDENCE_FEATURES),
+        coef=[20.0, 0.0, 0.0],
+        intercept=-10.0,
+        threshold=0.99,
+        min_moving_windows=min_moving_windows,
+        fitted_on="a test",
+    )
+    write_manifest(manifest, path)
+    return TestClient(create_app(Settings(models_dir=tiny_models)))
+
+
+def test_assign_carries_a_calibrated_probability_and_a_status(client: TestClient, tiny_models: Path) -> None:
+    """Without calibration the answer says so; with it, each sensor gets the calibrated probability and the session
+    commits (``assigned``) only when every assigned sensor reaches the threshold on enough moving windows."""
+    one = [{"sensor_id": "a", "windows": [_window()] * 4}]
+    plain = client.post("/v1/imu/assign", json={"sensors": one}).json()
+    assert plain["status"] == "uncalibrated" and plain["sensors"][0]["p_correct"] is None
+    with _calibrated_client(tiny_models) as calibrated:
+        got = calibrated.post("/v1/imu/assign", json={"sensors": one}).json()
+        assert got["status"] == "assigned", got
+        assert got["sensors"][0]["p_correct"] == pytest.approx(1.0 / (1.0 + np.exp(-10.0)))  # all 4 votes agree
+        few = calibrated.post("/v1/imu/assign", json={"sensors": [{"sensor_id": "a", "windows": [_window()] * 2}]})
+        assert few.json()["status"] == "not_enough_walking"  # 2 moving windows < 3
+        # identical data on three sensors: the two that the one-to-one answer moved off their windows' favourite
+        # have no vote for their segment, so the session does not commit
+        three = [{"sensor_id": f"s{k}", "windows": [_window()] * 4} for k in range(3)]
+        out = calibrated.post("/v1/imu/assign", json={"sensors": three}).json()
+        assert out["status"] == "not_enough_walking"
+        assert sorted(round(s["p_correct"], 4) for s in out["sensors"]) == [0.0, 0.0, 1.0]
+        still = [{"sensor_id": "a", "windows": [_window() | {"samples": [[0, 0, 9.81, 0, 0, 0]] * 128}] * 4}]
+        assert calibrated.post("/v1/imu/assign", json={"sensors": still}).json()["status"] == "not_enough_walking"
+
+
+def test_the_streams_assignment_message_carries_the_calibrated_answer(tiny_models: Path) -> None:
+    t = np.arange(16 * 20) / 60.0
+    x = np.stack([np.sin(t), np.cos(t), 9.81 + 0 * t, 2 * np.sin(3 * t), 0 * t, np.cos(2 * t)], axis=1)
+    with _calibrated_client(tiny_models) as calibrated, calibrated.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+        assert json.loads(ws.receive_text())["type"] == "started"
+        statuses = []
+        for seq in range(0, len(x), 16):
+            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
+        ws.send_text(json.dumps({"type": "stop"}))
+        while True:
+            try:
+                m = json.loads(ws.receive_text())
+            except WebSocketDisconnect:
+                break
+            if m["type"] == "assignment":
+                statuses.append((m["sensors"][0]["windows"], m["status"], m["sensors"][0]["p_correct"]))
+    assert statuses and statuses[-1][1] == "assigned" and statuses[-1][2] > 0.99
+    assert all(status == "not_enough_walking" for n, status, _ in statuses if n < 3)
