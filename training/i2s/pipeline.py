@@ -183,7 +183,7 @@ def run_real_loso(
             cfg.model_dump() | {"data": cfg.data.model_dump() | {"real_train_recordings": others}}
         )
         log.info("real-data fold %d/%d: %s held out", len(folds) + 1, len(chosen), held_out)
-        run_id = run_training(
+        run_id = _finished_fold(fold_cfg, held_out) or run_training(
             fold_cfg, data_dir, cache_dir, False, eval_max_windows, tags={"real_loso_held_out": held_out}
         )
         metrics = MlflowClient().get_run(run_id).data.metrics
@@ -214,6 +214,23 @@ def run_real_loso(
         mlflow.log_artifact(str(png), "plots")
         summary_id = run.info.run_id
     return summary_id, folds | pooled
+
+
+def _finished_fold(fold_cfg: ExperimentConfig, held_out: str) -> str | None:
+    """A finished fold run of the same configuration (every logged parameter equal) holding out the same person:
+    a long leave-one-person-out job that stopped goes on where it stopped instead of training again."""
+    setup_tracking(fold_cfg.tracking.experiment)
+    expected = {k: str(v) for k, v in flatten(fold_cfg.model_dump()).items()}
+    runs = MlflowClient().search_runs(
+        [mlflow.get_experiment_by_name(fold_cfg.tracking.experiment).experiment_id],
+        f"tags.real_loso_held_out = '{held_out}' and attributes.status = 'FINISHED'",
+        order_by=["attributes.start_time DESC"],
+    )
+    for run in runs:
+        if all(run.data.params.get(k) == v for k, v in expected.items()) and "model_uri" in run.data.tags:
+            log.info("fold %s: reusing finished run %s", held_out, run.info.run_id)
+            return run.info.run_id
+    return None
 
 
 def _pooled(folds: list[dict[str, float]]) -> dict[str, float]:

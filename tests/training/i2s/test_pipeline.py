@@ -279,6 +279,14 @@ def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
         assert summary.data.metrics[f"movingreality.pooled_{key}"] == pytest.approx(folds["movingreality_pp03"][key])
         assert 0.0 <= expected <= 1.0
     assert "plots/real_loso.png" in {a.path for a in client.list_artifacts(summary_id, "plots")}
+    # run again (a job that stopped, started again): the finished folds are reused, not trained again
+    _, again = run_real_loso(cfg, data_dir, kinematics_cache, eval_max_windows=300, people=chosen[:1])
+    assert again[chosen[0]]["run_id"] == folds[chosen[0]]["run_id"]
+    changed = load_config(REPO / "training/configs/i2s_assignment.yaml", TINY + ["tracking.experiment=test-i2s"])
+    changed = changed.model_copy(update={"data": cfg.data.model_copy(update={"real_fraction": 0.3})})
+    from training.i2s.pipeline import _finished_fold
+
+    assert _finished_fold(changed, chosen[0]) is None  # another recipe trains its own folds
     with pytest.raises(ValueError, match="real_fraction > 0"):
         run_real_loso(load_config(REPO / "training/configs/i2s_assignment.yaml", TINY), data_dir, kinematics_cache)
     with pytest.raises(ValueError, match="no real recordings of \\['nobody'\\]"):
