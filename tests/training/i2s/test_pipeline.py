@@ -282,10 +282,12 @@ def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
     # run again (a job that stopped, started again): the finished folds are reused, not trained again
     _, again = run_real_loso(cfg, data_dir, kinematics_cache, eval_max_windows=300, people=chosen[:1])
     assert again[chosen[0]]["run_id"] == folds[chosen[0]]["run_id"]
-    changed = load_config(REPO / "training/configs/i2s_assignment.yaml", TINY + ["tracking.experiment=test-i2s"])
-    changed = changed.model_copy(update={"data": cfg.data.model_copy(update={"real_fraction": 0.3})})
     from training.i2s.pipeline import _finished_fold
 
+    others = ast.literal_eval(client.get_run(str(folds[chosen[0]]["run_id"])).data.params["data.real_train_recordings"])
+    same = cfg.model_copy(update={"data": cfg.data.model_copy(update={"real_train_recordings": others})})
+    assert _finished_fold(same, chosen[0]) == folds[chosen[0]]["run_id"]
+    changed = same.model_copy(update={"data": same.data.model_copy(update={"real_fraction": 0.3})})
     assert _finished_fold(changed, chosen[0]) is None  # another recipe trains its own folds
     with pytest.raises(ValueError, match="real_fraction > 0"):
         run_real_loso(load_config(REPO / "training/configs/i2s_assignment.yaml", TINY), data_dir, kinematics_cache)
