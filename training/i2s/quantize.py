@@ -88,13 +88,19 @@ def ship_int8(src_dir: Path, version: str, data_dir: Path, cache_dir: Path, n_ca
     manifest = read_manifest(src_dir / "manifest.json")
     cfg = ExperimentConfig.model_validate(load_run_config(manifest.mlflow["run_id"]))
     target = src_dir.parent / version
-    target.mkdir(parents=True, exist_ok=True)
-    calibration = calibration_windows(cfg, data_dir, cache_dir, n_calibration)
-    described = quantize_onnx(src_dir / "model.onnx", target / "model.onnx", calibration, rnn)
-    shutil.copy(src_dir / "golden.npz", target / "golden.npz")
-    with np.load(target / "golden.npz") as z:
-        golden = dict(z)
-    parity = _gate(target / "model.onnx", golden, manifest.output_kind)
+    if target.exists():
+        raise FileExistsError(f"{target} exists; choose another version")
+    target.mkdir(parents=True)
+    try:
+        calibration = calibration_windows(cfg, data_dir, cache_dir, n_calibration)
+        described = quantize_onnx(src_dir / "model.onnx", target / "model.onnx", calibration, rnn)
+        shutil.copy(src_dir / "golden.npz", target / "golden.npz")
+        with np.load(target / "golden.npz") as z:
+            golden = dict(z)
+        parity = _gate(target / "model.onnx", golden, manifest.output_kind)
+    except BaseException:
+        shutil.rmtree(target)  # a refused file leaves no half-made version for the service to trip over
+        raise
     manifest.version = version
     manifest.created_utc = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     manifest.sha256 = sha256_file(target / "model.onnx")

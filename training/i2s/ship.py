@@ -70,7 +70,7 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
     if "model_uri" in run.data.tags:
         mlflow_info["model_uri"] = run.data.tags["model_uri"]
     return Manifest(
-        name=cfg.name,
+        name=cfg.registered_model,  # the name it ships and is served under (several recipes, one served model)
         task=TASKS[cfg.task],
         version=version,  # type: ignore[arg-type]
         created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -140,11 +140,12 @@ def _ensemble(member_dirs: list[str]) -> dict[str, list[str]]:
 
 
 def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
-    """Write ``out_root/<name>/<version>/{model.onnx, manifest.json, golden.npz}`` from an MLflow run."""
+    """Write ``out_root/<name>/<version>/{model.onnx, manifest.json, golden.npz}`` from an MLflow run; ``name`` is
+    the config's registered model (``tracking.registered_model``, by default the config's name)."""
     run = MlflowClient().get_run(run_id)
     cfg = ExperimentConfig.model_validate(load_run_config(run_id))
     version = version or run_version(run)
-    target = out_root / cfg.name / version
+    target = out_root / cfg.registered_model / version
     target.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         model_dir = Path(mlflow.artifacts.download_artifacts(run.data.tags["model_uri"], dst_path=tmp))
@@ -158,7 +159,7 @@ def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
         parity = onnx_parity(target / "model.onnx", dict(z))
     manifest = build_manifest(cfg, run, sha256_file(target / "model.onnx"), version)
     write_manifest(manifest, target / "manifest.json")
-    log.info("shipped %s (parity %.2e) to %s", cfg.name, parity, target)
+    log.info("shipped %s (parity %.2e) to %s", cfg.registered_model, parity, target)
     return target
 
 
