@@ -225,6 +225,7 @@ def calibrate(
     model_dir: Path,
     loso_run: str = typer.Option(..., help="the real-loso summary run whose folds predict their held-out people"),
     data_dir: Path | None = DataDir,
+    cache_dir: Path = DEFAULT_CACHE,
 ) -> None:
     """Calibrate the confidence of the joint assignment on the held-out people of a real-loso run and write it
     into a shipped assignment model's manifest (``confidence``); logs the reliability diagram, the expected
@@ -240,7 +241,7 @@ def calibrate(
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
-    model, metrics, timing = run_calibration(loso_run, resolve_data_dir(data_dir))
+    model, metrics, timing = run_calibration(loso_run, resolve_data_dir(data_dir), model_dir, cache_dir)
     manifest = read_manifest(model_dir / "manifest.json")
     if manifest.task != "i2s_assignment":
         raise typer.BadParameter(f"{model_dir} is a {manifest.task} model; calibrate takes i2s_assignment models")

@@ -52,13 +52,18 @@ SKELETON_MAPS: dict[str, SkeletonMap] = {
     "cmu_raw_3dsmax": SkeletonMap(
         "Hips", ("LeftHip", "LeftKnee", "LeftAnkle", "LeftToe"), ("RightHip", "RightKnee", "RightAnkle", "RightToe")
     ),
+    "bandai_namco": SkeletonMap(
+        "Hips", ("UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L"), ("UpperLeg_R", "LowerLeg_R", "Foot_R", "Toes_R")
+    ),
 }
 
 
 def skeleton_map_for(source: str, joint_names: tuple[str, ...]) -> SkeletonMap:
-    """The map for a data source; cmu_raw files come in two naming schemes."""
+    """The map for a data source; cmu_raw files come in two naming schemes, the Bandai-Namco sets share one."""
     if source == "cmu_raw":
         return SKELETON_MAPS["cmu_raw_mb" if "LeftUpLeg" in joint_names else "cmu_raw_3dsmax"]
+    if source.startswith("bandai_namco"):  # both Bandai-Namco sets share one skeleton
+        return SKELETON_MAPS["bandai_namco"]
     try:
         return SKELETON_MAPS[source]
     except KeyError:

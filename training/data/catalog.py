@@ -15,7 +15,13 @@ from pathlib import Path
 DATA_DIR_ENV = "WEARMOCAP_DATA_DIR"
 
 # Length unit of each mocap source in metres (README "Frames, and mapping").
-METRES_PER_UNIT = {"cmu_li2018": 1.0, "cmu_iclone": 0.01, "cmu_raw": 0.0254 / 0.45}
+METRES_PER_UNIT = {
+    "cmu_li2018": 1.0,
+    "cmu_iclone": 0.01,
+    "cmu_raw": 0.0254 / 0.45,
+    "bandai_namco_1": 0.01,
+    "bandai_namco_2": 0.01,
+}
 
 
 def resolve_data_dir(explicit: str | Path | None = None) -> Path:

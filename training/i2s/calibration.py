@@ -261,10 +261,74 @@ def time_to_answer(held_out: list[HeldOut], models: dict[str, ConfidenceModel]) 
     return out
 
 
-def calibrate(summary_run_id: str, data_dir: Path) -> tuple[ConfidenceModel, dict[str, float], dict]:
+# Motions that are not gait, of people no I2S model trained on (Bandai-Namco's actors; I2S training reads the CMU
+# sets), to check that the service does not commit to an answer it cannot know.
+NON_GAIT = ("raise_hand", "wave", "gesture", "bow", "punch", "slash", "kick", "dance")
+NON_GAIT_CLIPS_PER_ACTIVITY = 12
+
+
+def non_gait_sessions(
+    predict, model: ConfidenceModel, data_dir: Path, cache_dir: Path, seed: int = 0
+) -> dict[str, float]:
+    """Simulated seven-sensor sessions of non-gait motion (``NON_GAIT``, up to ``NON_GAIT_CLIPS_PER_ACTIVITY``
+    Bandai-Namco clips each, every sensor at a random eq. 8 alignment, each clip one session): how many the served
+    model with its calibration commits to (status ``assigned``), and how many of those are wrong."""
+    from training.data.catalog import read_catalog
+    from training.i2s.data.imu_sim import alignment, imu_readings
+    from training.i2s.data.mocap import KinematicsParams, build_kinematics
+
+    rng = np.random.default_rng(seed)
+    entries = []
+    for activity in NON_GAIT:
+        found = sorted(
+            (e for e in read_catalog(data_dir) if e.activity == activity and e.source.startswith("bandai_namco")),
+            key=lambda e: e.path,
+        )
+        if found:
+            keep = rng.choice(len(found), min(NON_GAIT_CLIPS_PER_ACTIVITY, len(found)), replace=False)
+            entries += [found[i] for i in sorted(keep)]
+    clips = build_kinematics(data_dir, entries, cache_dir, KinematicsParams())
+    committed = wrong = 0
+    by_activity: dict[str, list[int]] = {}
+    for clip in clips:
+        sensors = []
+        for seg in range(len(SEGMENTS)):
+            R = alignment(seg, rng.uniform(0, 2 * np.pi, 1), rng.uniform(0, 2 * np.pi, 1))
+            k = clip.kin
+            imu = imu_readings(
+                k.lin_acc_mps2[None, :, seg],
+                k.up_mps2[None, :, seg],
+                k.gyr_rads[None, :, seg],
+                k.ang_acc_rads2[None, :, seg],
+                R,
+            )[0].astype(np.float32)
+            windows = np.ascontiguousarray(sliding_windows(imu))
+            if not len(windows):
+                break
+            probs = predict(windows)
+            sensors.append(SensorPrediction(seg, np.log(np.clip(probs, 1e-12, 1.0)), is_moving(windows)))
+        else:
+            segment, features, n = answer(sensors, slice(0, None))
+            done = model.status(model.p_correct(features), n, segment >= 0) == "assigned"
+            bad = done and not (segment == np.arange(len(SEGMENTS))).all()
+            committed, wrong = committed + done, wrong + bad
+            counts = by_activity.setdefault(clip.entry.activity, [0, 0, 0])
+            counts[0], counts[1], counts[2] = counts[0] + 1, counts[1] + done, counts[2] + bad
+    out = {"non_gait_sessions": float(sum(c[0] for c in by_activity.values())), "non_gait_committed": float(committed)}
+    out["non_gait_committed_wrong"] = float(wrong)
+    for activity, (n, done, bad) in by_activity.items():
+        out |= {f"non_gait_sessions/{activity}": float(n), f"non_gait_committed/{activity}": float(done)}
+        out[f"non_gait_committed_wrong/{activity}"] = float(bad)
+    return out
+
+
+def calibrate(
+    summary_run_id: str, data_dir: Path, model_dir: Path, cache_dir: Path
+) -> tuple[ConfidenceModel, dict[str, float], dict]:
     """Steps 1-4 of the module docstring, logged as one MLflow run (metrics, the reliability diagram, the time to
-    answer per recording). Returns the calibration fitted on every person, its cross-fitted metrics, and the time
-    to answer per recording."""
+    answer per recording), and the non-gait check of the model in ``model_dir`` with the final calibration
+    (``non_gait_sessions``). Returns the calibration fitted on every person, its metrics (cross-fitted where they
+    are on real people), and the time to answer per recording."""
     held_out = fold_predictions(summary_run_id, data_dir)
     samples = sessions(held_out)
     p = cross_fitted(samples)
@@ -286,6 +350,8 @@ def calibrate(summary_run_id: str, data_dir: Path) -> tuple[ConfidenceModel, dic
         )
         metrics[f"time_to_{key.removesuffix('_s')}_never"] = float(np.isnan(values).sum())
     metrics["committed_wrong_recordings"] = float(sum(t["committed_right"] == 0.0 for t in timing.values()))
+    metrics["recordings_replayed"] = float(len(timing))
+    metrics |= non_gait_sessions(onnx_predictor(model_dir / "model.onnx"), final, data_dir, cache_dir)
     with mlflow.start_run(run_name="i2s_assignment_confidence") as run, tempfile.TemporaryDirectory() as tmp:
         mlflow.set_tags({"task": "assignment", "calibrated_from": summary_run_id})
         mlflow.log_params(
