@@ -262,6 +262,23 @@ def calibrate(
     typer.echo(json.dumps(timing, indent=1))
 
 
+@app.command("real-table")
+def real_table_command(
+    loso_run: str = typer.Option(..., help="a real-loso summary run"),
+    models: list[Path] = typer.Option([], "--model", help="shipped model dirs to set beside it (repeatable)"),
+    data_dir: Path | None = DataDir,
+) -> None:
+    """Markdown table: each held-out person's figures from a real-loso run beside shipped models' own figures on
+    the same recordings (their manifests)."""
+    import mlflow
+
+    from training.i2s.ship import real_table
+    from training.tracking import default_tracking_uri
+
+    mlflow.set_tracking_uri(default_tracking_uri())
+    typer.echo(real_table(loso_run, models, resolve_data_dir(data_dir)))
+
+
 @app.command("evaluate-real")
 def evaluate_real_command(
     source: str = typer.Argument(..., help="a shipped model dir, or runs:/<run_id> of a tracked run"),

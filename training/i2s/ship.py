@@ -317,3 +317,39 @@ def _log_to_run(run_id: str, metrics: dict[str, float], png: Path | None) -> Non
         mlflow.log_metrics(metrics)
         if png is not None:
             mlflow.log_artifact(str(png), "plots")
+
+
+def real_table(summary_run_id: str, model_dirs: list[Path], data_dir: Path) -> str:
+    """A markdown table: per person, per source and pooled, the held-out figures of a ``real-loso`` summary run
+    (per window / one-to-one per moment, moving windows) beside the same figures of shipped models that never
+    trained on those recordings (their manifests' ``real_recordings`` evaluation, weighted by window count)."""
+    from service.core.recordings import read_all_real
+
+    folds = json.loads(mlflow.artifacts.load_text(f"runs:/{summary_run_id}/evaluation/real_loso.json"))
+    person_of = {r.name: (r.subject, r.source) for r in read_all_real(data_dir)}
+    columns = []
+    for model_dir in model_dirs:
+        manifest = read_manifest(model_dir / "manifest.json")
+        real = next((e.metrics for e in manifest.evaluations if e.name == "real_recordings"), {})
+        sums: dict[str, list[float]] = {}
+        for rec, (person, source) in person_of.items():
+            n = real.get(f"n_windows/{rec}")
+            if n is None:
+                continue
+            for group in (person, f"pooled/{source}", "pooled"):
+                acc = sums.setdefault(group, [0.0, 0.0, 0.0])
+                acc[0] += n
+                acc[1] += n * real[f"accuracy/{rec}"]
+                acc[2] += n * real[f"window_joint_accuracy/{rec}"]
+        columns.append((f"{manifest.name} {manifest.version}", sums))
+    head = "| held out (moving windows) | leave-one-person-out fold: per window / per moment |"
+    head += "".join(f" {name}: per window / per moment |" for name, _ in columns)
+    lines = [head, "|" + " --- |" * (2 + len(columns))]
+    for group, fold in folds.items():
+        row = f"| {group} ({int(fold['n_windows'])}) | {100 * fold['real_accuracy']:.1f} / "
+        row += f"{100 * fold['real_window_joint_accuracy']:.1f} % |"
+        for _, sums in columns:
+            n, own, joint = sums.get(group, [0.0, 0.0, 0.0])
+            row += f" {100 * own / n:.1f} / {100 * joint / n:.1f} % |" if n else " — |"
+        lines.append(row)
+    return "\n".join(lines)
