@@ -279,6 +279,19 @@ def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
         assert summary.data.metrics[f"movingreality.pooled_{key}"] == pytest.approx(folds["movingreality_pp03"][key])
         assert 0.0 <= expected <= 1.0
     assert "plots/real_loso.png" in {a.path for a in client.list_artifacts(summary_id, "plots")}
+    from service.core.manifest import read_manifest
+    from training.i2s.ship import real_table
+
+    table = real_table(summary_id, [REPO / "onnx_models/i2s_assignment/1.8.0"], data_dir).splitlines()
+    assert len(table) == 2 + len(folds)  # header, rule, one row per person and per pooled group
+    shipped = next(
+        e.metrics
+        for e in read_manifest(REPO / "onnx_models/i2s_assignment/1.8.0/manifest.json").evaluations
+        if e.name == "real_recordings"
+    )
+    row = next(line for line in table if line.startswith("| ximu3_unknown"))
+    own, joint = shipped["accuracy/ximu3_lowerbody"], shipped["window_joint_accuracy/ximu3_lowerbody"]
+    assert row.endswith(f" {100 * own:.1f} / {100 * joint:.1f} % |"), row
     # run again (a job that stopped, started again): the finished folds are reused, not trained again
     _, again = run_real_loso(cfg, data_dir, kinematics_cache, eval_max_windows=300, people=chosen[:1])
     assert again[chosen[0]]["run_id"] == folds[chosen[0]]["run_id"]
