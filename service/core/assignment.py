@@ -277,8 +277,9 @@ class ConfidenceModel:
 def confidence_features(segment: np.ndarray, margin: np.ndarray, votes: np.ndarray, moving: np.ndarray) -> np.ndarray:
     """Per sensor of a ``JointAssignment``: the share of its moving windows whose own most likely segment is the
     assigned one (``votes`` ``(S, K)``: per class, the moving windows that rank it first), the margin per moving
-    window (clipped to ±10), and log(1 + moving windows). A sensor with no segment or no moving window reads 0, the
-    clipped margin and 0."""
+    window (clipped to ±10), and log(1 + moving windows). A sensor with no segment or no moving window reads 0 in
+    the first two. The votes count each window's own best of all seven segments, also when a declaration
+    (``worn`` / ``candidates``) allows fewer: the share is then lower, and the probability conservative."""
     n = np.maximum(moving, 1).astype(np.float64)
     rows = np.arange(len(segment))
     share = np.where((segment >= 0) & (moving > 0), votes[rows, np.maximum(segment, 0)] / n, 0.0)
