@@ -13,9 +13,11 @@ from training.i2s.calibration import (
     HOP_S,
     HeldOut,
     SensorPrediction,
+    choose_threshold,
     cross_fitted,
     expected_calibration_error,
     fit_logistic,
+    nested,
     selective,
     sessions,
     time_to_answer,
@@ -78,9 +80,28 @@ def test_sessions_score_the_services_joint_answer_and_the_cross_fitted_calibrati
     np.testing.assert_array_equal(samples.correct[first], joint.segment == truth)
     p = cross_fitted(samples)
     assert expected_calibration_error(p, samples.correct) < 0.08
-    model = ConfidenceModel((0.0, 0.0, 0.0), 0.0, 0.995, 8)  # p = 0.5 everywhere: never commits
-    figures = selective(samples, np.full(len(p), 0.5), model)
+    figures = selective(samples, np.full(len(p), 0.5), np.full(len(p), 0.995))  # never reaches the threshold
     assert figures["sensor_coverage"] == 0.0 and figures["session_abstain_rate"] == 1.0
+    nested_p, models = nested(samples)
+    assert set(models) == {h.person for h in people}
+    for person, model in models.items():  # each person's threshold is the others' choice, applied to them
+        own = samples.person == person
+        np.testing.assert_allclose(nested_p[own], model.p_correct(samples.features[own]))
+    thresholds = np.array([models[person].threshold for person in samples.person])
+    figures = selective(samples, nested_p, thresholds)
+    assert figures["sensor_coverage"] > 0.2 and figures["sensor_selective_accuracy"] > samples.correct.mean()
+
+
+def test_the_threshold_is_the_lowest_probability_whose_answers_reach_the_target() -> None:
+    rng = np.random.default_rng(3)
+    p = rng.uniform(0.5, 1.0, 20000)
+    correct = p >= 0.9  # everything above 0.9 right, everything below wrong
+    moving = np.full(len(p), 20)
+    threshold = choose_threshold(p, correct, moving)
+    assert 0.89 <= threshold <= 0.9
+    assert correct[p >= threshold].mean() >= 0.995 and correct[p >= threshold - 0.01].mean() < 0.995
+    assert choose_threshold(p, np.zeros(len(p), bool), moving) == 0.999  # never reached
+    assert choose_threshold(p, correct, np.full(len(p), 2)) == 0.999  # too few moving windows to count
 
 
 def test_status_commits_only_on_enough_moving_windows_and_probability() -> None:
