@@ -226,23 +226,26 @@ async def _answer_session(url: str, recording, seconds: float, start_at: float) 
     }
 
 
-async def bench_time_to_answer(base: str, seconds: float) -> dict:
+async def bench_time_to_answer(base: str, seconds: float, concurrency: int) -> dict:
     from service.core.recordings import read_all_real
     from training.data.catalog import resolve_data_dir
 
     walking = [r for r in read_all_real(resolve_data_dir(None)) if r.activity.startswith(("walk", "stairs"))]
     url = base.replace("http", "ws") + "/v1/stream"
-    start_at = time.perf_counter() + 2.0
-    phase = PACKET_SAMPLES / 60.0 / max(len(walking), 1)
-    runs = await asyncio.gather(
-        *[_answer_session(url, r, seconds, start_at + k * phase) for k, r in enumerate(walking)]
-    )
+    gate = asyncio.Semaphore(concurrency)  # sessions at once: one machine's worth, the rest wait their turn
+
+    async def one(k: int, recording) -> dict:
+        async with gate:
+            return await _answer_session(url, recording, seconds, time.perf_counter() + k % concurrency * 0.01)
+
+    runs = await asyncio.gather(*[one(k, r) for k, r in enumerate(walking)])
     per = {r.name: run for r, run in zip(walking, runs, strict=True)}
     ran = [v for v in per.values() if "right_s" in v]
     right = [v["right_s"] for v in ran if v["right_s"] is not None]
     committed = [v["committed_s"] for v in ran if v["committed_s"] is not None]
     return {
         "recordings": len(per),
+        "sessions_at_once": concurrency,
         "refused_at_capacity": sum("refused" in v for v in per.values()),
         "sensor_streams": sum(v.get("sensors", 0) for v in per.values()),
         "seconds_streamed_per_recording": seconds,
@@ -344,6 +347,7 @@ def main() -> None:
         default=["rest", "streams", "mlflow", "answer"],
     )
     parser.add_argument("--answer-seconds", type=float, default=45.0, help="seconds of each recording (d)")
+    parser.add_argument("--answer-sessions", type=int, default=8, help="recordings streamed at once (d)")
     parser.add_argument("--out", type=Path, default=RESULTS / "service.json")
     args = parser.parse_args()
     models = REPO / "onnx_models"
@@ -351,7 +355,7 @@ def main() -> None:
         "command": "python -m benchmarks.bench_service "
         f"--streams {' '.join(map(str, args.streams))} --stream-seconds {args.stream_seconds} "
         f"--repeats {args.repeats} --batch {args.batch} --parts {' '.join(args.parts)}"
-        f" --answer-seconds {args.answer_seconds}",
+        f" --answer-seconds {args.answer_seconds} --answer-sessions {args.answer_sessions}",
         "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
     }
     proc, base = start_service(models)
@@ -369,7 +373,9 @@ def main() -> None:
                 print(json.dumps({k: v for k, v in runs[-1].items() if k != "failures"}))
             result["streams"].append(summarize_streams(runs))
         if "answer" in args.parts:
-            result["time_to_answer"] = asyncio.run(bench_time_to_answer(base, args.answer_seconds))
+            result["time_to_answer"] = asyncio.run(
+                bench_time_to_answer(base, args.answer_seconds, args.answer_sessions)
+            )
             print(json.dumps({k: v for k, v in result["time_to_answer"].items() if k != "per_recording"}, indent=2))
     finally:
         stop(proc)
