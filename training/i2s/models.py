@@ -276,8 +276,19 @@ def _turn_about_z(cos2: torch.Tensor, sin2: torch.Tensor) -> torch.Tensor:
 
 
 def _lagged(a: torch.Tensor, b: torch.Tensor, lags: Sequence[int]) -> torch.Tensor:
-    """Symmetrised lagged products ½·mean(a_t b_t+L + b_t a_t+L) over time, ``(..., T)`` → ``(..., len(lags))``."""
-    return torch.stack([0.5 * (a[..., :-k] * b[..., k:] + b[..., :-k] * a[..., k:]).mean(-1) for k in lags], -1)
+    """Symmetrised lagged products ½·mean(a_t b_t+L + b_t a_t+L) over time, ``(..., T)`` → ``(..., len(lags))``.
+
+    All lags at once: one gather of the signals shifted by every lag, weighted by 1 / (T − L) where t + L < T and 0
+    elsewhere. The same sums as one slice per lag, in a handful of graph nodes instead of several per lag: the
+    exported graph of a per-lag loop spent about 3 ms per onnxruntime call on its nodes alone."""
+    n = a.shape[-1]
+    shift = torch.tensor(list(lags), dtype=torch.long, device=a.device)
+    t = torch.arange(n, device=a.device)
+    ahead = t[None, :] + shift[:, None]  # (L, T)
+    weight = (ahead < n).to(a.dtype) / (n - shift[:, None]).to(a.dtype)
+    index = ahead.clamp(max=n - 1)  # (L, T): a gather with a 2-D index gives (..., L, T) without a reshape
+    a_later, b_later = a[..., index], b[..., index]
+    return 0.5 * ((a[..., None, :] * b_later + b[..., None, :] * a_later) * weight).sum(-1)
 
 
 class FunctionalAxes(nn.Module):

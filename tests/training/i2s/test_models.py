@@ -238,6 +238,16 @@ def test_functional_axes_recover_the_functional_frames_of_simulated_walking(walk
         assert np.median(after[m, 2]) < bound, (name, np.median(after[m, 2]))
 
 
+def test_lagged_products_of_all_lags_at_once_equal_one_slice_per_lag() -> None:
+    """The step search's lagged products (one gather for every lag) are the per-lag means they replace."""
+    from training.i2s.models import FunctionalAxes, _lagged
+
+    a, b = torch.randn(3, 7, 128, dtype=torch.float64), torch.randn(3, 7, 128, dtype=torch.float64)
+    for k_index, k in enumerate(FunctionalAxes.STEP_LAGS):
+        expected = 0.5 * (a[..., :-k] * b[..., k:] + b[..., :-k] * a[..., k:]).mean(-1)
+        torch.testing.assert_close(_lagged(a, b, FunctionalAxes.STEP_LAGS)[..., k_index], expected)
+
+
 def test_functional_axes_alignment_net_onnx_parity(tmp_path: Path) -> None:
     net = AlignmentNet(hidden=16, channels=8, kernel=4, canonical=True, functional_axes=SEGMENTS).eval()
     path = export_onnx(net, "alignment", tmp_path / "model.onnx")
