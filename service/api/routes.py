@@ -41,9 +41,8 @@ from service.core.assignment import (
     ConfidenceModel,
     assignment_confidence,
     is_moving,
-    joint_assignment,
+    session_assignment,
     turns_about_vertical,
-    vote_counts,
     window_joint_assignment,
 )
 from service.core.segments import SEGMENTS, segment_index, segment_indices
@@ -272,14 +271,10 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     bounds = np.cumsum([0] + [len(x) for x in per_sensor])
     moving = [is_moving(x) for x in per_sensor]
     log_probs = [np.log(np.clip(probs[bounds[k] : bounds[k + 1]], 1e-12, 1.0)) for k in range(len(per_sensor))]
-    # The sensor's moving windows are its evidence (all of them if none moves); each moment is answered on its own.
-    evidence = [lp[m] if m.any() else lp for lp, m in zip(log_probs, moving, strict=True)]
     worn = segment_indices(body.worn_segments)
     candidates = [segment_indices(s.candidate_segments) for s in body.sensors]
-    joint = joint_assignment(evidence, body.allow_shared, worn, candidates)
-    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates)
-    votes = np.stack([vote_counts(lp[m], len(SEGMENTS)) for lp, m in zip(log_probs, moving, strict=True)])
-    n_moving = np.array([int(m.sum()) for m in moving])
+    joint, votes, n_moving = session_assignment(log_probs, moving, body.allow_shared, worn, candidates)
+    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates)  # each moment alone
     p_correct, status = assignment_confidence(_confidence(request), joint, votes, n_moving)
     out = []
     for k, sensor in enumerate(body.sensors):

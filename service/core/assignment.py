@@ -140,6 +140,24 @@ def joint_assignment(
     return JointAssignment(segment, evidence, confidence, margin)
 
 
+def session_assignment(
+    log_probs: list[np.ndarray],
+    moving: list[np.ndarray],
+    allow_shared: bool = False,
+    worn: Sequence[int] | None = None,
+    candidates: Candidates | None = None,
+) -> tuple[JointAssignment, np.ndarray, np.ndarray]:
+    """The joint answer of sensors worn together, as ``/v1/imu/assign`` gives it: each sensor's evidence is its
+    moving windows (all its windows if none moves; ``log_probs[s]`` ``(N_s, K)``, ``moving[s]`` ``(N_s,)``).
+    Returns the assignment, per sensor the votes of its moving windows (``vote_counts``) and their number: what
+    ``confidence_features`` reads."""
+    evidence = [lp[m] if m.any() else lp for lp, m in zip(log_probs, moving, strict=True)]
+    joint = joint_assignment(evidence, allow_shared, worn, candidates)
+    n_classes = log_probs[0].shape[1]
+    votes = np.stack([vote_counts(lp[m], n_classes) for lp, m in zip(log_probs, moving, strict=True)])
+    return joint, votes, np.array([int(m.sum()) for m in moving])
+
+
 def window_joint_assignment(
     log_probs: list[np.ndarray],
     moving: list[np.ndarray],

@@ -39,8 +39,7 @@ from service.core.assignment import (
     ConfidenceModel,
     confidence_features,
     is_moving,
-    joint_assignment,
-    vote_counts,
+    session_assignment,
 )
 from service.core.recordings import RealRecording, read_all_real
 from service.core.segments import SEGMENTS
@@ -119,11 +118,7 @@ class Samples:
 def answer(sensors: list[SensorPrediction], window: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The joint answer over ``window`` of each sensor's windows, as the service gives it: segments, features,
     and each sensor's moving-window count."""
-    log_probs = [s.log_probs[window][s.moving[window]] for s in sensors]
-    n = np.array([len(lp) for lp in log_probs])
-    evidence = [lp if len(lp) else s.log_probs[window] for lp, s in zip(log_probs, sensors, strict=True)]
-    joint = joint_assignment([e if len(e) else np.zeros((1, len(SEGMENTS))) for e in evidence])
-    votes = np.stack([vote_counts(lp, len(SEGMENTS)) for lp in log_probs])
+    joint, votes, n = session_assignment([s.log_probs[window] for s in sensors], [s.moving[window] for s in sensors])
     return joint.segment, confidence_features(joint.segment, joint.margin, votes, n), n
 
 
