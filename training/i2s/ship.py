@@ -226,26 +226,24 @@ def evaluate_shipped(
         held_out = held_out_recordings(cfg, data_dir)
         if not held_out:  # trained on every real person: the real figures are its recipe's folds (loso_run)
             _log_to_run(run_id, metrics_to_log, None)
-            manifest.evaluations = evaluations + [e for e in manifest.evaluations if e.name == REAL_LOSO]
-            write_manifest(manifest, model_dir / "manifest.json")
-            return manifest
-        real_metrics, cm = evaluate_real(predict, held_out)
-        evaluations.append(
-            Evaluation(
-                name="real_recordings",
-                command=command,
-                data=f"imu_real recordings not used for training: "
-                f"{', '.join(r.name for r in held_out)}; still windows skipped; real_accuracy: each window on its "
-                "own, real_window_joint_*: one-to-one over the recording's windows at the same moment",
-                metrics=real_metrics,
+        else:
+            real_metrics, cm = evaluate_real(predict, held_out)
+            evaluations.append(
+                Evaluation(
+                    name="real_recordings",
+                    command=command,
+                    data=f"imu_real recordings not used for training: "
+                    f"{', '.join(r.name for r in held_out)}; still windows skipped; real_accuracy: each window on "
+                    "its own, real_window_joint_*: one-to-one over the recording's windows at the same moment",
+                    metrics=real_metrics,
+                )
             )
-        )
-        metrics_to_log.update({f"{prefix}{k.replace('/', '.')}": v for k, v in real_metrics.items()})
-        with tempfile.TemporaryDirectory() as tmp:
-            png = confusion_matrix_png(
-                cm, Path(tmp) / f"confusion_real_{manifest.version}.png", f"{cfg.name}: real recordings"
-            )
-            _log_to_run(run_id, metrics_to_log, png)
+            metrics_to_log.update({f"{prefix}{k.replace('/', '.')}": v for k, v in real_metrics.items()})
+            with tempfile.TemporaryDirectory() as tmp:
+                png = confusion_matrix_png(
+                    cm, Path(tmp) / f"confusion_real_{manifest.version}.png", f"{cfg.name}: real recordings"
+                )
+                _log_to_run(run_id, metrics_to_log, png)
     else:
         real_metrics = evaluate_real_alignment(predict, held_out_recordings(cfg, data_dir))
         evaluations.append(
