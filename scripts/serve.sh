@@ -4,7 +4,7 @@
 # with every process they started; a port already in use is named before anything starts.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-[ -x .venv/bin/python ] || bash scripts/setup.sh
+[ -f .venv/.setup-complete ] || bash scripts/setup.sh  # also redoes a set-up that stopped half-way
 . .venv/bin/activate
 host="${HOST:-127.0.0.1}" port="${PORT:-8000}" ui_port="${MLFLOW_PORT:-5000}"
 for p in "$port" "$ui_port"; do
