@@ -10,6 +10,7 @@ import numpy as np
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
+from service.api.dashboard import router as dashboard_router
 from service.api.errors import install_error_handlers
 from service.api.flex_routes import router as flex_router
 from service.api.flex_stream import router as flex_stream_router
@@ -104,6 +105,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(flex_router)
     app.include_router(flex_stream_router)
     app.include_router(landing_router)
+    app.include_router(dashboard_router)
     app.mount("/static", static_files(), name="static")
     app.include_router(stream_router)
 

@@ -34,6 +34,7 @@ async def swagger_ui(request: Request) -> HTMLResponse:
 
 
 LINKS = (
+    ("/dashboard", "live view: the models and a real recording streamed through the service, in the browser"),
     ("/docs", "API documentation (OpenAPI, try requests in the browser)"),
     ("/v1/models", "the loaded models and their manifests (JSON)"),
     ("/ready", "readiness"),
