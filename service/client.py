@@ -298,6 +298,8 @@ def _csv_layout(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Cs
 
 def _sensors(args: argparse.Namespace, parser: argparse.ArgumentParser) -> list[ClientSensor]:
     if args.recording:
+        if args.csv or args.columns or args.preset:
+            parser.error("--csv, --columns and --preset are for CSV files, not --recording")
         if not args.data_dir:
             parser.error("--recording needs --data-dir or WEARMOCAP_DATA_DIR")
         try:

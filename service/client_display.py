@@ -30,7 +30,7 @@ class SensorRow:
     window_confidence: float | None = None  # and its probability
     moving: bool | None = None  # whether that window moved
     moment: str = "-"  # the last per-moment one-to-one answer
-    assigned: str = "-"  # the session's joint assignment
+    assigned: str = "-"  # the stream's joint assignment
     moving_windows: int = 0  # the moving windows it rests on
     p_correct: float | None = None
     spread_deg: float | None = None
@@ -136,7 +136,7 @@ def _number(value: float | None, fmt: str) -> str:
 
 class PlainNotices:
     """Plain display (a callable for ``stream_sensors``' ``on_message``): every notice (started, gap, late, error)
-    logged as it arrives, and each change of the session's status with the stream time it happened at."""
+    logged as it arrives, and each change of the stream's status with the stream time it happened at."""
 
     def __init__(self) -> None:
         self.status: str | None = None

@@ -21,6 +21,7 @@ from service.core.resample import resample_timestamps
 CHANNELS: tuple[str, ...] = ("acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z")
 TIME_LABELS = {"time_s": 1.0, "time_ms": 1e-3, "time_us": 1e-6}  # a time column by position, and its unit
 IGNORED = "-"  # a column by position that holds something else
+DELIMITERS = (",", "\t", ";")
 GAP_FACTOR = 1.5  # a step between timestamps beyond this many times the median is a gap (dropped samples)
 
 
@@ -164,19 +165,19 @@ def _fields(line: str, delimiter: str) -> list[str]:
 
 def _find_header(path: Path, lines: list[str], layout: CsvLayout) -> tuple[int, str, list[str]]:
     """(line index, delimiter, fields) of the header: for names, the first line holding all of them (lines above
-    it are the export's metadata); by position, the first line."""
-    names = [n for n in (*layout.channels, layout.time) if isinstance(n, str)]
-    for k, line in enumerate(lines if layout.by_name else lines[:1]):
-        for delimiter in (",", "\t", ";"):
-            fields = _fields(line, delimiter)
-            if all(n in fields for n in names):
-                return k, delimiter, fields
+    it are the export's metadata); by position, the first line, split by the delimiter that splits it most."""
     if not lines:
         raise ColumnError(f"{path}: the file is empty")
     if not layout.by_name:
-        delimiter = max((",", "\t", ";"), key=lambda d: len(lines[0].split(d)))
+        delimiter = max(DELIMITERS, key=lambda d: len(lines[0].split(d)))
         return 0, delimiter, _fields(lines[0], delimiter)
-    first = next((line for line in lines if "," in line or "\t" in line), lines[0])
+    names = [n for n in (*layout.channels, layout.time) if isinstance(n, str)]
+    for k, line in enumerate(lines):
+        for delimiter in DELIMITERS:
+            fields = _fields(line, delimiter)
+            if all(n in fields for n in names):
+                return k, delimiter, fields
+    first = next((line for line in lines if any(d in line for d in DELIMITERS)), lines[0])
     raise ColumnError(
         f"{path}: expected a header row with the columns {', '.join(names)} ({layout.name}); "
         f"the file's first header-like row is {first[:200]!r}"

@@ -10,6 +10,7 @@ import io
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -70,11 +71,14 @@ def test_the_sample_is_the_real_recording_cut(data_dir: Path) -> None:
         assert (SAMPLE / f"{serial}.csv").read_bytes() == text
     licence = data_dir / "imu_real" / "ximu3_lowerbody" / "LICENSE.md"
     assert (SAMPLE / "LICENSE.md").read_bytes() == licence.read_bytes()
-    assert sum(p.stat().st_size for p in EXAMPLES.rglob("*") if p.is_file()) < 300_000
+    files = [p for p in EXAMPLES.rglob("*") if p.is_file() and "__pycache__" not in p.parts]
+    assert sum(p.stat().st_size for p in files) < 300_000
     for serial in cut:
         sensor = read_csv_sensor(SAMPLE / f"{serial}.csv", serial, PRESETS["ximu3"])
         assert 9.9 < len(sensor.samples) / sensor.sample_rate_hz <= 10.0
         assert check_units(sensor) == []
+    # Read without the preset's units, gravity reads about 1 m/s²: the client warns before streaming.
+    assert any("are the values in 'g'?" in w for w in check_units(replace(sensor, acc_unit="m/s^2")))
 
 
 def _write(path: Path, text: str) -> Path:
@@ -99,6 +103,9 @@ def test_columns_by_position_and_by_header_name(tmp_path: Path) -> None:
     np.testing.assert_array_equal(skipped.samples, by_name.samples)
     sensor = read_csv_sensor(path, "mine", parse_columns("ax,ay,az,gx,gy,gz"))
     assert (sensor.sample_rate_hz, sensor.acc_unit, sensor.gyr_unit) == (60.0, "m/s^2", "rad/s")
+    tabs = _write(tmp_path / "tabs.txt", path.read_text().replace(",", "\t"))
+    by_tabs = read_mapped_csv(tabs, parse_columns("time_ms,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,-"))
+    np.testing.assert_array_equal(by_tabs.samples, by_position.samples)
 
 
 def test_without_a_layout_the_reader_is_the_shared_one(tmp_path: Path) -> None:
