@@ -1,6 +1,7 @@
 """The live view in a real headless Chromium against a real uvicorn server with the shipped models: the page plays
 its bundled recording through ``/v1/stream`` at real time until it shows the recording's own placement of all seven
-sensors, with the pose figure and the flex chart drawn; behind an API key, the key field unlocks the models.
+sensors, with the pose figure and the flex chart drawn; behind an API key, the key field unlocks the models (a
+browser cannot send the key on a WebSocket: the stream is refused, with the reason on the page).
 
 Needs Debian's ``chromium`` and ``chromium-driver`` (``/usr/bin/chromium``, ``/usr/bin/chromedriver``) and selenium.
 """
@@ -88,7 +89,7 @@ def test_the_page_streams_its_recording_and_shows_the_right_assignment_and_pose(
     assert browser.find_element("id", "log").text == ""  # every stream closed with 1000, no error message
 
 
-def test_behind_an_api_key_the_key_field_unlocks_the_models(browser, tmp_path: Path) -> None:
+def test_behind_an_api_key_the_key_field_unlocks_the_models_but_not_the_stream(browser, tmp_path: Path) -> None:
     models = tmp_path / "onnx_models"
     write_tiny_model(models, "i2s_assignment")
     write_tiny_model(models, "i2s_alignment")
@@ -103,5 +104,9 @@ def test_behind_an_api_key_the_key_field_unlocks_the_models(browser, tmp_path: P
         browser.find_element("css selector", "#key-form button").click()
         _wait(browser, 10, lambda d: d.find_elements("css selector", '#models tr[data-model="i2s_assignment"]'), "")
         assert browser.find_element("id", "play").is_enabled()
+        # a browser's WebSocket carries no X-API-Key header: the service refuses the stream and the page says why
+        browser.find_element("id", "play").click()
+        log = browser.find_element("id", "log")
+        _wait(browser, 10, lambda d: "closed with 1008: missing or wrong X-API-Key header" in log.text, log.text)
     finally:
         stop(proc)
