@@ -42,7 +42,7 @@ RAW = CATALOGUE.raw_base + "/"
 def data_root() -> Path:
     value = os.environ.get("WEARMOCAP_DATA_DIR")
     if not value:
-        pytest.skip("WEARMOCAP_DATA_DIR is not set: these tests build their mirror from the data directory")
+        pytest.skip("WEARMOCAP_DATA_DIR is not set: this test reads the data directory")
     return Path(value)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import gzip
 import hashlib
+import http.client
 import os
 import time
 import urllib.error
@@ -64,7 +65,7 @@ def fetch(url: str) -> bytes:
         try:
             with urllib.request.urlopen(request, timeout=FETCH_TIMEOUT_S) as response:
                 return response.read()
-        except (urllib.error.URLError, TimeoutError, ConnectionError) as error:
+        except (urllib.error.URLError, http.client.HTTPException, TimeoutError, ConnectionError) as error:
             if attempt == FETCH_ATTEMPTS or not _retryable(error):
                 raise FetchError(f"could not read {url}: {error}") from error
             time.sleep(2**attempt)
