@@ -7,6 +7,7 @@ Run ``python -m training.cli --help``.
 from __future__ import annotations
 
 import logging
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -699,6 +700,36 @@ def snapshot_restore(
     log_restore(restore_snapshot(snapshot_dir, models_dir))
 
 
+@app.command("restore-model")
+def restore_model_cmd(
+    name: str,
+    version: str,
+    snapshot_dir: Path = typer.Option(SNAPSHOT),
+    models_dir: Path = typer.Option(Path("onnx_models")),
+) -> None:
+    """Bring a shipped version that is no longer served back into onnx_models/ from the snapshot's archive
+    (``mlflow_snapshot/models/``), with an ensemble's members; the service then serves it when pinned with
+    WEARMOCAP_MODEL_VERSIONS, or by default if it is the newest."""
+    from training.snapshot import restore_model
+
+    for folder in restore_model(name, version, snapshot_dir, models_dir):
+        typer.echo(f"restored {folder}")
+
+
+@app.command("archive-model")
+def archive_model_cmd(
+    name: str,
+    version: str,
+    snapshot_dir: Path = typer.Option(SNAPSHOT),
+    models_dir: Path = typer.Option(Path("onnx_models")),
+) -> None:
+    """Move a version that is no longer served out of onnx_models/ into the snapshot's archive (``restore-model``
+    brings it back)."""
+    from training.snapshot import archive_model
+
+    typer.echo(f"archived {archive_model(name, version, snapshot_dir, models_dir)}")
+
+
 @app.command()
 def ui(
     port: int = 5000,
@@ -715,9 +746,17 @@ def ui(
     mlflow.set_tracking_uri(uri)
     if restore:
         _restore_into_empty_store()
+    from mlflow.tracking import MlflowClient
+
+    from training.run_labels import label_unlabelled
+
+    label_unlabelled(MlflowClient())
+    # One worker and no job runner (MLflow's GenAI jobs): three processes instead of about sixteen.
     cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", host, "--port", str(port)]
+    cmd += ["--workers", "1"]
+    env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
     typer.echo(f"MLflow UI on http://{host}:{port} (store {uri})")
-    raise typer.Exit(subprocess.call(cmd))
+    raise typer.Exit(subprocess.call(cmd, env=env))
 
 
 if __name__ == "__main__":

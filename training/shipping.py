@@ -8,8 +8,10 @@ from pathlib import Path
 
 from mlflow.entities.model_registry import ModelVersion
 from mlflow.models.model import ModelInfo
+from mlflow.tracking import MlflowClient
 
 from service.core.manifest import Manifest, write_manifest
+from training.run_labels import record_shipped
 
 
 def with_registry(manifest: Manifest, info: ModelInfo, registered: ModelVersion) -> Manifest:
@@ -25,4 +27,6 @@ def ship_files(ship_to: Path, manifest: Manifest, onnx_path: Path, golden_path: 
     shutil.copy(onnx_path, shipped / "model.onnx")
     shutil.copy(golden_path, shipped / "golden.npz")
     write_manifest(manifest, shipped / "manifest.json")
+    if manifest.mlflow.get("run_id"):
+        record_shipped(MlflowClient(), manifest.mlflow["run_id"], manifest.name, manifest.version)
     return shipped

@@ -25,12 +25,16 @@ from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
-from service.core.manifest import read_manifest
+from service.core.manifest import read_manifest, sha256_file
+from service.inference.registry import version_key
+from training.run_labels import SHIPPED_TAG, describe_experiment, label_run, label_version
 from training.tracking import log_onnx_model, setup_tracking
 
 log = logging.getLogger(__name__)
 
 RESTORED_TAG = "restored_from_run_id"
+DERIVED_VERSION_TAGS = ("original_version", "model_dir", SHIPPED_TAG)  # written by each restore, not kept
+ARCHIVE = "models"  # <snapshot>/models/<name>/<version>: shipped versions that are no longer served
 SKIPPED_ARTIFACTS = {"checkpoint"}  # torch weights: large, and the ONNX files ship in onnx_models/
 BATCH = 500  # metrics per log_batch call (its limits: 1000 metrics, 100 params, 100 tags)
 
@@ -97,7 +101,7 @@ def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
                 {
                     "version": original[str(v.version)],
                     "run_id": origin.get(v.run_id, v.run_id),
-                    "tags": {k: t for k, t in v.tags.items() if k not in ("original_version", "model_dir")},
+                    "tags": {k: t for k, t in v.tags.items() if k not in DERIVED_VERSION_TAGS},
                 }
                 for v in versions
             ],
@@ -132,7 +136,8 @@ def restore_snapshot(snapshot_dir: Path, models_dir: Path) -> RestoreReport:
     records = json.loads((snapshot_dir / "runs.json").read_text())
     registry = json.loads((snapshot_dir / "registry.json").read_text())
     restored = _restored_runs(client)
-    models = _shipped_float32_models(models_dir)
+    model_dirs = shipped_model_dirs(models_dir, snapshot_dir)
+    models = _shipped_float32_models(model_dirs)
     for record in records:
         if record["run_id"] in restored:
             report.runs_present += 1
@@ -141,7 +146,31 @@ def restore_snapshot(snapshot_dir: Path, models_dir: Path) -> RestoreReport:
         report.runs_restored += 1
     for name, entry in registry.items():
         _restore_registered_model(client, name, entry, restored, models, report)
+    _label(client, restored, model_dirs)
     return report
+
+
+def shipped_model_dirs(models_dir: Path, snapshot_dir: Path) -> list[Path]:
+    """Every shipped version's folder: the served ones in ``models_dir`` and the archived ones in the snapshot."""
+    return sorted(p.parent for root in (models_dir, snapshot_dir / ARCHIVE) for p in root.glob("*/*/manifest.json"))
+
+
+def _label(client: MlflowClient, restored: dict[str, str], model_dirs: list[Path]) -> None:
+    """Name and describe the restored runs, and tag their registered versions with the versions they shipped as."""
+    shipped: dict[str, list[str]] = {}
+    for model_dir in model_dirs:
+        run_id = read_manifest(model_dir / "manifest.json").mlflow.get("run_id")
+        if run_id:
+            shipped.setdefault(run_id, []).append(model_dir.name)
+    for experiment in client.search_experiments():
+        describe_experiment(client, experiment.experiment_id, experiment.name)
+    for original, rid in restored.items():
+        versions = sorted(shipped.get(original, []), key=version_key)
+        label_run(client, rid, versions)
+    for model in client.search_registered_models():
+        for mv in client.search_model_versions(f"name='{model.name}'"):
+            original = client.get_run(mv.run_id).data.tags.get(RESTORED_TAG, mv.run_id) if mv.run_id else ""
+            label_version(client, model.name, mv.version, sorted(shipped.get(original, []), key=version_key))
 
 
 def restore_if_empty(snapshot_dir: Path, models_dir: Path) -> RestoreReport | None:
@@ -187,13 +216,13 @@ def _restored_runs(client: MlflowClient) -> dict[str, str]:
     return {r.data.tags[RESTORED_TAG]: r.info.run_id for r in runs}
 
 
-def _shipped_float32_models(models_dir: Path) -> dict[str, Path]:
+def _shipped_float32_models(model_dirs: list[Path]) -> dict[str, Path]:
     """original run id → the float32 model dir it shipped as (the int8 files are derived, not registered)."""
     found = {}
-    for path in sorted(models_dir.glob("*/*/manifest.json")):
-        manifest = read_manifest(path)
+    for model_dir in model_dirs:
+        manifest = read_manifest(model_dir / "manifest.json")
         if "quantization" not in manifest.exporter and manifest.mlflow.get("run_id"):
-            found[manifest.mlflow["run_id"]] = path.parent
+            found[manifest.mlflow["run_id"]] = model_dir
     return found
 
 
@@ -296,3 +325,40 @@ def log_restore(report: RestoreReport) -> None:
         ", ".join(report.versions_registered) or "nothing",
         ", ".join(report.versions_without_model) or "none",
     )
+
+
+def restore_model(name: str, version: str, snapshot_dir: Path, models_dir: Path) -> list[Path]:
+    """Copy the archived ``name/version`` (and, for an ensemble, its members) from the snapshot back into
+    ``models_dir``, checking each file's sha256 against its manifest; the folders written, members first."""
+    source = snapshot_dir / ARCHIVE / name / version
+    if not (source / "manifest.json").is_file():
+        archived = sorted(p.parent.name for p in (snapshot_dir / ARCHIVE / name).glob("*/manifest.json"))
+        served = sorted(p.parent.name for p in (models_dir / name).glob("*/manifest.json"))
+        raise LookupError(
+            f"{name} {version} is not archived in {snapshot_dir / ARCHIVE}; archived: {archived or 'none'}, "
+            f"in {models_dir}: {served or 'none'}"
+        )
+    manifest = read_manifest(source / "manifest.json")
+    written = []
+    for member in manifest.exporter.get("ensemble_of", []):  # "i2s_assignment/1.6.0": relative to the models root
+        if not (models_dir / member / "manifest.json").is_file():
+            written += restore_model(*str(member).split("/"), snapshot_dir, models_dir)
+    if sha256_file(source / "model.onnx") != manifest.sha256:
+        raise ValueError(f"{source / 'model.onnx'} does not match the sha256 of its manifest")
+    target = models_dir / name / version
+    if target.exists():
+        raise FileExistsError(f"{target} exists")
+    shutil.copytree(source, target)
+    return [*written, target]
+
+
+def archive_model(name: str, version: str, snapshot_dir: Path, models_dir: Path) -> Path:
+    """Move a version that is no longer served from ``models_dir`` into the snapshot's archive; the new folder."""
+    source, target = models_dir / name / version, snapshot_dir / ARCHIVE / name / version
+    if not (source / "manifest.json").is_file():
+        raise LookupError(f"{source} holds no shipped model")
+    if target.exists():
+        raise FileExistsError(f"{target} exists")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    shutil.move(source, target)
+    return target

@@ -13,6 +13,7 @@ from mlflow.models.model import ModelInfo
 from mlflow.tracking import MlflowClient
 
 from service.core.manifest import MLMODEL_METADATA_KEY, Manifest
+from training.run_labels import describe_experiment
 
 CHAMPION = "champion"
 
@@ -28,7 +29,8 @@ def setup_tracking(experiment: str) -> str:
     if mlflow.get_experiment_by_name(experiment) is None:
         location = None if "MLFLOW_TRACKING_URI" in os.environ else (Path.cwd() / "mlartifacts").as_uri()
         mlflow.create_experiment(experiment, artifact_location=location)
-    mlflow.set_experiment(experiment)
+    found = mlflow.set_experiment(experiment)
+    describe_experiment(MlflowClient(), found.experiment_id, experiment)
     return uri
 
 

@@ -40,8 +40,16 @@ UNSEEN_ASSIGNMENT = "1.9.0"
 
 
 @pytest.fixture(scope="module")
-def unseen_server():
-    proc, base = start_service(REPO / "onnx_models", threads=1, model_versions=f"i2s_assignment={UNSEEN_ASSIGNMENT}")
+def unseen_server(tmp_path_factory: pytest.TempPathFactory):
+    """The served models plus the archived 1.9.0, brought back as a user would (``training.cli restore-model``)."""
+    from training.snapshot import restore_model
+
+    models = tmp_path_factory.mktemp("models")
+    for served in (REPO / "onnx_models").glob("*/*/manifest.json"):
+        (models / served.parent.parent.name).mkdir(exist_ok=True)
+        (models / served.parent.parent.name / served.parent.name).symlink_to(served.parent)
+    restore_model("i2s_assignment", UNSEEN_ASSIGNMENT, REPO / "mlflow_snapshot", models)
+    proc, base = start_service(models, threads=1, model_versions=f"i2s_assignment={UNSEEN_ASSIGNMENT}")
     assert httpx.get(f"{base}/v1/models").json()["i2s_assignment"]["version"] == UNSEEN_ASSIGNMENT
     yield base
     stop(proc)

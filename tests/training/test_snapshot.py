@@ -15,7 +15,16 @@ from mlflow.tracking import MlflowClient
 from service.core.manifest import read_manifest
 from service.inference.registry import version_key
 from training.i2s.pipeline import register_run
-from training.snapshot import RESTORED_TAG, export_snapshot, local_run_id, restore_if_empty, restore_snapshot
+from training.snapshot import (
+    RESTORED_TAG,
+    archive_model,
+    export_snapshot,
+    local_run_id,
+    restore_if_empty,
+    restore_model,
+    restore_snapshot,
+    shipped_model_dirs,
+)
 from training.tracking import default_tracking_uri
 
 REPO = Path(__file__).resolve().parents[2]
@@ -48,20 +57,34 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
     assert report is not None and report.runs_restored == len(json.loads((SNAPSHOT / "runs.json").read_text()))
     runs = client.search_runs([e.experiment_id for e in client.search_experiments()], max_results=1000)
     by_origin = {r.data.tags[RESTORED_TAG]: r for r in runs}
-    for manifest_path in MODELS.glob("*/*/manifest.json"):
-        manifest = read_manifest(manifest_path)
+    for model_dir in shipped_model_dirs(MODELS, SNAPSHOT):  # served and archived
+        manifest = read_manifest(model_dir / "manifest.json")
         run = by_origin[manifest.mlflow["run_id"]]  # every shipped model's run is there
         assert run.info.status == "FINISHED"
         contexts = {i.tags[0].value for i in run.inputs.dataset_inputs}
         assert "validation" in contexts and contexts & {"training", "train"}  # the pose job names it "train"
         assert "plots" in {a.path for a in client.list_artifacts(run.info.run_id)}
-    trained = by_origin[read_manifest(MODELS / "i2s_alignment/3.0.0/manifest.json").mlflow["run_id"]]
+    trained = by_origin[read_manifest(SNAPSHOT / "models/i2s_alignment/3.0.0/manifest.json").mlflow["run_id"]]
     assert len(client.get_metric_history(trained.info.run_id, "val_loss")) > 1  # the learning curve, not one value
     # the champion of each registered model is the newest float32 file shipped of it
     for name in ("i2s_assignment", "i2s_alignment"):
         champion, newest = client.get_model_version_by_alias(name, "champion"), _newest_float32(name)
         assert champion.tags["model_dir"].endswith(f"{name}/{newest.name}")
         assert champion.run_id == by_origin[read_manifest(newest / "manifest.json").mlflow["run_id"]].info.run_id
+    # what a person meets in the UI: experiments that open on their runs, runs named by what they are, and
+    # registry versions that say which shipped version they are
+    for experiment in client.search_experiments():
+        assert experiment.tags.get("mlflow.experimentKind") == "custom_model_development"
+    served = _newest_float32("i2s_assignment")
+    run = client.get_run(by_origin[read_manifest(served / "manifest.json").mlflow["run_id"]].info.run_id)
+    assert run.info.run_name.startswith("i2s_assignment_real · ") and f"shipped {served.name}" in run.info.run_name
+    assert f"shipped as {served.name}" in run.data.tags["mlflow.note.content"]
+    champion = client.get_model_version_by_alias("i2s_assignment", "champion")
+    assert champion.tags["shipped_as"] == served.name and served.name in champion.description
+    alignment = client.get_model_version_by_alias("i2s_alignment", "champion")
+    assert alignment.tags["shipped_as"] == "3.4.0, 3.5.0"  # the float32 file and its int8 twin
+    names = [r.info.run_name for r in client.search_runs([run.info.experiment_id], max_results=1000)]
+    assert all(" · " in n for n in names)
     # their files do not ship (a real-data fine-tune, the flex comparison networks): left out
     assert "i2s_assignment_finetune v1" in report.versions_without_model
     assert {v.split()[0] for v in report.versions_without_model} <= {"i2s_assignment_finetune"} | {
@@ -107,3 +130,32 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
     ]
     expected = max(int(v["version"]) for v in registry["i2s_assignment"]["versions"]) + 1
     assert len(numbers) == len(set(numbers)) and numbers[-1] == str(expected) != added
+
+
+def test_an_archived_version_comes_back_into_the_models_folder_with_its_members(tmp_path: Path) -> None:
+    """onnx_models/ ships the served versions; ``restore-model`` brings an archived one back, an ensemble with the
+    members it averages, each file checked against its manifest; ``archive-model`` moves it out again."""
+    models = tmp_path / "onnx_models"
+    written = restore_model("i2s_assignment", "1.9.0", SNAPSHOT, models)
+    assert [p.relative_to(models).as_posix() for p in written] == [
+        "i2s_assignment/1.6.0",
+        "i2s_assignment/1.8.0",
+        "i2s_assignment/1.9.0",
+    ]
+    for folder in written:
+        assert (folder / "model.onnx").read_bytes() == (
+            SNAPSHOT / "models" / folder.relative_to(models) / "model.onnx"
+        ).read_bytes()
+    with pytest.raises(FileExistsError):
+        restore_model("i2s_assignment", "1.9.0", SNAPSHOT, models)
+    with pytest.raises(LookupError, match=r"archived: \['1.0.0'"):
+        restore_model("i2s_assignment", "7.7.7", SNAPSHOT, models)
+
+    archive = tmp_path / "snapshot"
+    shutil.copytree(SNAPSHOT / "models" / "i2s_alignment" / "3.0.0", archive / "models" / "i2s_alignment" / "3.0.0")
+    with open(archive / "models/i2s_alignment/3.0.0/model.onnx", "ab") as f:
+        f.write(b"\0")  # a damaged archive is refused, not copied
+    with pytest.raises(ValueError, match="does not match the sha256 of its manifest"):
+        restore_model("i2s_alignment", "3.0.0", archive, models)
+    moved = archive_model("i2s_assignment", "1.9.0", archive, models)
+    assert moved == archive / "models/i2s_assignment/1.9.0" and not (models / "i2s_assignment/1.9.0").exists()

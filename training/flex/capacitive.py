@@ -23,6 +23,7 @@ import mlflow
 import numpy as np
 import onnx
 import pandas as pd
+from mlflow.tracking import MlflowClient
 
 from service.core.flex import fit_hinge, hinge_angle_deg
 from service.core.manifest import Evaluation, sha256_file
@@ -37,6 +38,7 @@ from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_par
 from training.flex.pipeline import log_datasets
 from training.flex.train import torch_predictor, train_flex
 from training.plots import flex_learning_curve_png, traces_png
+from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 
@@ -154,6 +156,7 @@ def run_capacitive_experiment(
         } | {f"test_{leg.lower()}_knee_mae_deg": v for leg, v in per_leg.items()}
         mlflow.log_metrics(metrics)
         mlflow.set_tag("stopped", result.stopped)
+        label_run(MlflowClient(), run.info.run_id)  # its name and description in the UI
         mlflow.log_artifact(str(flex_learning_curve_png(result.history, tmp / "learning_curve.png", cfg.name)), "plots")
         n = min(len(p) for p, _ in traces.values())
         n = min(n, int(20 * cfg.rate_hz))

@@ -17,6 +17,7 @@ import mlflow
 import numpy as np
 import onnx
 import pandas as pd
+from mlflow.tracking import MlflowClient
 
 from service.core.manifest import Evaluation, sha256_file
 from service.inference.registry import load_model
@@ -29,6 +30,7 @@ from training.flex.simulate import AGEING_BEYOND, FLEX_RATE_HZ, draw_sensor, dra
 from training.flex.train import FlexTrainResult, torch_predictor, train_flex
 from training.plots import bars_png, curves_png, flex_learning_curve_png, traces_png
 from training.pose.data import BANDAI_LICENCE, build_motions, dataset_digest, held_out_split, pose_entries
+from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 
@@ -188,6 +190,7 @@ def run_flex_experiment(
             {"best_epoch": result.best_epoch, "train_wall_time_s": result.wall_s, "epochs_run": len(result.history)}
         )
         mlflow.set_tag("stopped", result.stopped)
+        label_run(MlflowClient(), run.info.run_id)  # its name and description in the UI
         mlflow.log_artifact(str(flex_learning_curve_png(result.history, tmp / "learning_curve.png", cfg.name)), "plots")
         predict = torch_predictor(net)
         lat = net.latency_samples

@@ -21,6 +21,9 @@ class DataConfig(_Strict):
     # Real recordings mixed into training (paper 000 §4.3, assignment only); never evaluated on.
     real_train_recordings: list[str] = Field(default_factory=list)
     real_fraction: float = Field(0.0, ge=0.0, lt=1.0)  # share of each batch drawn from them
+    # the real recordings a run's evaluation scores (None: every one it did not train on); a short list makes a
+    # quick job quick, and its figures are then only those recordings'
+    real_eval_recordings: list[str] | None = None
     # the last part of every real training recording (in time) is kept for validation: early stopping and the
     # warm start's epoch 0 are then judged on real windows too, not on simulated ones alone (0: train on all)
     real_val_fraction: float = Field(0.2, ge=0.0, lt=1.0)

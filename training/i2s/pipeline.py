@@ -29,6 +29,7 @@ from training.i2s.ship import build_manifest, run_version
 from training.i2s.train import TrainResult, build_model, load_fitted, train
 from training.i2s.warmstart import ensemble_state, warm_start_from_shipped
 from training.plots import confusion_matrix_png, error_boxplot_png, held_out_bars_png, learning_curves_png
+from training.run_labels import label_run
 from training.snapshot import number_as_in_snapshot
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 
@@ -111,6 +112,7 @@ def run_training(
                 real=real,
                 real_val=real_val,
             )
+        label_run(MlflowClient(), run.info.run_id)  # its name and description in the UI
         torch.save(result.model.state_dict(), tmp / "model_state.pt")
         mlflow.log_artifact(str(tmp / "model_state.pt"), "checkpoint")
         mlflow.log_metrics({"best_epoch": result.best_epoch, "train_wall_time_s": result.wall_time_s})
@@ -323,6 +325,12 @@ def _log_simulated_evaluation(
 
 def held_out_recordings(cfg: ExperimentConfig, data_dir: Path) -> list[RealRecording]:
     """Real recordings with known placement that this configuration did not train on."""
+    chosen = cfg.data.real_eval_recordings
+    if chosen is not None:
+        trained_on = sorted(set(chosen) & set(cfg.data.real_train_recordings))
+        if trained_on:
+            raise ValueError(f"data.real_eval_recordings names recordings this run trains on: {trained_on}")
+        return [read_recording(data_dir, name) for name in chosen]
     return [r for r in read_all_real(data_dir) if r.name not in cfg.data.real_train_recordings]
 
 

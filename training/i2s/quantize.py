@@ -20,12 +20,14 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
+from mlflow.tracking import MlflowClient
 from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_dynamic, quantize_static
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from service.core.manifest import read_manifest, sha256_file, write_manifest
 from training.i2s.config import ExperimentConfig
 from training.i2s.data.windows import WindowSampler
+from training.run_labels import record_shipped
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +110,7 @@ def ship_int8(src_dir: Path, version: str, data_dir: Path, cache_dir: Path, n_ca
     manifest.parity_atol = float(np.ceil(parity * 1000) / 1000)  # measured, so the golden check stays true
     manifest.evaluations = []
     write_manifest(manifest, target / "manifest.json")
+    record_shipped(MlflowClient(), manifest.mlflow["run_id"], manifest.name, version)
     log.info("int8 %s %s: golden max |diff| vs torch float32 %.3g", manifest.name, version, parity)
     return target
 

@@ -32,6 +32,7 @@ from training.i2s.evaluate import (
 )
 from training.i2s.export import OPSET, OUTPUT_NAMES, PARITY_ATOL, onnx_parity
 from training.plots import confusion_matrix_png
+from training.run_labels import record_shipped
 from training.snapshot import local_run_id
 from training.tracking import record_evaluation
 
@@ -159,6 +160,7 @@ def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
         parity = onnx_parity(target / "model.onnx", dict(z))
     manifest = build_manifest(cfg, run, sha256_file(target / "model.onnx"), version)
     write_manifest(manifest, target / "manifest.json")
+    record_shipped(MlflowClient(), run_id, cfg.registered_model, version)
     log.info("shipped %s (parity %.2e) to %s", cfg.registered_model, parity, target)
     return target
 

@@ -18,6 +18,7 @@ import numpy as np
 import onnx
 import pandas as pd
 import torch
+from mlflow.tracking import MlflowClient
 
 from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, clip_body
 from service.core.manifest import Evaluation, sha256_file
@@ -45,6 +46,7 @@ from training.pose.evaluate import (
 from training.pose.export import build_pose_manifest, export_pose_onnx, golden_pair, is_streaming, onnx_parity
 from training.pose.simulate import Session
 from training.pose.train import PoseTrainResult, fixed_sessions, torch_predictor, train_pose
+from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 
@@ -163,6 +165,7 @@ def run_pose_experiment(
             {"best_epoch": result.best_epoch, "train_wall_time_s": result.wall_s, "epochs_run": len(result.history)}
         )
         mlflow.set_tag("stopped", result.stopped)
+        label_run(MlflowClient(), run.info.run_id)  # its name and description in the UI
         torch.save(net.state_dict(), tmp / "model_state.pt")
         mlflow.log_artifact(str(tmp / "model_state.pt"), "checkpoint")
         mlflow.log_artifact(str(pose_learning_curve_png(result.history, tmp / "learning_curve.png", cfg.name)), "plots")

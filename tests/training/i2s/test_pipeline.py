@@ -30,12 +30,14 @@ TINY = [
     "train.batch_size=64",
     "train.threads=2",
 ]
+# The jobs' own real-data evaluation on one recording: scoring all 25 with a 16-pass network took most of the suite.
+ONE_REAL = "data.real_eval_recordings=[ximu3_lowerbody]"
 
 
 def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
     mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path
 ) -> None:
-    cfg = load_config(REPO / "training/configs/i2s_assignment.yaml", TINY + ["tracking.experiment=test-i2s"])
+    cfg = load_config(REPO / "training/configs/i2s_assignment.yaml", TINY + ["tracking.experiment=test-i2s", ONE_REAL])
     run_id = run_training(cfg, data_dir, kinematics_cache, register=True, eval_max_windows=1500)
     client = MlflowClient()
     run = client.get_run(run_id)
@@ -54,7 +56,7 @@ def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
     averaged = ["train.quarter_turns=true", "train.gravity_turns=2", f"train.gravity_turn_segments={legs}"]
     averaged.append("augmentation.stiff_knee_share=0.2")
     cfg2 = load_config(
-        REPO / "training/configs/i2s_assignment.yaml", TINY + ["tracking.experiment=test-i2s", *averaged]
+        REPO / "training/configs/i2s_assignment.yaml", TINY + ["tracking.experiment=test-i2s", ONE_REAL, *averaged]
     )
     cfg2 = cfg2.model_copy(update={"seed": 1})
     run2 = run_training(cfg2, data_dir, kinematics_cache, register=True, eval_max_windows=1500)
@@ -114,7 +116,7 @@ def test_alignment_job_runs_and_exports_unit_quaternions(
     mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path
 ) -> None:
     flexion = ["tracking.experiment=test-i2s", "train.functional_axes=[LeftLowerLeg,RightLowerLeg]"]
-    cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", TINY + flexion)
+    cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", TINY + flexion + [ONE_REAL])
     run_id = run_training(cfg, data_dir, kinematics_cache, register=False, eval_max_windows=1500)
     run = MlflowClient().get_run(run_id)
     assert run.data.metrics["test_mean_angle_error_deg"] > 0.0
@@ -145,7 +147,7 @@ def test_a_training_fitted_elsewhere_is_tracked_here_and_only_with_its_own_confi
     from training.i2s.data.split import load_clips, load_pack, recordings_digest, save_pack, split_clips
     from training.i2s.train import load_fitted
 
-    overrides = TINY + ["tracking.experiment=test-fitted"]
+    overrides = TINY + ["tracking.experiment=test-fitted", ONE_REAL]
     cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", overrides)
     clips = load_clips(cfg, data_dir, kinematics_cache)
     packed = load_pack(save_pack(clips, tmp_path / "clips.npz"))
@@ -196,7 +198,7 @@ def test_fit_mixes_in_the_real_recordings_its_pack_carries_and_is_tracked_only_w
     config = REPO / "training/configs/i2s_assignment.yaml"
     name = "capacitive_sub01/CSBaseline"
     real = [f"data.real_train_recordings=[{name}]", "data.real_fraction=0.25", "data.real_val_weight=0.5"]
-    overrides = TINY + ["tracking.experiment=test-fitted-real"] + real
+    overrides = TINY + ["tracking.experiment=test-fitted-real", ONE_REAL] + real
     runner = CliRunner()
 
     def cli(*args: str, sets: list[str]) -> str:
@@ -282,7 +284,7 @@ def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
     from service.core.manifest import read_manifest
     from training.i2s.ship import real_table
 
-    table = real_table(summary_id, [REPO / "onnx_models/i2s_assignment/1.8.0"], data_dir).splitlines()
+    table = real_table(summary_id, [REPO / "mlflow_snapshot/models/i2s_assignment/1.8.0"], data_dir).splitlines()
     assert len(table) == 2 + len(folds)  # header, rule, one row per person and per pooled group
     shipped = next(
         e.metrics

@@ -19,13 +19,21 @@ from training.i2s.warmstart import (
     warm_start_from_shipped,
 )
 
-SHIPPED = Path(__file__).resolve().parents[3] / "onnx_models" / "i2s_assignment"
-SHIPPED_ALIGNMENT = SHIPPED.parent / "i2s_alignment"
+REPO = Path(__file__).resolve().parents[3]
+SHIPPED = REPO / "onnx_models" / "i2s_assignment"
+ARCHIVE = REPO / "mlflow_snapshot" / "models"  # the shipped versions that are no longer served
+ARCHIVED = ARCHIVE / "i2s_assignment"
+ARCHIVED_ALIGNMENT = ARCHIVE / "i2s_alignment"
+
+
+def _every_shipped(name: str = "i2s_assignment") -> list[Path]:
+    """Every shipped version of ``name``: served or archived."""
+    return sorted(p.parent for root in (REPO / "onnx_models", ARCHIVE) for p in (root / name).glob("*/manifest.json"))
 
 
 def _float32(quantized: bool = False) -> Path:
     """The newest shipped float32 (or int8) assignment model that is one network (not an ensemble)."""
-    dirs = [p.parent for p in SHIPPED.glob("*/manifest.json")]
+    dirs = _every_shipped()
     exporters = {d: read_manifest(d / "manifest.json").exporter for d in dirs}
     chosen = [d for d in dirs if ("quantization" in exporters[d]) == quantized and "ensemble_of" not in exporters[d]]
     return max(chosen, key=lambda d: version_key(d.name))
@@ -33,7 +41,7 @@ def _float32(quantized: bool = False) -> Path:
 
 @pytest.mark.parametrize(
     "model_dir",
-    sorted(d.parent for d in SHIPPED.glob("*/manifest.json") if "quantization" not in read_manifest(d).exporter),
+    [d for d in _every_shipped() if "quantization" not in read_manifest(d / "manifest.json").exporter],
     ids=lambda d: d.name,
 )
 def test_rebuilt_weights_match_the_shipped_model(model_dir: Path) -> None:
@@ -42,7 +50,7 @@ def test_rebuilt_weights_match_the_shipped_model(model_dir: Path) -> None:
     (1.9.0: the mean of 1.6.0's and 1.8.0's probabilities)."""
     exporter = read_manifest(model_dir / "manifest.json").exporter
     if "ensemble_of" in exporter:
-        members = ensemble_members(exporter, SHIPPED.parent)
+        members = ensemble_members(exporter, ARCHIVE)
         net = assignment_ensemble(members, 128, 64, 16, 0.8)
         net.load_state_dict(ensemble_state(members, net))
     else:
@@ -56,9 +64,7 @@ def test_rebuilt_weights_match_the_shipped_model(model_dir: Path) -> None:
 
 @pytest.mark.parametrize(
     "model_dir",
-    sorted(
-        d.parent for d in SHIPPED_ALIGNMENT.glob("*/manifest.json") if "quantization" not in read_manifest(d).exporter
-    ),
+    [d for d in _every_shipped("i2s_alignment") if "quantization" not in read_manifest(d / "manifest.json").exporter],
     ids=lambda d: d.name,
 )
 def test_rebuilt_alignment_weights_match_the_shipped_model(model_dir: Path) -> None:
@@ -80,7 +86,7 @@ def test_rebuilt_alignment_weights_match_the_shipped_model(model_dir: Path) -> N
 
 def test_a_model_of_the_other_task_is_refused() -> None:
     with pytest.raises(ValueError, match="is an i2s_alignment model; this run trains i2s_assignment"):
-        warm_start_from_shipped(SHIPPED_ALIGNMENT / "3.0.0", AssignmentNet())
+        warm_start_from_shipped(ARCHIVED_ALIGNMENT / "3.0.0", AssignmentNet())
     with pytest.raises(ValueError, match="is an i2s_assignment model; this run trains i2s_alignment"):
         warm_start_from_shipped(_float32(), AlignmentNet(canonical=True))
 
@@ -101,8 +107,8 @@ def test_an_int8_model_is_refused_with_its_float32_source_named() -> None:
 
 
 def test_an_ensemble_is_refused_with_its_members_named() -> None:
-    ensembles = [d.parent for d in SHIPPED.glob("*/manifest.json") if "ensemble_of" in read_manifest(d).exporter]
-    assert ensembles  # the served default is one
+    ensembles = [d for d in _every_shipped() if "ensemble_of" in read_manifest(d / "manifest.json").exporter]
+    assert ensembles  # 1.9.0 is one
     for model_dir in ensembles:
         if "quantization" not in read_manifest(model_dir / "manifest.json").exporter:
             with pytest.raises(ValueError, match="is an ensemble; warm start from one of its members"):
@@ -113,13 +119,14 @@ def test_an_ensemble_is_assembled_not_trained() -> None:
     from training.i2s.config import load_config
 
     config = Path(__file__).resolve().parents[3] / "training/configs/i2s_assignment.yaml"
-    members = "train.ensemble_of=[onnx_models/i2s_assignment/1.6.0,onnx_models/i2s_assignment/1.8.0]"
+    archived = "mlflow_snapshot/models/i2s_assignment"
+    members = f"train.ensemble_of=[{archived}/1.6.0,{archived}/1.8.0]"
     assert load_config(config, [members, "train.max_epochs=0"]).train.ensemble_of
     for extra in ("train.max_epochs=3", "train.quarter_turns=true", "train.init_from_run=abc"):
         with pytest.raises(ValueError, match="ensemble_of assembles two or more shipped models"):
             load_config(config, [members, "train.max_epochs=0", extra])
     with pytest.raises(ValueError, match="got 1 members"):
-        load_config(config, ["train.ensemble_of=[onnx_models/i2s_assignment/1.6.0]", "train.max_epochs=0"])
+        load_config(config, ["train.ensemble_of=[mlflow_snapshot/models/i2s_assignment/1.6.0]", "train.max_epochs=0"])
 
 
 def test_an_ensemble_must_hold_its_members_real_training_recordings_out_of_evaluation(tmp_path: Path) -> None:
@@ -133,12 +140,12 @@ def test_an_ensemble_must_hold_its_members_real_training_recordings_out_of_evalu
     from training.i2s.pipeline import _members_real_recordings_are_held_out_of_evaluation
 
     member = tmp_path / "i2s_assignment" / "9.9.9"
-    shutil.copytree(SHIPPED / "1.8.0", member)
+    shutil.copytree(ARCHIVED / "1.8.0", member)
     manifest = json.loads((member / "manifest.json").read_text())
     manifest["training_data"]["real_train_recordings"] = ["ximu3_lowerbody"]
     (member / "manifest.json").write_text(json.dumps(manifest))
     config = Path(__file__).resolve().parents[3] / "training/configs/i2s_assignment.yaml"
-    members = f"train.ensemble_of=[onnx_models/i2s_assignment/1.6.0,{member}]"
+    members = f"train.ensemble_of=[mlflow_snapshot/models/i2s_assignment/1.6.0,{member}]"
     with pytest.raises(ValueError, match=r"trained on the real recordings \['ximu3_lowerbody'\]"):
         _members_real_recordings_are_held_out_of_evaluation(load_config(config, [members, "train.max_epochs=0"]))
     named = load_config(config, [members, "train.max_epochs=0", "data.real_train_recordings=[ximu3_lowerbody]"])
@@ -177,7 +184,7 @@ def test_fit_fine_tunes_a_shipped_alignment_file(data_dir: Path, kinematics_cach
     from training.i2s.data.split import load_clips, save_pack
 
     config = Path(__file__).resolve().parents[3] / "training/configs/i2s_alignment.yaml"
-    shipped = SHIPPED_ALIGNMENT / "3.0.0"
+    shipped = ARCHIVED_ALIGNMENT / "3.0.0"
     overrides = [
         "data.activities=[walk]",
         "train.steps_per_epoch=2",
