@@ -139,7 +139,7 @@ def _as_user(user: str | None) -> dict:
 def _spawn(name: str, cmd: list[str], log_dir: Path, url: str, **popen) -> Server:
     log_path = log_dir / f"{name}.log"
     with open(log_path, "wb") as out:  # each server in its own process group: stopping it stops its workers
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True, **popen)
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, process_group=0, **popen)
     return Server(name, proc, url, log_path)
 
 
