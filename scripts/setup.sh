@@ -42,7 +42,7 @@ echo "[2/3] torch 2.13.0, CPU build (${torch_index:-from the configured pip inde
 python -m pip install --progress-bar on ${torch_index:+--index-url "$torch_index"} "torch==2.13.0"
 
 echo "[3/3] the project with its service, training and test dependencies"
-python -m pip install --progress-bar on -e ".[service,training,test]"
+python -m pip install --progress-bar on -e ".[service,training,team,test]"
 python -c "import fastapi, mlflow, onnxruntime, torch, uvicorn" \
   || { echo "setup: the installed packages do not import; see pip's messages above" >&2; exit 1; }
 touch "$done_marker"

@@ -1,5 +1,9 @@
-"""Shared fixtures. The data directory comes from WEARMOCAP_DATA_DIR (README 'Tests'); tests that read
-real data fail with a clear message when it is missing instead of skipping."""
+"""Shared fixtures. The data directory comes from WEARMOCAP_DATA_DIR (docs/data.md says how to get it).
+
+A test that reads it asks for the ``data_dir`` fixture and is marked ``needs_data`` for it (by the hook below):
+without the variable those tests, and only those, skip with the reason; a variable that names no data directory is
+an error. Everything else runs on the small files in ``tests/fixtures/`` (``pytest -m "not needs_data"``).
+"""
 
 from __future__ import annotations
 
@@ -9,13 +13,24 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+FIXTURES = Path(__file__).resolve().parent / "fixtures"
+DATA_FIXTURES = ("data_dir", "data_root")  # the fixtures that read the data directory
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if any(name in getattr(item, "fixturenames", ()) for name in DATA_FIXTURES):
+            item.add_marker(pytest.mark.needs_data)
 
 
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     from training.data.catalog import resolve_data_dir
 
-    return resolve_data_dir(os.environ.get("WEARMOCAP_DATA_DIR"))
+    value = os.environ.get("WEARMOCAP_DATA_DIR")
+    if not value:
+        pytest.skip("needs the data directory: set WEARMOCAP_DATA_DIR (docs/data.md: scripts/get_data.sh)")
+    return resolve_data_dir(value)
 
 
 @pytest.fixture(scope="session")

@@ -10,6 +10,8 @@ from service.core.kinematics import forward_kinematics
 from service.core.skeleton import segment_trajectories, skeleton_map_for
 from training.data.catalog import METRES_PER_UNIT, read_catalog
 
+WALK_FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "cmu_02_01_walk_2s.bvh"
+
 
 def _all_bvh(data_dir: Path):
     return [e for e in read_catalog(data_dir) if e.path.endswith(".bvh")]
@@ -61,8 +63,20 @@ def test_walking_is_plausible_in_the_project_frame(data_dir: Path, path: str) ->
         assert np.median(cos) > 0.9
 
 
-def test_truncated_file_is_a_clear_error(tmp_path: Path, data_dir: Path) -> None:
-    text = (data_dir / "mocap/cmu_raw/131_01.bvh").read_text()
+def test_the_walk_fixture_is_plausible_in_the_project_frame() -> None:
+    """The same checks on the 2 s fixture (CMU 02_01 at 60 Hz), which needs no data directory."""
+    poses = forward_kinematics(read_bvh(WALK_FIXTURE), METRES_PER_UNIT["cmu_li2018"])
+    assert poses.positions_m.shape[0] == 120 and np.isclose(poses.sample_rate_hz, 60.0, rtol=1e-6)
+    traj = segment_trajectories(poses, skeleton_map_for("cmu_li2018", poses.names))
+    pelvis, feet = traj.origin_m[:, 3], traj.origin_m[:, [0, 6]]
+    assert np.all(feet[..., 2] < pelvis[:, None, 2])
+    assert 0.7 < np.median(pelvis[:, 2]) - np.median(feet[..., 2]) < 1.1
+    v = np.diff(pelvis[:, :2], axis=0) * traj.sample_rate_hz
+    assert 0.9 < np.median(np.linalg.norm(v, axis=1)) < 1.5  # CMU 02_01 walks at about 1.2 m/s
+
+
+def test_truncated_file_is_a_clear_error(tmp_path: Path) -> None:
+    text = WALK_FIXTURE.read_text()
     bad = tmp_path / "bad.bvh"
     bad.write_text(text[: len(text) // 2])
     with pytest.raises(BvhFormatError, match="expected .* values"):

@@ -35,6 +35,13 @@ class DataConfig(_Strict):
     cutoff_hz: float = 10.0
     filter_order: int = 8
 
+    @model_validator(mode="after")
+    def _scores_only_held_out_recordings(self) -> DataConfig:
+        trained_on = sorted(set(self.real_eval_recordings or []) & set(self.real_train_recordings))
+        if trained_on:
+            raise ValueError(f"data.real_eval_recordings names recordings this run trains on: {trained_on}")
+        return self
+
 
 class TrainConfig(_Strict):
     batch_size: int = 256  # Table A1

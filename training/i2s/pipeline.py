@@ -325,12 +325,8 @@ def _log_simulated_evaluation(
 
 def held_out_recordings(cfg: ExperimentConfig, data_dir: Path) -> list[RealRecording]:
     """Real recordings with known placement that this configuration did not train on."""
-    chosen = cfg.data.real_eval_recordings
-    if chosen is not None:
-        trained_on = sorted(set(chosen) & set(cfg.data.real_train_recordings))
-        if trained_on:
-            raise ValueError(f"data.real_eval_recordings names recordings this run trains on: {trained_on}")
-        return [read_recording(data_dir, name) for name in chosen]
+    if cfg.data.real_eval_recordings is not None:  # never one it trains on (DataConfig checks)
+        return [read_recording(data_dir, name) for name in cfg.data.real_eval_recordings]
     return [r for r in read_all_real(data_dir) if r.name not in cfg.data.real_train_recordings]
 
 

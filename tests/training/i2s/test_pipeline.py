@@ -198,7 +198,10 @@ def test_fit_mixes_in_the_real_recordings_its_pack_carries_and_is_tracked_only_w
     config = REPO / "training/configs/i2s_assignment.yaml"
     name = "capacitive_sub01/CSBaseline"
     real = [f"data.real_train_recordings=[{name}]", "data.real_fraction=0.25", "data.real_val_weight=0.5"]
-    overrides = TINY + ["tracking.experiment=test-fitted-real", ONE_REAL] + real
+    scored = "data.real_eval_recordings=[capacitive_sub01/EMGBaseline,ximu3_lowerbody]"
+    with pytest.raises(ValueError, match="names recordings this run trains on"):
+        load_config(config, TINY + real + [f"data.real_eval_recordings=[{name}]"])
+    overrides = TINY + ["tracking.experiment=test-fitted-real", scored] + real
     runner = CliRunner()
 
     def cli(*args: str, sets: list[str]) -> str:
@@ -232,7 +235,7 @@ def test_fit_mixes_in_the_real_recordings_its_pack_carries_and_is_tracked_only_w
     assert run.data.params["real_train_windows"] == str(len(windows))
     history = MlflowClient().get_metric_history(run_id, "val_real_loss")
     assert [m.value for m in history] == pytest.approx([e["val_real_loss"] for e in saved["history"]])
-    # the run scores every real recording but the one it trained on
+    # the run scores the real recordings it was told to, never one it trained on
     assert f"n_windows.{name.replace('/', '.')}" not in run.data.metrics
     assert "n_windows.capacitive_sub01.EMGBaseline" in run.data.metrics
 
@@ -288,7 +291,7 @@ def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
     assert len(table) == 2 + len(folds)  # header, rule, one row per person and per pooled group
     shipped = next(
         e.metrics
-        for e in read_manifest(REPO / "onnx_models/i2s_assignment/1.8.0/manifest.json").evaluations
+        for e in read_manifest(REPO / "mlflow_snapshot/models/i2s_assignment/1.8.0/manifest.json").evaluations
         if e.name == "real_recordings"
     )
     row = next(line for line in table if line.startswith("| ximu3_unknown"))
