@@ -14,7 +14,7 @@ from service.api.dashboard import router as dashboard_router
 from service.api.errors import install_error_handlers
 from service.api.flex_routes import router as flex_router
 from service.api.flex_stream import router as flex_stream_router
-from service.api.guard import Guard, allowed_origins
+from service.api.guard import Guard, allowed_origins, seed_request_cost
 from service.api.landing import router as landing_router
 from service.api.landing import static_files
 from service.api.metrics import ServiceMetrics
@@ -78,6 +78,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         elif "i2s_assignment" in app.state.models:
             capacity = await batcher.probe(lambda n: np.zeros((n, 128, 6), np.float32))
             log.info("capacity probe: %.0f windows/s on %d workers", capacity, settings.inference_threads)
+        if "i2s_assignment" in app.state.models:
+            await seed_request_cost(app, settings.api_key)
         app.state.metrics.watch_load(batcher, app.state.streams)
         yield
         await batcher.stop()

@@ -7,9 +7,12 @@ shedding, metrics.
 - The body limit counts the bytes actually received, chunked or not: reading stops at the limit with a 413, so a
   client cannot make the process hold more than ``max_body_bytes`` of one body. The body is read here, once, and
   handed on to the route.
-- Load shedding: a POST to ``/v1/*`` whose estimated wait (the inference queue plus the requests admitted before
-  it whose bodies are still being read) passes ``request_deadline_s`` gets a 503 with ``Retry-After`` before its
-  body is read or parsed. Admitted requests carry their deadline (``scope["state"]["start_by"]``) to the scheduler,
+- Load shedding: a POST to ``/v1/*`` whose estimated wait passes ``request_deadline_s`` gets a 503 with
+  ``Retry-After`` before its body is read or parsed. The wait is the larger of two estimates: the inference queue
+  (windows ahead at the measured seconds per window, and the requests admitted before it whose bodies are still
+  being read), and the small requests admitted and not yet answered times the seconds between answers measured
+  while busy (``Completions``: everything a request costs on two cores, parsing, inference and answering, not
+  inference alone). Admitted requests carry their deadline (``scope["state"]["start_by"]``) to the scheduler,
   which checks it again with the exact number of windows.
 
 Plain ASGI rather than ``@app.middleware("http")``: that wrapper costs about a millisecond per request
@@ -21,9 +24,11 @@ from __future__ import annotations
 import asyncio
 import hmac
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
+import orjson
 from starlette.datastructures import State
 
 from service.api.errors import error_response
@@ -38,6 +43,13 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 JSON_BYTES_PER_WINDOW = 6144  # for the estimate before parsing: 768 numbers of about 8 characters
 BINARY_BYTES_PER_WINDOW = 3072  # 128 samples × 6 float32
+PROBE = "wearmocap_probe"  # scope state of the start-up probe's requests: always admitted, never in /metrics
+SMALL_REQUEST_WINDOWS = 64  # requests up to this size are counted by ``Completions``; larger ones by their windows
+COMPLETION_WINDOW = 256  # answers the seconds between answers are averaged over
+# the share of the deadline the small requests admitted may fill by ``Completions``' estimate: the seconds between
+# answers of a busy service vary from one burst to the next (the same 1,000-request burst took 1.0-1.9 s), and a
+# request admitted on an estimate that was too low is refused late, after its body was parsed
+COMPLETION_DEADLINE_SHARE = 0.75
 MAX_PARSE_WAIT_S = 0.05  # an admitted request waits at most this long for a quiet turn before it is parsed
 DRAIN_SECONDS, DRAIN_BYTES = 5.0, 1 << 30  # how much of an over-limit body is read and discarded after the 413
 
@@ -67,11 +79,43 @@ def websocket_refusal(settings: Settings, headers: MutableMapping[str, str] | An
     return None
 
 
+class Completions:
+    """How long the small requests admitted now will take to be answered: the number not yet answered times the
+    seconds between answers while the service is busy, averaged over the last ``COMPLETION_WINDOW`` answers (when
+    idle, a request's own time). A mean over many answers, not a moving average of the last few: answers come in
+    clumps (one inference batch answers many requests within microseconds), and the last few gaps say nothing of
+    the rate."""
+
+    def __init__(self) -> None:
+        self.pending = 0
+        self.gaps_s: deque[float] = deque(maxlen=COMPLETION_WINDOW)
+        self.last_end = 0.0
+
+    @property
+    def seconds_per_request(self) -> float:
+        return sum(self.gaps_s) / len(self.gaps_s) if self.gaps_s else 0.0
+
+    def wait_s(self) -> float:
+        return (self.pending + 1) * self.seconds_per_request
+
+    def started(self) -> None:
+        self.pending += 1
+
+    def ended(self, started_at: float, answered: bool) -> None:
+        """A request ended; ``answered``: with a 2xx (a refusal or an error says nothing of the cost of work)."""
+        now = time.perf_counter()
+        self.pending -= 1
+        if answered:
+            self.gaps_s.append(now - max(started_at, self.last_end))  # busy: the time since the previous answer
+            self.last_end = now
+
+
 class Guard:
     def __init__(self, app: ASGIApp, settings: Settings, metrics: ServiceMetrics, state: State) -> None:
         self.app, self.settings, self.metrics, self.state = app, settings, metrics, state
         self.arrivals = 0  # requests seen so far
         self.parse_turn_taken = False  # a request has started parsing in this turn of the event loop
+        self.completions = Completions()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -89,11 +133,14 @@ class Guard:
         try:
             await self._handle(scope, receive, tracked)
         finally:
-            # The route template, not the raw path: label values stay bounded whatever clients send.
-            route = scope.get("route")
-            path = getattr(route, "path", None) or "unmatched"
-            self.metrics.requests.labels(path, str(status)).inc()
-            self.metrics.latency.labels(path).observe(time.perf_counter() - start)
+            if (started_at := scope.get("state", {}).get("counted_since")) is not None:
+                self.completions.ended(started_at, status < 400)
+            if not scope.get("state", {}).get(PROBE):  # the start-up probe's requests are not clients' requests
+                # The route template, not the raw path: label values stay bounded whatever clients send.
+                route = scope.get("route")
+                path = getattr(route, "path", None) or "unmatched"
+                self.metrics.requests.labels(path, str(status)).inc()
+                self.metrics.latency.labels(path).observe(time.perf_counter() - start)
 
     async def _handle(self, scope: Scope, receive: Receive, send: Send) -> None:
         self.arrivals += 1
@@ -112,8 +159,12 @@ class Guard:
             return
         if not self._admit(scope, headers, int(length) if length.isdigit() else 0):
             self.metrics.shed.inc()
-            await _shed(send, self.state.batcher.estimated_wait_s(), self.settings.request_deadline_s)
+            wait_s = max(self.state.batcher.estimated_wait_s(), self.completions.wait_s())
+            await _shed(send, wait_s, self.settings.request_deadline_s)
             return
+        if scope["state"].get("small", False):
+            self.completions.started()
+            scope["state"]["counted_since"] = time.perf_counter()
         try:
             await self._after_arrivals()
             body = await _read_body(receive, limit)
@@ -158,12 +209,18 @@ class Guard:
         batcher = getattr(self.state, "batcher", None)
         if batcher is None or not scope["path"].startswith("/v1/"):
             return True
+        if scope["state"].get(PROBE):
+            scope["state"]["small"] = True
+            return True
         deadline_s = self.settings.request_deadline_s
         binary = headers.get(b"content-type", b"").startswith(b"application/octet-stream")
         windows = max(1, length // (BINARY_BYTES_PER_WINDOW if binary else JSON_BYTES_PER_WINDOW))
         first_turn = min(windows, batcher.chunk)
-        if batcher.estimated_wait_s(first_turn, requests=1) > deadline_s:
+        small = windows <= SMALL_REQUEST_WINDOWS
+        wait_s = batcher.estimated_wait_s(first_turn, requests=1)
+        if wait_s > deadline_s or (small and self.completions.wait_s() > COMPLETION_DEADLINE_SHARE * deadline_s):
             return False
+        scope["state"]["small"] = small
         batcher.reserved += first_turn
         batcher.reserved_requests += 1
         scope["state"]["reserved"] = first_turn
@@ -230,3 +287,48 @@ async def _send(send: Send, response: Any, drain: Receive | None = None) -> None
         if message["type"] == "http.disconnect" or not message.get("more_body", False):
             break
     await send({"type": "http.response.body", "body": b""})
+
+
+async def seed_request_cost(app: ASGIApp, api_key: str | None, rounds: int = 6, at_once: int = 8) -> None:
+    """Send a few rounds of single-window requests, several at once, through the whole application (this guard,
+    parsing, inference, the answer), in process, so that ``Completions`` knows the seconds between answers of a
+    busy service before the first client's answer: a burst on a service just started is then shed at arrival
+    instead of admitted whole. They are always admitted and not counted in /metrics."""
+    body = orjson.dumps({"windows": [{"samples": [[0.0, 0.0, 9.81, 0.0, 0.0, 0.0]] * 128}]})
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    if api_key:
+        headers.append((b"x-api-key", api_key.encode()))
+    for _ in range(rounds):
+        await asyncio.gather(*(_one_request(app, body, headers) for _ in range(at_once)))
+
+
+async def _one_request(app: ASGIApp, body: bytes, headers: list[tuple[bytes, bytes]]) -> None:
+    """One POST /v1/imu/windows through ``app``, its answer thrown away."""
+    sent = False
+
+    async def receive() -> Message:
+        nonlocal sent
+        if sent:
+            await asyncio.sleep(3600)  # no disconnect while the answer is made
+        sent = True
+        return {"type": "http.request", "body": body, "more_body": False}
+
+    async def send(message: Message) -> None:
+        return None
+
+    scope = {
+        "type": "http",
+        "asgi": {"version": "3.0"},
+        "http_version": "1.1",
+        "method": "POST",
+        "scheme": "http",
+        "path": "/v1/imu/windows",
+        "raw_path": b"/v1/imu/windows",
+        "query_string": b"",
+        "root_path": "",
+        "headers": headers,
+        "client": ("127.0.0.1", 0),
+        "server": ("127.0.0.1", 0),
+        "state": {PROBE: True},
+    }
+    await app(scope, receive, send)

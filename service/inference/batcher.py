@@ -146,13 +146,16 @@ class MicroBatcher:
         spw = max(self.seconds_per_small_window or 0.0, self.seconds_per_window or 0.0)
         return None if not spw else self.workers / spw
 
-    def estimated_wait_s(self, extra_windows: int = 0, requests: int = 0) -> float:
+    def estimated_wait_s(self, extra_windows: int = 0, requests: int = 0, parsed: bool = False) -> float:
         """Seconds before a caller queued now (after ``extra_windows`` more) gets its first turn: the windows ahead of
-        it at the measured seconds per window, plus the event loop's time to parse the admitted requests ahead (and
-        ``requests`` more) that have not reached the queue yet."""
+        it at the measured seconds per window; for a request not parsed yet, also the admitted requests whose bodies
+        are still being read or parsed (and ``requests`` more), with the event loop's time to parse them. A request
+        ``parsed`` already is ahead of those, so they do not count for it."""
         if not self.seconds_per_window:
             return 0.0
         ahead = sum(min(job.remaining, self.chunk) for job in self.jobs) + sum(self.in_flight_windows)
+        if parsed:
+            return (ahead + extra_windows) * self.seconds_per_window / self.workers
         inference = (ahead + self.reserved + extra_windows) * self.seconds_per_window / self.workers
         return inference + (self.reserved_requests + requests) * self.request_overhead_s
 
@@ -176,7 +179,7 @@ class MicroBatcher:
         ``Overloaded``."""
         now = time.monotonic()
         if start_by is not None:
-            wait = self.estimated_wait_s(min(len(imu), self.chunk))
+            wait = self.estimated_wait_s(min(len(imu), self.chunk), parsed=True)
             if now + wait > start_by:
                 raise Overloaded(wait, start_by - now)
         wait_s = self.max_wait_s if max_wait_ms is None else max_wait_ms / 1000.0

@@ -125,3 +125,22 @@ def test_the_key_guards_metrics_when_asked_and_origins_are_checked(tiny_models: 
             "/v1/imu/windows", headers={"Origin": "https://evil.example", "Access-Control-Request-Method": "POST"}
         )
         assert "access-control-allow-origin" not in other.headers
+
+
+def test_the_wait_of_small_requests_is_the_pending_ones_times_the_seconds_between_answers() -> None:
+    """Answers come in clumps (one inference batch answers many requests at once): the estimate averages the busy
+    time between answers over many of them; refusals and errors say nothing of the cost and are left out."""
+    from service.api.guard import Completions
+
+    c = Completions()
+    assert c.wait_s() == 0.0  # nothing measured yet
+    for _ in range(3):
+        c.started()
+    t0 = time.perf_counter() - 0.030
+    c.ended(t0, answered=True)  # 30 ms of work
+    c.ended(t0, answered=True)  # in the same batch: a gap of about 0
+    assert c.seconds_per_request == pytest.approx(0.015, abs=0.002)
+    c.ended(time.perf_counter() - 5.0, answered=False)  # a 503 after 5 s: not a measure of the work
+    assert c.pending == 0 and c.seconds_per_request == pytest.approx(0.015, abs=0.002)
+    c.started()
+    assert c.wait_s() == pytest.approx(2 * 0.015, abs=0.004)  # the one pending and the one asking
