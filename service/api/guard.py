@@ -22,6 +22,7 @@ Plain ASGI rather than ``@app.middleware("http")``: that wrapper costs about a m
 from __future__ import annotations
 
 import asyncio
+import base64
 import hmac
 import time
 from collections import deque
@@ -68,10 +69,33 @@ def allowed_origins(settings: Settings) -> list[str]:
     return [o.strip() for o in settings.allowed_origins.split(",") if o.strip()]
 
 
+KEY_SUBPROTOCOL = "wearmocap.key."  # + the key in unpadded base64url: how a browser, which sets no headers, sends it
+
+
+def key_subprotocol(headers: MutableMapping[str, str] | Any) -> str | None:
+    """The ``Sec-WebSocket-Protocol`` entry that carries a key (``wearmocap.key.<base64url>``), or None."""
+    offered = [p.strip() for p in headers.get("sec-websocket-protocol", "").split(",")]
+    return next((p for p in offered if p.startswith(KEY_SUBPROTOCOL)), None)
+
+
+def _key_of_subprotocol(protocol: str | None) -> bytes | None:
+    if protocol is None:
+        return None
+    encoded = protocol.removeprefix(KEY_SUBPROTOCOL)
+    try:
+        return base64.urlsafe_b64decode(encoded + "=" * (-len(encoded) % 4))
+    except ValueError:
+        return None
+
+
 def websocket_refusal(settings: Settings, headers: MutableMapping[str, str] | Any) -> str | None:
-    """Why a WebSocket handshake with these headers is refused (key, origin), or None."""
-    if not key_matches(settings, headers.get("x-api-key")):
-        return "missing or wrong X-API-Key header"
+    """Why a WebSocket handshake with these headers is refused (key, origin), or None. The key comes in the
+    ``X-API-Key`` header or, from a browser, as the subprotocol ``wearmocap.key.<key in base64url>``."""
+    sent = headers.get("x-api-key")
+    if sent is None:
+        sent = _key_of_subprotocol(key_subprotocol(headers))
+    if not key_matches(settings, sent):
+        return "missing or wrong X-API-Key header (or wearmocap.key. subprotocol)"
     origins = allowed_origins(settings)
     origin = headers.get("origin")
     if origins and origin is not None and origin not in origins:

@@ -34,7 +34,7 @@ import orjson
 from fastapi import WebSocket, WebSocketDisconnect
 from starlette.websockets import WebSocketState
 
-from service.api.guard import websocket_refusal
+from service.api.guard import key_subprotocol, websocket_refusal
 
 log = logging.getLogger(__name__)
 DROPPABLE = ("result", "moment", "pose", "angles")
@@ -161,7 +161,7 @@ async def watch(outbox: Outbox, slow_s: float) -> str:
 async def accept(ws: WebSocket) -> bool:
     """Accept the handshake; a refused one (key, origin) is then closed with 1008 and the reason (a bare HTTP 403
     could not carry it). False if refused."""
-    await ws.accept()
+    await ws.accept(subprotocol=key_subprotocol(ws.headers))  # a browser drops a socket that does not echo it
     why = websocket_refusal(ws.app.state.settings, ws.headers)
     if why is None:
         return True

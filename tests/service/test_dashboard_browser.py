@@ -1,7 +1,7 @@
 """The live view in a real headless Chromium against a real uvicorn server with the shipped models: the page plays
 its bundled recording through ``/v1/stream`` at real time until it shows the recording's own placement of all seven
-sensors, with the pose figure and the flex chart drawn; behind an API key, the key field unlocks the models (a
-browser cannot send the key on a WebSocket: the stream is refused, with the reason on the page).
+sensors, with the pose figure and the flex chart drawn; behind an API key, the key field unlocks the models and
+the streams (a browser sends it as a WebSocket subprotocol).
 
 Needs Debian's ``chromium`` and ``chromium-driver`` (``/usr/bin/chromium``, ``/usr/bin/chromedriver``) and selenium.
 """
@@ -66,7 +66,7 @@ def test_the_page_streams_its_recording_and_shows_the_right_assignment_and_pose(
     browser.get(f"{server}/dashboard")
     _wait(browser, 10, lambda d: d.find_element("id", "play").is_enabled(), "the models never loaded")
     run_links = [a.get_attribute("href") for a in browser.find_elements("css selector", "#models a")]
-    assert any(href.startswith("http://127.0.0.1:5000/#/experiments/") for href in run_links), run_links
+    assert "http://127.0.0.1:5000/#/models/i2s_assignment" in run_links, run_links
     assert browser.find_element("css selector", '#models tr[data-model="pose_lower3_stream"]')
     labels = {s["sensor_id"]: s["segment"] for s in RECORDING["imu"]["sensors"]}
 
@@ -89,24 +89,23 @@ def test_the_page_streams_its_recording_and_shows_the_right_assignment_and_pose(
     assert browser.find_element("id", "log").text == ""  # every stream closed with 1000, no error message
 
 
-def test_behind_an_api_key_the_key_field_unlocks_the_models_but_not_the_stream(browser, tmp_path: Path) -> None:
+def test_behind_an_api_key_the_key_field_unlocks_the_models_and_the_stream(browser, tmp_path: Path) -> None:
     models = tmp_path / "onnx_models"
     write_tiny_model(models, "i2s_assignment")
     write_tiny_model(models, "i2s_alignment")
     proc, base = start_service(models, threads=1, api_key="secret", capacity_windows_per_s="1000")
     try:
-        browser.get(f"{base}/dashboard")
+        browser.get(f"{base}/dashboard?speed=4")
         note = browser.find_element("id", "models-note")
         _wait(browser, 10, lambda d: "asks for its API key" in note.text, "no word about the key")
         assert not browser.find_element("id", "play").is_enabled()
-        assert "cannot send the X-API-Key header on a WebSocket" in note.text
         browser.find_element("id", "key").send_keys("secret")
         browser.find_element("css selector", "#key-form button").click()
         _wait(browser, 10, lambda d: d.find_elements("css selector", '#models tr[data-model="i2s_assignment"]'), "")
         assert browser.find_element("id", "play").is_enabled()
-        # a browser's WebSocket carries no X-API-Key header: the service refuses the stream and the page says why
+        # a browser's WebSocket carries no X-API-Key header: the key goes as the subprotocol wearmocap.key.<base64url>
         browser.find_element("id", "play").click()
-        log = browser.find_element("id", "log")
-        _wait(browser, 10, lambda d: "closed with 1008: missing or wrong X-API-Key header" in log.text, log.text)
+        _wait(browser, 20, lambda d: all(v != "–" for v in _cells(d, "segment").values()), "no assignment came")
+        assert "1008" not in browser.find_element("id", "log").text
     finally:
         stop(proc)

@@ -144,3 +144,28 @@ def test_the_wait_of_small_requests_is_the_pending_ones_times_the_seconds_betwee
     assert c.pending == 0 and c.seconds_per_request == pytest.approx(0.015, abs=0.002)
     c.started()
     assert c.wait_s() == pytest.approx(2 * 0.015, abs=0.004)  # the one pending and the one asking
+
+
+def test_a_browser_gives_the_key_as_a_websocket_subprotocol(tiny_models: Path) -> None:
+    """A browser cannot set X-API-Key on a WebSocket: ``wearmocap.key.<key in base64url>`` carries it, echoed back
+    on acceptance; a wrong one is closed with 1008 and the reason, like a wrong header."""
+    import base64
+
+    from starlette.websockets import WebSocketDisconnect
+
+    key = "k" * 31 + "+/"  # characters that base64url must carry
+    settings = Settings(models_dir=tiny_models, api_key=key)
+
+    def protocol(k: str) -> str:
+        return "wearmocap.key." + base64.urlsafe_b64encode(k.encode()).decode().rstrip("=")
+
+    with TestClient(create_app(settings)) as c:
+        with c.websocket_connect("/v1/stream", subprotocols=["other", protocol(key)]) as ws:
+            assert ws.accepted_subprotocol == protocol(key)
+            ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+            assert ws.receive_json()["type"] == "started"
+        with c.websocket_connect("/v1/stream", subprotocols=[protocol("wrong")]) as ws:
+            assert "wearmocap.key. subprotocol" in ws.receive_json()["detail"]
+            with pytest.raises(WebSocketDisconnect) as closed:
+                ws.receive_json()
+            assert closed.value.code == 1008

@@ -35,10 +35,7 @@ async function refreshModels() {
     byId("play").disabled = true;
   }
   if (page.config.key_required) {
-    note.textContent +=
-      " This service has an API key. /v1/models takes it from the field above, but a browser cannot send the" +
-      " X-API-Key header on a WebSocket: the live streams below are refused (1008) until the service accepts the" +
-      " key another way; python -m service.client --api-key streams with it.";
+    note.textContent += " This service has an API key: the field above gives it to /v1/models and to the streams.";
   }
 }
 
@@ -97,7 +94,7 @@ async function play() {
       byId("play").disabled = false;
       byId("stop").disabled = true;
     },
-  });
+  }, byId("key").value.trim());
   page.player.play(Number(byId("speed").value));
 }
 

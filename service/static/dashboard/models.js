@@ -10,9 +10,12 @@ export async function loadModels(key) {
   return r.json();
 }
 
-export function runUrl(uiUrl, mlflow) {
+// The registered model's page: its versions carry the version they shipped as (tag shipped_as) and link to their
+// runs. A run id of a manifest names the run in the store it was trained in; a store restored from the committed
+// snapshot holds that run under another id, so a direct run link would not find it.
+export function runUrl(uiUrl, name, mlflow) {
   if (!mlflow || !mlflow.run_id) return null;
-  return `${uiUrl}/#/experiments/${mlflow.experiment_id}/runs/${mlflow.run_id}`;
+  return `${uiUrl}/#/models/${encodeURIComponent(name)}`;
 }
 
 function evaluation(e) {
@@ -33,7 +36,7 @@ function evaluation(e) {
 export function renderModels(tbody, models, uiUrl) {
   tbody.replaceChildren();
   for (const [name, m] of Object.entries(models).sort(([a], [b]) => a.localeCompare(b))) {
-    const url = runUrl(uiUrl, m.mlflow);
+    const url = runUrl(uiUrl, name, m.mlflow);
     const run = url ? el("a", { href: url, textContent: m.mlflow.run_id.slice(0, 8) }) : "–";
     const evaluations = el("td", {}, ...(m.evaluations || []).map(evaluation));
     tbody.append(

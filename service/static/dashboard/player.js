@@ -37,8 +37,16 @@ function packet(index, seq, rows, width, keep) {
   return view.buffer;
 }
 
-function open(path, start, onMessage, onClose) {
-  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}${path}`);
+// A browser cannot set X-API-Key on a WebSocket: the key travels as the subprotocol wearmocap.key.<base64url>.
+function keyProtocols(key) {
+  if (!key) return [];
+  const b64 = btoa(String.fromCharCode(...new TextEncoder().encode(key)));
+  return [`wearmocap.key.${b64.replace(/\+/g, "-").replace(/\//g, "_").replace(/=+$/, "")}`];
+}
+
+function open(path, start, onMessage, onClose, key) {
+  const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}${path}`;
+  const ws = new WebSocket(url, keyProtocols(key));
   ws.binaryType = "arraybuffer";
   ws.onopen = () => ws.send(JSON.stringify(start));
   ws.onmessage = (event) => onMessage(JSON.parse(event.data));
@@ -49,7 +57,8 @@ function open(path, start, onMessage, onClose) {
 export class Player {
   // plan: {pose: a streaming pose model can take the recording's sensors, flexModel: the flex model's name or
   // null}; on: {message(m), flex(side, m), clock(seconds), closed(path, code, reason), done()}
-  constructor(recording, plan, on) {
+  constructor(recording, plan, on, key) {
+    this.key = key;
     this.recording = recording;
     this.plan = plan;
     this.on = on;
@@ -66,7 +75,7 @@ export class Player {
     // No sensor's segment is declared: the stream's own assignment places them and hands its alignments to the pose.
     if (this.plan.pose) start.pose = { calibration: "assignment" };
     const imu = { path: "/v1/stream", rate: meta.imu.sample_rate_hz, total: meta.imu.frames, sent: 0 };
-    imu.ws = open(imu.path, start, (m) => this.on.message(m), (c, r) => this.closed(imu, c, r));
+    imu.ws = open(imu.path, start, (m) => this.on.message(m), (c, r) => this.closed(imu, c, r), this.key);
     this.streams = [imu];
     if (this.plan.flexModel) {
       meta.flex.sides.forEach((side, j) => {
@@ -77,7 +86,7 @@ export class Player {
           sample_rate_hz: meta.flex.sample_rate_hz,
         };
         const sleeve = { path: "/v1/stream/flex", side: j, rate: meta.flex.sample_rate_hz, total: meta.flex.readings, sent: 0 };
-        sleeve.ws = open(sleeve.path, flexStart, (m) => this.on.flex(side, m), (c, r) => this.closed(sleeve, c, r));
+        sleeve.ws = open(sleeve.path, flexStart, (m) => this.on.flex(side, m), (c, r) => this.closed(sleeve, c, r), this.key);
         this.streams.push(sleeve);
       });
     }
