@@ -266,9 +266,13 @@ def _restore_registered_model(
     models: dict[str, Path],
     report: RestoreReport,
 ) -> None:
+    shippable = [v for v in entry["versions"] if v["run_id"] in models and v["run_id"] in restored]
     try:
         client.get_registered_model(name)
     except mlflow.exceptions.MlflowException:
+        if not shippable:  # no version has a model file here: no empty registered model in the UI
+            report.versions_without_model += [f"{name} v{v['version']}" for v in entry["versions"]]
+            return
         client.create_registered_model(name)
     # original version → version in this store, for the versions restored before
     new_version = {

@@ -85,6 +85,8 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
     assert alignment.tags["shipped_as"] == "3.4.0, 3.5.0"  # the float32 file and its int8 twin
     names = [r.info.run_name for r in client.search_runs([run.info.experiment_id], max_results=1000)]
     assert all(" · " in n for n in names)
+    for model in client.search_registered_models():  # no empty registered model is listed
+        assert client.search_model_versions(f"name='{model.name}'"), model.name
     # their files do not ship (a real-data fine-tune, the flex comparison networks): left out
     assert "i2s_assignment_finetune v1" in report.versions_without_model
     assert {v.split()[0] for v in report.versions_without_model} <= {"i2s_assignment_finetune"} | {
