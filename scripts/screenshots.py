@@ -5,6 +5,7 @@ one experiment. The script starts the service (shipped models) and the MLflow UI
 
     .venv/bin/python scripts/screenshots.py                 # docs/img/landing.png, dashboard.png, mlflow_experiment.png
     .venv/bin/python scripts/screenshots.py --no-mlflow     # the service's two pages only
+    .venv/bin/python scripts/screenshots.py --fresh-store   # the MLflow UI as a fresh clone shows it
 """
 
 from __future__ import annotations
@@ -62,11 +63,14 @@ def service_pages(driver, base: str, stream_s: float) -> None:
     driver.find_element("id", "stop").click()
 
 
-def mlflow_page(driver, experiment_id: str) -> None:
+def mlflow_page(driver, experiment_id: str, store: str | None) -> None:
     port = free_port()
     cmd = [sys.executable, "-m", "training.cli", "ui", "--port", str(port)]
+    env = {**os.environ, "MLFLOW_TRACKING_URI": store} if store else None
     # its own process group: training.cli ui runs ``mlflow ui`` as a child, which is stopped with it
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, process_group=0)
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, process_group=0
+    )
     base = f"http://127.0.0.1:{port}"
     try:
         wait_ready(f"{base}/health", proc, 180)
@@ -92,6 +96,9 @@ def main() -> None:
     parser.add_argument("--stream-s", type=float, default=13.0, help="how long the live view streams before its shot")
     parser.add_argument("--experiment-id", default="1", help="the MLflow experiment to show (1: i2s)")
     parser.add_argument("--no-mlflow", action="store_true", help="skip the MLflow UI")
+    parser.add_argument(
+        "--fresh-store", action="store_true", help="the UI on a new store, as a fresh clone's (the snapshot restored)"
+    )
     args = parser.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     proc, base = start_service(REPO / "onnx_models", threads=1)
@@ -99,7 +106,8 @@ def main() -> None:
     try:
         service_pages(driver, base, args.stream_s)
         if not args.no_mlflow:
-            mlflow_page(driver, args.experiment_id)
+            store = f"sqlite:///{tempfile.mkdtemp(prefix='mlflow-')}/mlflow.db" if args.fresh_store else None
+            mlflow_page(driver, args.experiment_id, store)
     finally:
         driver.quit()
         stop(proc)
