@@ -14,12 +14,9 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
-DATA_FIXTURES = ("data_dir", "data_root")  # the fixtures that read the data directory
-
-
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
-        if any(name in getattr(item, "fixturenames", ()) for name in DATA_FIXTURES):
+        if "data_dir" in getattr(item, "fixturenames", ()):  # also through another fixture that asks for it
             item.add_marker(pytest.mark.needs_data)
 
 

@@ -11,7 +11,6 @@ import csv
 import gzip
 import hashlib
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -39,11 +38,9 @@ RAW = CATALOGUE.raw_base + "/"
 
 
 @pytest.fixture(scope="module")
-def data_root() -> Path:
-    value = os.environ.get("WEARMOCAP_DATA_DIR")
-    if not value:
-        pytest.skip("WEARMOCAP_DATA_DIR is not set: this test reads the data directory")
-    return Path(value)
+def data_root(data_dir: Path) -> Path:
+    """The data directory (tests/conftest.py: skipped with the reason when WEARMOCAP_DATA_DIR is unset)."""
+    return data_dir
 
 
 @pytest.fixture(scope="module")
