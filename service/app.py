@@ -14,11 +14,12 @@ from service.api.dashboard import router as dashboard_router
 from service.api.errors import install_error_handlers
 from service.api.flex_routes import router as flex_router
 from service.api.flex_stream import router as flex_stream_router
-from service.api.guard import Guard, allowed_origins, seed_request_cost
+from service.api.guard import Guard, allowed_origins
 from service.api.landing import router as landing_router
 from service.api.landing import static_files
 from service.api.metrics import ServiceMetrics
 from service.api.pose_routes import router as pose_router
+from service.api.request_cost import seed_request_cost
 from service.api.routes import router
 from service.api.stream import router as stream_router
 from service.api.stream_admission import StreamAdmission

@@ -8,12 +8,13 @@ shedding, metrics.
   client cannot make the process hold more than ``max_body_bytes`` of one body. The body is read here, once, and
   handed on to the route.
 - Load shedding: a POST to ``/v1/*`` whose estimated wait passes ``request_deadline_s`` gets a 503 with
-  ``Retry-After`` before its body is read or parsed. The wait is the larger of two estimates: the inference queue
-  (windows ahead at the measured seconds per window, and the requests admitted before it whose bodies are still
-  being read), and the small requests admitted and not yet answered times the seconds between answers measured
-  while busy (``Completions``: everything a request costs on two cores, parsing, inference and answering, not
-  inference alone). Admitted requests carry their deadline (``scope["state"]["start_by"]``) to the scheduler,
-  which checks it again with the exact number of windows.
+  ``Retry-After`` before its body is read or parsed. Two estimates: the inference queue (windows ahead at the
+  measured seconds per window, and the requests admitted before it whose bodies are still being read) must stay
+  within the deadline; for small requests, the ones admitted and not yet answered times the seconds between answers
+  measured while busy (``service.api.request_cost``: everything a request costs, parsing, inference and answering,
+  not inference alone) must stay within ``COMPLETION_DEADLINE_SHARE`` of it. Admitted requests carry their
+  deadline (``scope["state"]["start_by"]``) to the scheduler, which checks it again with the exact number of
+  windows.
 
 Plain ASGI rather than ``@app.middleware("http")``: that wrapper costs about a millisecond per request
 (measured with ``benchmarks.bench_service``), a fifth of the single-window latency budget.
@@ -25,15 +26,14 @@ import asyncio
 import base64
 import hmac
 import time
-from collections import deque
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
-import orjson
 from starlette.datastructures import State
 
 from service.api.errors import error_response
 from service.api.metrics import ServiceMetrics
+from service.api.request_cost import COMPLETION_DEADLINE_SHARE, PROBE, Completions
 from service.inference.batcher import Overloaded
 from service.settings import Settings
 
@@ -44,13 +44,7 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 JSON_BYTES_PER_WINDOW = 6144  # for the estimate before parsing: 768 numbers of about 8 characters
 BINARY_BYTES_PER_WINDOW = 3072  # 128 samples × 6 float32
-PROBE = "wearmocap_probe"  # scope state of the start-up probe's requests: always admitted, never in /metrics
 SMALL_REQUEST_WINDOWS = 64  # requests up to this size are counted by ``Completions``; larger ones by their windows
-COMPLETION_WINDOW = 256  # answers the seconds between answers are averaged over
-# the share of the deadline the small requests admitted may fill by ``Completions``' estimate: the seconds between
-# answers of a busy service vary from one burst to the next (the same 1,000-request burst took 1.0-1.9 s), and a
-# request admitted on an estimate that was too low is refused late, after its body was parsed
-COMPLETION_DEADLINE_SHARE = 0.75
 MAX_PARSE_WAIT_S = 0.05  # an admitted request waits at most this long for a quiet turn before it is parsed
 DRAIN_SECONDS, DRAIN_BYTES = 5.0, 1 << 30  # how much of an over-limit body is read and discarded after the 413
 
@@ -101,37 +95,6 @@ def websocket_refusal(settings: Settings, headers: MutableMapping[str, str] | An
     if origins and origin is not None and origin not in origins:
         return f"origin {origin[:80]!r} is not allowed; allowed: {origins}"
     return None
-
-
-class Completions:
-    """How long the small requests admitted now will take to be answered: the number not yet answered times the
-    seconds between answers while the service is busy, averaged over the last ``COMPLETION_WINDOW`` answers (when
-    idle, a request's own time). A mean over many answers, not a moving average of the last few: answers come in
-    clumps (one inference batch answers many requests within microseconds), and the last few gaps say nothing of
-    the rate."""
-
-    def __init__(self) -> None:
-        self.pending = 0
-        self.gaps_s: deque[float] = deque(maxlen=COMPLETION_WINDOW)
-        self.last_end = 0.0
-
-    @property
-    def seconds_per_request(self) -> float:
-        return sum(self.gaps_s) / len(self.gaps_s) if self.gaps_s else 0.0
-
-    def wait_s(self) -> float:
-        return (self.pending + 1) * self.seconds_per_request
-
-    def started(self) -> None:
-        self.pending += 1
-
-    def ended(self, started_at: float, answered: bool) -> None:
-        """A request ended; ``answered``: with a 2xx (a refusal or an error says nothing of the cost of work)."""
-        now = time.perf_counter()
-        self.pending -= 1
-        if answered:
-            self.gaps_s.append(now - max(started_at, self.last_end))  # busy: the time since the previous answer
-            self.last_end = now
 
 
 class Guard:
@@ -311,48 +274,3 @@ async def _send(send: Send, response: Any, drain: Receive | None = None) -> None
         if message["type"] == "http.disconnect" or not message.get("more_body", False):
             break
     await send({"type": "http.response.body", "body": b""})
-
-
-async def seed_request_cost(app: ASGIApp, api_key: str | None, rounds: int = 6, at_once: int = 8) -> None:
-    """Send a few rounds of single-window requests, several at once, through the whole application (this guard,
-    parsing, inference, the answer), in process, so that ``Completions`` knows the seconds between answers of a
-    busy service before the first client's answer: a burst on a service just started is then shed at arrival
-    instead of admitted whole. They are always admitted and not counted in /metrics."""
-    body = orjson.dumps({"windows": [{"samples": [[0.0, 0.0, 9.81, 0.0, 0.0, 0.0]] * 128}]})
-    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-    if api_key:
-        headers.append((b"x-api-key", api_key.encode()))
-    for _ in range(rounds):
-        await asyncio.gather(*(_one_request(app, body, headers) for _ in range(at_once)))
-
-
-async def _one_request(app: ASGIApp, body: bytes, headers: list[tuple[bytes, bytes]]) -> None:
-    """One POST /v1/imu/windows through ``app``, its answer thrown away."""
-    sent = False
-
-    async def receive() -> Message:
-        nonlocal sent
-        if sent:
-            await asyncio.sleep(3600)  # no disconnect while the answer is made
-        sent = True
-        return {"type": "http.request", "body": body, "more_body": False}
-
-    async def send(message: Message) -> None:
-        return None
-
-    scope = {
-        "type": "http",
-        "asgi": {"version": "3.0"},
-        "http_version": "1.1",
-        "method": "POST",
-        "scheme": "http",
-        "path": "/v1/imu/windows",
-        "raw_path": b"/v1/imu/windows",
-        "query_string": b"",
-        "root_path": "",
-        "headers": headers,
-        "client": ("127.0.0.1", 0),
-        "server": ("127.0.0.1", 0),
-        "state": {PROBE: True},
-    }
-    await app(scope, receive, send)

@@ -130,7 +130,7 @@ def test_the_key_guards_metrics_when_asked_and_origins_are_checked(tiny_models: 
 def test_the_wait_of_small_requests_is_the_pending_ones_times_the_seconds_between_answers() -> None:
     """Answers come in clumps (one inference batch answers many requests at once): the estimate averages the busy
     time between answers over many of them; refusals and errors say nothing of the cost and are left out."""
-    from service.api.guard import Completions
+    from service.api.request_cost import Completions
 
     c = Completions()
     assert c.wait_s() == 0.0  # nothing measured yet
