@@ -43,17 +43,17 @@ def describe_experiment(client: MlflowClient, experiment_id: str, name: str) -> 
 
 def run_title(params: Mapping[str, str], tags: Mapping[str, str], shipped: list[str]) -> str:
     """``i2s_assignment · held out cmu_07 · from 1.8.0 · shipped 1.10.0``: recipe, fold, start, versions."""
-    recipe = tags.get("recipe") or params.get("name") or tags.get(RUN_NAME_TAG, "run")
+    recipe = params.get("name") or tags.get(RUN_NAME_TAG, "run").split(" · ")[0]  # a title's first part, again
     parts = [recipe]
     held_out = _listed(params.get("data.test_subjects"))
-    if recipe.endswith("_real_loso"):
-        parts = [recipe.removesuffix("_real_loso"), "leave one person out"]
-    elif "person" in tags:
-        parts.append(f"held out {tags['person']}")
+    if tags.get("real_loso") == "summary":
+        parts.append("leave one person out, the summary")
+    elif "real_loso_held_out" in tags:
+        parts.append(f"held out {tags['real_loso_held_out']}")
     elif held_out:
         parts.append("held out " + ", ".join(held_out))
     real = _listed(params.get("data.real_train_recordings"))
-    if real:
+    if real and "real_loso_held_out" not in tags:  # a fold trains on every other person's
         parts.append(f"+ {len(real)} real recordings")
     start = _start(params, tags)
     if start:
