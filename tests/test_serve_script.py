@@ -7,6 +7,7 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -31,12 +32,12 @@ def _wait(condition, timeout_s: float) -> bool:
 
 def test_sigterm_stops_the_service_the_ui_and_their_children(tmp_path: Path) -> None:
     port, ui_port = free_port(), free_port()
-    env = {
-        **os.environ,
-        "PORT": str(port),
-        "MLFLOW_PORT": str(ui_port),
-        "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}",
-    }
+    store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    env = {**os.environ, "PORT": str(port), "MLFLOW_PORT": str(ui_port), "MLFLOW_TRACKING_URI": store}
+    # A store with a run already: the UI starts without restoring the snapshot (a minute here; tests/training/
+    # test_snapshot.py tests the restore).
+    one_run = "import mlflow; mlflow.set_experiment('serve-test'); mlflow.start_run(); mlflow.end_run()"
+    subprocess.run([sys.executable, "-c", one_run], env=env, cwd=tmp_path, check=True, capture_output=True)
     log = open(tmp_path / "serve.log", "wb")
     proc = subprocess.Popen(["bash", "scripts/serve.sh"], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
     try:
