@@ -30,7 +30,7 @@ def resolve_data_dir(explicit: str | Path | None = None) -> Path:
     if not value:
         raise RuntimeError(
             f"no data directory: pass --data-dir or set {DATA_DIR_ENV} to the folder that holds index.csv "
-            "(in this workplace ../shared/data; elsewhere see README 'Data')"
+            "(docs/data.md: scripts/get_data.sh --dest DIR downloads it)"
         )
     path = Path(value).expanduser().resolve()
     if not (path / "index.csv").is_file():
