@@ -292,9 +292,8 @@ def _restore_registered_model(
         mlflow.set_experiment(experiment_id=client.get_run(rid).info.experiment_id)  # runs of several experiments
         with np.load(model_dir / "golden.npz") as z, mlflow.start_run(run_id=rid):
             end_time = client.get_run(rid).info.end_time
-            info = log_onnx_model(
-                onnx.load(str(model_dir / "model.onnx")), dict(z), read_manifest(model_dir / "manifest.json")
-            )
+            manifest = read_manifest(model_dir / "manifest.json")
+            info = log_onnx_model(onnx.load(str(model_dir / "model.onnx")), dict(z), manifest, None, False)
             mlflow.set_tag("model_uri", info.model_uri)
         client.set_terminated(rid, "FINISHED", end_time=end_time)  # the original end, not now
         tags = {**version["tags"], "original_version": version["version"], "model_dir": str(model_dir)}

@@ -35,17 +35,24 @@ def setup_tracking(experiment: str) -> str:
 
 
 def log_onnx_model(
-    proto: onnx.ModelProto, golden: dict[str, np.ndarray], manifest: Manifest, input_key: str | None = None
+    proto: onnx.ModelProto,
+    golden: dict[str, np.ndarray],
+    manifest: Manifest,
+    input_key: str | None = None,
+    input_example: bool = True,
 ) -> ModelInfo:
-    """Log the active run's ONNX model with its signature and input example (from the golden pair, keyed by the
-    model's first input: ``imu`` for the I2S models, ``features`` for pose, ``counts`` for flex). The manifest
-    rides in the MLmodel metadata, so the service can serve the model straight from the registry."""
+    """Log the active run's ONNX model with its signature and, with ``input_example``, an input example (from the
+    golden pair, keyed by the model's first input: ``imu`` for the I2S models, ``features`` for pose, ``counts`` for
+    flex). The manifest rides in the MLmodel metadata, so the service can serve the model straight from the
+    registry."""
     input_key = input_key or manifest.inputs[0].name
     return mlflow.onnx.log_model(
         onnx_model=proto,
         name="model",
         signature=infer_signature(golden[input_key], golden["expected"]),
-        input_example=golden[input_key][:1],
+        # MLflow runs the model on its input example to check it (seconds per model): a restore, logging files
+        # whose outputs their golden pair fixes, leaves the example out (the signature stays)
+        input_example=golden[input_key][:1] if input_example else None,
         save_as_external_data=False,
         metadata={MLMODEL_METADATA_KEY: manifest.model_dump(mode="json")},
     )
