@@ -17,3 +17,10 @@ def mlflow_server(tmp_path_factory: pytest.TempPathFactory):
     yield uri
     mp.undo()
     stop(proc)
+
+
+@pytest.fixture(scope="session")
+def canonical_cache(tmp_path_factory: pytest.TempPathFactory):
+    """One cache of mocap clips on the canonical body for the pose and flex jobs: the second module reads what
+    the first computed (training.pose.data.build_motions)."""
+    return tmp_path_factory.mktemp("canonical_cache")

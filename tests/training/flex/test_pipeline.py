@@ -25,9 +25,11 @@ TINY = {
 
 
 @pytest.fixture(scope="module")
-def flex_runs(mlflow_server: str, data_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+def flex_runs(
+    mlflow_server: str, data_dir: Path, tmp_path_factory: pytest.TempPathFactory, canonical_cache: Path
+) -> dict:
     models = tmp_path_factory.mktemp("onnx_models")
-    cache = tmp_path_factory.mktemp("pose_cache")
+    cache = canonical_cache
     cfgs = [
         FlexConfig.model_validate({"name": "tiny_flex_cm", "model": {"calibration": True, "median": True}, **TINY}),
         FlexConfig.model_validate({"name": "tiny_flex_fcn", "model": {"kind": "fcn"}, **TINY}),

@@ -21,15 +21,22 @@ from training.pose.pipeline import run_pose_experiment
 REPO = Path(__file__).resolve().parents[3]
 TINY = {
     "data": {"sources": ["cmu_iclone"], "test_subjects": ["cmu_07"], "val_subjects": ["cmu_03"]},
-    "train": {"sequences_per_epoch": 32, "batch_size": 16, "max_epochs": 2, "sequence_frames": 120,
-              "context_frames": 30},
+    "train": {
+        "sequences_per_epoch": 32,
+        "batch_size": 16,
+        "max_epochs": 2,
+        "sequence_frames": 120,
+        "context_frames": 30,
+    },
 }
 
 
 @pytest.fixture(scope="module")
-def shipped(mlflow_server: str, data_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
+def shipped(
+    mlflow_server: str, data_dir: Path, tmp_path_factory: pytest.TempPathFactory, canonical_cache: Path
+) -> dict[str, dict]:
     models = tmp_path_factory.mktemp("onnx_models")
-    cache = tmp_path_factory.mktemp("pose_cache")
+    cache = canonical_cache
     out = {}
     for name, model in (
         ("tiny_full6", {"kind": "bilstm", "hidden": 16, "layers": 1}),
