@@ -10,7 +10,7 @@ for name in pose_full6 pose_full6_stream pose_lower3 pose_lower3_stream; do
 done
 # Comparisons (not shipped), each for at most the epochs its reference ran (13 for pose_lower3, 18 for pose_full6)
 # and no time budget, so that a slower or busier machine compares the same training: axis-angle against 6D at the
-# lower-body size; Vlutters 2016's FFNN against the Bi-LSTM of paper 001 with six sensors (its unidirectional LSTM is
+# lower-body size; Vlutters 2016's FFNN against the Bi-LSTM of Zheng et al. 2021 with six sensors (its unidirectional LSTM is
 # pose_full6_stream, which sees 5 frames ahead).
 python -m training.cli pose-train training/configs/pose_lower3.yaml -s name=pose_lower3_axisangle \
   -s model.representation=axis_angle -s train.max_epochs=13 -s train.time_budget_s=1e9

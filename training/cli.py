@@ -70,7 +70,7 @@ def real_loso(
     eval_max_windows: int | None = typer.Option(None, help="cap each fold's simulated test evaluation"),
     person: list[str] = typer.Option([], "--person", help="run this person's fold only (repeatable; default all)"),
 ) -> None:
-    """Real-data leave-one-person-out (paper 000 §4.3): one tracked fine-tune per real person, trained on
+    """Real-data leave-one-person-out (Zimmermann et al. 2018 §4.3): one tracked fine-tune per real person, trained on
     everyone else and scored on that person; a summary run pools the held-out windows."""
     from training.i2s.pipeline import run_real_loso
 
@@ -109,7 +109,7 @@ def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -
 
     From scratch, or fine-tuning a shipped float32 file (`-s train.init_from_onnx=onnx_models/<name>/<version>`),
     on simulated data alone or mixed with the real recordings the pack carries (`data.real_train_recordings`,
-    `data.real_fraction`: paper 000 §4.3).
+    `data.real_fraction`: Zimmermann et al. 2018 §4.3).
 
     For a GPU machine: `-s train.device=cuda -s train.loader_workers=3` (README "Training on another machine").
     """

@@ -1,4 +1,5 @@
-"""Figures logged to MLflow: confusion matrix, error box plots (paper 000 §3.3 style), learning curves, pose
+"""Figures logged to MLflow: confusion matrix, error box plots (Zimmermann et al. 2018 §3.3 style), learning curves,
+pose
 errors per segment, skeleton snapshots, and the flex figures (errors per joint, angle traces, robustness curves,
 the ablation bars)."""
 

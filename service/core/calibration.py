@@ -13,9 +13,9 @@ Calibration gives ``q_segment_sensor`` per sensor (DESIGN.md §2: v_segment = R_
   demo does. In that pose every segment's frame is known up to the body's heading (N-pose: all segment frames
   equal the body frame; T-pose: the upper arms, forearms and hands turned ±90° about x). The heading is read off
   the pelvis sensor: its axis that points out of the lower back (``back_axis``, default the sensor's +z, the
-  skin normal of paper 000 eq. 8) is posterior, so the body's anterior is its horizontal opposite.
+  skin normal of Zimmermann et al. 2018 eq. 8) is posterior, so the body's anterior is its horizontal opposite.
 
-Features (paper 001 eq. 2–3): every sensor segment's orientation and free acceleration relative to the pelvis,
+Features (Zheng et al. 2021 eq. 2–3): every sensor segment's orientation and free acceleration relative to the pelvis,
 R_root_B = R_W_rootᵀ R_W_B and a_root_B = R_W_rootᵀ (a_W_B − a_W_root). Both are unchanged when the world frame
 turns about the vertical, so no heading calibration between sessions or sensor brands is needed. The pelvis's
 own tilt (world up in the pelvis frame) and free acceleration in the pelvis frame are added: both are
@@ -52,7 +52,7 @@ def segment_readings(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Segment orientations ``(T, N, 3, 3)`` and free accelerations in the world frame ``(T, N, 3)``.
 
-    R_W_segment = R_W_sensor · R_segment_sensorᵀ (paper 001 eq. 1); a_W = R_W_sensor · f_sensor − g_up.
+    R_W_segment = R_W_sensor · R_segment_sensorᵀ (Zheng et al. 2021 eq. 1); a_W = R_W_sensor · f_sensor − g_up.
     """
     R_ws = matrix_from_quat(q_world_sensor)
     R_ss = matrix_from_quat(q_segment_sensor)  # (N, 3, 3) segment ← sensor
@@ -62,7 +62,7 @@ def segment_readings(
 
 
 def pose_features(R_world_segment: np.ndarray, acc_world_mps2: np.ndarray, root: int = 0) -> np.ndarray:
-    """Pelvis-relative features ``(T, F)`` float32 (paper 001 eq. 2–3), sensors in the model's order.
+    """Pelvis-relative features ``(T, F)`` float32 (Zheng et al. 2021 eq. 2–3), sensors in the model's order.
 
     Per non-root sensor: R_root_B flattened row-major (9), then a_root_B / ``ACC_SCALE_MPS2`` (3); for the root:
     world up in the root frame (3), then its free acceleration in its own frame / ``ACC_SCALE_MPS2`` (3).

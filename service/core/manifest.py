@@ -32,7 +32,7 @@ class Evaluation(BaseModel):
 
 
 class PoseSpec(BaseModel):
-    """What an ``imu_pose`` model needs from the service and gives back (paper 001 §4; DESIGN.md §2).
+    """What an ``imu_pose`` model needs from the service and gives back (Zheng et al. 2021 §4; DESIGN.md §2).
 
     The input is ``(batch, frames, features)`` of ``service.core.calibration.pose_features`` for ``sensors`` in
     that order (the first is the root, the Pelvis); the output ``(batch, frames, segments, 3, 3)`` holds the
@@ -94,7 +94,8 @@ class Manifest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     schema_version: int = MANIFEST_SCHEMA_VERSION
     name: str
-    # i2s_*: paper 000. imu_pose (sparse IMUs, paper 001) and flex_pose (flex sensors, paper 004) are served by the
+    # i2s_*: Zimmermann et al. 2018. imu_pose (sparse IMUs, Zheng et al. 2021) and flex_pose (flex sensors, Chen et
+    # al. 2024) are served by the
     # generic pose routes from what the manifest declares: input channels, rate, window, value range, joints.
     task: Literal["i2s_assignment", "i2s_alignment", "imu_pose", "flex_pose"]
     version: str

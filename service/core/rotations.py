@@ -68,7 +68,7 @@ def matrix_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
 def stereographic_to_quat(p: np.ndarray) -> np.ndarray:
     """Inverse stereographic projection ``(..., 3)`` -> unit quaternion ``(..., 4)``.
 
-    Paper 000 §2.2.5 (ref. 56, Terzakis et al.): the projection from the pole (-1, 0, 0, 0) maps
+    Zimmermann et al. 2018 §2.2.5 (ref. 56, Terzakis et al.): the projection from the pole (-1, 0, 0, 0) maps
     q = (w, v) to p = v / (1 + w); its inverse is q = ((1 - |p|^2), 2 p) / (1 + |p|^2).
     """
     p = np.asarray(p, dtype=np.float64)
@@ -84,7 +84,7 @@ def quat_to_stereographic(q_wxyz: np.ndarray) -> np.ndarray:
 
 
 def error_angles_xyz_deg(q_true: np.ndarray, q_pred: np.ndarray) -> np.ndarray:
-    """Absolute error angles about the segment axes, paper 000 §3.3.
+    """Absolute error angles about the segment axes, Zimmermann et al. 2018 §3.3.
 
     The deviation q_true ⊗ q_pred⁻¹ is decomposed into Euler angles of order XYZ (intrinsic, about
     the segment frame's axes); returns ``(N, 3)`` absolute angles in degrees, each in [0, 180].

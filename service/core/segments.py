@@ -1,4 +1,4 @@
-"""The seven lower-body segment classes of paper 000 (§2.1), in its order (DESIGN.md §2)."""
+"""The seven lower-body segment classes of Zimmermann et al. 2018 (§2.1), in its order (DESIGN.md §2)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ SEGMENTS: tuple[str, ...] = (
     "RightFoot",
 )
 
-# Left/right mirror of each class index, for "accuracy ignoring left/right" (paper 000 §4.3.1).
+# Left/right mirror of each class index, for "accuracy ignoring left/right" (Zimmermann et al. 2018 §4.3.1).
 MIRROR: tuple[int, ...] = (6, 5, 4, 3, 2, 1, 0)
 
 # Side-free body part of each class: foot, lower leg, upper leg, pelvis.

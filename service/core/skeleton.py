@@ -1,4 +1,4 @@
-"""Mapping of each mocap skeleton onto paper 000's seven segments, with anatomical segment frames.
+"""Mapping of each mocap skeleton onto Zimmermann et al. 2018's seven segments, with anatomical segment frames.
 
 Segment frames follow DESIGN.md §2: x anterior, y left, z superior in neutral stance, origin at the
 proximal joint. Bone-local axes are not anatomical in every source (iClone rigs; 20° tilted rest
@@ -11,7 +11,7 @@ legs in li2018/cmu_raw), so each segment frame is built in two steps:
    anatomical target on average.
 
 Feet: x is tilted so that the ankle→toe vector reads (0.9, 0, -0.4) in the foot frame, the axis
-paper 000 (§2.4.1) gives for the second metatarsal head.
+Zimmermann et al. 2018 (§2.4.1) gives for the second metatarsal head.
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ class SegmentTrajectories:
     """Global poses of the seven segments (class order of ``SEGMENTS``).
 
     R_world_segment: (T, 7, 3, 3); origin_m: (T, 7, 3) proximal joint; midpoint_m: (T, 7, 3) the
-    middle of the segment axis, where paper 000 places the simulated sensor.
+    middle of the segment axis, where Zimmermann et al. 2018 places the simulated sensor.
     """
 
     R_world_segment: np.ndarray
@@ -211,7 +211,7 @@ def functional_correction(
 
     DESIGN.md §2 wants x anterior, y left and z superior in neutral stance; ``segment_trajectories`` builds that
     from joint positions, which every mocap fit places a little differently per person (toe-out, the ankle→toe
-    line, the hip line). Functional calibration (paper 000 refs. 14-15) reads the same axes off the motion:
+    line, the hip line). Functional calibration (Zimmermann et al. 2018 refs. 14-15) reads the same axes off the motion:
 
     - upper and lower legs: z stays the long axis; y is the dominant axis of the segment's angular velocity
       (the flexion axis in gait), made orthogonal to z; x = y × z;

@@ -25,7 +25,7 @@ QUAT_NORM_TOLERANCE = 0.1  # |q| within 1 ± this is normalised; further off is 
 
 def chunk_plan(n_frames: int, window: int, context: int) -> list[tuple[int, int, int, int]]:
     """Chunks ``(start, stop, keep_from, keep_to)`` (absolute frames) that cover ``n_frames``: each chunk is at most
-    ``window`` long and keeps its middle, ``context`` frames from either end (paper 001: every answer has up to
+    ``window`` long and keeps its middle, ``context`` frames from either end (Zheng et al. 2021: every answer has up to
     150 past and 150 future frames in its 300-frame sequence); the first and last chunks keep their outer ends."""
     if n_frames <= window:
         return [(0, n_frames, 0, n_frames)]

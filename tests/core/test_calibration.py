@@ -45,7 +45,7 @@ def test_declared_alignments_recover_the_segments_and_the_free_acceleration() ->
 
 @pytest.mark.parametrize("heading_deg", [37.0, 90.0, -150.0])
 def test_features_do_not_change_when_the_sensors_world_turns_about_the_vertical(heading_deg: float) -> None:
-    """ENU, NWU, or a magnetometer-free heading: the same motion gives the same features (paper 001 eq. 2-3)."""
+    """ENU, NWU, or a magnetometer-free heading: the same motion gives the same features (Zheng et al. 2021 eq. 2-3)."""
     rng = np.random.default_rng(1)
     R_seg, a = _random_motion(rng)
     R_ss = Rotation.random(6, random_state=rng).as_matrix()

@@ -136,7 +136,7 @@ def test_rest_pose_with_a_still_npose_calibration(server: str, data_dir: Path) -
         np.concatenate([still.midpoint_m, walk.midpoint_m]),
         60.0,
     )
-    # a resting MEMS accelerometer is far quieter than the σ 1 m/s² that training adds (paper 000 §2.4.2)
+    # a resting MEMS accelerometer is far quieter than the σ 1 m/s² that training adds (Zimmermann et al. 2018 §2.4.2)
     raw = simulate_sensors(motion, LOWER, np.random.default_rng(3), SensorNoise(acc_sigma_mps2=0.05, offset_m=0.0))
     # the pelvis sensor's back axis, in its own frame: the pelvis's posterior (−x) seen from the sensor
     back = matrix_from_quat(raw.q_segment_sensor[0]).T @ np.array([-1.0, 0.0, 0.0])

@@ -1,7 +1,8 @@
 """A confidence that knows when it does not know: the probability that a session's joint sensor assignment is
 right, calibrated on people the model never trained on, and how long a live session takes to reach it.
 
-Paper 000 gives each window a softmax and the trial a joint answer (§2.2, §3.3), but no probability that the
+Zimmermann et al. 2018 gives each window a softmax and the trial a joint answer (§2.2, §3.3), but no probability that
+the
 answer is right. The summed window log-probabilities of ``joint_assignment`` are no such probability: windows
 overlap and agree with each other, so their softmax reaches 1 within seconds, right or wrong. Here:
 

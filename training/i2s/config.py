@@ -17,8 +17,8 @@ _Strict = Strict  # the I2S sections below predate the common name
 class DataConfig(_Strict):
     activities: list[str] = Field(default_factory=lambda: ["walk"])
     test_subjects: list[str] = Field(default_factory=list)  # LOSO: subject groups held out for testing
-    val_fraction: float = 0.05  # paper 000 §3.3: 95 % / 5 % training / validation split (by clip)
-    # Real recordings mixed into training (paper 000 §4.3, assignment only); never evaluated on.
+    val_fraction: float = 0.05  # Zimmermann et al. 2018 §3.3: 95 % / 5 % training / validation split (by clip)
+    # Real recordings mixed into training (Zimmermann et al. 2018 §4.3, assignment only); never evaluated on.
     real_train_recordings: list[str] = Field(default_factory=list)
     real_fraction: float = Field(0.0, ge=0.0, lt=1.0)  # share of each batch drawn from them
     # the real recordings a run's evaluation scores (None: every one it did not train on); a short list makes a

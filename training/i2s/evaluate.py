@@ -1,4 +1,4 @@
-"""Evaluation of an exported model the way paper 000 §3.3 does: on every window × segment × eq. 8
+"""Evaluation of an exported model the way Zimmermann et al. 2018 §3.3 does: on every window × segment × eq. 8
 alignment of held-out subjects (LOSO), through onnxruntime, i.e. on the artefact that ships.
 """
 
@@ -140,7 +140,8 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     Windows whose gyroscope is still (``is_moving``) are counted, not scored: they carry no gait
     information (DESIGN.md §5). Per recording and per sensor (``accuracy/<recording>/<segment>``) too, and per
     recording the share of moving leg windows that turn about the vertical (``turns_about_vertical``).
-    Two answers per moving window: the window's own (``real_accuracy``, paper 000's per-window figure) and the
+    Two answers per moving window: the window's own (``real_accuracy``, Zimmermann et al. 2018's per-window figure)
+    and the
     one-to-one answer of the windows the recording's sensors took at that moment (``real_window_joint_*``,
     ``window_joint_assignment``), which is what ``/v1/imu/assign`` returns per window. A third,
     ``real_window_joint_worn_*``, is that answer when the user declares which segments carry the sensors (the

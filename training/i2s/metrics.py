@@ -1,4 +1,4 @@
-"""Evaluation metrics of paper 000 §3.3."""
+"""Evaluation metrics of Zimmermann et al. 2018 §3.3."""
 
 from __future__ import annotations
 

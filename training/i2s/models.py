@@ -1,4 +1,4 @@
-"""The networks of paper 000 §2.2 and Table A1: a shared CNN front end, a GRU for assignment and a
+"""The networks of Zimmermann et al. 2018 §2.2 and Table A1: a shared CNN front end, a GRU for assignment and a
 2-layer LSTM for alignment, plus our optional ``CanonicalFrame`` in front of either (not in the paper; README
 "Canonical frame"). Only the models live here; training is in ``training.i2s.train``.
 """
@@ -113,7 +113,8 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 class CanonicalFrame(nn.Module):
     """A frame computed from the window itself, so the network only has to learn what is left over.
 
-    Not in paper 000; our addition (README "Canonical frame"). z_c is the mean specific force (gravity, up to the
+    Not in Zimmermann et al. 2018; our addition (README "Canonical frame"). z_c is the mean specific force (gravity,
+    up to the
     motion's mean acceleration); y_c is the dominant axis of the angular velocity in the plane normal to z_c
     (for the legs the flexion axis, the segment's y), signed so that the third moment of ω·y_c is positive
     (the swing phase is faster than the stance); x_c = y_c × z_c. Returned is ``R_c`` ``(B, 3, 3)`` with rows
@@ -138,7 +139,7 @@ class CanonicalFrame(nn.Module):
 
 
 class AssignmentNet(nn.Module):
-    """CNN → GRU(128) → linear → 7 logits in ``SEGMENTS`` order (paper 000 Fig. 2, Table A1).
+    """CNN → GRU(128) → linear → 7 logits in ``SEGMENTS`` order (Zimmermann et al. 2018 Fig. 2, Table A1).
 
     With ``canonical=True`` the window is first rotated into its ``CanonicalFrame`` (our addition), so the
     network no longer has to learn invariance to how the sensor is mounted.
@@ -221,7 +222,8 @@ class AssignmentNet(nn.Module):
 
 class AssignmentEnsemble(nn.Module):
     """Trained assignment networks whose class probabilities are averaged with equal weights (our addition, not
-    in paper 000). ``forward`` returns the log of the mean probability, as an averaged ``AssignmentNet`` does.
+    in Zimmermann et al. 2018). ``forward`` returns the log of the mean probability, as an averaged ``AssignmentNet``
+    does.
 
     Each member keeps its own turn averages, so the passes are the sum of the members'. It is assembled from
     shipped members (``train.ensemble_of``, ``training.i2s.warmstart``), not trained as a whole: members that learnt
@@ -294,7 +296,7 @@ def _lagged(a: torch.Tensor, b: torch.Tensor, lags: Sequence[int]) -> torch.Tens
 class FunctionalAxes(nn.Module):
     """Turns predicted segment frames about their own z onto the axes that the window's motion defines.
 
-    Our addition, not in paper 000 (README "Functional axes"). The functional segment frames
+    Our addition, not in Zimmermann et al. 2018 (README "Functional axes"). The functional segment frames
     (``service.core.skeleton.functional_correction``, the training labels) read y of the upper legs, lower legs
     and feet, and x of the pelvis, off the clip's motion; the same quantities are in the window itself, and
     measured there they do not depend on how a person's joints were fitted. The network's z (and with it the
@@ -445,7 +447,7 @@ class AlignmentNet(nn.Module):
 
 
 def stereographic_to_quat(p: torch.Tensor) -> torch.Tensor:
-    """q = (1 - |p|², 2p) / (1 + |p|²), then w ≥ 0 (ref. 56 of paper 000); ``(..., 3)`` → ``(..., 4)``."""
+    """q = (1 - |p|², 2p) / (1 + |p|²), then w ≥ 0 (ref. 56 of Zimmermann et al. 2018); ``(..., 3)`` → ``(..., 4)``."""
     n2 = (p * p).sum(-1, keepdim=True)
     q = torch.cat([1.0 - n2, 2.0 * p], dim=-1) / (1.0 + n2)
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0)

@@ -158,7 +158,8 @@ def run_real_loso(
     eval_max_windows: int | None = None,
     people: list[str] | None = None,
 ) -> tuple[str, dict[str, dict[str, float]]]:
-    """Paper 000 §4.3 on the real recordings: leave one person out. A person is a ``RealRecording.subject`` (the
+    """Zimmermann et al. 2018 §4.3 on the real recordings: leave one person out. A person is a
+    ``RealRecording.subject`` (the
     capacitive subject, the x-IMU3 person, each of gaitmap's walkers, each MovingReality participant), so every
     fold is scored on a person no real training window came from. Each fold is a full tracked run of ``cfg``
     (simulated data plus every other person's recordings, ``data.real_fraction`` of each batch), tagged

@@ -106,7 +106,7 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
             "train_wall_time_s": run.data.metrics.get("train_wall_time_s"),
             "best_epoch": run.data.metrics.get("best_epoch"),
         }
-        # real recordings the network trained on (paper 000 §4.3); no real-data evaluation may use them
+        # real recordings the network trained on (Zimmermann et al. 2018 §4.3); no real-data evaluation may use them
         | ({"real_train_recordings": cfg.data.real_train_recordings} if cfg.data.real_train_recordings else {}),
         mlflow=mlflow_info,
         exporter={

@@ -1,4 +1,4 @@
-"""Training loop for the paper 000 networks: fresh simulated windows every step, Adam with L2,
+"""Training loop for the Zimmermann et al. 2018 networks: fresh simulated windows every step, Adam with L2,
 early stopping on a fixed validation set, seeded and reproducible (fixed thread count, device and loader workers).
 
 ``save_fitted`` / ``load_fitted`` carry a finished training from a machine without the tracking store (a GPU box
@@ -81,7 +81,7 @@ def task_loss(task: str, output: torch.Tensor, segment: torch.Tensor, q_true: to
 def stereographic_l2_loss(
     model: AlignmentNet, imu: torch.Tensor, segment: torch.Tensor, q_true: torch.Tensor
 ) -> torch.Tensor:
-    """Paper 000 §2.2.5: L2 on the stereographic projection p, target from the w ≥ 0 quaternion."""
+    """Zimmermann et al. 2018 §2.2.5: L2 on the stereographic projection p, target from the w ≥ 0 quaternion."""
     p, R_c = model.stereographic(imu)
     if R_c is not None:
         raise ValueError("alignment_loss stereographic_l2 needs a net without canonical frame (train.canonical_frame)")
@@ -200,7 +200,8 @@ def train(
     real_val: RealWindowSampler | None = None,
 ) -> TrainResult:
     """Train one model; ``init_state`` warm-starts it and ``real`` mixes real windows into every batch
-    (``cfg.data.real_fraction`` of it): pre-training then fine-tuning as in paper 000 §4.3. ``real_val`` joins
+    (``cfg.data.real_fraction`` of it): pre-training then fine-tuning as in Zimmermann et al. 2018 §4.3. ``real_val``
+    joins
     the validation in the same share, so early stopping and the warm start's epoch 0 are judged on real windows
     too (reported alone as ``val_real_*``)."""
     if (real is not None or real_val is not None) and cfg.task != "assignment":

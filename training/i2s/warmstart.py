@@ -1,4 +1,5 @@
-"""Warm-start an ``AssignmentNet`` or ``AlignmentNet`` from a shipped ONNX model (paper 000 §4.3 fine-tuning from
+"""Warm-start an ``AssignmentNet`` or ``AlignmentNet`` from a shipped ONNX model (Zimmermann et al. 2018 §4.3
+fine-tuning from
 any release, on a fresh clone whose restored runs carry no checkpoints), and assemble an ``AssignmentEnsemble`` from
 shipped members.
 

@@ -10,7 +10,8 @@ from pydantic import Field, model_validator
 from service.core.body import BODY_SEGMENTS
 from training.config import Strict, TrackingConfig, read_yaml
 
-SIX_SENSORS = ["Pelvis", "Head", "LeftForeArm", "RightForeArm", "LeftLowerLeg", "RightLowerLeg"]  # paper 001 §7.2
+SIX_SENSORS = ["Pelvis", "Head", "LeftForeArm", "RightForeArm", "LeftLowerLeg", "RightLowerLeg"]  # Zheng et al. 2021
+# §7.2
 
 
 class PoseDataConfig(Strict):
@@ -22,7 +23,7 @@ class PoseDataConfig(Strict):
     test_activities_of_unlabelled: dict[str, list[str]] = Field(default_factory=lambda: {"cmu_li2018": ["run"]})
     sources: list[str] | None = None  # None: every mocap source of the data directory
     # Frames per activity beyond which an activity's clips are drawn less often (Bandai-Namco waves and raises a
-    # hand for 2.2 h of its 3.9 h): a simple balance, not paper 001's selection algorithm (eq. 4-13).
+    # hand for 2.2 h of its 3.9 h): a simple balance, not Zheng et al. 2021's selection algorithm (eq. 4-13).
     activity_cap_frames: int = 72_000
 
 
@@ -31,12 +32,12 @@ class PoseModelConfig(Strict):
     representation: Literal["6d", "axis_angle"] = "6d"
     hidden: int = 256
     layers: int = 2
-    input_dropout: float = 0.2  # paper 001 §4.2
+    input_dropout: float = 0.2  # Zheng et al. 2021 §4.2
     look_ahead: int = Field(0, ge=0, le=30)  # lstm: frames of future it sees (streaming: 5)
 
 
 class PoseTrainConfig(Strict):
-    sequence_frames: int = 300  # paper 001 §4.2
+    sequence_frames: int = 300  # Zheng et al. 2021 §4.2
     context_frames: int = 75  # offline inference keeps this much past and future around each chunk's answers
     batch_size: int = 32
     sequences_per_epoch: int = 1024

@@ -1,4 +1,5 @@
-"""Pose metrics, per clip and per motion type and held-out subject (paper 001 Table 1; DIP 2018, TransPose 2021).
+"""Pose metrics, per clip and per motion type and held-out subject (Zheng et al. 2021 Table 1; DIP 2018, TransPose
+2021).
 
 For each clip one fixed simulated session (``train.fixed_sessions``) goes through the predictor; the answer is
 assembled into the whole body the way the service assembles it (``service.inference.pose.whole_body``: the
@@ -6,7 +7,7 @@ sensors' segments as measured, the others the measured pelvis times the model's 
 
 - ``angle_all_deg``: mean geodesic angle between predicted and true global segment orientations over every
   segment the model covers (sensors and outputs); ``angle_unsensed_deg``: over the output segments only
-  (paper 001 Table 1 reports "the relative rotation angle between the reconstructed pose and the actual pose");
+  (Zheng et al. 2021 Table 1 reports "the relative rotation angle between the reconstructed pose and the actual pose");
   ``angle_major_deg``: over the covered segments without pelvis, hands, feet and toes, the joint set of DIP's and
   TransPose's angular error;
 - ``sip_deg``: the same over the upper arms and upper legs (SIP error, DIP 2018 / TransPose 2021);

@@ -1,10 +1,10 @@
-"""Pose networks: paper 001's Bi-LSTM, paper 003's LSTM and feed-forward network, and a streaming LSTM.
+"""Pose networks: Zheng et al. 2021's Bi-LSTM, Vlutters 2016's LSTM and feed-forward network, and a streaming LSTM.
 
 All map pelvis-relative features ``(B, T, F)`` (``service.core.calibration.pose_features``) to the pelvis-relative
 orientations of the output segments as rotation matrices ``(B, T, S, 3, 3)``. Feature standardisation (training
 mean and std) sits inside the graph, so the exported ONNX takes the features as the service computes them.
 
-- ``bilstm`` (paper 001 §4.2, Fig. 2, after Huang et al. 2018, DIP): input dropout 0.2, a dense layer with ReLU,
+- ``bilstm`` (Zheng et al. 2021 §4.2, Fig. 2, after Huang et al. 2018, DIP): input dropout 0.2, a dense layer with ReLU,
   two bidirectional LSTM layers, a dense output. Fig. 2's numbers are missing from our copy of the paper; DIP
   uses 512 units, we use ``hidden`` (256 on two CPU cores). Trained on 300-frame sequences (150 past, 150 future).
 - ``lstm`` (Vlutters 2016 §IV-C; unidirectional): the same without the backward direction. With
@@ -13,7 +13,7 @@ mean and std) sits inside the graph, so the exported ONNX takes the features as 
 - ``ffn`` (Vlutters 2016 §IV-C): one frame in, one hidden ReLU layer, dropout 0.5 on the input, linear out.
 
 Output representation: ``6d`` (the first two columns, Gram–Schmidt; Zhou et al. 2019) or ``axis_angle``
-(paper 001's choice; Rodrigues' formula), both turned into matrices in the graph so the loss and the
+(Zheng et al. 2021's choice; Rodrigues' formula), both turned into matrices in the graph so the loss and the
 service see the same thing.
 """
 

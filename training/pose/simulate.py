@@ -1,4 +1,4 @@
-"""Virtual IMUs on the canonical body and the model's inputs and targets (paper 001 §4.1; TransPose 2021).
+"""Virtual IMUs on the canonical body and the model's inputs and targets (Zheng et al. 2021 §4.1; TransPose 2021).
 
 A session of one clip draws, per sensor: a sensor-to-segment rotation (uniform over SO(3): the calibration takes
 it out), an offset from the segment midpoint, accelerometer and gyroscope bias, and a small error of the
@@ -11,7 +11,8 @@ Acceleration of the sensor's position, two ways (``acc_method``):
 
 - ``finite_difference``: TransPose's smoothed second difference a(t) = (x(t−n) + x(t+n) − 2x(t)) / (nΔt)², n = 4
   at 60 Hz (TransPose `articulate` synthesis);
-- ``butterworth``: the I2S pipeline's zero-lag Butterworth (order 8, 10 Hz; paper 000 §2.4.2), then a central
+- ``butterworth``: the I2S pipeline's zero-lag Butterworth (order 8, 10 Hz; Zimmermann et al. 2018 §2.4.2), then a
+central
   second difference.
 
 ``docs/pose.md`` compares them on CMU and Bandai-Namco (``python -m training.cli pose-acc-check``).
@@ -35,7 +36,8 @@ from service.core.units import GRAVITY_MPS2
 
 @dataclass(frozen=True)
 class SensorNoise:
-    """Per-session draws. Ranges: acc noise σ 1 m/s² (paper 000 §2.4.2: variance 1 m²/s⁴); acc bias ±0.2 m/s² and
+    """Per-session draws. Ranges: acc noise σ 1 m/s² (Zimmermann et al. 2018 §2.4.2: variance 1 m²/s⁴); acc bias ±0.2
+    m/s² and
     gyro bias ±0.02 rad/s per axis (assumed, MEMS class after factory calibration); gyro noise σ 0.01 rad/s
     (assumed); fusion error of the sensor's own orientation up to 2° tilt and 5° heading per sensor (assumed;
     Xsens MTw spec: 0.75° roll/pitch, 1.5° heading, static); calibration error of the declared alignment up to 5°
@@ -134,7 +136,7 @@ def declared_alignment(readings: RawReadings, rng: np.random.Generator, error_de
 
 
 def root_relative_targets(motion: BodyMotion, output_segments: Sequence[str]) -> np.ndarray:
-    """R_root_segment ``(T, S_out, 3, 3)`` of the true motion (paper 001 eq. 2)."""
+    """R_root_segment ``(T, S_out, 3, 3)`` of the true motion (Zheng et al. 2021 eq. 2)."""
     idx = [BODY_SEGMENTS.index(s) for s in output_segments]
     R = motion.R_world_segment
     return np.einsum("tji,tsjk->tsik", R[:, 0], R[:, idx])

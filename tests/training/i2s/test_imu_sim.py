@@ -1,4 +1,4 @@
-"""Property tests of the paper 000 simulation that can fail: rest, known spin, gyro integration."""
+"""Property tests of the Zimmermann et al. 2018 simulation that can fail: rest, known spin, gyro integration."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""IMU simulation from segment trajectories, paper 000 §2.3–2.4.
+"""IMU simulation from segment trajectories, Zimmermann et al. 2018 §2.3–2.4.
 
 Pipeline per clip (``segment_kinematics``): zero-lag Butterworth (order 8, 10 Hz) on the segment
 trajectories, resampling to 60 Hz, numerical differentiation to linear and angular velocity and
@@ -8,7 +8,7 @@ stores; the readings of a sensor with alignment R_SI (eq. 8) and position offset
     acc_I = R_SIᵀ (a_S + α_S × r + ω_S × (ω_S × r) + up_S),   gyr_I = R_SIᵀ ω_S,
 
 where up_S = R_WSᵀ (0, 0, 9.81) is the specific force of gravity (a resting sensor reads +9.81 along
-world up). Quantisation mimics the Xsens MTw Awinda of paper 000 [57] (``SensorSpec``); the
+world up). Quantisation mimics the Xsens MTw Awinda of Zimmermann et al. 2018 [57] (``SensorSpec``); the
 accelerometer gets zero-mean Gaussian noise of variance 1 m²/s⁴ (§2.4.2).
 """
 
@@ -59,7 +59,7 @@ def _continuous_quats(R: np.ndarray) -> np.ndarray:
 
 
 def lowpass_segments(traj: SegmentTrajectories, cutoff_hz: float = 10.0, order: int = 8) -> SegmentTrajectories:
-    """Zero-lag Butterworth on positions and (sign-continuous) quaternions, paper 000 §2.4.2."""
+    """Zero-lag Butterworth on positions and (sign-continuous) quaternions, Zimmermann et al. 2018 §2.4.2."""
     sos = butter(order, cutoff_hz, fs=traj.sample_rate_hz, output="sos")
     R = np.empty_like(traj.R_world_segment)
     for s in range(traj.R_world_segment.shape[1]):
@@ -95,7 +95,8 @@ _SAGITTAL = np.array([1.0, -1.0, 1.0])
 
 
 def mirrored(kin: SegmentKinematics) -> SegmentKinematics:
-    """The same clip performed by the mirror-image body: left and right legs swap (our addition, not paper 000).
+    """The same clip performed by the mirror-image body: left and right legs swap (our addition, not Zimmermann et al.
+    2018).
 
     Reflecting the whole scene through a vertical plane M = diag(1, −1, 1) is a valid motion under gravity,
     and turns each left segment into a right one whose frame (x anterior, y left, z up) is R' = M R M. In
@@ -119,7 +120,8 @@ LEG_CHAIN = {"left": (0, 1, 2), "right": (6, 5, 4)}
 
 
 def stiffened_knee(traj: SegmentTrajectories, side: str, keep: float) -> SegmentTrajectories:
-    """The clip with one knee braced: only ``keep`` (0–1) of its flexion is left (our addition, not paper 000).
+    """The clip with one knee braced: only ``keep`` (0–1) of its flexion is left (our addition, not Zimmermann et al.
+    2018).
 
     Rehabilitation users walk with braced or stiff knees (the capacitive data set's ``walk_stiffknee`` trials);
     no CMU clip shows it. The shank's rotation relative to the thigh is scaled along its geodesic,
@@ -223,7 +225,7 @@ def imu_readings(
     return np.concatenate([acc_i, gyr_i], axis=-1)
 
 
-# ---- soft-tissue artefact (our addition, not in paper 000) --------------------------------------------
+# ---- soft-tissue artefact (our addition, not in Zimmermann et al. 2018) --------------------------------------------
 
 # Share of the configured artefact each segment gets: skin and muscle move most over the thigh, less over the
 # shank and pelvis, least over the foot (the pattern of the soft-tissue-artefact literature, e.g. Leardini et al.

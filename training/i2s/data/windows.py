@@ -42,7 +42,7 @@ _MAX_MOVING_ROUNDS = 20  # moving_only: batches drawn before giving up on a near
 
 
 class Augmentation(BaseModel):
-    """Per-window randomisation of the simulation; zeros and ones reproduce paper 000 exactly."""
+    """Per-window randomisation of the simulation; zeros and ones reproduce Zimmermann et al. 2018 exactly."""
 
     model_config = ConfigDict(extra="forbid")
     alignment: str = "continuous"  # "grid": eq. 8's 64 variations; "continuous": θ₁, θ₂ uniform
@@ -53,14 +53,15 @@ class Augmentation(BaseModel):
     gain_std: float = 0.0  # per-axis scale-factor error
     acc_bias_std_mps2: float = 0.0
     gyr_bias_std_rads: float = 0.0
-    acc_noise_std_mps2: float = 1.0  # paper 000 §2.4.2: variance 1 m²/s⁴
+    acc_noise_std_mps2: float = 1.0  # Zimmermann et al. 2018 §2.4.2: variance 1 m²/s⁴
     gyr_noise_std_rads: float = 0.0
     mirror: bool = False  # also draw from every clip's mirror image, left and right swapped (``mirrored``)
     # Share of windows drawn from the walking clips' stiff-knee variants (``stiffened_knee``; 0: none built),
     # and the most knee flexion such a variant keeps.
     stiff_knee_share: float = Field(0.0, ge=0.0, lt=1.0)
     stiff_knee_keep_max: float = Field(0.4, ge=0.0, le=1.0)
-    # Soft-tissue artefact (``soft_tissue_motion``; our addition, not in paper 000): per window the sensor turns and
+    # Soft-tissue artefact (``soft_tissue_motion``; our addition, not in Zimmermann et al. 2018): per window the
+    # sensor turns and
     # moves on its segment with the segment's own accelerations through a resonance of 4–12 Hz; the RMS rotation
     # and displacement are uniform up to these values for the thigh, scaled down for the other segments
     # (``SOFT_TISSUE_SHARE``). 0: off.
@@ -297,7 +298,7 @@ def real_window_samplers(
     cfg: ExperimentConfig, recordings: list[RealRecording]
 ) -> tuple[RealWindowSampler | None, RealWindowSampler | None]:
     """Training and validation windows of the real training recordings (those ``data.real_train_recordings``
-    names, paper 000 §4.3 fine-tuning), split in time by ``data.real_val_fraction``; (None, None) without
+    names, Zimmermann et al. 2018 §4.3 fine-tuning), split in time by ``data.real_val_fraction``; (None, None) without
     recordings or when ``data.real_fraction`` is 0."""
     if not recordings or cfg.data.real_fraction == 0:
         return None, None
