@@ -1,6 +1,5 @@
 """Figures logged to MLflow: confusion matrix, error box plots (Zimmermann et al. 2018 §3.3 style), learning curves,
-pose
-errors per segment, skeleton snapshots, and the flex figures (errors per joint, angle traces, robustness curves,
+pose errors per segment, skeleton snapshots, and the flex figures (errors per joint, angle traces, robustness curves,
 the ablation bars)."""
 
 from __future__ import annotations

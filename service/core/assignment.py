@@ -172,9 +172,8 @@ def window_joint_assignment(
     there moves share out the K segments (or the declared ones, ``allowed_segments``) one-to-one (the answer that
     maximises their summed log-probability); a still window, or one left over when more windows move than there
     are segments for them, gets -1. Zimmermann et al. 2018 classifies every window on its own (§2.2) and names the
-    left/right
-    switches that this leaves as future work (§5); the sensors of one body cannot sit on the same segment, so at
-    one moment their windows constrain each other. ``allow_shared`` (as in ``joint_assignment``) gives each moving
+    left/right switches that this leaves as future work (§5); the sensors of one body cannot sit on the same segment, so
+    at one moment their windows constrain each other. ``allow_shared`` (as in ``joint_assignment``) gives each moving
     window its own best allowed class instead.
 
     Returns one ``(N_s,)`` int array per sensor.

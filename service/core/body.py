@@ -101,8 +101,8 @@ for _s in BODY_SEGMENTS:
         _AXIS_RULE[_s] = "foot"
     _AXIS_RULE.setdefault(_s, "down")
 _AXIS_RULE.pop("Pelvis")
-FOOT_AXIS = np.array([0.9, 0.0, -0.4]) / np.linalg.norm([0.9, 0.0, -0.4])  # Zimmermann et al. 2018 §2.4.1, as in
-# skeleton.py
+# Zimmermann et al. 2018 §2.4.1, as in skeleton.py
+FOOT_AXIS = np.array([0.9, 0.0, -0.4]) / np.linalg.norm([0.9, 0.0, -0.4])
 
 
 class MappingError(ValueError):

@@ -94,9 +94,9 @@ class Manifest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     schema_version: int = MANIFEST_SCHEMA_VERSION
     name: str
-    # i2s_*: Zimmermann et al. 2018. imu_pose (sparse IMUs, Zheng et al. 2021) and flex_pose (flex sensors, Chen et
-    # al. 2024) are served by the
-    # generic pose routes from what the manifest declares: input channels, rate, window, value range, joints.
+    # i2s_*: Zimmermann et al. 2018. imu_pose (sparse IMUs, Zheng et al. 2021) and flex_pose (flex sensors, Chen et al.
+    # 2024) are served by the generic pose routes from what the manifest declares: input channels, rate, window, value
+    # range, joints.
     task: Literal["i2s_assignment", "i2s_alignment", "imu_pose", "flex_pose"]
     version: str
     created_utc: str

@@ -2,8 +2,7 @@
 right, calibrated on people the model never trained on, and how long a live session takes to reach it.
 
 Zimmermann et al. 2018 gives each window a softmax and the trial a joint answer (§2.2, §3.3), but no probability that
-the
-answer is right. The summed window log-probabilities of ``joint_assignment`` are no such probability: windows
+the answer is right. The summed window log-probabilities of ``joint_assignment`` are no such probability: windows
 overlap and agree with each other, so their softmax reaches 1 within seconds, right or wrong. Here:
 
 1. The leave-one-person-out folds of ``training.i2s.pipeline.run_real_loso`` each predict their held-out person's

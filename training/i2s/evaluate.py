@@ -140,16 +140,15 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     Windows whose gyroscope is still (``is_moving``) are counted, not scored: they carry no gait
     information (DESIGN.md §5). Per recording and per sensor (``accuracy/<recording>/<segment>``) too, and per
     recording the share of moving leg windows that turn about the vertical (``turns_about_vertical``).
-    Two answers per moving window: the window's own (``real_accuracy``, Zimmermann et al. 2018's per-window figure)
-    and the
-    one-to-one answer of the windows the recording's sensors took at that moment (``real_window_joint_*``,
+    Two answers per moving window: the window's own (``real_accuracy``, Zimmermann et al. 2018's per-window figure) and
+    the one-to-one answer of the windows the recording's sensors took at that moment (``real_window_joint_*``,
     ``window_joint_assignment``), which is what ``/v1/imu/assign`` returns per window. A third,
-    ``real_window_joint_worn_*``, is that answer when the user declares which segments carry the sensors (the
-    service's ``worn_segments``) but not which sensor is where: it differs from the second only for recordings
-    with sensors on fewer than seven segments (gaitmap's two feet). A fourth, ``real_window_joint_part_*``, is that
-    answer when each sensor declares its body part but not its side (the service's ``candidate_segments``: both
-    feet, both shanks, both thighs, or the pelvis): it scores how well the left/right question alone is answered.
-    Returns metrics and the confusion matrix of moving windows (the windows' own answers).
+    ``real_window_joint_worn_*``, is that answer when the user declares which segments carry the sensors (the service's
+    ``worn_segments``) but not which sensor is where: it differs from the second only for recordings with sensors on
+    fewer than seven segments (gaitmap's two feet). A fourth, ``real_window_joint_part_*``, is that answer when each
+    sensor declares its body part but not its side (the service's ``candidate_segments``: both feet, both shanks, both
+    thighs, or the pelvis): it scores how well the left/right question alone is answered. Returns metrics and the
+    confusion matrix of moving windows (the windows' own answers).
     """
     y_true, y_pred, y_joint, y_worn, y_part, metrics = [], [], [], [], [], {}
     joint_correct = joint_total = still = 0

@@ -113,14 +113,13 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 class CanonicalFrame(nn.Module):
     """A frame computed from the window itself, so the network only has to learn what is left over.
 
-    Not in Zimmermann et al. 2018; our addition (README "Canonical frame"). z_c is the mean specific force (gravity,
-    up to the
-    motion's mean acceleration); y_c is the dominant axis of the angular velocity in the plane normal to z_c
-    (for the legs the flexion axis, the segment's y), signed so that the third moment of ω·y_c is positive
-    (the swing phase is faster than the stance); x_c = y_c × z_c. Returned is ``R_c`` ``(B, 3, 3)`` with rows
-    x_c, y_c, z_c in sensor coordinates, i.e. v_c = R_c · v_imu. On sensor data simulated from the training
-    clips, R_segment_imu · R_cᵀ is then constant per segment to within a few degrees, up to a 180° turn about
-    z_c that the network resolves (it sees the window expressed in the canonical frame).
+    Not in Zimmermann et al. 2018; our addition (README "Canonical frame"). z_c is the mean specific force (gravity, up
+    to the motion's mean acceleration); y_c is the dominant axis of the angular velocity in the plane normal to z_c (for
+    the legs the flexion axis, the segment's y), signed so that the third moment of ω·y_c is positive (the swing phase
+    is faster than the stance); x_c = y_c × z_c. Returned is ``R_c`` ``(B, 3, 3)`` with rows x_c, y_c, z_c in sensor
+    coordinates, i.e. v_c = R_c · v_imu. On sensor data simulated from the training clips, R_segment_imu · R_cᵀ is then
+    constant per segment to within a few degrees, up to a 180° turn about z_c that the network resolves (it sees the
+    window expressed in the canonical frame).
     """
 
     def forward(self, imu: torch.Tensor) -> torch.Tensor:

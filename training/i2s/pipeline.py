@@ -158,15 +158,13 @@ def run_real_loso(
     eval_max_windows: int | None = None,
     people: list[str] | None = None,
 ) -> tuple[str, dict[str, dict[str, float]]]:
-    """Zimmermann et al. 2018 §4.3 on the real recordings: leave one person out. A person is a
-    ``RealRecording.subject`` (the
-    capacitive subject, the x-IMU3 person, each of gaitmap's walkers, each MovingReality participant), so every
-    fold is scored on a person no real training window came from. Each fold is a full tracked run of ``cfg``
-    (simulated data plus every other person's recordings, ``data.real_fraction`` of each batch), tagged
-    ``real_loso_held_out``; a summary run pools the held-out windows (``pooled_*``, weighted by window count; and
-    per source, ``<source>.pooled_*``) and logs the per-person bars. ``people`` runs those folds only (each still
-    trains on everyone else). Returns the summary run id and the per-person figures (keys ``pooled`` and
-    ``pooled/<source>``)."""
+    """Zimmermann et al. 2018 §4.3 on the real recordings: leave one person out. A person is a ``RealRecording.subject``
+    (the capacitive subject, the x-IMU3 person, each of gaitmap's walkers, each MovingReality participant), so every
+    fold is scored on a person no real training window came from. Each fold is a full tracked run of ``cfg`` (simulated
+    data plus every other person's recordings, ``data.real_fraction`` of each batch), tagged ``real_loso_held_out``; a
+    summary run pools the held-out windows (``pooled_*``, weighted by window count; and per source,
+    ``<source>.pooled_*``) and logs the per-person bars. ``people`` runs those folds only (each still trains on everyone
+    else). Returns the summary run id and the per-person figures (keys ``pooled`` and ``pooled/<source>``)."""
     if cfg.task != "assignment" or cfg.data.real_fraction <= 0.0:
         raise ValueError(
             f"real-data folds train assignment with data.real_fraction > 0; got task {cfg.task}, "

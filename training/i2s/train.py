@@ -201,8 +201,7 @@ def train(
 ) -> TrainResult:
     """Train one model; ``init_state`` warm-starts it and ``real`` mixes real windows into every batch
     (``cfg.data.real_fraction`` of it): pre-training then fine-tuning as in Zimmermann et al. 2018 §4.3. ``real_val``
-    joins
-    the validation in the same share, so early stopping and the warm start's epoch 0 are judged on real windows
+    joins the validation in the same share, so early stopping and the warm start's epoch 0 are judged on real windows
     too (reported alone as ``val_real_*``)."""
     if (real is not None or real_val is not None) and cfg.task != "assignment":
         raise ValueError("real recordings carry no alignment labels; mix them into assignment training only")

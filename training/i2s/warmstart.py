@@ -1,7 +1,6 @@
 """Warm-start an ``AssignmentNet`` or ``AlignmentNet`` from a shipped ONNX model (Zimmermann et al. 2018 §4.3
-fine-tuning from
-any release, on a fresh clone whose restored runs carry no checkpoints), and assemble an ``AssignmentEnsemble`` from
-shipped members.
+fine-tuning from any release, on a fresh clone whose restored runs carry no checkpoints), and assemble an
+``AssignmentEnsemble`` from shipped members.
 
 The TorchScript exporter folds each BatchNorm into its Conv and stores the recurrent weights in ONNX gate order:
 GRU (z, r, h) where torch uses (r, z, n), LSTM (i, o, f, c) where torch uses (i, f, g, o), one LSTM node per

@@ -10,8 +10,8 @@ from pydantic import Field, model_validator
 from service.core.body import BODY_SEGMENTS
 from training.config import Strict, TrackingConfig, read_yaml
 
-SIX_SENSORS = ["Pelvis", "Head", "LeftForeArm", "RightForeArm", "LeftLowerLeg", "RightLowerLeg"]  # Zheng et al. 2021
-# §7.2
+# Zheng et al. 2021 §7.2
+SIX_SENSORS = ["Pelvis", "Head", "LeftForeArm", "RightForeArm", "LeftLowerLeg", "RightLowerLeg"]
 
 
 class PoseDataConfig(Strict):

@@ -12,8 +12,7 @@ Acceleration of the sensor's position, two ways (``acc_method``):
 - ``finite_difference``: TransPose's smoothed second difference a(t) = (x(t−n) + x(t+n) − 2x(t)) / (nΔt)², n = 4
   at 60 Hz (TransPose `articulate` synthesis);
 - ``butterworth``: the I2S pipeline's zero-lag Butterworth (order 8, 10 Hz; Zimmermann et al. 2018 §2.4.2), then a
-central
-  second difference.
+  central second difference.
 
 ``docs/pose.md`` compares them on CMU and Bandai-Namco (``python -m training.cli pose-acc-check``).
 """
@@ -37,11 +36,10 @@ from service.core.units import GRAVITY_MPS2
 @dataclass(frozen=True)
 class SensorNoise:
     """Per-session draws. Ranges: acc noise σ 1 m/s² (Zimmermann et al. 2018 §2.4.2: variance 1 m²/s⁴); acc bias ±0.2
-    m/s² and
-    gyro bias ±0.02 rad/s per axis (assumed, MEMS class after factory calibration); gyro noise σ 0.01 rad/s
-    (assumed); fusion error of the sensor's own orientation up to 2° tilt and 5° heading per sensor (assumed;
-    Xsens MTw spec: 0.75° roll/pitch, 1.5° heading, static); calibration error of the declared alignment up to 5°
-    (assumed); sensor offset from the midpoint ±3 cm per axis (assumed)."""
+    m/s² and gyro bias ±0.02 rad/s per axis (assumed, MEMS class after factory calibration); gyro noise σ 0.01 rad/s
+    (assumed); fusion error of the sensor's own orientation up to 2° tilt and 5° heading per sensor (assumed; Xsens MTw
+    spec: 0.75° roll/pitch, 1.5° heading, static); calibration error of the declared alignment up to 5° (assumed);
+    sensor offset from the midpoint ±3 cm per axis (assumed)."""
 
     acc_sigma_mps2: float = 1.0
     acc_bias_mps2: float = 0.2

@@ -182,10 +182,9 @@ def test_a_training_fitted_elsewhere_is_tracked_here_and_only_with_its_own_confi
 def test_fit_mixes_in_the_real_recordings_its_pack_carries_and_is_tracked_only_with_the_same_ones(
     mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path
 ) -> None:
-    """Zimmermann et al. 2018 §4.3 on another machine: `pack` carries the config's real training recordings, `fit`
-    mixes them
-    into its batches and validates on their held-back part (``val_real_*``), and `train --fitted` tracks the
-    result with the real windows it used, refusing other real data; a pack without the recordings is refused."""
+    """Zimmermann et al. 2018 §4.3 on another machine: `pack` carries the config's real training recordings, `fit` mixes
+    them into its batches and validates on their held-back part (``val_real_*``), and `train --fitted` tracks the result
+    with the real windows it used, refusing other real data; a pack without the recordings is refused."""
     import torch
     from typer.testing import CliRunner
 

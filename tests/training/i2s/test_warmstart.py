@@ -20,7 +20,6 @@ from training.i2s.warmstart import (
 )
 
 REPO = Path(__file__).resolve().parents[3]
-SHIPPED = REPO / "onnx_models" / "i2s_assignment"
 ARCHIVE = REPO / "mlflow_snapshot" / "models"  # the shipped versions that are no longer served
 ARCHIVED = ARCHIVE / "i2s_assignment"
 ARCHIVED_ALIGNMENT = ARCHIVE / "i2s_alignment"

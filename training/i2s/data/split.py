@@ -2,8 +2,7 @@
 
 A pack holds the segment kinematics of a configuration's clips with their catalogue entries and digests, and the
 real recordings it trains on (``data.real_train_recordings``, Zimmermann et al. 2018 §4.3), so a machine without the
-data
-directory (a GPU box, say) can run ``training.cli fit`` on exactly the clips, the split and the real windows that
+data directory (a GPU box, say) can run ``training.cli fit`` on exactly the clips, the split and the real windows that
 the tracked run will record.
 """
 

@@ -60,10 +60,9 @@ class Augmentation(BaseModel):
     # and the most knee flexion such a variant keeps.
     stiff_knee_share: float = Field(0.0, ge=0.0, lt=1.0)
     stiff_knee_keep_max: float = Field(0.4, ge=0.0, le=1.0)
-    # Soft-tissue artefact (``soft_tissue_motion``; our addition, not in Zimmermann et al. 2018): per window the
-    # sensor turns and
-    # moves on its segment with the segment's own accelerations through a resonance of 4–12 Hz; the RMS rotation
-    # and displacement are uniform up to these values for the thigh, scaled down for the other segments
+    # Soft-tissue artefact (``soft_tissue_motion``; our addition, not in Zimmermann et al. 2018): per window the sensor
+    # turns and moves on its segment with the segment's own accelerations through a resonance of 4–12 Hz; the RMS
+    # rotation and displacement are uniform up to these values for the thigh, scaled down for the other segments
     # (``SOFT_TISSUE_SHARE``). 0: off.
     soft_tissue_rot_deg: float = Field(0.0, ge=0.0)
     soft_tissue_disp_mm: float = Field(0.0, ge=0.0)
