@@ -2,11 +2,17 @@
 
 (a) ``POST /v1/pose/imu`` latency for six sensors (pose_full6, offline Bi-LSTM): 2 s and 30 s of readings;
 (b) N concurrent six-sensor pose streams at 60 Hz on ``/v1/stream`` (pose_full6_stream, declared calibration,
-    binary packets of ``--packet`` samples per sensor, paced in real time): per pose message the server latency
-    from sending the packet that completed its frames to receiving it (p50/p99), and the sample-to-pose latency
-    that adds the model's look-ahead (5 frames, 83 ms) and the packet's own wait for its last sample.
+    binary packets of ``--packet`` samples, paced in real time), in each of ``--modes``: one packet per sensor or
+    one frame packet with all six sensors, JSON pose messages or binary pose blocks. Per pose message the server
+    latency from sending the packet that completed its frames to receiving it (p50/p99), and the sample-to-pose
+    latency that adds the model's look-ahead (5 frames, 83 ms) and the packet's own wait for its last sample;
+    how many streams the service admitted (it refuses the others with 1013). The clients connect one after
+    another over ``--ramp`` seconds.
 
-    python -m benchmarks.bench_pose --streams 10 50 100 --seconds 15
+The load generator shares the machine with the service (two cores here): its own cost counts against the
+service's, which is why it parses with orjson.
+
+    python -m benchmarks.bench_pose --streams 25 50 100 --seconds 15
 """
 
 from __future__ import annotations
@@ -19,12 +25,19 @@ import time
 
 import httpx
 import numpy as np
+import orjson
 import websockets
 
 from benchmarks.servers import REPO, start_service, stop
-from service.api.protocol import encode_binary
+from service.api.protocol import ALL_SENSORS, decode_pose_block, encode_binary
+from service.inference.pose_batcher import BUSY_WINDOW_S
 
 RESULTS = REPO / "benchmarks" / "results"
+MODES = {
+    "sensor": "one binary packet per sensor (sensors that stream on their own), JSON pose messages",
+    "frame": "one binary frame packet with all six sensors (a suit's receiver), JSON pose messages",
+    "frame-binary": "one binary frame packet with all six sensors, binary pose blocks",
+}
 SIX = ["Pelvis", "Head", "LeftForeArm", "RightForeArm", "LeftLowerLeg", "RightLowerLeg"]
 
 
@@ -78,19 +91,24 @@ def bench_rest(base: str, repeats: int) -> dict:
     return out
 
 
-async def _stream(url: str, seconds: float, packet: int, lat: list[float], counts: list[int], start_at: float) -> None:
+async def _stream(
+    url: str, seconds: float, packet: int, mode: str, lat: list[float], counts: list[int], start_at: float
+) -> None:
+    frames, binary = mode.startswith("frame"), mode.endswith("binary")
     n = int(seconds * 60)
     q, acc = _readings(n + packet, seed=int(start_at * 1000) % 997)
     rows = np.concatenate([acc, np.zeros_like(acc), q], axis=2)  # (n, 6, 10)
     sent_at: dict[int, float] = {}
+    await asyncio.sleep(max(0.0, start_at - time.perf_counter()))
     async with websockets.connect(url, max_size=None, ping_interval=None) as ws:
         sensors = [{"sensor_id": s, "segment": s, "q_segment_sensor": [1.0, 0.0, 0.0, 0.0]} for s in SIX]
-        await ws.send(json.dumps({"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}))
+        pose = {"calibration": "declared", "output": "binary" if binary else "json"}
+        await ws.send(json.dumps({"type": "start", "sensors": sensors, "pose": pose}))
         await ws.recv()  # started
 
         async def receive() -> None:
             async for text in ws:
-                m = json.loads(text)
+                m = decode_pose_block(text) if isinstance(text, bytes) else orjson.loads(text)
                 if m["type"] == "pose":
                     # the packet that completed this message's last frame (its answer needed 5 more frames)
                     last_input = m["first_frame"] + m["frames"] - 1 + 5
@@ -100,34 +118,45 @@ async def _stream(url: str, seconds: float, packet: int, lat: list[float], count
                     counts[0] += m["frames"]
 
         receiver = asyncio.create_task(receive())
-        await asyncio.sleep(max(0.0, start_at - time.perf_counter()))
         t0 = time.perf_counter()
         for p, first in enumerate(range(0, n, packet)):
             await asyncio.sleep(max(0.0, t0 + (first + packet) / 60.0 - time.perf_counter()))
-            for k in range(6):
-                await ws.send(encode_binary(k, first, rows[first : first + packet, k]))
+            if frames:  # one message with all six sensors' samples (a suit's receiver)
+                await ws.send(encode_binary(ALL_SENSORS, first, rows[first : first + packet]))
+            else:  # one message per sensor and packet (sensors that stream on their own)
+                for k in range(6):
+                    await ws.send(encode_binary(k, first, rows[first : first + packet, k]))
             sent_at[p] = time.perf_counter()
         await ws.send(json.dumps({"type": "stop"}))
         await receiver
 
 
-async def bench_streams(base: str, n: int, seconds: float, packet: int) -> dict:
+async def bench_streams(base: str, n: int, seconds: float, packet: int, mode: str, ramp_s: float) -> dict:
     url = base.replace("http", "ws") + "/v1/stream"
     lat: list[float] = []
     counts = [0]
-    start_at = time.perf_counter() + 2.0
-    # staggered starts within one packet interval, as independent clients would be
-    tasks = [_stream(url, seconds, packet, lat, counts, start_at + k * packet / 60.0 / n) for k in range(n)]
+    start_at = time.perf_counter() + 1.0
+    # clients connect one after another over ramp_s seconds, as independent users would, at random phases
+    tasks = [_stream(url, seconds, packet, mode, lat, counts, start_at + k * ramp_s / n) for k in range(n)]
     outcomes = await asyncio.gather(*tasks, return_exceptions=True)
-    failed = [repr(o)[:120] for o in outcomes if isinstance(o, BaseException)]
-    expected = n * (int(seconds * 60) - 5)
+    await asyncio.sleep(BUSY_WINDOW_S + 1.0)  # the next round is admitted on its own load, not on this one's
+    errors = [o for o in outcomes if isinstance(o, BaseException)]
+    refused = [e for e in errors if getattr(getattr(e, "rcvd", None), "code", None) == 1013]
+    failed = [repr(e)[:200] for e in errors if e not in refused]
+    admitted = n - len(refused)
+    expected = admitted * (int(seconds * 60) - 5)
     return {
         "streams": n,
+        "streams_admitted": admitted,
+        "streams_refused_1013": len(refused),
+        "first_refusal": repr(refused[0])[:200] if refused else None,
         "streams_failed": len(failed),
         "first_failure": failed[0] if failed else None,
         "packet_samples": packet,
+        "ramp_s": ramp_s,
+        "mode": MODES[mode],
         "pose_frames_received": counts[0],
-        "pose_frames_expected": expected,
+        "pose_frames_expected_of_admitted": expected,
         "server_latency_ms_p50": float(np.percentile(lat, 50)) if lat else None,
         "server_latency_ms_p99": float(np.percentile(lat, 99)) if lat else None,
         # sample to pose: the first sample of a packet waits (packet - 1) frames for the packet to fill, every
@@ -142,8 +171,16 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=15.0)
     ap.add_argument("--packet", type=int, default=4, help="samples per sensor per packet")
     ap.add_argument("--repeats", type=int, default=30)
+    ap.add_argument("--ramp", type=float, default=5.0, help="seconds over which the clients connect")
+    ap.add_argument(
+        "--modes",
+        nargs="+",
+        choices=sorted(MODES),
+        default=sorted(MODES),
+        help="; ".join(f"{k}: {v}" for k, v in MODES.items()),
+    )
     args = ap.parse_args()
-    proc, base = start_service(REPO / "onnx_models", threads=1)
+    proc, base = start_service(REPO / "onnx_models")
     try:
         served = {k: v["version"] for k, v in httpx.get(base + "/v1/models").json().items()}
         out = {
@@ -151,7 +188,11 @@ def main() -> None:
             "served": served,
             **bench_rest(base, args.repeats),
         }
-        out["streams"] = [asyncio.run(bench_streams(base, n, args.seconds, args.packet)) for n in args.streams]
+        out["streams"] = [
+            asyncio.run(bench_streams(base, n, args.seconds, args.packet, mode, args.ramp))
+            for mode in args.modes
+            for n in args.streams
+        ]
     finally:
         stop(proc)
     RESULTS.mkdir(parents=True, exist_ok=True)

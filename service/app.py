@@ -27,6 +27,7 @@ from service.core.assignment import ConfidenceModel
 from service.inference.batcher import MicroBatcher
 from service.inference.flex import FlexModel
 from service.inference.pose import PoseModel
+from service.inference.pose_batcher import LivePoseBatcher
 from service.inference.registry import load_model_report, load_registry_models
 from service.inference.runner import ModelRunner
 from service.settings import Settings, get_settings, parse_pins
@@ -74,6 +75,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.state.metrics.observe_batch,
         )
         batcher.start()
+
+        pose_batcher = app.state.pose_batcher = LivePoseBatcher(runner, 1, app.state.metrics.observe_pose_batch)
+        for name, model in app.state.pose_models.items():
+            if model.spec.streaming:
+                per_batch, per_frame = await pose_batcher.probe(model, 32 if model.batchable else 2)
+                app.state.streams.set_batched_cost(name, per_batch, per_frame)
+                log.info("pose probe %s: %.2f ms per batch + %.3f ms per frame", name, 1e3 * per_batch, 1e3 * per_frame)
         if settings.capacity_windows_per_s:
             batcher.set_capacity(settings.capacity_windows_per_s)
         elif "i2s_assignment" in app.state.models:

@@ -339,6 +339,19 @@ def pose_train(
         )
 
 
+@app.command("pose-free-batch")
+def pose_free_batch(
+    model: Path = typer.Argument(..., help="a shipped streaming pose model exported with a batch of one"),
+    version: str = typer.Option(..., help="the version to ship it as"),
+    models_dir: Path = typer.Option(Path("onnx_models")),
+) -> None:
+    """Ship a streaming pose model again with a symbolic batch dimension (same weights and nodes, checked), so
+    that the service runs several live sessions in one call."""
+    from training.pose.export import free_batch_dimension
+
+    typer.echo(free_batch_dimension(model, version, models_dir))
+
+
 @app.command("pose-acc-check")
 def pose_acc_check(
     data_dir: Path | None = DataDir,

@@ -217,11 +217,13 @@ def _restored_runs(client: MlflowClient) -> dict[str, str]:
 
 
 def _shipped_float32_models(model_dirs: list[Path]) -> dict[str, Path]:
-    """original run id → the float32 model dir it shipped as (the int8 files are derived, not registered)."""
+    """original run id → the float32 model dir it shipped as (the int8 files, and the files derived from a shipped one,
+    are not registered: the registry holds what the run exported)."""
     found = {}
     for model_dir in model_dirs:
         manifest = read_manifest(model_dir / "manifest.json")
-        if "quantization" not in manifest.exporter and manifest.mlflow.get("run_id"):
+        derived = "quantization" in manifest.exporter or "derived_from" in manifest.exporter
+        if not derived and manifest.mlflow.get("run_id"):
             found[manifest.mlflow["run_id"]] = model_dir
     return found
 

@@ -163,6 +163,7 @@ async def _serve(ws: WebSocket, live: LiveFlex, outbox: Outbox) -> None:
             raise WebSocketDisconnect(message.get("code", 1000))
         if message.get("bytes") is not None:
             _, seq, rows = decode_binary(message["bytes"], 1, max_samples, width)
+            rows = rows.reshape(len(rows), width)  # a frame packet of the one sensor is its rows
         else:
             data = _parse_text(message["text"])
             if data["type"] == "stop":

@@ -24,7 +24,20 @@ class ServiceMetrics:
             buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 4096),
             registry=self.registry,
         )
-
+        self.pose_batch = Histogram(
+            "wearmocap_pose_batch_sessions",
+            "live pose sessions per batched call of a streaming pose model",
+            ["model"],
+            buckets=(1, 2, 4, 8, 16, 32, 64, 128),
+            registry=self.registry,
+        )
+        self.pose_batch_seconds = Histogram(
+            "wearmocap_pose_batch_seconds",
+            "worker time per batched call of a streaming pose model",
+            ["model"],
+            buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1),
+            registry=self.registry,
+        )
         self.inference = Histogram(
             "wearmocap_inference_seconds", "onnxruntime time per micro-batch", registry=self.registry
         )
@@ -90,3 +103,7 @@ class ServiceMetrics:
     def observe_batch(self, n: int, seconds: float) -> None:
         self.batch.observe(n)
         self.inference.observe(seconds)
+
+    def observe_pose_batch(self, model: str, sessions: int, seconds: float) -> None:
+        self.pose_batch.labels(model).observe(sessions)
+        self.pose_batch_seconds.labels(model).observe(seconds)

@@ -12,7 +12,8 @@ Every outgoing message type is bounded:
   (``count`` notices, ``missing`` summed, the latest sequence numbers), never queued one by one;
 - ``started``, ``calibration``, ``error``: once each per session.
 
-Queued messages are held encoded (a string of a few hundred bytes each, not a tree of Python objects).
+Queued messages are held encoded (a string of a few hundred bytes each, or the bytes of a binary pose block; not
+a tree of Python objects).
 
 A consumer that stays behind is closed with 1008 and a reason (``watch``): when no message has left for
 ``slow_s`` seconds while messages wait (its socket's buffers are full: it does not read), or when results have been
@@ -78,6 +79,16 @@ class Outbox:
         self.event.set()
         return dropped
 
+    def put_binary(self, kind: str, data: bytes) -> bool:
+        """Queue a binary message of a droppable ``kind`` (a binary pose frame block); True if a result was dropped."""
+        if not self.items and not self.sending:
+            self.last_sent = time.monotonic()
+        dropped = self._drop_oldest() if self.droppable >= self.limit else False
+        self.droppable += 1
+        self.items.append((kind, data))
+        self.event.set()
+        return dropped
+
     def _put_live(self, kind: str, message: dict) -> bool:
         key = (kind, message.get("sensor_id"))
         queued = self.live.get(key)
@@ -110,13 +121,13 @@ class Outbox:
                 return True
         return False
 
-    def pop(self) -> str:
+    def pop(self) -> str | bytes:
         kind, item = self.items.popleft()
         if kind in DROPPABLE:
             self.droppable -= 1
             if self.droppable < self.limit // 2:
                 self.dropping_since = None
-        if isinstance(item, str):
+        if isinstance(item, (str, bytes)):
             return item
         message = self.live.pop(item)
         if kind == "assignment":
@@ -141,7 +152,8 @@ async def sender(ws: WebSocket, outbox: Outbox) -> None:
         while outbox.items:
             outbox.sending = True
             try:
-                await ws.send_text(outbox.pop())
+                item = outbox.pop()
+                await (ws.send_bytes(item) if isinstance(item, bytes) else ws.send_text(item))
                 outbox.last_sent = time.monotonic()
             except (WebSocketDisconnect, RuntimeError, OSError):  # the client left or was closed; the receive loop
                 return  # sees it and ends the session

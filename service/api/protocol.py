@@ -10,6 +10,8 @@ Client → server
   {"type": "samples", "sensor_id": "a", "seq": 0, "samples": [[ax, ay, az, gx, gy, gz], ...]}
   binary packet (little-endian): uint16 sensor index (order of "start"), uint16 n, uint32 seq,
   then n × 6 float32 (acc xyz, gyr xyz in the declared units)                 8 + 24 n bytes
+  binary frame packet, every sensor's samples of the same seq at once (what a suit's receiver delivers): sensor
+  index 65535 (ALL_SENSORS), then n × S × 6 float32, the S sensors in the order of "start"   8 + 24 n S bytes
   {"type": "stop"}
   Pose sessions add "pose": {"calibration": "declared" | "still_pose" | "assignment", ...} to "start" and each
   sensor's "segment" (and "q_segment_sensor" when declared); their samples are rows of 10 values, acc xyz, gyr xyz,
@@ -30,6 +32,9 @@ Server → client
   the assignment is sure of the model's segments) · pose (from the streaming model, as frames complete: first_frame,
   frames, q_world_segment and joint_positions_m per frame in "started"'s pose.segments order; each frame answers
   look_ahead_frames late).
+  With "pose": {"output": "binary"} each pose message is a binary pose block instead (little-endian): uint16 1,
+  uint16 S segments, uint32 first_frame, uint32 frames, then frames × S × 4 float32 q_world_segment (w x y z) and
+  frames × S × 3 float32 joint_positions_m: 12 + 28 × frames × S bytes (``decode_pose_block``).
   gap / late notices of a sensor that are still queued are merged into one ("count" notices; "missing" summed), and
   only the newest assignment is queued.
 Close codes: 1003 unsupported data, 1008 protocol violation (also a wrong X-API-Key or a browser Origin not allowed,
@@ -58,6 +63,7 @@ from service.api.schemas import (
 from service.inference.predict import MAX_ABS_READING
 
 HEADER = struct.Struct("<HHI")
+ALL_SENSORS = 0xFFFF  # a binary packet's sensor index for "every sensor's samples, in the order of start"
 
 
 class ProtocolError(ValueError):
@@ -96,6 +102,9 @@ class PoseStreamOptions(BaseModel):
     pelvis_back_axis: list[float] = Field(default_factory=lambda: [0.0, 0.0, 1.0], min_length=3, max_length=3)
     body_height_m: float | None = Field(None, ge=0.5, le=2.5)
     assignment_confidence: float = Field(0.9, gt=0.0, le=1.0, description="assignment: hand over at this confidence")
+    output: Literal["json", "binary"] = Field(
+        "json", description="pose messages as JSON, or as binary pose blocks (``encode_pose_block``)"
+    )
 
 
 class StartMessage(BaseModel):
@@ -137,23 +146,54 @@ class SamplesMessage(BaseModel):
 
 
 def decode_binary(data: bytes, n_sensors: int, max_samples: int, width: int = 6) -> tuple[int, int, np.ndarray]:
-    """(sensor index, seq, samples ``(n, width)`` float64) from a binary packet (width 10 in pose sessions)."""
+    """(sensor index, seq, samples ``(n, width)`` float64) from a binary packet (width 10 in pose sessions); for a
+    frame packet (index ``ALL_SENSORS``) the samples of every sensor, ``(n, n_sensors, width)``."""
     if len(data) < HEADER.size:
         raise ProtocolError(f"binary packet needs an {HEADER.size}-byte header, got {len(data)} bytes", 1003)
     index, n, seq = HEADER.unpack_from(data)
-    if index >= n_sensors:
-        raise ProtocolError(f"binary packet names sensor index {index}; the session has {n_sensors} sensors")
+    every = index == ALL_SENSORS
+    if index >= n_sensors and not every:
+        raise ProtocolError(
+            f"binary packet names sensor index {index}; the session has {n_sensors} sensors "
+            f"(0-{n_sensors - 1}, or {ALL_SENSORS} for all of them at once)"
+        )
     if n > max_samples:
         raise ProtocolError(f"at most {max_samples} samples per packet, got {n}", 1009)
-    expected = HEADER.size + 4 * width * n
+    shape = (n, n_sensors, width) if every else (n, width)
+    expected = HEADER.size + 4 * int(np.prod(shape))
     if len(data) != expected:
-        raise ProtocolError(f"binary packet with n={n} must be {expected} bytes, got {len(data)}", 1003)
-    return index, seq, np.frombuffer(data, dtype="<f4", offset=HEADER.size).reshape(n, width).astype(np.float64)
+        what = f"n={n} samples of {n_sensors} sensors" if every else f"n={n}"
+        raise ProtocolError(f"binary packet with {what} must be {expected} bytes, got {len(data)}", 1003)
+    return index, seq, np.frombuffer(data, dtype="<f4", offset=HEADER.size).reshape(shape).astype(np.float64)
 
 
 def encode_binary(index: int, seq: int, samples: np.ndarray) -> bytes:
-    """The client side of ``decode_binary``."""
+    """The client side of ``decode_binary``: one sensor's samples ``(n, width)``, or with ``ALL_SENSORS`` every
+    sensor's ``(n, S, width)``."""
     return HEADER.pack(index, len(samples), seq) + np.asarray(samples, dtype="<f4").tobytes()
+
+
+POSE_BLOCK = struct.Struct("<HHII")  # kind (1: pose), segments, first_frame, frames
+POSE_BLOCK_KIND = 1
+
+
+def encode_pose_block(message: dict) -> bytes:
+    """A ``pose`` message as a binary pose block (the module docstring has the layout)."""
+    q = np.asarray(message["q_world_segment"], dtype="<f4")
+    p = np.asarray(message["joint_positions_m"], dtype="<f4")
+    header = POSE_BLOCK.pack(POSE_BLOCK_KIND, q.shape[1], message["first_frame"], message["frames"])
+    return header + q.tobytes() + p.tobytes()
+
+
+def decode_pose_block(data: bytes) -> dict:
+    """The client side of ``encode_pose_block``: the ``pose`` message it holds, with numpy arrays."""
+    kind, segments, first_frame, frames = POSE_BLOCK.unpack_from(data)
+    if kind != POSE_BLOCK_KIND or len(data) != POSE_BLOCK.size + 28 * frames * segments:
+        raise ValueError(f"not a pose block: kind {kind}, {len(data)} bytes for {frames} frames × {segments} segments")
+    values = np.frombuffer(data, dtype="<f4", offset=POSE_BLOCK.size)
+    q = values[: 4 * frames * segments].reshape(frames, segments, 4)
+    p = values[4 * frames * segments :].reshape(frames, segments, 3)
+    return {"type": "pose", "first_frame": first_frame, "frames": frames, "q_world_segment": q, "joint_positions_m": p}
 
 
 def check_samples(samples: np.ndarray, max_samples: int, where: str, width: int = 6) -> None:
@@ -175,3 +215,16 @@ def check_samples(samples: np.ndarray, max_samples: int, where: str, width: int 
             raise ProtocolError(
                 f"{where}: sample {i}'s q_world_sensor must be a unit quaternion, got norm {norm[i]:.3f}"
             )
+
+
+def check_frame_samples(samples: np.ndarray, max_samples: int, sensor_ids: list[str], width: int) -> None:
+    """``check_samples`` for a frame packet's ``(n, S, width)``: one pass over every sensor, and on a mistake the
+    error of the first sensor it is in."""
+    flat = samples.reshape(-1, width)
+    ok = bool(np.all(np.isfinite(flat))) and np.abs(flat).max(initial=0.0) <= MAX_ABS_READING
+    if ok and width == 10:
+        ok = bool(np.all(np.abs(np.sqrt(np.einsum("ij,ij->i", flat[:, 6:10], flat[:, 6:10])) - 1.0) <= 0.1))
+    if ok:
+        return
+    for k, sensor_id in enumerate(sensor_ids):
+        check_samples(samples[:, k], max_samples, f"sensor {sensor_id}", width)

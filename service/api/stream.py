@@ -20,11 +20,14 @@ from pydantic import ValidationError
 
 from service.api.outbox import Outbox, SlowConsumer, accept, close, end_session, sender, serve_watched
 from service.api.protocol import (
+    ALL_SENSORS,
     ProtocolError,
     SamplesMessage,
     StartMessage,
+    check_frame_samples,
     check_samples,
     decode_binary,
+    encode_pose_block,
 )
 from service.api.schemas import finite_or_none
 from service.api.stream_admission import I2S_WINDOWS_PER_SENSOR_S, admit_or_refuse, record_answer_latency
@@ -38,7 +41,7 @@ from service.core.assignment import (
     turns_about_vertical,
 )
 from service.core.body import BODY_SEGMENTS
-from service.core.pose_stream import FrameAligner, StreamLagError
+from service.core.pose_stream import AlignResult, FrameAligner, StreamLagError
 from service.core.rotations import canonical_quat
 from service.core.segments import SEGMENTS, segment_indices, segment_names
 from service.core.stream import SensorStream
@@ -110,6 +113,7 @@ class Session:
         self.aligner: FrameAligner | None = None
         self.run_i2s = True
         self.width = 6  # values per sample: 10 in pose sessions
+        self._units_all: np.ndarray | None = None
         self.pose_threshold = 0.9
         self.outbox: Outbox | None = None
 
@@ -158,6 +162,13 @@ class Session:
         self.run_i2s = opts.calibration == "assignment"
         self.width = 10
         self.pose_threshold = opts.assignment_confidence
+        self.pose_output = opts.output
+
+    def pose_units_all(self) -> np.ndarray:
+        """``pose_units`` of every sensor ``(N, 10)``."""
+        if self._units_all is None:
+            self._units_all = np.stack([self.pose_units(k) for k in range(len(self.streams))])
+        return self._units_all
 
     def pose_units(self, k: int) -> np.ndarray:
         """Per-column factors of sensor ``k``'s rows into m/s², rad/s and a unitless quaternion."""
@@ -270,14 +281,20 @@ async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples
                 "action": "held the last sample",
             }
         )
+    await _pose_frames(app, session, joined)
+
+
+async def _pose_frames(app: FastAPI, session: Session, joined: AlignResult) -> None:
+    """Run the live pose on the body frames all sensors have reached; queue its messages."""
+    outbox = session.outbox
     if not len(joined.frames) or session.pose_order is None:
         return
     received = time.perf_counter()
     frames = joined.frames[:, session.pose_order]
-    messages, seconds = await app.state.runner.run_call_timed(session.pose.process, frames, joined.first_frame)
-    app.state.streams.observe(session.pose.model.name, len(frames), seconds)
+    messages = await app.state.pose_batcher.process(session.pose, frames, joined.first_frame)
     for message in messages:
-        if outbox.put(message):
+        binary = message["type"] == "pose" and session.pose_output == "binary"
+        if outbox.put_binary("pose", encode_pose_block(message)) if binary else outbox.put(message):
             app.state.metrics.dropped.inc()
         if message["type"] == "pose":
             record_answer_latency(app, time.perf_counter() - received)
@@ -419,6 +436,17 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
             raise WebSocketDisconnect(message.get("code", 1000))
         if message.get("bytes") is not None:
             k, seq, samples = decode_binary(message["bytes"], len(session.streams), max_samples, session.width)
+            if k == ALL_SENSORS:
+                ids = [s.sensor_id for s in session.streams]
+                check_frame_samples(samples, max_samples, ids, session.width)
+                if session.pose is not None and not session.run_i2s:
+                    joined = session.aligner.push_all(seq, samples * session.pose_units_all())
+                    if joined is not None:
+                        await _pose_frames(ws.app, session, joined)
+                        continue
+                for j in range(len(session.streams)):
+                    await _accept_packet(ws.app, session, j, seq, samples[:, j])
+                continue
         else:
             data = _parse_text(message["text"])
             if data["type"] == "stop":
@@ -488,6 +516,14 @@ def _admit(app: FastAPI, session: Session) -> int:
     demand = len(session.streams) * I2S_WINDOWS_PER_SENSOR_S if session.run_i2s else 0.0
     if session.pose is not None:
         demand += app.state.streams.model_demand(app.state.batcher, session.pose.model.name, 60.0)
+        busy, limit = app.state.pose_batcher.busy_share(), app.state.streams.fraction
+        if busy > limit:
+            app.state.metrics.streams_refused.labels("capacity").inc()
+            raise ProtocolError(
+                f"at capacity: the live pose sessions keep their worker busy {100 * busy:.0f} % of the time "
+                f"(at most {100 * limit:.0f} %); try again later",
+                1013,
+            )
     return admit_or_refuse(app, demand)
 
 
@@ -518,5 +554,6 @@ def _pose_started(session: Session) -> dict | None:
         "look_ahead_frames": live.model.spec.look_ahead_frames,
         "calibration": live.method,
         "still_frames": live.still_frames if live.method == "still_pose" else 0,
+        "output": session.pose_output,
         "body_height_m": round(live.body.height_m, 3),
     }

@@ -2,9 +2,14 @@
 
 A stream's demand is counted in windows per second of the I2S models (a 60 Hz sensor: one window per 16-sample
 hop, 3.75 windows/s, whatever rate it is sent at, since it is resampled to 60 Hz). Pose and flex sessions run
-other models; their demand is converted to the same unit through their models' measured seconds per frame (an
-EWMA over every call of that model, REST or stream) and the I2S seconds per window. A model not yet measured
-counts as free until its first call: the first session of a model is admitted on the I2S demand alone.
+other models; their demand is converted to the same unit through their models' measured seconds per frame and
+the I2S seconds per window. A flex model's seconds per frame are an EWMA over its calls; a model not yet measured
+counts as free until its first call (the first session of a model is admitted on the I2S demand alone). Live pose
+sessions run in batches (``service.inference.pose_batcher``), whose cost is a fixed part per batch plus a part per
+frame: the part per frame is what one more session adds, measured at start-up with batches of one and of many
+sessions (``LivePoseBatcher.probe``), as the I2S capacity is, on an idle machine. It is not updated from the
+batches under load: their times in the worker thread grow with the event loop's share of the interpreter (three
+to four times on two cores), while the I2S seconds per window they are compared with do not.
 
 A new stream is refused (close code 1013, "try again later") when its demand would take the admitted streams'
 total past ``fraction`` × capacity: beyond it every admitted stream's answers would fall behind, as they did
@@ -39,6 +44,7 @@ class StreamAdmission:
         self.latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # (monotonic time, seconds)
         self.demand: dict[int, float] = {}  # session → windows/s
         self.seconds_per_frame: dict[str, float] = {}  # pose or flex model name → seconds per frame (one worker)
+        self.seconds_per_batch: dict[str, float] = {}  # batched pose model name → fixed seconds per batch
         self.ids = itertools.count()
 
     @property
@@ -58,6 +64,10 @@ class StreamAdmission:
         per_frame = seconds / frames
         old = self.seconds_per_frame.get(model)
         self.seconds_per_frame[model] = per_frame if old is None else (1 - EWMA_WEIGHT) * old + EWMA_WEIGHT * per_frame
+
+    def set_batched_cost(self, model: str, per_batch_s: float, per_frame_s: float) -> None:
+        """A batched model's cost, measured: ``per_batch_s`` + ``per_frame_s`` × frames per call."""
+        self.seconds_per_batch[model], self.seconds_per_frame[model] = per_batch_s, per_frame_s
 
     def observe_latency(self, seconds: float) -> None:
         """A stream packet's answers were queued ``seconds`` after it arrived."""

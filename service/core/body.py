@@ -517,6 +517,21 @@ def resample_motion(motion: BodyMotion, sample_rate_hz: float) -> BodyMotion:
     return BodyMotion(R, spline(motion.origin_m), spline(motion.midpoint_m), sample_rate_hz)
 
 
+def segment_origins(R_world_segment: np.ndarray, offsets_m: np.ndarray, root_m: np.ndarray | None = None) -> np.ndarray:
+    """Segment origins ``(T, S, 3)`` from orientations ``(T, S, 3, 3)`` and each segment's offset from its parent's
+    origin in the parent's frame: one body ``(S, 3)``, or one per frame ``(T, S, 3)`` (several live sessions' frames
+    computed together). The root at ``root_m`` or 0."""
+    T = R_world_segment.shape[0]
+    offsets = np.broadcast_to(offsets_m, (T, *np.shape(offsets_m)[-2:]))
+    p = np.zeros((T, offsets.shape[1], 3))
+    if root_m is not None:
+        p[:, 0] = root_m
+    for k in range(1, offsets.shape[1]):
+        parent = PARENT_INDEX[k]
+        p[:, k] = p[:, parent] + np.einsum("tij,tj->ti", R_world_segment[:, parent], offsets[:, k])
+    return p
+
+
 @dataclass(frozen=True)
 class Body:
     """A skeleton for forward kinematics: per segment, its origin in its parent's frame (metres).
@@ -530,14 +545,7 @@ class Body:
 
     def forward(self, R_world_segment: np.ndarray, root_m: np.ndarray | None = None) -> np.ndarray:
         """Segment origins ``(T, S, 3)`` from orientations ``(T, S, 3, 3)``; the root at ``root_m`` or 0."""
-        T = R_world_segment.shape[0]
-        p = np.zeros((T, len(self.segments), 3))
-        if root_m is not None:
-            p[:, 0] = root_m
-        for k in range(1, len(self.segments)):
-            parent = PARENT_INDEX[k]
-            p[:, k] = p[:, parent] + R_world_segment[:, parent] @ self.offsets_m[k]
-        return p
+        return segment_origins(R_world_segment, self.offsets_m, root_m)
 
     @property
     def height_m(self) -> float:

@@ -53,10 +53,12 @@ def segment_readings(
     """Segment orientations ``(T, N, 3, 3)`` and free accelerations in the world frame ``(T, N, 3)``.
 
     R_W_segment = R_W_sensor · R_segment_sensorᵀ (Zheng et al. 2021 eq. 1); a_W = R_W_sensor · f_sensor − g_up.
+    ``q_segment_sensor`` is one alignment per sensor ``(N, 4)``, or one per frame ``(T, N, 4)`` (several live
+    sessions' frames computed together).
     """
     R_ws = matrix_from_quat(q_world_sensor)
-    R_ss = matrix_from_quat(q_segment_sensor)  # (N, 3, 3) segment ← sensor
-    R_w_seg = np.einsum("tnij,nkj->tnik", R_ws, R_ss)
+    R_ss = matrix_from_quat(q_segment_sensor)  # (N, 3, 3) or (T, N, 3, 3) segment ← sensor
+    R_w_seg = R_ws @ np.swapaxes(R_ss, -1, -2)
     acc_world = np.einsum("tnij,tnj->tni", R_ws, acc_sensor_mps2) - GRAVITY_MPS2 * _UP
     return R_w_seg, acc_world
 

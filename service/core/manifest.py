@@ -172,7 +172,8 @@ class Manifest(BaseModel):
             )
         if p.feature_version != FEATURE_VERSION:
             raise ValueError(f"imu_pose: features {p.feature_version!r}, this service computes {FEATURE_VERSION!r}")
-        batch = 1 if p.streaming else "batch"  # a stream is one body: the streaming graph has batch 1
+        # A streaming graph takes a batch of live sessions (each its own state), or one at a time (batch 1)
+        batch = self.inputs[0].shape[0] if p.streaming and self.inputs[0].shape[:1] in ([1], ["batch"]) else "batch"
         expected_in = [batch, "frames", features_per_frame(len(p.sensors))]
         if self.inputs[0].shape != expected_in:
             raise ValueError(f"an imu_pose model takes features of shape {expected_in}, got {self.inputs[0].shape}")

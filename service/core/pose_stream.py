@@ -37,6 +37,18 @@ class FrameAligner:
         self.last: list[np.ndarray | None] = [None] * n_sensors
         self.emitted = 0
 
+    def push_all(self, seq: int, samples: np.ndarray) -> AlignResult | None:
+        """Every sensor's samples ``(n, N, C)`` from ``seq`` at once (a frame packet): released as they are when
+        every sensor is at ``seq`` with nothing buffered; None when they are not, and the packet must go through
+        ``push`` sensor by sensor."""
+        if self.buffered.any() or np.any(self.expected != seq):
+            return None
+        self.expected[:] = seq + len(samples)
+        self.last = list(samples[-1])
+        result = AlignResult(samples, self.emitted)
+        self.emitted += len(samples)
+        return result
+
     def push(self, k: int, seq: int, samples: np.ndarray) -> AlignResult:
         """Add sensor ``k``'s ``samples`` ``(n, C)`` whose first has sequence number ``seq``."""
         result = AlignResult(np.zeros((0, self.n, self.width)), self.emitted)

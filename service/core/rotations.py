@@ -1,7 +1,8 @@
 """Quaternion conventions of the project (DESIGN.md §2): Hamilton, scalar first, unit, w >= 0.
 
-All heavy lifting is scipy's ``Rotation`` with ``scalar_first=True`` said explicitly (one closed form,
-``matrix_from_quat``, is on the service's per-window path and tested against scipy).
+All heavy lifting is scipy's ``Rotation`` with ``scalar_first=True`` said explicitly (two closed forms,
+``matrix_from_quat`` and ``quat_from_matrix``, are on the service's per-window and per-frame paths and tested
+against scipy).
 """
 
 from __future__ import annotations
@@ -25,10 +26,36 @@ def canonical_quat(q_wxyz: np.ndarray) -> np.ndarray:
 
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(..., 3, 3)`` to canonical quaternions ``(..., 4)``."""
+    """Rotation matrices ``(..., 3, 3)`` to canonical quaternions ``(..., 4)``.
+
+    Markley (2008), "Unit quaternion from rotation matrix": of the four candidate quaternion columns (from the trace
+    and from each diagonal element) the one with the largest norm is taken, so no division by a small number. A
+    closed form in a few numpy calls (tested equal to scipy's ``Rotation``): the live pose converts 21 segments per
+    frame, where scipy's ``from_matrix``, which orthogonalises every matrix by SVD, cost 1.4 ms per packet.
+    """
     R = np.asarray(R, dtype=np.float64)
-    flat = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat(scalar_first=True)
-    return canonical_quat(flat.reshape(R.shape[:-2] + (4,)))
+    m = R.reshape(-1, 3, 3)
+    d0, d1, d2 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    trace = d0 + d1 + d2
+    choice = np.argmax(np.stack([d0, d1, d2, trace], axis=1), axis=1)
+    q = np.empty((len(m), 4))  # x, y, z, w, as Markley's table
+    i = choice < 3
+    ii = choice[i]
+    jj, kk = (ii + 1) % 3, (ii + 2) % 3
+    rows = np.nonzero(i)[0]
+    mi = m[i]
+    q[rows, ii] = 1 - trace[i] + 2 * mi[np.arange(len(ii)), ii, ii]
+    q[rows, jj] = mi[np.arange(len(ii)), jj, ii] + mi[np.arange(len(ii)), ii, jj]
+    q[rows, kk] = mi[np.arange(len(ii)), kk, ii] + mi[np.arange(len(ii)), ii, kk]
+    q[rows, 3] = mi[np.arange(len(ii)), kk, jj] - mi[np.arange(len(ii)), jj, kk]
+    t = ~i
+    mt = m[t]
+    q[t, 0] = mt[:, 2, 1] - mt[:, 1, 2]
+    q[t, 1] = mt[:, 0, 2] - mt[:, 2, 0]
+    q[t, 2] = mt[:, 1, 0] - mt[:, 0, 1]
+    q[t, 3] = 1 + trace[t]
+    wxyz = q[:, [3, 0, 1, 2]]
+    return canonical_quat(wxyz.reshape(R.shape[:-2] + (4,)))
 
 
 def _quadratic_forms() -> np.ndarray:

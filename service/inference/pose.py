@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body
+from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, segment_origins
 from service.core.rotations import quat_from_matrix
 from service.inference.registry import LoadedModel
 
@@ -100,11 +100,36 @@ class PoseModel:
     def step(self, features: np.ndarray, state: StreamState) -> tuple[np.ndarray, StreamState]:
         """Streaming: frames ``(n, F)`` → their outputs ``(n, S_out, 3, 3)`` (each for the frame
         ``look_ahead_frames`` earlier) and the new state."""
+        (y,), (state,) = self.step_many([features], [state])
+        return y, state
+
+    @property
+    def batchable(self) -> bool:
+        """Whether the streaming graph takes several sessions in one call (its batch dimension is symbolic)."""
+        return isinstance(self.loaded.session.get_inputs()[0].shape[0], str)
+
+    def step_many(
+        self, features: list[np.ndarray], states: list[StreamState]
+    ) -> tuple[list[np.ndarray], list[StreamState]]:
+        """``step`` for several sessions: those with the same number of frames share one call (a batch of
+        sessions, the LSTM state stacked along its batch axis) where the graph allows it."""
         names = [i.name for i in self.loaded.session.get_inputs()]
-        y, h, c = self.loaded.session.run(
-            None, {names[0]: features[None].astype(np.float32), names[1]: state.h, names[2]: state.c}
-        )
-        return y[0], StreamState(h, c)
+        ys: list[np.ndarray] = [np.empty(0)] * len(features)
+        out_states: list[StreamState] = list(states)
+        groups: dict[int, list[int]] = {}
+        for k, f in enumerate(features):
+            groups.setdefault(len(f), []).append(k)
+        for members in groups.values():
+            batches = [members] if self.batchable else [[k] for k in members]
+            for batch in batches:
+                x = np.stack([features[k] for k in batch]).astype(np.float32)
+                h = np.concatenate([states[k].h for k in batch], axis=1)
+                c = np.concatenate([states[k].c for k in batch], axis=1)
+                y, h, c = self.loaded.session.run(None, {names[0]: x, names[1]: h, names[2]: c})
+                for row, k in enumerate(batch):
+                    ys[k] = y[row]
+                    out_states[k] = StreamState(h[:, row : row + 1].copy(), c[:, row : row + 1].copy())
+        return ys, out_states
 
 
 def whole_body(
@@ -177,19 +202,17 @@ class LivePose:
 
     def process(self, frames: np.ndarray, first_frame: int) -> list[dict]:
         """Frames ``(m, N, 10)`` from stream frame ``first_frame`` on → ``calibration`` and ``pose`` messages."""
-        messages: list[dict] = []
-        if not self.calibrated:
-            if self.method != "still_pose":
-                return messages  # waiting for the assignment to hand over the alignments
-            message, frames, first_frame = self._collect_still(frames, first_frame)
-            if message is not None:
-                messages.append(message)
-            if not self.calibrated or not len(frames):
-                return messages
-        pose = self.step(frames, first_frame)
-        if pose is not None:
-            messages.append(pose)
-        return messages
+        return process_live([(self, frames, first_frame)])[0]
+
+    def calibrate(self, frames: np.ndarray, first_frame: int) -> tuple[list[dict], np.ndarray, int]:
+        """Calibration messages, and the frames (from which stream frame) that are ready for the network."""
+        if self.calibrated:
+            return [], frames, first_frame
+        if self.method != "still_pose":
+            return [], frames[:0], first_frame  # waiting for the assignment to hand over the alignments
+        message, frames, first_frame = self._collect_still(frames, first_frame)
+        messages = [message] if message is not None else []
+        return messages, (frames if self.calibrated else frames[:0]), first_frame
 
     def _collect_still(self, frames: np.ndarray, first_frame: int) -> tuple[dict | None, np.ndarray, int]:
         """Collect the still span; a message once it is judged, and the frames after it."""
@@ -224,29 +247,75 @@ class LivePose:
 
     def step(self, frames: np.ndarray, first_frame: int) -> dict | None:
         """Feed calibrated frames; a ``pose`` message with every frame whose answer is now known."""
-        from service.core.calibration import pose_features, segment_readings
+        return _step_live([self], [frames], [first_frame])[0]
 
-        if self.inputs == 0:
-            self.first_frame = first_frame
-        R_w_seg, a_w = segment_readings(frames[:, :, 6:10], frames[:, :, :3], self.q_segment_sensor)
-        out, self.state = self.model.step(pose_features(R_w_seg, a_w), self.state)
-        self.history = np.concatenate([self.history, R_w_seg])
-        L = self.model.spec.look_ahead_frames
-        answered_from = max(0, self.inputs - L)  # network frame index of the first new answer
-        self.inputs += len(frames)
-        answered_to = max(0, self.inputs - L)
-        n = answered_to - answered_from
+
+def process_live(jobs: list[tuple[LivePose, np.ndarray, int]]) -> list[list[dict]]:
+    """Several live sessions' new frames ``(session, frames (m, N, 10), first stream frame)`` of one model at once:
+    each session's messages. The calibrated frames of all sessions go through the network together (one call per
+    frame count, ``PoseModel.step_many``) and through the per-frame geometry as one array, so a busy service pays
+    numpy's and onnxruntime's per-call costs once per batch instead of once per session and packet."""
+    messages: list[list[dict]] = []
+    ready: list[tuple[int, LivePose, np.ndarray, int]] = []
+    for k, (live, frames, first_frame) in enumerate(jobs):
+        calibration, frames, first_frame = live.calibrate(frames, first_frame)
+        messages.append(calibration)
+        if len(frames):
+            ready.append((k, live, frames, first_frame))
+    if ready:
+        answers = _step_live([r[1] for r in ready], [r[2] for r in ready], [r[3] for r in ready])
+        for (k, *_), answer in zip(ready, answers, strict=True):
+            if answer is not None:
+                messages[k].append(answer)
+    return messages
+
+
+def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: list[int]) -> list[dict | None]:
+    """Calibrated frames of sessions of one model → each session's ``pose`` message (None: no frame answered yet)."""
+    from service.core.calibration import pose_features, segment_readings
+
+    model = lives[0].model
+    counts = [len(f) for f in frames]
+    bounds = np.cumsum([0, *counts])
+    joined = np.concatenate(frames)
+    q_seg = np.repeat(np.stack([live.q_segment_sensor for live in lives]), counts, axis=0)
+    R_w_seg, a_w = segment_readings(joined[:, :, 6:10], joined[:, :, :3], q_seg)
+    features = pose_features(R_w_seg, a_w)
+    outs, states = model.step_many(
+        [features[bounds[i] : bounds[i + 1]] for i in range(len(lives))], [live.state for live in lives]
+    )
+    L = model.spec.look_ahead_frames
+    answered: list[tuple[int, int, int]] = []  # (session, first network frame answered, frames answered)
+    R_out, R_sensors, offsets = [], [], []
+    for i, live in enumerate(lives):
+        live.state = states[i]
+        if live.inputs == 0:
+            live.first_frame = first_frames[i]
+        live.history = np.concatenate([live.history, R_w_seg[bounds[i] : bounds[i + 1]]])
+        answered_from = max(0, live.inputs - L)
+        live.inputs += counts[i]
+        n = max(0, live.inputs - L) - answered_from
         if n == 0:
-            return None
-        R_out = out[len(out) - n :]
-        R_sensors = self.history[:n]
-        self.history = self.history[n:]
-        R_world = whole_body(R_sensors, R_out, self.model.sensor_index, self.model.output_index)
-        answer = pose_answer(R_world, self.body)
-        return {
+            continue
+        answered.append((i, answered_from, n))
+        R_out.append(outs[i][len(outs[i]) - n :])
+        R_sensors.append(live.history[:n])
+        live.history = live.history[n:]
+        offsets.append(np.broadcast_to(live.body.offsets_m, (n, *live.body.offsets_m.shape)))
+    results: list[dict | None] = [None] * len(lives)
+    if not answered:
+        return results
+    R_world = whole_body(np.concatenate(R_sensors), np.concatenate(R_out), model.sensor_index, model.output_index)
+    q_world = np.round(quat_from_matrix(R_world), 5)
+    positions = np.round(segment_origins(R_world, np.concatenate(offsets)), 4)
+    row = 0
+    for i, answered_from, n in answered:
+        results[i] = {
             "type": "pose",
-            "first_frame": self.first_frame + answered_from,
+            "first_frame": lives[i].first_frame + answered_from,
             "frames": n,
-            "q_world_segment": np.round(answer["q_world_segment"], 5),
-            "joint_positions_m": np.round(answer["joint_positions_m"], 4),
+            "q_world_segment": q_world[row : row + n],
+            "joint_positions_m": positions[row : row + n],
         }
+        row += n
+    return results

@@ -48,6 +48,20 @@ def test_matrix_closed_form_equals_scipy(v: list[float]) -> None:
     np.testing.assert_allclose(matrix_from_quat(np.stack([q, -q])[None]), np.stack([expected] * 2)[None], atol=1e-12)
 
 
+def test_quat_from_matrix_equals_scipy_for_every_branch() -> None:
+    rng = np.random.default_rng(0)
+    R = Rotation.random(501, random_state=1).as_matrix()
+    half_turns = Rotation.from_rotvec(np.pi * np.eye(3)).as_matrix()  # the trace branch cannot take these
+    axes = rng.normal(size=(3, 3))
+    near_half = Rotation.from_rotvec((np.pi - 1e-4) * axes / np.linalg.norm(axes, axis=1, keepdims=True)).as_matrix()
+    R = np.concatenate([R, half_turns, near_half, np.eye(3)[None]]).reshape(-1, 2, 3, 3)  # batch shape (., 2)
+    expected = canonical_quat(Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat(scalar_first=True))
+    np.testing.assert_allclose(quat_from_matrix(R).reshape(-1, 4), expected, atol=1e-12)
+    noisy = (R + rng.normal(scale=1e-7, size=R.shape)).astype(np.float32)  # a network's float32 output
+    q = quat_from_matrix(noisy).reshape(-1, 4)
+    assert np.abs(np.abs(np.sum(q * expected, axis=1)) - 1).max() < 1e-6
+
+
 def test_stereographic_of_identity_is_zero() -> None:
     np.testing.assert_allclose(quat_to_stereographic(np.array([1.0, 0, 0, 0])), 0.0)
 

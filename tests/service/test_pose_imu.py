@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from benchmarks.servers import REPO, start_service, stop
 from service.api.pose_routes import calibrate, read_sensors
+from service.api.protocol import ALL_SENSORS, decode_pose_block, encode_binary
 from service.api.schemas import PoseImuRequest
 from service.app import create_app
 from service.core.body import BODY_SEGMENTS, BodyMotion
@@ -236,16 +237,23 @@ def test_a_nan_reading_is_refused(client: TestClient, walk) -> None:
     assert r.status_code == 422 and "sensors.0.acc.3.1: Input should be a finite number" in r.json()["detail"]
 
 
-async def _stream(url: str, start: dict, packets: list[tuple[str, int, np.ndarray]]) -> tuple[list[dict], int, str]:
+async def _stream(url: str, start: dict, packets: list) -> tuple[list[dict], int, str]:
+    """Send ``start``, then each packet (``(sensor_id, seq, rows)`` as JSON, or the bytes of a binary packet), then
+    stop; every message received (binary pose blocks decoded), and the close code and reason."""
     messages = []
     async with websockets.connect(url, max_size=None) as ws:
 
         async def send() -> None:
             try:
                 await ws.send(json.dumps(start))
-                for sensor_id, seq, rows in packets:
-                    packet = {"type": "samples", "sensor_id": sensor_id, "seq": seq, "samples": rows.tolist()}
-                    await ws.send(json.dumps(packet))
+                for packet in packets:
+                    if isinstance(packet, bytes):  # a binary packet as it goes on the wire
+                        await ws.send(packet)
+                        continue
+                    sensor_id, seq, rows = packet
+                    await ws.send(
+                        json.dumps({"type": "samples", "sensor_id": sensor_id, "seq": seq, "samples": rows.tolist()})
+                    )
                 await ws.send(json.dumps({"type": "stop"}))
             except websockets.ConnectionClosed:  # the server closed on a mistake; its messages are read below
                 pass
@@ -253,7 +261,7 @@ async def _stream(url: str, start: dict, packets: list[tuple[str, int, np.ndarra
         sender = asyncio.create_task(send())
         try:
             async for text in ws:
-                messages.append(json.loads(text))
+                messages.append(decode_pose_block(text) if isinstance(text, bytes) else json.loads(text))
         except websockets.ConnectionClosedError:  # closed with an error code: read below
             pass
         await sender
@@ -295,6 +303,61 @@ def test_the_stream_answers_pose_as_the_streaming_model_does_offline(server: str
     q_live /= np.linalg.norm(q_live, axis=-1, keepdims=True)  # sent rounded to 5 decimals
     angle = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(q_live * q_off, -1)), 0, 1)))
     assert angle.max() < 0.1, angle.max()
+
+
+def test_frame_packets_and_binary_pose_blocks_answer_as_the_json_stream_does(server: str, walk, pose_models) -> None:
+    """A suit's receiver: all six sensors in one binary frame packet per 8 samples, pose back as binary blocks. The
+    same frames are answered, with the same orientations as the per-sensor JSON stream gives."""
+    motion, raw = walk
+    n = min(600, motion.n_frames) // 8 * 8
+    rows = np.stack([_rows(raw, k)[:n] for k in range(len(SIX_SENSORS))], axis=1)  # (n, 6, 10)
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    url = server.replace("http", "ws") + "/v1/stream"
+    json_start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}
+    per_sensor = [(s.lower(), f, rows[f : f + 8, k]) for f in range(0, n, 8) for k, s in enumerate(SIX_SENSORS)]
+    reference, code, reason = asyncio.run(_stream(url, json_start, per_sensor))
+    assert code == 1000, reason
+    binary_start = {**json_start, "pose": {"calibration": "declared", "output": "binary"}}
+    frames = [encode_binary(ALL_SENSORS, f, rows[f : f + 8]) for f in range(0, n, 8)]
+    messages, code, reason = asyncio.run(_stream(url, binary_start, frames))
+    assert code == 1000, reason
+    assert messages[0]["pose"]["output"] == "binary"
+    blocks = [m for m in messages if m["type"] == "pose"]
+    assert all(isinstance(b["q_world_segment"], np.ndarray) for b in blocks)
+    q_ref = np.concatenate([np.array(m["q_world_segment"]) for m in reference if m["type"] == "pose"])
+    q_bin = np.concatenate([b["q_world_segment"] for b in blocks])
+    p_bin = np.concatenate([b["joint_positions_m"] for b in blocks])
+    # the first packet answers its first 3 frames (5 wait for their look-ahead), every later one 8
+    assert [b["first_frame"] for b in blocks] == [0, *range(3, n - 5, 8)]
+    assert q_bin.shape == q_ref.shape == (n - 5, len(BODY_SEGMENTS), 4) and p_bin.shape == (
+        n - 5,
+        len(BODY_SEGMENTS),
+        3,
+    )
+    np.testing.assert_allclose(q_bin, q_ref, atol=2e-5)  # JSON carries 5 decimals, the blocks float32
+
+
+def test_a_bad_frame_packet_closes_naming_its_sensor_after_the_earlier_answers(server: str, walk) -> None:
+    motion, raw = walk
+    rows = np.stack([_rows(raw, k)[:64] for k in range(len(SIX_SENSORS))], axis=1)
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}
+    url = server.replace("http", "ws") + "/v1/stream"
+    bad = rows[32:48].copy()
+    bad[3, SIX_SENSORS.index("Head"), 0] = np.nan
+    good = [encode_binary(ALL_SENSORS, f, rows[f : f + 16]) for f in (0, 16)]
+    messages, code, reason = asyncio.run(_stream(url, start, [*good, encode_binary(ALL_SENSORS, 32, bad)]))
+    assert code == 1008 and "sensor head" in reason and "finite" in reason, reason
+    assert sum(m["frames"] for m in messages if m["type"] == "pose") == 32 - 5  # every frame before the mistake
+    short = encode_binary(ALL_SENSORS, 0, rows[:4])[:-4]  # one float missing
+    messages, code, reason = asyncio.run(_stream(url, start, [short]))
+    assert code == 1003 and "of 6 sensors must be" in reason, reason
 
 
 def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str, data_dir: Path) -> None:
@@ -365,3 +428,83 @@ def test_a_non_unit_quaternion_on_the_stream_closes_it_after_the_accepted_frames
     assert code == 1008 and "unit quaternion" in reason
     frames = sum(m["frames"] for m in messages if m["type"] == "pose")
     assert frames == 25  # the 30 accepted frames, less the look-ahead, were answered before the close
+
+
+def _live_sessions(model: PoseModel, seed: int) -> list:
+    from service.inference.pose import LivePose
+
+    rng = np.random.default_rng(seed)
+    heights = [None, 1.55, 1.92]
+    return [
+        LivePose(model, "declared", Rotation.random(6, random_state=seed + k).as_quat(scalar_first=True), height_m=h)
+        for k, h in enumerate(heights)
+    ], rng
+
+
+def _frames(rng: np.random.Generator, n: int) -> np.ndarray:
+    q = Rotation.random(n * 6, random_state=int(rng.integers(1 << 30))).as_quat(scalar_first=True).reshape(n, 6, 4)
+    acc = rng.normal(scale=3.0, size=(n, 6, 3)) + [0.0, 0.0, 9.81]
+    return np.concatenate([acc, rng.normal(size=(n, 6, 3)), q], axis=2)
+
+
+def test_live_sessions_batched_together_answer_as_each_alone(pose_models: dict[str, PoseModel]) -> None:
+    """Three sessions (own alignments, own body heights, packets of different lengths) through one call per packet
+    round (``process_live``, and concurrently through the service's batcher) give each session's messages exactly
+    as running it alone does."""
+    from service.inference.pose import process_live
+    from service.inference.pose_batcher import LivePoseBatcher
+    from service.inference.runner import ModelRunner
+
+    model = pose_models["pose_full6_stream"]
+    assert model.batchable
+    alone, rng = _live_sessions(model, 3)
+    together, _ = _live_sessions(model, 3)
+    concurrent, _ = _live_sessions(model, 3)
+    rounds = [[_frames(rng, n) for n in sizes] for sizes in ([4, 4, 4], [4, 7, 1], [2, 4, 9], [4, 4, 4])]
+    expected = [[live.process(f, 0) for live, f in zip(alone, frames, strict=True)] for frames in rounds]
+    got = [process_live([(live, f, 0) for live, f in zip(together, frames, strict=True)]) for frames in rounds]
+
+    async def through_batcher() -> list[list[list[dict]]]:
+        batcher = LivePoseBatcher(ModelRunner({}, threads=2, chunk=1), workers=2)
+        out = []
+        for frames in rounds:
+            answers = await asyncio.gather(
+                *(batcher.process(live, f, 0) for live, f in zip(concurrent, frames, strict=True))
+            )
+            out.append(list(answers))
+        return out
+
+    for answers in (got, asyncio.run(through_batcher())):
+        answered = 0
+        for want_round, got_round in zip(expected, answers, strict=True):
+            for want, have in zip(want_round, got_round, strict=True):
+                assert [m["type"] for m in want] == [m["type"] for m in have]
+                for a, b in zip(want, have, strict=True):
+                    assert (a["first_frame"], a["frames"]) == (b["first_frame"], b["frames"])
+                    np.testing.assert_allclose(a["q_world_segment"], b["q_world_segment"], atol=2e-5)
+                    np.testing.assert_allclose(a["joint_positions_m"], b["joint_positions_m"], atol=2e-4)
+                    answered += a["frames"]
+        assert answered == sum(sum(len(f) for f in frames) for frames in rounds) - 3 * 5  # 5 frames of look-ahead
+
+
+def test_pose_sessions_are_refused_while_their_worker_is_busy(client) -> None:
+    """Stream admission measures the live pose batches: with their worker busy 90 % of the last two seconds (more
+    than the streams' 50 % share) a new pose session is refused with 1013 and the reason; an I2S-only session is
+    not."""
+    import time
+
+    batcher = client.app.state.pose_batcher
+    now = time.monotonic()
+    batcher.batches.extend([(now, 0.9), (now, 0.9)])
+    try:
+        sensors = [{"sensor_id": s.lower(), "segment": s, "q_segment_sensor": [1, 0, 0, 0]} for s in SIX_SENSORS]
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps({"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}))
+            error = json.loads(ws.receive_text())
+        assert error["close_code"] == 1013 and "busy 90 %" in error["detail"], error
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+            assert json.loads(ws.receive_text())["type"] == "started"
+            ws.send_text(json.dumps({"type": "stop"}))
+    finally:
+        batcher.batches.clear()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ import torch
 
 from service.core.body import Body
 from service.core.calibration import ACC_SCALE_MPS2, FEATURE_VERSION, features_per_frame
-from service.core.manifest import Evaluation, Manifest, PoseSpec, TensorSpec
+from service.core.manifest import Evaluation, Manifest, PoseSpec, TensorSpec, read_manifest, sha256_file, write_manifest
 from training.pose.config import PoseConfig
 from training.pose.data import BANDAI_LICENCE, MODEL_RATE_HZ
 from training.pose.models import PoseNet, StreamingExport
@@ -41,7 +42,12 @@ def export_pose_onnx(net: PoseNet, cfg: PoseConfig, path: Path) -> Path:
             str(path),
             input_names=["features", "h0", "c0"],
             output_names=["rotations", "h", "c"],
-            dynamic_axes={"features": {1: "frames"}, "rotations": {1: "frames"}},
+            # a batch of live sessions per call (service.inference.pose_batcher), each with its own state
+            dynamic_axes={
+                "features": {0: "batch", 1: "frames"},
+                "rotations": {0: "batch", 1: "frames"},
+                **{name: {1: "batch"} for name in ("h0", "c0", "h", "c")},
+            },
             opset_version=OPSET,
             dynamo=False,
         )
@@ -93,7 +99,7 @@ def build_pose_manifest(
     F = features_per_frame(len(cfg.sensors))
     S = len(cfg.outputs)
     streaming = is_streaming(cfg)
-    batch = 1 if streaming else "batch"
+    batch = "batch"
     inputs = [
         TensorSpec(
             name="features",
@@ -114,8 +120,8 @@ def build_pose_manifest(
         )
     ]
     if streaming:
-        state = [net.layers, 1, net.hidden]
-        state_desc = f"LSTM state ({net.layers}, 1, {net.hidden}); zeros at the start of a stream"
+        state = [net.layers, "batch", net.hidden]
+        state_desc = f"LSTM state ({net.layers}, batch, {net.hidden}); zeros at the start of a stream"
         inputs += [TensorSpec(name=n, shape=state, dtype="float32", description=state_desc) for n in ("h0", "c0")]
         outputs += [TensorSpec(name=n, shape=state, dtype="float32", description=state_desc) for n in ("h", "c")]
     return Manifest(
@@ -156,3 +162,70 @@ def build_pose_manifest(
         exporter={"torch": torch.__version__, "onnx": onnx.__version__, "opset": OPSET, "exporter": "torchscript"},
         parity_atol=PARITY_ATOL,
     )
+
+
+def free_batch_dimension(model_dir: Path, version: str, models_dir: Path) -> Path:
+    """Ship a streaming pose model exported with a batch of one (versions 1.0.0) as ``version`` whose batch
+    dimension is symbolic, so that the service can run several live sessions in one call: the same weights and
+    nodes, only the graph's declared input and output shapes change. Checked before anything is written: the golden
+    pair still holds, and a batch of three sessions gives each session's answer and state exactly as three calls
+    do. The manifest says what it was derived from; the folder written."""
+    manifest = read_manifest(model_dir / "manifest.json")
+    if manifest.pose is None or not manifest.pose.streaming:
+        raise ValueError(f"{model_dir} is not a streaming pose model")
+    model = onnx.load(str(model_dir / "model.onnx"))
+    batch_axis = {"features": 0, "rotations": 0, "h0": 1, "c0": 1, "h": 1, "c": 1}
+    for value in [*model.graph.input, *model.graph.output]:
+        dim = value.type.tensor_type.shape.dim[batch_axis[value.name]]
+        if dim.dim_param == "batch":
+            raise ValueError(f"{model_dir}: its batch dimension is symbolic already")
+        dim.Clear()
+        dim.dim_param = "batch"
+    del model.graph.value_info[:]  # inferred shapes of the batch of one; onnxruntime infers them again
+    data = model.SerializeToString()
+    session = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
+    with np.load(model_dir / "golden.npz") as z:
+        golden = dict(z)
+    L, H = manifest.pose.state_layers, manifest.pose.state_hidden
+    zero = np.zeros((L, 1, H), np.float32)
+    got = session.run(None, {"features": golden["features"], "h0": zero, "c0": zero})[0]
+    if np.max(np.abs(got - golden["expected"])) > manifest.parity_atol:
+        raise ValueError(f"{model_dir}: the graph with a symbolic batch no longer reproduces its golden pair")
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(3, 7, golden["features"].shape[-1])).astype(np.float32)
+    h, c = (0.5 * rng.normal(size=(L, 3, H)).astype(np.float32) for _ in range(2))
+    together = session.run(None, {"features": x, "h0": h, "c0": c})
+    for b in range(3):
+        alone = session.run(None, {"features": x[b : b + 1], "h0": h[:, b : b + 1], "c0": c[:, b : b + 1]})
+        for name, one, many in zip(("rotations", "h", "c"), alone, together, strict=True):
+            part = many[b : b + 1] if name == "rotations" else many[:, b : b + 1]
+            if np.max(np.abs(one - part)) > 1e-5:
+                raise ValueError(f"{model_dir}: session {b}'s {name} differs when run in a batch")
+    target = models_dir / manifest.name / version
+    if target.exists():
+        raise FileExistsError(f"{target} exists")
+    target.mkdir(parents=True)
+    (target / "model.onnx").write_bytes(data)
+    shutil.copy(model_dir / "golden.npz", target / "golden.npz")
+    shapes = {}
+    for spec in [*manifest.inputs, *manifest.outputs]:
+        shape = list(spec.shape)
+        shape[batch_axis[spec.name]] = "batch"
+        shapes[spec.name] = shape
+    derived = manifest.model_copy(
+        update={
+            "version": version,
+            "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+            "sha256": sha256_file(target / "model.onnx"),
+            "inputs": [s.model_copy(update={"shape": shapes[s.name]}) for s in manifest.inputs],
+            "outputs": [s.model_copy(update={"shape": shapes[s.name]}) for s in manifest.outputs],
+            "exporter": {
+                **manifest.exporter,
+                "derived_from": f"{manifest.name}/{manifest.version}",
+                "derivation": "batch dimension made symbolic (training.pose.export.free_batch_dimension); same "
+                "weights and nodes",
+            },
+        }
+    )
+    write_manifest(derived, target / "manifest.json")
+    return target
