@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -90,7 +91,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if "i2s_assignment" in app.state.models:
             await seed_request_cost(app, settings.api_key)
         app.state.metrics.watch_load(batcher, app.state.streams)
+        loop_watch = asyncio.create_task(app.state.streams.watch_loop())
         yield
+        loop_watch.cancel()
         await batcher.stop()
         runner.close()
 

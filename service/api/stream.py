@@ -506,6 +506,8 @@ async def stream(ws: WebSocket) -> None:
     finally:
         metrics.open_streams.dec()
         ws.app.state.streams.release(admitted)
+        if admitted is not None and session is not None and session.pose is not None:
+            ws.app.state.pose_batcher.session_closed()
         if worker is not None:
             worker.cancel()
         await end_session(ws, outbox, sending, code, reason)
@@ -516,15 +518,19 @@ def _admit(app: FastAPI, session: Session) -> int:
     demand = len(session.streams) * I2S_WINDOWS_PER_SENSOR_S if session.run_i2s else 0.0
     if session.pose is not None:
         demand += app.state.streams.model_demand(app.state.batcher, session.pose.model.name, 60.0)
-        busy, limit = app.state.pose_batcher.busy_share(), app.state.streams.fraction
-        if busy > limit:
+        batcher, limit = app.state.pose_batcher, app.state.streams.fraction
+        projected = batcher.projected_busy_share()
+        if projected > limit:
             app.state.metrics.streams_refused.labels("capacity").inc()
             raise ProtocolError(
-                f"at capacity: the live pose sessions keep their worker busy {100 * busy:.0f} % of the time "
-                f"(at most {100 * limit:.0f} %); try again later",
+                f"at capacity: the live pose sessions keep their worker busy {100 * batcher.busy_share():.0f} % of "
+                f"the time, {100 * projected:.0f} % with this one (at most {100 * limit:.0f} %); try again later",
                 1013,
             )
-    return admit_or_refuse(app, demand)
+    key = admit_or_refuse(app, demand)
+    if session.pose is not None:
+        app.state.pose_batcher.session_opened()
+    return key
 
 
 def _started(session: Session) -> dict:

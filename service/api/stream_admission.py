@@ -11,7 +11,12 @@ sessions (``LivePoseBatcher.probe``), as the I2S capacity is, on an idle machine
 batches under load: their times in the worker thread grow with the event loop's share of the interpreter (three
 to four times on two cores), while the I2S seconds per window they are compared with do not.
 
-A new stream is refused (close code 1013, "try again later") when its demand would take the admitted streams'
+A new stream is refused (close code 1013, "try again later") while the event loop is behind: when a timer that
+should fire every ``LAG_TICK_S`` fired more than ``latency_target_ms`` × ``LAG_SHARE`` late at the 90th percentile
+of the last ``LAG_WINDOW_S`` seconds. Reading the streams' packets is the event loop's work, and a packet that waits
+in the socket for a busy loop is not seen by the answer latencies below (they start when the packet is read): with
+one message per sensor and packet, 40 six-sensor pose streams saturate the loop on two cores while the models are
+half idle. It is refused too when its demand would take the admitted streams'
 total past ``fraction`` × capacity: beyond it every admitted stream's answers would fall behind, as they did
 when 51 sensors on a 26-sensor machine all got answers 8–50 s late. It is refused too while the admitted streams'
 answers are already late: when the p99 of their packet-to-answer times over the last ``WINDOW_S`` seconds passes
@@ -21,6 +26,7 @@ programs on the machine).
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import time
 from collections import deque
@@ -35,6 +41,9 @@ I2S_WINDOWS_PER_SENSOR_S = 60.0 / 16  # model rate / hop
 EWMA_WEIGHT = 0.2
 WINDOW_S = 10.0  # of recent answer latencies
 MIN_LATENCIES = 50  # fewer than this in the window: too few to judge
+LAG_TICK_S = 0.02  # the event-loop lag timer's period
+LAG_WINDOW_S = 2.0  # of recent lag measurements
+LAG_SHARE = 0.25  # of the latency target: the loop lag (p90) beyond which new streams are refused
 
 
 class StreamAdmission:
@@ -46,6 +55,21 @@ class StreamAdmission:
         self.seconds_per_frame: dict[str, float] = {}  # pose or flex model name → seconds per frame (one worker)
         self.seconds_per_batch: dict[str, float] = {}  # batched pose model name → fixed seconds per batch
         self.ids = itertools.count()
+        self.lags: deque[tuple[float, float]] = deque(maxlen=1024)  # (monotonic time, seconds late)
+
+    async def watch_loop(self) -> None:
+        """Measure how late the event loop runs a timer, for as long as the service runs."""
+        while True:
+            due = time.monotonic() + LAG_TICK_S
+            await asyncio.sleep(LAG_TICK_S)
+            now = time.monotonic()
+            self.lags.append((now, max(now - due, 0.0)))
+
+    def loop_lag_ms(self) -> float | None:
+        """p90 of how late the loop ran its timer over the last ``LAG_WINDOW_S``; None before it has run."""
+        since = time.monotonic() - LAG_WINDOW_S
+        recent = [lag for t, lag in self.lags if t >= since]
+        return 1000 * float(np.percentile(recent, 90)) if len(recent) >= 10 else None
 
     @property
     def total(self) -> float:
@@ -84,6 +108,12 @@ class StreamAdmission:
 
     def admit(self, batcher: MicroBatcher, windows_per_s: float) -> tuple[int | None, str]:
         """(a session key, "") if admitted, else (None, why)."""
+        lag = self.loop_lag_ms()
+        if lag is not None and lag > LAG_SHARE * self.latency_target_ms:
+            return None, (
+                f"at capacity: the service's event loop runs {lag:.0f} ms late (at most "
+                f"{LAG_SHARE * self.latency_target_ms:.0f} ms); try again later"
+            )
         p99 = self.recent_p99_ms()
         if p99 is not None and p99 > self.latency_target_ms:
             return None, (

@@ -9,8 +9,9 @@ one call in flight (its stream awaits each answer before it reads on), so its fr
 
 The service runs one batch at a time (``workers`` 1): a batch's network call and numpy work run while the event
 loop reads the next packets, and the sessions that arrive meanwhile make the next batch larger rather than
-competing with it for the cores. ``busy_share`` says how much of that one worker the live sessions take; stream
-admission refuses new pose sessions when it passes its fraction.
+competing with it for the cores. ``busy_share`` says how much of that one worker the live sessions take, and
+``projected_busy_share`` how much with one more; stream admission refuses new pose sessions when that passes its
+fraction.
 """
 
 from __future__ import annotations
@@ -45,13 +46,45 @@ class LivePoseBatcher:
         self.runner, self.workers, self.on_batch = runner, workers, on_batch
         self.pending: list[_Job] = []
         self.in_flight = 0
-        self.batches: deque[tuple[float, float]] = deque(maxlen=4096)  # (monotonic end, worker-seconds)
+        self.batches: deque[tuple[float, float, float]] = deque(maxlen=4096)  # (end, worker-seconds, fixed part)
+        self.per_batch_s: dict[str, float] = {}  # a model's fixed seconds per batch (``probe``)
+        self.sessions = 0  # live pose sessions open now
+        self.session_changes: deque[tuple[float, int]] = deque(maxlen=4096)  # (monotonic time, sessions from then)
 
     def busy_share(self, window_s: float = BUSY_WINDOW_S) -> float:
         """The share of the last ``window_s`` seconds the live pose batches kept their worker busy (measured in
         the worker's thread: it includes what the machine's other work costs them)."""
         since = time.monotonic() - window_s
-        return sum(seconds for end, seconds in self.batches if end >= since) / window_s
+        return sum(seconds for end, seconds, _ in self.batches if end >= since) / window_s
+
+    def session_opened(self) -> None:
+        self.sessions += 1
+        self.session_changes.append((time.monotonic(), self.sessions))
+
+    def session_closed(self) -> None:
+        self.sessions -= 1
+        self.session_changes.append((time.monotonic(), self.sessions))
+
+    def projected_busy_share(self, window_s: float = BUSY_WINDOW_S) -> float:
+        """``busy_share`` with the sessions open now and one more. Each session's share is what the window measured
+        beyond the batches' fixed parts (``probe``), over the sessions open on average in it; the sessions opened
+        since, and the new one, add that share each before their load shows in the measurement, so clients that
+        arrive in a burst do not all get in."""
+        now = time.monotonic()
+        since, count, area = now - window_s, 0, 0.0
+        for t, n in self.session_changes:
+            if t > since:
+                area += count * (t - since)
+                since = t
+            count = n
+        area += count * (now - since)
+        mean = area / window_s
+        busy = self.busy_share(window_s)
+        if mean < 1.0:
+            return busy
+        fixed = sum(part for end, _, part in self.batches if end >= now - window_s) / window_s
+        per_session = max(busy - fixed, 0.0) / mean
+        return busy + max(self.sessions + 1 - mean, 0.0) * per_session
 
     async def process(self, live: LivePose, frames: np.ndarray, first_frame: int) -> list[dict]:
         """The session's messages for its frames ``(m, N, 10)``."""
@@ -74,7 +107,8 @@ class LivePoseBatcher:
             runs = [await self.runner.run_call_timed(process_live, jobs) for _ in range(4)]
             timings[n] = float(np.median([seconds for _, seconds in runs]))
         per_frame = max((timings[sessions] - timings[1]) / ((sessions - 1) * packet), 1e-7)
-        return max(timings[1] - packet * per_frame, 0.0), per_frame
+        self.per_batch_s[model.name] = max(timings[1] - packet * per_frame, 0.0)
+        return self.per_batch_s[model.name], per_frame
 
     def _dispatch(self) -> None:
         while self.pending and self.in_flight < self.workers:
@@ -100,7 +134,7 @@ class LivePoseBatcher:
         finally:
             self.in_flight -= 1
             self._dispatch()
-        self.batches.append((time.monotonic(), seconds))
+        self.batches.append((time.monotonic(), seconds, self.per_batch_s.get(jobs[0].live.model.name, 0.0)))
         if self.on_batch:
             self.on_batch(jobs[0].live.model.name, len(jobs), seconds)
         for job, answer in zip(jobs, messages, strict=True):

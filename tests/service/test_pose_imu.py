@@ -495,16 +495,33 @@ def test_pose_sessions_are_refused_while_their_worker_is_busy(client) -> None:
 
     batcher = client.app.state.pose_batcher
     now = time.monotonic()
-    batcher.batches.extend([(now, 0.9), (now, 0.9)])
+    batcher.batches.extend([(now, 0.9, 0.0), (now, 0.9, 0.0)])
     try:
         sensors = [{"sensor_id": s.lower(), "segment": s, "q_segment_sensor": [1, 0, 0, 0]} for s in SIX_SENSORS]
         with client.websocket_connect("/v1/stream") as ws:
             ws.send_text(json.dumps({"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}))
             error = json.loads(ws.receive_text())
-        assert error["close_code"] == 1013 and "busy 90 %" in error["detail"], error
+        assert error["close_code"] == 1013 and "busy 90 % of the time" in error["detail"], error
         with client.websocket_connect("/v1/stream") as ws:
             ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
             assert json.loads(ws.receive_text())["type"] == "started"
             ws.send_text(json.dumps({"type": "stop"}))
     finally:
         batcher.batches.clear()
+
+
+def test_sessions_admitted_in_a_burst_count_before_their_load_shows() -> None:
+    import time
+
+    from service.inference.pose_batcher import BUSY_WINDOW_S, LivePoseBatcher
+
+    batcher = LivePoseBatcher(runner=None, workers=1)  # type: ignore[arg-type]  # nothing runs here
+    long_ago = time.monotonic() - 10 * BUSY_WINDOW_S
+    batcher.session_changes.append((long_ago, 10))
+    batcher.sessions = 10
+    # ten sessions keep it busy 40 %, 10 % of it the batches' fixed parts: 3 % per session
+    batcher.batches.append((time.monotonic(), 0.4 * BUSY_WINDOW_S, 0.1 * BUSY_WINDOW_S))
+    assert abs(batcher.projected_busy_share() - 0.43) < 0.01
+    for _ in range(10):  # ten more arrive at once: their load is not measured yet
+        batcher.session_opened()
+    assert abs(batcher.projected_busy_share() - (0.4 + 11 * 0.03)) < 0.01
