@@ -1,5 +1,6 @@
-"""Running an ``imu_pose`` model: offline in overlapping chunks, or streaming with its LSTM state, and turning its
-root-relative output into whole-body orientations and joint positions (DESIGN.md §2 pose output).
+"""Running an ``imu_pose`` model: offline in overlapping chunks, or streaming with its LSTM state (several live
+sessions in one call: ``process_live``), and turning its root-relative output into whole-body orientations and
+joint positions (DESIGN.md §2 pose output).
 
 Used by the service and by training's evaluation alike, so a shipped model is scored the way it is served.
 """
