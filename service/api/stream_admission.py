@@ -14,11 +14,10 @@ to four times on two cores), while the I2S seconds per window they are compared 
 A new stream is refused (close code 1013, "try again later") while the event loop is behind: when a timer that
 should fire every ``LAG_TICK_S`` fired more than ``latency_target_ms`` × ``LAG_SHARE`` late at the 90th percentile
 of the last ``LAG_WINDOW_S`` seconds. Reading the streams' packets is the event loop's work, and a packet that waits
-in the socket for a busy loop is not seen by the answer latencies below (they start when the packet is read): with
-one message per sensor and packet, 40 six-sensor pose streams saturate the loop on two cores while the models are
-half idle. It is refused too when its demand would take the admitted streams'
-total past ``fraction`` × capacity: beyond it every admitted stream's answers would fall behind, as they did
-when 51 sensors on a 26-sensor machine all got answers 8–50 s late. It is refused too while the admitted streams'
+in the socket for a busy loop is not seen by the answer latencies below (they start when the packet is read). It
+is refused too when its demand would take the admitted streams' total past ``fraction`` × capacity: beyond it
+every admitted stream's answers would fall behind, as they did when 51 sensors on a 26-sensor machine all got
+answers 8–50 s late. It is refused too while the admitted streams'
 answers are already late: when the p99 of their packet-to-answer times over the last ``WINDOW_S`` seconds passes
 ``latency_target_ms`` (the capacity estimate does not see the event loop's own work for many streams, nor other
 programs on the machine).

@@ -54,7 +54,7 @@ def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     q[t, 1] = mt[:, 0, 2] - mt[:, 2, 0]
     q[t, 2] = mt[:, 1, 0] - mt[:, 0, 1]
     q[t, 3] = 1 + trace[t]
-    wxyz = q[:, [3, 0, 1, 2]]
+    wxyz = np.ascontiguousarray(q[:, [3, 0, 1, 2]])  # fancy indexing may give another memory order
     return canonical_quat(wxyz.reshape(R.shape[:-2] + (4,)))
 
 

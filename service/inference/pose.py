@@ -315,8 +315,8 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
             "type": "pose",
             "first_frame": lives[i].first_frame + answered_from,
             "frames": n,
-            "q_world_segment": q_world[row : row + n],
-            "joint_positions_m": positions[row : row + n],
+            "q_world_segment": np.ascontiguousarray(q_world[row : row + n]),  # orjson serialises C order only
+            "joint_positions_m": np.ascontiguousarray(positions[row : row + n]),
         }
         row += n
     return results

@@ -460,7 +460,8 @@ def test_live_sessions_batched_together_answer_as_each_alone(pose_models: dict[s
     alone, rng = _live_sessions(model, 3)
     together, _ = _live_sessions(model, 3)
     concurrent, _ = _live_sessions(model, 3)
-    rounds = [[_frames(rng, n) for n in sizes] for sizes in ([4, 4, 4], [4, 7, 1], [2, 4, 9], [4, 4, 4])]
+    sizes = ([4, 4, 4], [4, 7, 1], [2, 4, 9], [4, 4, 4], [1, 1, 1])  # the last: one frame answered each
+    rounds = [[_frames(rng, n) for n in round_sizes] for round_sizes in sizes]
     expected = [[live.process(f, 0) for live, f in zip(alone, frames, strict=True)] for frames in rounds]
     got = [process_live([(live, f, 0) for live, f in zip(together, frames, strict=True)]) for frames in rounds]
 
@@ -474,7 +475,11 @@ def test_live_sessions_batched_together_answer_as_each_alone(pose_models: dict[s
             out.append(list(answers))
         return out
 
+    from service.api.outbox import encode
+
     for answers in (got, asyncio.run(through_batcher())):
+        for message in (m for round_ in answers for session in round_ for m in session):
+            assert json.loads(encode(message))["frames"] == message["frames"]  # one frame too (orjson: C order)
         answered = 0
         for want_round, got_round in zip(expected, answers, strict=True):
             for want, have in zip(want_round, got_round, strict=True):
