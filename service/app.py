@@ -81,7 +81,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         for name, model in app.state.pose_models.items():
             if model.spec.streaming:
                 per_batch, per_frame = await pose_batcher.probe(model, 32 if model.batchable else 2)
-                app.state.streams.set_batched_cost(name, per_batch, per_frame)
+                app.state.streams.set_frame_cost(name, per_frame)
                 log.info("pose probe %s: %.2f ms per batch + %.3f ms per frame", name, 1e3 * per_batch, 1e3 * per_frame)
         if settings.capacity_windows_per_s:
             batcher.set_capacity(settings.capacity_windows_per_s)

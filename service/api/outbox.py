@@ -70,22 +70,21 @@ class Outbox:
             self.last_sent = time.monotonic()
         if kind == "assignment" or kind in MERGED:
             return self._put_live(kind, message)
+        return self._append(kind, encode(message))
+
+    def put_binary(self, kind: str, data: bytes) -> bool:
+        """Queue a binary message of a droppable ``kind`` (a binary pose block); True if a result was dropped."""
+        if not self.items and not self.sending:
+            self.last_sent = time.monotonic()
+        return self._append(kind, data)
+
+    def _append(self, kind: str, item: str | bytes) -> bool:
         dropped = False
         if kind in DROPPABLE:
             if self.droppable >= self.limit:
                 dropped = self._drop_oldest()
             self.droppable += 1
-        self.items.append((kind, encode(message)))
-        self.event.set()
-        return dropped
-
-    def put_binary(self, kind: str, data: bytes) -> bool:
-        """Queue a binary message of a droppable ``kind`` (a binary pose frame block); True if a result was dropped."""
-        if not self.items and not self.sending:
-            self.last_sent = time.monotonic()
-        dropped = self._drop_oldest() if self.droppable >= self.limit else False
-        self.droppable += 1
-        self.items.append((kind, data))
+        self.items.append((kind, item))
         self.event.set()
         return dropped
 

@@ -52,7 +52,6 @@ class StreamAdmission:
         self.latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # (monotonic time, seconds)
         self.demand: dict[int, float] = {}  # session → windows/s
         self.seconds_per_frame: dict[str, float] = {}  # pose or flex model name → seconds per frame (one worker)
-        self.seconds_per_batch: dict[str, float] = {}  # batched pose model name → fixed seconds per batch
         self.ids = itertools.count()
         self.lags: deque[tuple[float, float]] = deque(maxlen=1024)  # (monotonic time, seconds late)
 
@@ -88,9 +87,9 @@ class StreamAdmission:
         old = self.seconds_per_frame.get(model)
         self.seconds_per_frame[model] = per_frame if old is None else (1 - EWMA_WEIGHT) * old + EWMA_WEIGHT * per_frame
 
-    def set_batched_cost(self, model: str, per_batch_s: float, per_frame_s: float) -> None:
-        """A batched model's cost, measured: ``per_batch_s`` + ``per_frame_s`` × frames per call."""
-        self.seconds_per_batch[model], self.seconds_per_frame[model] = per_batch_s, per_frame_s
+    def set_frame_cost(self, model: str, per_frame_s: float) -> None:
+        """A batched model's seconds per frame, measured by its start-up probe (one more session's cost)."""
+        self.seconds_per_frame[model] = per_frame_s
 
     def observe_latency(self, seconds: float) -> None:
         """A stream packet's answers were queued ``seconds`` after it arrived."""

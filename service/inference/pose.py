@@ -246,10 +246,6 @@ class LivePose:
         }
         return message, rest, rest_first
 
-    def step(self, frames: np.ndarray, first_frame: int) -> dict | None:
-        """Feed calibrated frames; a ``pose`` message with every frame whose answer is now known."""
-        return _step_live([self], [frames], [first_frame])[0]
-
 
 def process_live(jobs: list[tuple[LivePose, np.ndarray, int]]) -> list[list[dict]]:
     """Several live sessions' new frames ``(session, frames (m, N, 10), first stream frame)`` of one model at once:
