@@ -131,15 +131,46 @@ async def _stream(
         await receiver
 
 
+def _pose_batch_totals(base: str) -> tuple[float, float, float]:
+    """(batches, sessions, seconds) summed over the pose worker's batches so far, from ``/metrics``."""
+    text = httpx.get(base + "/metrics").text
+    total = {}
+    for name in (
+        "wearmocap_pose_batch_sessions_count",
+        "wearmocap_pose_batch_sessions_sum",
+        "wearmocap_pose_batch_seconds_sum",
+    ):
+        total[name] = sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines() if line.startswith(name + "{"))
+    return (
+        total["wearmocap_pose_batch_sessions_count"],
+        total["wearmocap_pose_batch_sessions_sum"],
+        total["wearmocap_pose_batch_seconds_sum"],
+    )
+
+
 async def bench_streams(base: str, n: int, seconds: float, packet: int, mode: str, ramp_s: float) -> dict:
     url = base.replace("http", "ws") + "/v1/stream"
+    before = _pose_batch_totals(base)
     lat: list[float] = []
     counts = [0]
     start_at = time.perf_counter() + 1.0
     # clients connect one after another over ramp_s seconds, as independent users would, at random phases
     tasks = [_stream(url, seconds, packet, mode, lat, counts, start_at + k * ramp_s / n) for k in range(n)]
+    loop_shares: list[float] = []
+
+    async def watch() -> None:  # the service's event loop, once a second
+        async with httpx.AsyncClient() as c:
+            while True:
+                await asyncio.sleep(1.0)
+                text = (await c.get(base + "/metrics")).text
+                line = next(x for x in text.splitlines() if x.startswith("wearmocap_event_loop_busy_share "))
+                loop_shares.append(float(line.split()[1]))
+
+    watcher = asyncio.create_task(watch())
     outcomes = await asyncio.gather(*tasks, return_exceptions=True)
+    watcher.cancel()
     await asyncio.sleep(BUSY_WINDOW_S + 1.0)  # the next round is admitted on its own load, not on this one's
+    batches, sessions, busy = (b - a for a, b in zip(before, _pose_batch_totals(base), strict=True))
     errors = [o for o in outcomes if isinstance(o, BaseException)]
     refused = [e for e in errors if getattr(getattr(e, "rcvd", None), "code", None) == 1013]
     failed = [repr(e)[:200] for e in errors if e not in refused]
@@ -162,6 +193,13 @@ async def bench_streams(base: str, n: int, seconds: float, packet: int, mode: st
         # sample to pose: the first sample of a packet waits (packet - 1) frames for the packet to fill, every
         # answer waits 5 frames of look-ahead, then the server's time
         "sample_to_pose_ms_p99": float(np.percentile(lat, 99) + (packet - 1 + 5) * 1000 / 60.0) if lat else None,
+        # the pose worker over the whole round (ramp and the streams' seconds): how busy, and how large its batches
+        "pose_worker_busy_share": busy / (ramp_s + seconds),
+        "pose_batch_sessions_mean": sessions / batches if batches else None,
+        "pose_batch_ms_mean": 1000 * busy / batches if batches else None,
+        # the event loop's thread on the CPU, of the last 2 s, sampled once a second: median and highest
+        "event_loop_busy_share_median": float(np.median(loop_shares)) if loop_shares else None,
+        "event_loop_busy_share_max": max(loop_shares) if loop_shares else None,
     }
 
 

@@ -113,7 +113,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.pose_models = {}
     app.state.flex_models = {}
     app.state.confidence = None
-    app.state.streams = StreamAdmission(settings.stream_capacity_fraction, settings.stream_latency_target_ms)
+    app.state.streams = StreamAdmission(
+        settings.stream_capacity_fraction, settings.stream_latency_target_ms, settings.stream_pose_busy_limit
+    )
     app.include_router(router)
     app.include_router(pose_router)
     app.include_router(flex_router)

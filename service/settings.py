@@ -43,6 +43,14 @@ class Settings(BaseSettings):
         le=1,
         description="share of the capacity that live streams may take; a new stream beyond it is refused with 1013",
     )
+    stream_pose_busy_limit: float = Field(
+        0.8,
+        gt=0,
+        le=1,
+        description="a new live pose session is refused with 1013 when the pose worker's busy share over the last "
+        "2 s, projected with the sessions opened since and the new one, passes this (its batches grow with the "
+        "sessions, so a busy worker still answers within a few batch times)",
+    )
     stream_latency_target_ms: float = Field(
         100.0,
         gt=0,

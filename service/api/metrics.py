@@ -90,12 +90,14 @@ class ServiceMetrics:
                 ("wearmocap_capacity_windows_per_second", "measured inference capacity"),
                 ("wearmocap_estimated_wait_seconds", "estimated wait of a request queued now"),
                 ("wearmocap_stream_demand_windows_per_second", "admitted streams' demand"),
+                ("wearmocap_event_loop_busy_share", "share of the last 2 s the event loop's thread was on the CPU"),
             )
         ]
         readers = (
             lambda b, s: b.capacity_windows_per_s or 0.0,
             lambda b, s: b.estimated_wait_s(),
             lambda b, s: s.total,
+            lambda b, s: s.loop_busy_share() or 0.0,
         )
         for gauge, read in zip(self.load_gauges, readers, strict=True):
             gauge.set_function(lambda read=read: read(*self.load_source))

@@ -518,8 +518,12 @@ def _admit(app: FastAPI, session: Session) -> int:
     demand = len(session.streams) * I2S_WINDOWS_PER_SENSOR_S if session.run_i2s else 0.0
     if session.pose is not None:
         demand += app.state.streams.model_demand(app.state.batcher, session.pose.model.name, 60.0)
-        batcher, limit = app.state.pose_batcher, app.state.streams.fraction
+        batcher, limit = app.state.pose_batcher, app.state.streams.pose_busy_limit
         projected = batcher.projected_busy_share()
+        rising = app.state.streams.rising()
+        if rising:
+            app.state.metrics.streams_refused.labels("capacity").inc()
+            raise ProtocolError(rising, 1013)
         if projected > limit:
             app.state.metrics.streams_refused.labels("capacity").inc()
             raise ProtocolError(

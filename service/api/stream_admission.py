@@ -43,17 +43,21 @@ MIN_LATENCIES = 50  # fewer than this in the window: too few to judge
 LAG_TICK_S = 0.02  # the event-loop lag timer's period
 LAG_WINDOW_S = 2.0  # of recent lag measurements
 LAG_SHARE = 0.25  # of the latency target: the loop lag (p90) beyond which new streams are refused
+RISING_WINDOW_S = 1.0  # of the most recent answer latencies: a load that is still rising
+RISING_SHARE = 0.5  # of the latency target: their p99 beyond which new pose sessions are refused
 
 
 class StreamAdmission:
-    def __init__(self, fraction: float, latency_target_ms: float = 100.0) -> None:
+    def __init__(self, fraction: float, latency_target_ms: float = 100.0, pose_busy_limit: float = 0.8) -> None:
         self.fraction = fraction
+        self.pose_busy_limit = pose_busy_limit
         self.latency_target_ms = latency_target_ms
         self.latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # (monotonic time, seconds)
         self.demand: dict[int, float] = {}  # session → windows/s
         self.seconds_per_frame: dict[str, float] = {}  # pose or flex model name → seconds per frame (one worker)
         self.ids = itertools.count()
         self.lags: deque[tuple[float, float]] = deque(maxlen=1024)  # (monotonic time, seconds late)
+        self.loop_cpu: deque[tuple[float, float]] = deque(maxlen=1024)  # (monotonic time, loop thread's CPU s)
 
     async def watch_loop(self) -> None:
         """Measure how late the event loop runs a timer, for as long as the service runs."""
@@ -62,6 +66,17 @@ class StreamAdmission:
             await asyncio.sleep(LAG_TICK_S)
             now = time.monotonic()
             self.lags.append((now, max(now - due, 0.0)))
+            self.loop_cpu.append((now, time.thread_time()))
+
+    def loop_busy_share(self) -> float | None:
+        """The share of the last ``LAG_WINDOW_S`` the event loop's thread spent on the CPU (reading and answering
+        every stream's packets, HTTP, JSON); None before it has run."""
+        since = time.monotonic() - LAG_WINDOW_S
+        recent = [(t, cpu) for t, cpu in self.loop_cpu if t >= since]
+        if len(recent) < 10:
+            return None
+        (t0, cpu0), (t1, cpu1) = recent[0], recent[-1]
+        return (cpu1 - cpu0) / (t1 - t0)
 
     def loop_lag_ms(self) -> float | None:
         """p90 of how late the loop ran its timer over the last ``LAG_WINDOW_S``; None before it has run."""
@@ -95,14 +110,29 @@ class StreamAdmission:
         """A stream packet's answers were queued ``seconds`` after it arrived."""
         self.latencies.append((time.monotonic(), seconds))
 
-    def recent_p99_ms(self) -> float | None:
-        """p99 of the admitted streams' recent answer latencies; None without enough of them (or streams)."""
+    def recent_p99_ms(self, window_s: float = WINDOW_S) -> float | None:
+        """p99 of the admitted streams' answer latencies of the last ``window_s``; None without enough of them (or
+        streams)."""
         if not self.demand:
             self.latencies.clear()  # no stream is open: what was measured is over
             return None
-        since = time.monotonic() - WINDOW_S
+        since = time.monotonic() - window_s
         recent = [s for t, s in self.latencies if t >= since]
         return None if len(recent) < MIN_LATENCIES else 1000 * float(np.percentile(recent, 99))
+
+    def rising(self) -> str:
+        """Why a new live pose session is refused while the load still rises ("" if it is not): the admitted
+        streams' answers of the last second take more than ``RISING_SHARE`` of the target at p99. Live pose
+        answers take a few batch times (tens of ms) until the machine saturates, and then climb within a second;
+        clients that arrive in a burst would otherwise all get in before the slower p99 above sees it. (I2S
+        answers wait for company in their micro-batches by design, so this does not apply to them.)"""
+        rising = self.recent_p99_ms(RISING_WINDOW_S)
+        if rising is None or rising <= RISING_SHARE * self.latency_target_ms:
+            return ""
+        return (
+            f"at capacity: the admitted streams' answers of the last second take {rising:.0f} ms at p99 (at most "
+            f"{RISING_SHARE * self.latency_target_ms:.0f} ms for a new pose session); try again later"
+        )
 
     def admit(self, batcher: MicroBatcher, windows_per_s: float) -> tuple[int | None, str]:
         """(a session key, "") if admitted, else (None, why)."""

@@ -494,7 +494,7 @@ def test_live_sessions_batched_together_answer_as_each_alone(pose_models: dict[s
 
 def test_pose_sessions_are_refused_while_their_worker_is_busy(client) -> None:
     """Stream admission measures the live pose batches: with their worker busy 90 % of the last two seconds (more
-    than the streams' 50 % share) a new pose session is refused with 1013 and the reason; an I2S-only session is
+    than the 80 % of ``stream_pose_busy_limit``) a new pose session is refused with 1013 and the reason; an I2S-only session is
     not."""
     import time
 
@@ -507,6 +507,12 @@ def test_pose_sessions_are_refused_while_their_worker_is_busy(client) -> None:
             ws.send_text(json.dumps({"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}))
             error = json.loads(ws.receive_text())
         assert error["close_code"] == 1013 and "busy 90 % of the time" in error["detail"], error
+        batcher.batches.clear()
+        batcher.batches.extend([(now, 0.6, 0.0), (now, 0.6, 0.0)])  # busy 60 %: below the limit, admitted
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps({"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}))
+            assert json.loads(ws.receive_text())["type"] == "started"
+            ws.send_text(json.dumps({"type": "stop"}))
         with client.websocket_connect("/v1/stream") as ws:
             ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
             assert json.loads(ws.receive_text())["type"] == "started"
@@ -530,3 +536,37 @@ def test_sessions_admitted_in_a_burst_count_before_their_load_shows() -> None:
     for _ in range(10):  # ten more arrive at once: their load is not measured yet
         batcher.session_opened()
     assert abs(batcher.projected_busy_share() - (0.4 + 11 * 0.03)) < 0.01
+
+
+def test_pose_sessions_are_refused_while_the_answers_of_the_last_second_rise(client) -> None:
+    """A burst of new pose sessions is stopped before the latency target is reached: when the admitted streams'
+    answers of the last second take more than half the target at p99, though those of the last 10 s are within
+    it. An I2S-only session is still admitted."""
+    import time
+
+    admission = client.app.state.streams
+    sensors = [{"sensor_id": s.lower(), "segment": s, "q_segment_sensor": [1, 0, 0, 0]} for s in SIX_SENSORS]
+    pose_start = json.dumps({"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}})
+    i2s_start = json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]})
+    with client.websocket_connect("/v1/stream") as first:
+        first.send_text(i2s_start)
+        assert json.loads(first.receive_text())["type"] == "started"
+        long_ago = time.monotonic() - 5.0
+        admission.latencies.extend([(long_ago, 0.01)] * 500)  # calm a few seconds ago
+        for _ in range(60):
+            admission.observe_latency(0.04)  # within half the target now: admitted
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(pose_start)
+            assert json.loads(ws.receive_text())["type"] == "started"
+            ws.send_text(json.dumps({"type": "stop"}))
+        for _ in range(60):
+            admission.observe_latency(0.07)  # rising past half of it: refused
+        assert admission.recent_p99_ms() < admission.latency_target_ms
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(pose_start)
+            error = json.loads(ws.receive_text())
+        assert error["close_code"] == 1013 and "of the last second take 70 ms" in error["detail"], error
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(i2s_start)
+            assert json.loads(ws.receive_text())["type"] == "started"
+            ws.send_text(json.dumps({"type": "stop"}))
