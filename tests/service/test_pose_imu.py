@@ -494,8 +494,8 @@ def test_live_sessions_batched_together_answer_as_each_alone(pose_models: dict[s
 
 def test_pose_sessions_are_refused_while_their_worker_is_busy(client) -> None:
     """Stream admission measures the live pose batches: with their worker busy 90 % of the last two seconds (more
-    than the 80 % of ``stream_pose_busy_limit``) a new pose session is refused with 1013 and the reason; an I2S-only session is
-    not."""
+    than the 80 % of ``stream_pose_busy_limit``) a new pose session is refused with 1013 and the reason, at 60 % it
+    is admitted; an I2S-only session is not refused."""
     import time
 
     batcher = client.app.state.pose_batcher
