@@ -182,4 +182,3 @@ def test_streams_are_refused_while_the_admitted_ones_answer_late(tiny_models: Pa
         with c.websocket_connect("/v1/stream") as ws:
             ws.send_text(json.dumps(start))
             assert json.loads(ws.receive_text())["type"] == "started"
-
