@@ -44,7 +44,7 @@ LAG_TICK_S = 0.02  # the event-loop lag timer's period
 LAG_WINDOW_S = 2.0  # of recent lag measurements
 LAG_SHARE = 0.25  # of the latency target: the loop lag (p90) beyond which new streams are refused
 RISING_WINDOW_S = 1.0  # of the most recent answer latencies: a load that is still rising
-RISING_SHARE = 0.5  # of the latency target: their p99 beyond which new pose sessions are refused
+RISING_SHARE = 0.35  # of the latency target: their p99 beyond which new pose sessions are refused
 
 
 class StreamAdmission:
