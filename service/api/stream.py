@@ -297,7 +297,7 @@ async def _pose_frames(app: FastAPI, session: Session, joined: AlignResult) -> N
         if outbox.put_binary("pose", encode_pose_block(message)) if binary else outbox.put(message):
             app.state.metrics.dropped.inc()
         if message["type"] == "pose":
-            record_answer_latency(app, time.perf_counter() - received)
+            record_answer_latency(app, time.perf_counter() - received, pose=True)
 
 
 async def _accept_packet(app: FastAPI, session: Session, k: int, seq: int, samples: np.ndarray) -> None:

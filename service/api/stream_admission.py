@@ -53,6 +53,7 @@ class StreamAdmission:
         self.pose_busy_limit = pose_busy_limit
         self.latency_target_ms = latency_target_ms
         self.latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # (monotonic time, seconds)
+        self.pose_latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # the live pose answers' alone
         self.demand: dict[int, float] = {}  # session → windows/s
         self.seconds_per_frame: dict[str, float] = {}  # pose or flex model name → seconds per frame (one worker)
         self.ids = itertools.count()
@@ -106,31 +107,34 @@ class StreamAdmission:
         """A batched model's seconds per frame, measured by its start-up probe (one more session's cost)."""
         self.seconds_per_frame[model] = per_frame_s
 
-    def observe_latency(self, seconds: float) -> None:
-        """A stream packet's answers were queued ``seconds`` after it arrived."""
+    def observe_latency(self, seconds: float, pose: bool = False) -> None:
+        """A stream packet's answers (live pose answers: ``pose``) were queued ``seconds`` after it arrived."""
         self.latencies.append((time.monotonic(), seconds))
+        if pose:
+            self.pose_latencies.append(self.latencies[-1])
 
-    def recent_p99_ms(self, window_s: float = WINDOW_S) -> float | None:
-        """p99 of the admitted streams' answer latencies of the last ``window_s``; None without enough of them (or
-        streams)."""
+    def recent_p99_ms(self, window_s: float = WINDOW_S, pose: bool = False) -> float | None:
+        """p99 of the admitted streams' answer latencies (of live pose answers only: ``pose``) of the last
+        ``window_s``; None without enough of them (or streams)."""
         if not self.demand:
             self.latencies.clear()  # no stream is open: what was measured is over
+            self.pose_latencies.clear()
             return None
         since = time.monotonic() - window_s
-        recent = [s for t, s in self.latencies if t >= since]
+        recent = [s for t, s in (self.pose_latencies if pose else self.latencies) if t >= since]
         return None if len(recent) < MIN_LATENCIES else 1000 * float(np.percentile(recent, 99))
 
     def rising(self) -> str:
-        """Why a new live pose session is refused while the load still rises ("" if it is not): the admitted
-        streams' answers of the last second take more than ``RISING_SHARE`` of the target at p99. Live pose
-        answers take a few batch times (tens of ms) until the machine saturates, and then climb within a second;
-        clients that arrive in a burst would otherwise all get in before the slower p99 above sees it. (I2S
-        answers wait for company in their micro-batches by design, so this does not apply to them.)"""
-        rising = self.recent_p99_ms(RISING_WINDOW_S)
+        """Why a new live pose session is refused while the load still rises ("" if it is not): the live pose
+        answers of the last second take more than ``RISING_SHARE`` of the target at p99. They take a few batch
+        times (tens of ms) until the machine saturates, and then climb within a second; clients that arrive in a
+        burst would otherwise all get in before the slower p99 above sees it. (I2S answers wait for company in
+        their micro-batches by design: neither their latencies count here nor does this refuse I2S sessions.)"""
+        rising = self.recent_p99_ms(RISING_WINDOW_S, pose=True)
         if rising is None or rising <= RISING_SHARE * self.latency_target_ms:
             return ""
         return (
-            f"at capacity: the admitted streams' answers of the last second take {rising:.0f} ms at p99 (at most "
+            f"at capacity: the live pose answers of the last second take {rising:.0f} ms at p99 (at most "
             f"{RISING_SHARE * self.latency_target_ms:.0f} ms for a new pose session); try again later"
         )
 
@@ -175,7 +179,8 @@ def admit_or_refuse(app: Any, windows_per_s: float) -> int:
     return key
 
 
-def record_answer_latency(app: Any, seconds: float) -> None:
-    """A stream packet's answers were queued ``seconds`` after it arrived: for ``/metrics`` and for admission."""
+def record_answer_latency(app: Any, seconds: float, pose: bool = False) -> None:
+    """A stream packet's answers (live pose answers: ``pose``) were queued ``seconds`` after it arrived: for
+    ``/metrics`` and for admission."""
     app.state.metrics.stream_result.observe(seconds)
-    app.state.streams.observe_latency(seconds)
+    app.state.streams.observe_latency(seconds, pose)
