@@ -163,12 +163,14 @@ async def bench_streams(base: str, n: int, seconds: float, packet: int, mode: st
             while True:
                 await asyncio.sleep(1.0)
                 text = (await c.get(base + "/metrics")).text
-                line = next(x for x in text.splitlines() if x.startswith("wearmocap_event_loop_busy_share "))
-                loop_shares.append(float(line.split()[1]))
+                line = next((x for x in text.splitlines() if x.startswith("wearmocap_event_loop_busy_share ")), None)
+                if line is not None and line.split()[1] != "NaN":
+                    loop_shares.append(float(line.split()[1]))
 
     watcher = asyncio.create_task(watch())
     outcomes = await asyncio.gather(*tasks, return_exceptions=True)
     watcher.cancel()
+    await asyncio.gather(watcher, return_exceptions=True)
     await asyncio.sleep(BUSY_WINDOW_S + 1.0)  # the next round is admitted on its own load, not on this one's
     batches, sessions, busy = (b - a for a, b in zip(before, _pose_batch_totals(base), strict=True))
     errors = [o for o in outcomes if isinstance(o, BaseException)]

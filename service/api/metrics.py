@@ -97,7 +97,7 @@ class ServiceMetrics:
             lambda b, s: b.capacity_windows_per_s or 0.0,
             lambda b, s: b.estimated_wait_s(),
             lambda b, s: s.total,
-            lambda b, s: s.loop_busy_share() or 0.0,
+            lambda b, s: _nan_if_none(s.loop_busy_share()),  # NaN: too few timer ticks (a stalled loop)
         )
         for gauge, read in zip(self.load_gauges, readers, strict=True):
             gauge.set_function(lambda read=read: read(*self.load_source))
@@ -109,3 +109,7 @@ class ServiceMetrics:
     def observe_pose_batch(self, model: str, sessions: int, seconds: float) -> None:
         self.pose_batch.labels(model).observe(sessions)
         self.pose_batch_seconds.labels(model).observe(seconds)
+
+
+def _nan_if_none(value: float | None) -> float:
+    return float("nan") if value is None else value

@@ -52,7 +52,9 @@ class StreamAdmission:
         self.fraction = fraction
         self.pose_busy_limit = pose_busy_limit
         self.latency_target_ms = latency_target_ms
-        self.latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # (monotonic time, seconds)
+        # (monotonic time, seconds); one per answered packet: 16,384 hold the last 10 s of 100 pose suits at 15
+        # packets/s, 4,096 the last second of 270
+        self.latencies: deque[tuple[float, float]] = deque(maxlen=16384)
         self.pose_latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # the live pose answers' alone
         self.demand: dict[int, float] = {}  # session → windows/s
         self.seconds_per_frame: dict[str, float] = {}  # pose or flex model name → seconds per frame (one worker)
