@@ -518,19 +518,10 @@ def _admit(app: FastAPI, session: Session) -> int:
     demand = len(session.streams) * I2S_WINDOWS_PER_SENSOR_S if session.run_i2s else 0.0
     if session.pose is not None:
         demand += app.state.streams.model_demand(app.state.batcher, session.pose.model.name, 60.0)
-        batcher, limit = app.state.pose_batcher, app.state.streams.pose_busy_limit
-        projected = batcher.projected_busy_share()
-        rising = app.state.streams.rising()
-        if rising:
+        why = app.state.streams.pose_refusal(app.state.pose_batcher)
+        if why:
             app.state.metrics.streams_refused.labels("capacity").inc()
-            raise ProtocolError(rising, 1013)
-        if projected > limit:
-            app.state.metrics.streams_refused.labels("capacity").inc()
-            raise ProtocolError(
-                f"at capacity: the live pose sessions keep their worker busy {100 * batcher.busy_share():.0f} % of "
-                f"the time, {100 * projected:.0f} % with this one (at most {100 * limit:.0f} %); try again later",
-                1013,
-            )
+            raise ProtocolError(why, 1013)
     key = admit_or_refuse(app, demand)
     if session.pose is not None:
         app.state.pose_batcher.session_opened()

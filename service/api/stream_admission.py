@@ -35,6 +35,7 @@ import numpy as np
 
 from service.api.protocol import ProtocolError
 from service.inference.batcher import MicroBatcher
+from service.inference.pose_batcher import LivePoseBatcher
 
 I2S_WINDOWS_PER_SENSOR_S = 60.0 / 16  # model rate / hop
 EWMA_WEIGHT = 0.2
@@ -126,19 +127,31 @@ class StreamAdmission:
         recent = [s for t, s in (self.pose_latencies if pose else self.latencies) if t >= since]
         return None if len(recent) < MIN_LATENCIES else 1000 * float(np.percentile(recent, 99))
 
-    def rising(self) -> str:
-        """Why a new live pose session is refused while the load still rises ("" if it is not): the live pose
-        answers of the last second take more than ``RISING_SHARE`` of the target at p99. They take a few batch
-        times (tens of ms) until the machine saturates, and then climb within a second; clients that arrive in a
-        burst would otherwise all get in before the slower p99 above sees it. (I2S answers wait for company in
-        their micro-batches by design: neither their latencies count here nor does this refuse I2S sessions.)"""
+    def pose_refusal(self, pose_batcher: LivePoseBatcher) -> str:
+        """Why a new live pose session is refused ("" if its pose part may start; ``admit`` still judges its
+        demand like any stream's):
+
+        - while the load still rises: the live pose answers of the last second take more than ``RISING_SHARE`` of
+          the target at p99. They take a few batch times (tens of ms) until the machine saturates, and then climb
+          within a second; clients that arrive in a burst would otherwise all get in before the slower p99 of
+          ``admit`` sees it. (I2S answers wait for company in their micro-batches by design: neither their
+          latencies count here nor does this refuse I2S sessions.)
+        - when the pose worker's busy share, projected with the sessions opened since and this one
+          (``LivePoseBatcher.projected_busy_share``), passes ``pose_busy_limit``."""
         rising = self.recent_p99_ms(RISING_WINDOW_S, pose=True)
-        if rising is None or rising <= RISING_SHARE * self.latency_target_ms:
-            return ""
-        return (
-            f"at capacity: the live pose answers of the last second take {rising:.0f} ms at p99 (at most "
-            f"{RISING_SHARE * self.latency_target_ms:.0f} ms for a new pose session); try again later"
-        )
+        if rising is not None and rising > RISING_SHARE * self.latency_target_ms:
+            return (
+                f"at capacity: the live pose answers of the last second take {rising:.0f} ms at p99 (at most "
+                f"{RISING_SHARE * self.latency_target_ms:.0f} ms for a new pose session); try again later"
+            )
+        projected = pose_batcher.projected_busy_share()
+        if projected > self.pose_busy_limit:
+            return (
+                f"at capacity: the live pose sessions keep their worker busy {100 * pose_batcher.busy_share():.0f} % "
+                f"of the time, {100 * projected:.0f} % with this one (at most {100 * self.pose_busy_limit:.0f} %); "
+                "try again later"
+            )
+        return ""
 
     def admit(self, batcher: MicroBatcher, windows_per_s: float) -> tuple[int | None, str]:
         """(a session key, "") if admitted, else (None, why)."""
