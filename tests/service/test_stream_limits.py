@@ -119,7 +119,9 @@ async def _slow_consumer(url: str) -> None:
     sock = socket.socket()
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # a slow link: little room in flight
     sock.connect((host, int(port)))
-    async with websockets.connect(url, sock=sock, max_queue=1) as ws:
+    # No keepalive pings from this client: it stops reading, so it would never see the server's pong and would
+    # close the connection itself (1011 "keepalive ping timeout") on a slow machine before reading the server's close.
+    async with websockets.connect(url, sock=sock, max_queue=1, ping_interval=None) as ws:
         await ws.send(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
         rng = np.random.default_rng(0)
         seq, deadline = 0, time.monotonic() + 20
