@@ -66,6 +66,9 @@ class TrainConfig(_Strict):
     # (training.i2s.models.FunctionalAxes; not in the paper): the flexion axis (y) of the legs and feet, the
     # direction of travel (x) of the pelvis
     functional_axes: list[str] | None = None
+    # alignment: average the CNN features over runs of this many samples before the LSTM (not in the paper;
+    # training.i2s.models.AlignmentNet): the LSTM takes 128 / rnn_stride steps; 1 = every sample, as the paper
+    rnn_stride: int = Field(default=1, ge=1)
     # alignment loss: sign-invariant quaternion distance, or the paper's L2 on the stereographic projection
     alignment_loss: Literal["quaternion", "stereographic_l2"] = "quaternion"
     grad_clip_norm: float | None = None  # clip the global gradient norm (stabilises the LSTM)

@@ -215,7 +215,10 @@ class AssignmentNet(nn.Module):
         return mixed - torch.logsumexp(mixed, dim=-1, keepdim=True)
 
     def _logits(self, x: torch.Tensor) -> torch.Tensor:
-        features, _ = self.rnn(self.cnn(x))
+        features = self.cnn(x)
+        if self.rnn_stride > 1:  # mean over each run of rnn_stride samples: 1 / rnn_stride of the LSTM's steps
+            features = nn.functional.avg_pool1d(features.transpose(1, 2), self.rnn_stride).transpose(1, 2)
+        features, _ = self.rnn(features)
         return self.head(features[:, -1])
 
 
@@ -274,6 +277,18 @@ def _turn_about_z(cos2: torch.Tensor, sin2: torch.Tensor) -> torch.Tensor:
     half_cos = torch.sqrt(((1 + cos) / 2).clamp(min=1e-12))
     zero = torch.zeros_like(cos)
     return torch.stack([half_cos, zero, zero, sin / (2 * half_cos)], -1)
+
+
+def _lagged_at(a: torch.Tensor, b: torch.Tensor, lag: torch.Tensor) -> torch.Tensor:
+    """``_lagged`` at one lag per window: ``a``, ``b`` ``(B, T)``, ``lag`` ``(B,)`` samples → ``(B,)``. The same
+    sum as picking that lag's column of ``_lagged``, with one gather of ``(B, T)`` instead of ``(B, lags, T)``."""
+    n = a.shape[-1]
+    t = torch.arange(n, device=a.device)
+    ahead = t[None, :] + lag[:, None]  # (B, T)
+    weight = (ahead < n).to(a.dtype) / (n - lag[:, None]).to(a.dtype)
+    index = ahead.clamp(max=n - 1)
+    a_later, b_later = torch.gather(a, -1, index), torch.gather(b, -1, index)
+    return 0.5 * ((a * b_later + b * a_later) * weight).sum(-1)
 
 
 def _lagged(a: torch.Tensor, b: torch.Tensor, lags: Sequence[int]) -> torch.Tensor:
@@ -365,12 +380,12 @@ class FunctionalAxes(nn.Module):
         gx, gy = (torch.einsum("btk,bk->bt", gyr, a) for a in axes[:2])
         ax, ay, az, gx, gy = (s - s.mean(-1, keepdim=True) for s in (ax, ay, az, gx, gy))
         vertical = _lagged(az, az, self.STEP_LAGS)  # (B, lags)
-        step = nn.functional.one_hot(vertical.argmax(-1), len(self.STEP_LAGS)).to(q.dtype)
-        periodic = (vertical * step).sum(-1) >= self.min_periodicity * (az * az).mean(-1)
+        periodic = vertical.max(-1).values >= self.min_periodicity * (az * az).mean(-1)
+        step = vertical.argmax(-1) + self.STEP_LAGS[0]  # (B,) samples; the lags are consecutive
 
         def contrast(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
             """(Sxx − Syy, 2 Sxy) at the step lag over the in-plane power: the doubled principal direction."""
-            sxx, syy, sxy = ((_lagged(m, n, self.STEP_LAGS) * step).sum(-1) for m, n in ((a, a), (b, b), (a, b)))
+            sxx, syy, sxy = (_lagged_at(m, n, step) for m, n in ((a, a), (b, b), (a, b)))
             power = (a * a + b * b).mean(-1) + 1e-12
             return torch.stack([sxx - syy, 2 * sxy], -1) / power[:, None]
 
@@ -407,6 +422,9 @@ class AlignmentNet(nn.Module):
     q_segment_canonical, so q_segment_imu = q_segment_canonical ⊗ q_canonical_imu (all inside the graph).
     With ``functional_axes`` those segments' frames are then turned about their z onto the axes that the
     window's motion defines (``FunctionalAxes``; no weights, so it can wrap trained weights as they are).
+    With ``rnn_stride`` n > 1 the CNN's features are averaged over each run of n samples before the LSTM (not in
+    the paper): the LSTM, most of the network's cost, takes 128 / n steps. The weights keep their shapes, so a
+    network trained at one stride warm-starts another.
     """
 
     def __init__(
@@ -417,9 +435,13 @@ class AlignmentNet(nn.Module):
         keep_prob: float = 0.8,
         canonical: bool = False,
         functional_axes: Sequence[str] | None = None,
+        rnn_stride: int = 1,
     ) -> None:
         super().__init__()
+        if rnn_stride < 1:
+            raise ValueError(f"rnn_stride must be a whole number of samples ≥ 1; got {rnn_stride}")
         self.scale = InputScale()
+        self.rnn_stride = rnn_stride
         self.canonical = CanonicalFrame() if canonical else None
         self.functional_axes = None if functional_axes is None else FunctionalAxes(functional_axes)
         self.cnn = ConvFrontEnd(channels, kernel, 3, keep_prob)
@@ -433,7 +455,10 @@ class AlignmentNet(nn.Module):
         if self.canonical is not None:
             R_c = self.canonical(x).detach()
             x = rotate_imu(x, R_c)
-        features, _ = self.rnn(self.cnn(x))
+        features = self.cnn(x)
+        if self.rnn_stride > 1:  # mean over each run of rnn_stride samples: 1 / rnn_stride of the LSTM's steps
+            features = nn.functional.avg_pool1d(features.transpose(1, 2), self.rnn_stride).transpose(1, 2)
+        features, _ = self.rnn(features)
         return self.head(features[:, -1]).reshape(-1, len(SEGMENTS), 3), R_c
 
     def forward(self, imu: torch.Tensor) -> torch.Tensor:

@@ -35,6 +35,8 @@ MetricLogger = Callable[[dict[str, float], int], None]
 
 def build_model(cfg: ExperimentConfig) -> nn.Module:
     t = cfg.train
+    if t.rnn_stride != 1 and cfg.task != "alignment":
+        raise ValueError("rnn_stride pools the alignment network's features; the assignment network has none")
     if cfg.task == "assignment" and t.ensemble_of:
         return assignment_ensemble(t.ensemble_of, t.hidden, t.channels, t.kernel, t.keep_prob)
     if cfg.task == "assignment":
@@ -57,6 +59,7 @@ def build_model(cfg: ExperimentConfig) -> nn.Module:
         t.keep_prob,
         canonical=t.canonical_frame,
         functional_axes=t.functional_axes,
+        rnn_stride=t.rnn_stride,
     )
 
 

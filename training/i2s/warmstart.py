@@ -126,7 +126,13 @@ def shipped_graph(
     canonical = any(node.name.startswith("/canonical/") for node in graph.node)
     if task == "alignment":
         return AlignmentNet(
-            hidden, channels, kernel, keep_prob, canonical=canonical, functional_axes=exporter.get("functional_axes")
+            hidden,
+            channels,
+            kernel,
+            keep_prob,
+            canonical=canonical,
+            functional_axes=exporter.get("functional_axes"),
+            rnn_stride=int(exporter.get("rnn_stride", 1)),
         )
     return AssignmentNet(hidden, channels, kernel, keep_prob, canonical=canonical, **averaging_options(exporter))
 

@@ -248,6 +248,37 @@ def test_lagged_products_of_all_lags_at_once_equal_one_slice_per_lag() -> None:
         torch.testing.assert_close(_lagged(a, b, FunctionalAxes.STEP_LAGS)[..., k_index], expected)
 
 
+def test_the_step_lags_products_at_one_lag_per_window_are_that_lags_column() -> None:
+    """The pelvis contrasts read the lagged products at each window's step lag only (one gather of (B, T));
+    they equal that lag's column of the all-lags products, whichever lag each window picks."""
+    from training.i2s.models import FunctionalAxes, _lagged, _lagged_at
+
+    a, b = torch.randn(5, 128, dtype=torch.float64), torch.randn(5, 128, dtype=torch.float64)
+    lags = FunctionalAxes.STEP_LAGS
+    assert lags == tuple(range(lags[0], lags[0] + len(lags)))  # the step is argmax + the first lag
+    pick = torch.tensor([0, 3, 17, 29, len(lags) - 1])
+    expected = _lagged(a, b, lags)[torch.arange(5), pick]
+    torch.testing.assert_close(_lagged_at(a, b, pick + lags[0]), expected)
+
+
+def test_the_lstm_can_take_pooled_steps_with_the_same_weights(tmp_path: Path) -> None:
+    """rnn_stride averages the CNN features over runs of samples before the LSTM: the weights keep their shapes
+    (a stride-1 network warm-starts it), the output does change, and the graph exports with parity."""
+    kwargs = dict(hidden=16, channels=8, kernel=4, canonical=True, functional_axes=SEGMENTS)
+    plain, pooled = AlignmentNet(**kwargs).eval(), AlignmentNet(**kwargs, rnn_stride=4).eval()
+    pooled.load_state_dict(plain.state_dict())
+    imu = _moving_windows(8, seed=5)
+    with torch.no_grad():
+        q_plain, q_pooled = plain(imu), pooled(imu)
+    assert q_pooled.shape == q_plain.shape == (8, len(SEGMENTS), 4)
+    torch.testing.assert_close(q_pooled.norm(dim=-1), torch.ones(8, len(SEGMENTS)))
+    assert (q_pooled - q_plain).abs().max() > 1e-3
+    path = export_onnx(pooled, "alignment", tmp_path / "model.onnx")
+    assert onnx_parity(path, golden_pair(pooled, imu.numpy())) < 1e-4
+    with pytest.raises(ValueError, match="rnn_stride must be"):
+        AlignmentNet(rnn_stride=0)
+
+
 def test_functional_axes_alignment_net_onnx_parity(tmp_path: Path) -> None:
     net = AlignmentNet(hidden=16, channels=8, kernel=4, canonical=True, functional_axes=SEGMENTS).eval()
     path = export_onnx(net, "alignment", tmp_path / "model.onnx")
@@ -390,3 +421,12 @@ def test_quarter_turns_and_the_canonical_frame_are_refused_together() -> None:
         with pytest.raises(ValidationError, match="gravity_turn_segments"):
             load_config(config, ["train.quarter_turns=true", *overrides])
     assert load_config(config, ["train.quarter_turns=true"]).train.quarter_turns
+
+
+def test_rnn_stride_is_refused_for_the_assignment_network() -> None:
+    from training.i2s.config import load_config
+    from training.i2s.train import build_model
+
+    config = Path(__file__).resolve().parents[3] / "training/configs/i2s_assignment.yaml"
+    with pytest.raises(ValueError, match="rnn_stride pools the alignment"):
+        build_model(load_config(config, ["train.rnn_stride=2"]))

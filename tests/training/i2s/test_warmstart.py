@@ -74,8 +74,9 @@ def test_rebuilt_alignment_weights_match_the_shipped_model(model_dir: Path) -> N
     graph = onnx.load(str(model_dir / "model.onnx")).graph
     canonical = any(node.name.startswith("/canonical/") for node in graph.node)
     assert canonical == exporter.get("canonical_frame", canonical)
-    net = AlignmentNet(canonical=canonical, functional_axes=exporter.get("functional_axes"))
-    net.load_state_dict(warm_start_from_shipped(model_dir, AlignmentNet(canonical=canonical)))
+    stride = int(exporter.get("rnn_stride", 1))
+    net = AlignmentNet(canonical=canonical, functional_axes=exporter.get("functional_axes"), rnn_stride=stride)
+    net.load_state_dict(warm_start_from_shipped(model_dir, AlignmentNet(canonical=canonical, rnn_stride=stride)))
     net.eval()
     with np.load(model_dir / "golden.npz") as golden, torch.no_grad():
         got = net(torch.from_numpy(golden["imu"])).numpy()
