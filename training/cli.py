@@ -146,15 +146,26 @@ def fit(config: Path, clips: Path, out: Path, overrides: list[str] = Override) -
 
 
 @app.command()
-def register(run_id: str, name: str, task: str = typer.Option(..., help="assignment or alignment")) -> None:
-    """Register a run's model; the champion alias moves only if it wins on the same evaluation."""
+def register(
+    run_id: str,
+    name: str,
+    task: str = typer.Option(..., help="assignment or alignment"),
+    champion_because: str = typer.Option(
+        "", help="make this version champion whatever its test score, for the reason given (tagged on it)"
+    ),
+) -> None:
+    """Register a run's model; the champion alias moves only if it wins on the same evaluation, or with
+    --champion-because when the served choice was made on other grounds (a validation rule and speed)."""
     import mlflow
 
     from training.i2s.pipeline import register_run
-    from training.tracking import default_tracking_uri
+    from training.tracking import default_tracking_uri, make_champion
 
     mlflow.set_tracking_uri(default_tracking_uri())
     version, promoted = register_run(run_id, name, task)
+    if champion_because and not promoted:
+        make_champion(name, version, champion_because)
+        promoted = True
     typer.echo(f"version={version} champion={promoted}")
 
 

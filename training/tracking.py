@@ -83,6 +83,16 @@ def maybe_promote(
     return True
 
 
+def make_champion(name: str, version: str, reason: str) -> None:
+    """Move ``champion`` to ``version`` on a decision other than its test score, recorded as the version's tag
+    ``champion_by_decision`` (a choice made on validation must not be re-made on the test figures)."""
+    if not reason.strip():
+        raise ValueError("a champion chosen against its test score needs the reason written down")
+    client = MlflowClient()
+    client.set_model_version_tag(name, version, "champion_by_decision", reason)
+    client.set_registered_model_alias(name, CHAMPION, version)
+
+
 def record_evaluation(name: str, run_id: str, metric: str, value: float, evaluation_digest: str) -> list[str]:
     """Tag the registered versions of ``run_id`` with a newer evaluation of the same model (``evaluate`` on its
     shipped float32 file), so that ``maybe_promote`` compares later versions with it on the same data."""

@@ -215,10 +215,7 @@ class AssignmentNet(nn.Module):
         return mixed - torch.logsumexp(mixed, dim=-1, keepdim=True)
 
     def _logits(self, x: torch.Tensor) -> torch.Tensor:
-        features = self.cnn(x)
-        if self.rnn_stride > 1:  # mean over each run of rnn_stride samples: 1 / rnn_stride of the LSTM's steps
-            features = nn.functional.avg_pool1d(features.transpose(1, 2), self.rnn_stride).transpose(1, 2)
-        features, _ = self.rnn(features)
+        features, _ = self.rnn(self.cnn(x))
         return self.head(features[:, -1])
 
 

@@ -48,3 +48,17 @@ def test_lower_is_better_for_angle_errors(registry: MlflowClient) -> None:
     assert not maybe_promote(NAME, "2", "mean_angle_error_deg", 1.7176159, False, DIGEST)  # equal at 6 decimals
     assert maybe_promote(NAME, "3", "mean_angle_error_deg", 1.70, False, DIGEST)
     assert _champion(registry) == "3"
+
+
+def test_a_champion_chosen_on_other_grounds_carries_its_reason(registry: MlflowClient) -> None:
+    """A version that loses on the test score becomes champion only with a written reason, tagged on it."""
+    from training.tracking import make_champion
+
+    assert maybe_promote(NAME, "1", "mean_angle_error_deg", 1.716, False, DIGEST)
+    assert not maybe_promote(NAME, "2", "mean_angle_error_deg", 1.721, False, DIGEST)
+    with pytest.raises(ValueError, match="reason"):
+        make_champion(NAME, "2", "  ")
+    assert _champion(registry) == "1"
+    make_champion(NAME, "2", "validation within 0.2 degrees, a third of the cost")
+    assert _champion(registry) == "2"
+    assert registry.get_model_version(NAME, "2").tags["champion_by_decision"].startswith("validation within")
