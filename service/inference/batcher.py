@@ -263,6 +263,12 @@ class MicroBatcher:
             self.seconds_per_window = _ewma(self.seconds_per_window, seconds / size)
         elif size == SMALL_CHUNK:
             self.seconds_per_small_window = _ewma(self.seconds_per_small_window, seconds / size)
+            # A full chunk costs no more per window than a small one. Full chunks run only under heavy load, whose
+            # contention inflates their wall time in the threads, and after it none may come to correct that: a
+            # small chunk that costs less per window than the full-chunk estimate proves it stale. Without this, a
+            # burst of streams left the stream admission at a fraction of its capacity until the next burst.
+            if self.seconds_per_window and self.seconds_per_small_window < self.seconds_per_window:
+                self.seconds_per_window = self.seconds_per_small_window
         if self.on_batch:
             self.on_batch(size, seconds)
         row = 0

@@ -131,3 +131,24 @@ def test_a_spare_chunk_waits_in_the_pool_so_no_worker_idles() -> None:
         return in_flight
 
     assert asyncio.run(main()) == [8, 8]  # one running, one waiting
+
+
+def test_small_chunks_bring_down_a_full_chunk_cost_measured_under_contention() -> None:
+    """A burst measured full chunks at an inflated cost (contention in the threads); afterwards only small chunks
+    run. Their cost per window bounds the full chunks' from above, so the capacity the stream admission reads
+    recovers instead of staying at the burst's figure."""
+
+    async def main() -> tuple[float, float]:
+        rec = _Recorder(0.004)  # 2 ms per window in chunks of 2
+        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0, spare=0)
+        batcher.set_capacity(1 / 0.004)  # what the burst left: 4 ms per window in full chunks
+        before = batcher.stream_capacity_windows_per_s
+        batcher.start()
+        for k in range(30):
+            await batcher.infer(_windows(k, 2), 0.0)
+        await batcher.stop()
+        return before, batcher.stream_capacity_windows_per_s
+
+    before, after = asyncio.run(main())
+    assert before == pytest.approx(250.0)
+    assert after == pytest.approx(500.0, rel=0.05)
