@@ -44,6 +44,7 @@ class LiveView:
     def __init__(self, sensor_ids: list[str]) -> None:
         self.rows = {sensor_id: SensorRow() for sensor_id in sensor_ids}
         self.status = "waiting for the first windows"
+        self.p_all_correct: float | None = None
         self.time_s = 0.0  # the latest window end the stream has answered
         self.declared = ""
         self.errors: list[str] = []
@@ -84,6 +85,7 @@ class LiveView:
 
     def _assignment(self, message: dict) -> None:
         self.status = message["status"]
+        self.p_all_correct = message.get("p_all_correct")
         self.dropped = message.get("results_dropped", 0)
         for s in message["sensors"]:
             row = self.rows[s["sensor_id"]]
@@ -98,6 +100,7 @@ class LiveView:
             ("wearmocap stream", "bold"),
             f"  {self.time_s:.1f} s answered  status ",
             (self.status, STATUS_STYLE.get(self.status, "")),
+            "" if self.p_all_correct is None else f"  p_all_correct {self.p_all_correct:.3f}",
         )
         table = Table(title=title, caption=self.declared or None, box=box.SIMPLE_HEAD, padding=0, show_edge=False)
         columns = ["sensor", "window", "conf", "moment", "assigned", "moving", "p_correct", "spread"]

@@ -236,14 +236,21 @@ def evaluate(
 def calibrate(
     model_dir: Path,
     loso_run: str = typer.Option(..., help="the real-loso summary run whose folds predict their held-out people"),
+    version: str | None = typer.Option(
+        None, help="write into a new version beside MODEL_DIR (the same network, this calibration) instead"
+    ),
     data_dir: Path | None = DataDir,
     cache_dir: Path = DEFAULT_CACHE,
 ) -> None:
     """Calibrate the confidence of the joint assignment on the held-out people of a real-loso run and write it
     into a shipped assignment model's manifest (``confidence``); logs the reliability diagram, the expected
-    calibration error, the selective accuracy and the time to answer to MLflow (training.i2s.calibration)."""
+    calibration error, the selective accuracy and the time to answer to MLflow (training.i2s.calibration).
+    A served version's answers should not change under its clients: ``--version`` ships the new calibration as
+    a new version whose manifest says which it derives from."""
+    import datetime as dt
     import json
     import math
+    import shutil
 
     import mlflow
 
@@ -253,10 +260,20 @@ def calibrate(
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
-    model, metrics, timing = run_calibration(loso_run, resolve_data_dir(data_dir), model_dir, cache_dir)
     manifest = read_manifest(model_dir / "manifest.json")
     if manifest.task != "i2s_assignment":
         raise typer.BadParameter(f"{model_dir} is a {manifest.task} model; calibrate takes i2s_assignment models")
+    source = model_dir
+    if version is not None:
+        target = model_dir.parent / version
+        if target.exists():
+            raise typer.BadParameter(f"{target} exists already")
+        shutil.copytree(model_dir, target)
+        manifest.exporter = {**manifest.exporter, "derived_from": f"{manifest.name}/{manifest.version}"}
+        manifest.version, manifest.created_utc = version, dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+        write_manifest(manifest, target / "manifest.json")
+        model_dir = target
+    model, metrics, timing = run_calibration(loso_run, resolve_data_dir(data_dir), model_dir, cache_dir)
     run_id = str(metrics.pop("run"))
     manifest.confidence = ConfidenceSpec(
         features=list(CONFIDENCE_FEATURES),
@@ -264,10 +281,12 @@ def calibrate(
         intercept=model.intercept,
         threshold=model.threshold,
         min_moving_windows=model.min_moving_windows,
+        session=model.session_spec(),
         fitted_on=f"sessions of the held-out people of real-loso run {loso_run}; figures cross-fitted by person "
         f"(MLflow run {run_id})",
         metrics={k: round(float(v), 5) for k, v in metrics.items() if math.isfinite(v)},
-        command=f"python -m training.cli calibrate {model_dir} --loso-run {loso_run}",
+        command=f"python -m training.cli calibrate {source} --loso-run {loso_run}"
+        + (f" --version {version}" if version else ""),
     )
     write_manifest(manifest, model_dir / "manifest.json")
     typer.echo(json.dumps(metrics, indent=1))

@@ -24,8 +24,9 @@ Server → client
   time: the one-to-one answer of the sensors' windows that end then, as /v1/imu/assign's window_segments; sent
   once every sensor has reached that time, or when 32 moments wait on a stalled sensor, whose windows then come
   in moments of their own) · assignment (joint, one-to-one over the session's evidence, and per sensor the robust
-  mean alignment over its last WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread; after each group
-  of results) · gap / late (sequence problems, in order with the results) · error (then close, after the results
+  mean alignment over its last WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread, its calibrated
+  p_correct, the probability p_all_correct that every sensor is right, and status, as /v1/imu/assign; after each
+  group of results) · gap / late (sequence problems, in order with the results) · error (then close, after the results
   of every accepted packet).
   Pose sessions also get: calibration ({"status": "waiting" | "calibrated", ...}: how the session calibrates;
   declared sessions are calibrated at the start, still-pose sessions after a still span, assignment sessions when

@@ -275,7 +275,8 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     candidates = [segment_indices(s.candidate_segments) for s in body.sensors]
     joint, votes, n_moving = session_assignment(log_probs, moving, body.allow_shared, worn, candidates)
     at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates)  # each moment alone
-    p_correct, status = assignment_confidence(_confidence(request), joint, votes, n_moving)
+    calibrated = assignment_confidence(_confidence(request), joint, votes, n_moving)
+    p_correct = calibrated.p_correct
     out = []
     for k, sensor in enumerate(body.sensors):
         seg = int(joint.segment[k])
@@ -306,7 +307,15 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
         if len({(w.acc_unit, w.gyr_unit) for w in sensor.windows}) == 1
         for text in unit_warnings(per_sensor[k], sensor.windows[0].acc_unit, sensor.windows[0].gyr_unit)
     ]
-    return _json(AssignResponse(sensors=out, status=status, model_versions=versions, warnings=warnings))
+    return _json(
+        AssignResponse(
+            sensors=out,
+            p_all_correct=calibrated.p_all_correct,
+            status=calibrated.status,
+            model_versions=versions,
+            warnings=warnings,
+        )
+    )
 
 
 @router.get(

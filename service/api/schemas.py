@@ -284,6 +284,7 @@ class AssignResponse(BaseModel):
                             "window_segments": ["Pelvis"] * 11 + [None],
                         }
                     ],
+                    "p_all_correct": 0.997,
                     "status": "assigned",
                     "model_versions": EXAMPLE_VERSIONS,
                 }
@@ -291,10 +292,17 @@ class AssignResponse(BaseModel):
         }
     )
     sensors: list[SensorAssignment]
+    p_all_correct: float | None = Field(
+        None,
+        description="calibrated probability that the whole joint assignment is right (every assigned sensor on its "
+        "segment), from the sensors' `p_correct`, fitted on sessions of people the model never trained on (the "
+        "model's manifest, `confidence.session`); null for a model without that calibration",
+    )
     status: Literal["assigned", "not_enough_walking", "uncalibrated"] = Field(
-        description="`assigned`: every assigned sensor's `p_correct` reaches the model's threshold (its manifest, "
-        "`confidence.threshold`) on enough moving windows; `not_enough_walking`: not yet, walk on (or the motion "
-        "is not gait); `uncalibrated`: the model carries no calibration"
+        description="`assigned`: on enough moving windows per sensor, `p_all_correct` reaches the model's threshold "
+        "(its manifest, `confidence.session.threshold`; for a model calibrated per sensor only, every assigned "
+        "sensor's `p_correct` reaches `confidence.threshold`); `not_enough_walking`: not yet, walk on (or the "
+        "motion is not gait); `uncalibrated`: the model carries no calibration"
     )
     model_versions: dict[str, str]
     warnings: list[str] = Field(

@@ -233,7 +233,8 @@ class Session:
         joint = joint_assignment(
             [e[None] for e in self.evidence], self.allow_shared, worn=self.worn, candidates=self.candidates
         )
-        p_correct, status = assignment_confidence(self.confidence, joint, self.votes, self.windows)
+        calibrated = assignment_confidence(self.confidence, joint, self.votes, self.windows)
+        p_correct = calibrated.p_correct
         sensors = []
         for k, (s, g, n) in enumerate(zip(self.streams, joint.segment.tolist(), self.windows, strict=True)):
             mean = self.alignments[k].mean(g) if g >= 0 and n else None
@@ -249,7 +250,13 @@ class Session:
                     "alignment_spread_deg": None if mean is None else mean[1],
                 }
             )
-        return {"type": "assignment", "sensors": sensors, "status": status, "results_dropped": dropped}
+        return {
+            "type": "assignment",
+            "sensors": sensors,
+            "p_all_correct": calibrated.p_all_correct,
+            "status": calibrated.status,
+            "results_dropped": dropped,
+        }
 
 
 async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples: np.ndarray, outbox: Outbox) -> None:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from service.core.manifest import ConfidenceSpec
+from service.core.manifest import ConfidenceSpec, SessionConfidenceSpec
 from service.core.segments import SEGMENTS
 
 # A window whose gyroscope norm stays under this mean carries no gait information (DESIGN.md §5).
@@ -253,43 +253,103 @@ class MomentAssembler:
 
 # What the calibrated confidence of a joint assignment reads, per sensor (``confidence_features``).
 CONFIDENCE_FEATURES = ("vote_share", "margin_per_window", "log_moving_windows")
+# The session's: the logit of the product of its sensors' probabilities (what every sensor being right would have if
+# the sensors erred independently; they do not: a swap makes two wrong at once) and log(number of sensors).
+SESSION_FEATURES = ("logit_product_p_correct", "log_sensors")
 _MARGIN_CLIP = 10.0  # per window; a sensor the declarations leave one segment (margin +inf) reads as this
+_LOGIT_CLIP = 30.0
+
+
+@dataclass(frozen=True)
+class SessionConfidence:
+    """The probability that a session's whole joint assignment is right: a logistic function of
+    ``session_features``, and the probability the service commits at."""
+
+    coef: tuple[float, ...]
+    intercept: float
+    threshold: float
+
+    def p(self, features: np.ndarray) -> np.ndarray:
+        """``(N, len(SESSION_FEATURES))`` → ``(N,)`` probabilities."""
+        return _logistic(features @ np.asarray(self.coef) + self.intercept)
 
 
 @dataclass(frozen=True)
 class ConfidenceModel:
     """The probability that a sensor's joint assignment is right: a logistic function of ``confidence_features``,
-    fitted on sessions of people the model never trained on (``training.i2s.calibration``), and the probability
-    above which the service commits to a session's answer. Below it, or with fewer than ``min_moving_windows``
-    moving windows on any sensor, the session's status is ``not_enough_walking``."""
+    fitted on sessions of people the model never trained on (``training.i2s.calibration``), and when to commit.
+
+    Without ``session`` the service commits to a session's answer when every assigned sensor reaches ``threshold``;
+    with it, when the probability that every assigned sensor is right (``p_all_correct``) reaches
+    ``session.threshold``. Either way each sensor needs ``min_moving_windows`` moving windows; otherwise the status is
+    ``not_enough_walking``."""
 
     coef: tuple[float, ...]
     intercept: float
     threshold: float
     min_moving_windows: int
+    session: SessionConfidence | None = None
 
     @classmethod
     def from_spec(cls, spec: ConfidenceSpec | None) -> ConfidenceModel | None:
         """From a manifest's ``confidence`` section (``service.core.manifest.ConfidenceSpec``), None without one;
-        ``ValueError`` if its features are not ``CONFIDENCE_FEATURES``."""
+        ``ValueError`` if its features are not ``CONFIDENCE_FEATURES`` (``SESSION_FEATURES`` for ``session``)."""
         if spec is None:
             return None
         if tuple(spec.features) != CONFIDENCE_FEATURES or len(spec.coef) != len(CONFIDENCE_FEATURES):
             raise ValueError(f"confidence features must be {CONFIDENCE_FEATURES}, got {spec.features}")
-        return cls(tuple(spec.coef), spec.intercept, spec.threshold, spec.min_moving_windows)
+        session = None
+        if spec.session is not None:
+            if tuple(spec.session.features) != SESSION_FEATURES or len(spec.session.coef) != len(SESSION_FEATURES):
+                raise ValueError(f"session confidence features must be {SESSION_FEATURES}, got {spec.session.features}")
+            session = SessionConfidence(tuple(spec.session.coef), spec.session.intercept, spec.session.threshold)
+        return cls(tuple(spec.coef), spec.intercept, spec.threshold, spec.min_moving_windows, session)
+
+    def session_spec(self) -> SessionConfidenceSpec | None:
+        if self.session is None:
+            return None
+        return SessionConfidenceSpec(
+            features=list(SESSION_FEATURES),
+            coef=list(self.session.coef),
+            intercept=self.session.intercept,
+            threshold=self.session.threshold,
+        )
 
     def p_correct(self, features: np.ndarray) -> np.ndarray:
         """``(S, len(CONFIDENCE_FEATURES))`` → ``(S,)`` probabilities."""
-        z = features @ np.asarray(self.coef) + self.intercept
-        return 1.0 / (1.0 + np.exp(-np.clip(z, -50.0, 50.0)))
+        return _logistic(features @ np.asarray(self.coef) + self.intercept)
+
+    def p_all_correct(self, p_correct: np.ndarray, assigned: np.ndarray) -> float | None:
+        """The probability that every assigned sensor is right (``session``); None without a session calibration
+        or with no assigned sensor."""
+        if self.session is None or not assigned.any():
+            return None
+        return float(self.session.p(session_features(p_correct[assigned])[None])[0])
 
     def status(self, p_correct: np.ndarray, moving_windows: np.ndarray, assigned: np.ndarray) -> str:
-        """``assigned`` when every sensor that got a segment has ``min_moving_windows`` moving windows and a
-        probability of at least ``threshold``; ``not_enough_walking`` otherwise (and with no assigned sensor)."""
-        if not assigned.any():
+        """``assigned`` when every sensor that got a segment has ``min_moving_windows`` moving windows and the
+        probability that decides (the class docstring) reaches its threshold; ``not_enough_walking`` otherwise (and
+        with no assigned sensor)."""
+        if not assigned.any() or not (moving_windows[assigned] >= self.min_moving_windows).all():
             return "not_enough_walking"
-        enough = (moving_windows[assigned] >= self.min_moving_windows).all()
-        return "assigned" if enough and (p_correct[assigned] >= self.threshold).all() else "not_enough_walking"
+        if self.session is not None:
+            sure = self.p_all_correct(p_correct, assigned) >= self.session.threshold  # type: ignore[operator]
+        else:
+            sure = bool((p_correct[assigned] >= self.threshold).all())
+        return "assigned" if sure else "not_enough_walking"
+
+
+def _logistic(z: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-np.clip(z, -50.0, 50.0)))
+
+
+def session_features(p_correct: np.ndarray) -> np.ndarray:
+    """The assigned sensors' probabilities ``(S,)`` → ``SESSION_FEATURES`` ``(2,)``: logit of their product (clipped
+    to ±30) and log S. With coefficients (1, 0) and intercept 0 the session's probability is that product."""
+    log_all = float(np.log(np.clip(p_correct, 1e-12, 1.0)).sum())
+    log_not_all = np.log(-np.expm1(log_all)) if log_all < 0.0 else -np.inf
+    logit = float(np.clip(log_all - log_not_all, -_LOGIT_CLIP, _LOGIT_CLIP))
+    return np.array([logit, np.log(len(p_correct))])
 
 
 def confidence_features(segment: np.ndarray, margin: np.ndarray, votes: np.ndarray, moving: np.ndarray) -> np.ndarray:
@@ -312,14 +372,23 @@ def vote_counts(log_probs: np.ndarray, n_classes: int) -> np.ndarray:
     return np.bincount(log_probs.argmax(axis=1), minlength=n_classes) if len(log_probs) else np.zeros(n_classes, int)
 
 
+@dataclass(frozen=True)
+class CalibratedAnswer:
+    """A session's calibrated answer (``assignment_confidence``)."""
+
+    p_correct: np.ndarray | None  # per sensor the probability that its segment is right (0 for one without)
+    p_all_correct: float | None  # that every assigned sensor is right (a model with a session calibration)
+    status: str
+
+
 def assignment_confidence(
     model: ConfidenceModel | None, joint: JointAssignment, votes: np.ndarray, moving: np.ndarray
-) -> tuple[np.ndarray | None, str]:
-    """A session's calibrated answer: per sensor the probability that its segment is right (0 for a sensor left
-    without one) and the session's status (``ConfidenceModel.status``); ``(None, "uncalibrated")`` for a model
-    whose manifest has no ``confidence`` section."""
+) -> CalibratedAnswer:
+    """A session's calibrated answer: per sensor the probability that its segment is right, the probability that all
+    are, and the session's status (``ConfidenceModel.status``); status ``uncalibrated`` and no probabilities for a
+    model whose manifest has no ``confidence`` section."""
     if model is None:
-        return None, "uncalibrated"
+        return CalibratedAnswer(None, None, "uncalibrated")
     assigned = joint.segment >= 0
     p = np.where(assigned, model.p_correct(confidence_features(joint.segment, joint.margin, votes, moving)), 0.0)
-    return p, model.status(p, moving, assigned)
+    return CalibratedAnswer(p, model.p_all_correct(p, assigned), model.status(p, moving, assigned))

@@ -74,10 +74,23 @@ class FlexSpec(BaseModel):
     simulated_sensor: str = ""  # the sensor model trained on, for simulated-data models
 
 
+class SessionConfidenceSpec(BaseModel):
+    """The probability that a session's whole joint assignment is right, from its sensors' calibrated probabilities
+    (``service.core.assignment.ConfidenceModel.p_all_correct``): logistic coefficients over ``features`` and the
+    probability the service commits at."""
+
+    model_config = ConfigDict(extra="forbid")
+    features: list[str]
+    coef: list[float]
+    intercept: float
+    threshold: float = Field(gt=0.0, lt=1.0)
+
+
 class ConfidenceSpec(BaseModel):
     """An ``i2s_assignment`` model's calibrated confidence of a session's joint assignment
-    (``service.core.assignment.ConfidenceModel``): logistic coefficients over ``features``, the probability the
-    service commits at, and what it was fitted and scored on (``training.i2s.calibration``)."""
+    (``service.core.assignment.ConfidenceModel``): logistic coefficients over ``features`` per sensor, the probability
+    the service commits at, and what it was fitted and scored on (``training.i2s.calibration``). With ``session``
+    the service commits on the probability that every sensor is right instead of on each sensor's own."""
 
     model_config = ConfigDict(extra="forbid")
     features: list[str]
@@ -85,6 +98,7 @@ class ConfidenceSpec(BaseModel):
     intercept: float
     threshold: float = Field(gt=0.0, lt=1.0)
     min_moving_windows: int = Field(ge=1)
+    session: SessionConfidenceSpec | None = None
     fitted_on: str
     metrics: dict[str, float] = Field(default_factory=dict)
     command: str = ""

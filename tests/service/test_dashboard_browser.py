@@ -14,6 +14,8 @@ from pathlib import Path
 import pytest
 
 from benchmarks.servers import REPO, start_service, stop
+from service.core.manifest import read_manifest
+from service.inference.registry import version_key
 from tests.service.conftest import write_tiny_model
 
 CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
@@ -75,6 +77,9 @@ def test_the_page_streams_its_recording_and_shows_the_right_assignment_and_pose(
     assert all(int(n) > 0 for n in _cells(browser, "windows").values())
     assert all(0.0 < float(p) <= 1.0 for p in _cells(browser, "p_correct").values())
     assert browser.find_element("id", "status").text in ("assigned", "not_enough_walking")
+    served = max((REPO / "onnx_models" / "i2s_assignment").iterdir(), key=lambda d: version_key(d.name))
+    if read_manifest(served / "manifest.json").confidence.session is not None:  # the whole assignment's probability
+        assert 0.0 <= float(browser.find_element("id", "p-all").text) <= 1.0
 
     figure = browser.find_element("id", "figure")
     _wait(browser, 10, lambda d: int(figure.get_attribute("data-frames")) > 0, "no pose frame drawn")

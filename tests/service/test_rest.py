@@ -396,19 +396,22 @@ def test_an_implausible_unit_is_answered_with_a_warning(client: TestClient) -> N
     assert r.json()["warnings"][0].startswith("sensors[0] (s1): acc_unit:")
 
 
-def _calibrated_client(tiny_models: Path, min_moving_windows: int = 3) -> TestClient:
-    """The tiny models, the assignment one with a confidence section that reads the vote share only."""
-    from service.core.assignment import CONFIDENCE_FEATURES
-    from service.core.manifest import ConfidenceSpec, read_manifest, write_manifest
+def _calibrated_client(tiny_models: Path, min_moving_windows: int = 3, session: bool = False) -> TestClient:
+    """The tiny models, the assignment one with a confidence section that reads the vote share only; with
+    ``session``, one that commits when the product of the sensors' probabilities reaches 0.99."""
+    from service.core.assignment import CONFIDENCE_FEATURES, SESSION_FEATURES
+    from service.core.manifest import ConfidenceSpec, SessionConfidenceSpec, read_manifest, write_manifest
 
     path = tiny_models / "i2s_assignment" / "0.0.1" / "manifest.json"
     manifest = read_manifest(path)
+    product = SessionConfidenceSpec(features=list(SESSION_FEATURES), coef=[1.0, 0.0], intercept=0.0, threshold=0.99)
     manifest.confidence = ConfidenceSpec(
         features=list(CONFIDENCE_FEATURES),
         coef=[20.0, 0.0, 0.0],
         intercept=-10.0,
         threshold=0.99,
         min_moving_windows=min_moving_windows,
+        session=product if session else None,
         fitted_on="a test",
     )
     write_manifest(manifest, path)
@@ -435,6 +438,12 @@ def test_assign_carries_a_calibrated_probability_and_a_status(client: TestClient
         assert sorted(round(s["p_correct"], 4) for s in out["sensors"]) == [0.0, 0.0, 1.0]
         still = [{"sensor_id": "a", "windows": [_window() | {"samples": [[0, 0, 9.81, 0, 0, 0]] * 128}] * 4}]
         assert calibrated.post("/v1/imu/assign", json={"sensors": still}).json()["status"] == "not_enough_walking"
+        assert got["p_all_correct"] is None  # calibrated per sensor only
+    with _calibrated_client(tiny_models, session=True) as by_session:
+        got = by_session.post("/v1/imu/assign", json={"sensors": one}).json()
+        assert got["status"] == "assigned" and got["p_all_correct"] == pytest.approx(got["sensors"][0]["p_correct"])
+        out = by_session.post("/v1/imu/assign", json={"sensors": three}).json()
+        assert out["status"] == "not_enough_walking" and out["p_all_correct"] < 1e-6
 
 
 def test_the_streams_assignment_message_carries_the_calibrated_answer(tiny_models: Path) -> None:
@@ -456,3 +465,26 @@ def test_the_streams_assignment_message_carries_the_calibrated_answer(tiny_model
                 statuses.append((m["sensors"][0]["windows"], m["status"], m["sensors"][0]["p_correct"]))
     assert statuses and statuses[-1][1] == "assigned" and statuses[-1][2] > 0.99
     assert all(status == "not_enough_walking" for n, status, _ in statuses if n < 3)
+
+
+def test_the_streams_assignment_message_carries_the_probability_that_all_is_right(tiny_models: Path) -> None:
+    t = np.arange(16 * 20) / 60.0
+    x = np.stack([np.sin(t), np.cos(t), 9.81 + 0 * t, 2 * np.sin(3 * t), 0 * t, np.cos(2 * t)], axis=1)
+    with _calibrated_client(tiny_models, session=True) as calibrated, calibrated.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}, {"sensor_id": "b"}]}))
+        assert json.loads(ws.receive_text())["type"] == "started"
+        for seq in range(0, len(x), 16):  # the same readings on both: one of them cannot be right
+            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
+            ws.send_bytes(encode_binary(1, seq, x[seq : seq + 16]))
+        ws.send_text(json.dumps({"type": "stop"}))
+        last = None
+        while True:
+            try:
+                m = json.loads(ws.receive_text())
+            except WebSocketDisconnect:
+                break
+            if m["type"] == "assignment":
+                last = m
+    assert last is not None and last["status"] == "not_enough_walking"
+    assert last["p_all_correct"] == pytest.approx(np.prod([s["p_correct"] for s in last["sensors"]]))
+    assert last["p_all_correct"] < 0.01

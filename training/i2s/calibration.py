@@ -14,38 +14,50 @@ overlap and agree with each other, so their softmax reaches 1 within seconds, ri
    ``service.core.assignment.ConfidenceModel``. Its own figures are leave-one-person-out again: the calibration
    of each person is fitted on the others (``cross_fitted``), so expected calibration error, the reliability
    diagram and the selective accuracy at the threshold are on people the calibration never saw either.
+3b. The probability that the whole joint assignment is right (``SessionConfidence``): a second logistic
+   regression over ``service.core.assignment.session_features`` of each session's sensor probabilities (the logit
+   of their product and the number of sensors), fitted on sensor probabilities that are themselves cross-fitted
+   (``calibrated_model``). The product alone would be the answer if the sensors erred independently; they do not
+   (a swap makes two wrong at once), and requiring every sensor to pass its own threshold left seven-sensor
+   sessions uncommitted for good. The service commits on this probability when the manifest carries it.
 4. Time to answer (``time_to_answer``): each recording replayed from its start, the running joint answer after
    every window, as the stream's ``assignment`` message gives it; the seconds from the first moving window until
    the answer is right and stays right, and until the session's status is ``assigned``.
 
-The threshold is the lowest probability above which the answers are right at least 99.5 % of the time (the
-selective accuracy asked for; ``choose_threshold``). It is chosen inside the leave-one-person-out loop too
-(``nested``): each person is judged by a calibration and a threshold fitted on the others only.
+Each threshold (a sensor's, a session's) is the lowest probability above which the answers are right at least 99.5 %
+of the time (the selective accuracy asked for; ``choose_threshold``). It is chosen inside the leave-one-person-out
+loop too (``nested``): each person is judged by calibrations and thresholds fitted on the others only.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import mlflow
 import numpy as np
+from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from service.core.assignment import (
     CONFIDENCE_FEATURES,
+    SESSION_FEATURES,
     ConfidenceModel,
+    SessionConfidence,
     confidence_features,
     is_moving,
     session_assignment,
+    session_features,
 )
 from service.core.recordings import RealRecording, read_all_real
 from service.core.segments import SEGMENTS
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, sliding_windows
 from training.i2s.evaluate import onnx_predictor
 from training.plots import reliability_png
+from training.snapshot import local_run_id
 
 log = logging.getLogger(__name__)
 
@@ -74,21 +86,51 @@ class HeldOut:
     sensors: list[SensorPrediction]
 
 
+PREDICTIONS_ARTIFACT = "evaluation/held_out_predictions"  # .npz (arrays) and .json (what each array is)
+
+
 def fold_predictions(summary_run_id: str, data_dir: Path) -> list[HeldOut]:
-    """Each fold of a ``real-loso`` summary run predicts its held-out person's labelled sensors."""
+    """Each fold of a ``real-loso`` summary run predicts its held-out person's labelled sensors. The predictions
+    are kept with the summary run (``PREDICTIONS_ARTIFACT``), so that the calibration can be fitted again from a
+    snapshot of the store, which keeps no fold's model file; they are computed from the fold models only the first
+    time. Run ids may be original ones of a restored store (``training.snapshot.local_run_id``)."""
     client = MlflowClient()
+    summary = local_run_id(summary_run_id)
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            folder = Path(client.download_artifacts(summary, str(Path(PREDICTIONS_ARTIFACT).parent), tmp))
+            stored = folder / Path(PREDICTIONS_ARTIFACT).name
+            if stored.with_suffix(".json").is_file():
+                return _read_predictions(stored)
+        except (MlflowException, OSError):
+            pass
+        held_out = _predict_folds(client, summary, data_dir)
+        _write_predictions(held_out, Path(tmp) / "out" / Path(PREDICTIONS_ARTIFACT).name)
+        client.log_artifacts(summary, str(Path(tmp) / "out"), str(Path(PREDICTIONS_ARTIFACT).parent))
+    return held_out
+
+
+def _predict_folds(client: MlflowClient, summary_run_id: str, data_dir: Path) -> list[HeldOut]:
     tags = client.get_run(summary_run_id).data.tags
     folds = {k.removeprefix("fold_run."): v for k, v in tags.items() if k.startswith("fold_run.")}
     if not folds:
         raise ValueError(f"run {summary_run_id} is not a real-loso summary run (no fold_run.* tags)")
+    uris = {}
+    for person, run_id in sorted(folds.items()):
+        fold = client.get_run(local_run_id(run_id))
+        if "model_uri" not in fold.data.tags:
+            raise ValueError(
+                f"fold run {run_id} ({person}) has no model in this store (a snapshot keeps none) and the summary "
+                f"run {summary_run_id} no {PREDICTIONS_ARTIFACT}: run real-loso again"
+            )
+        uris[person] = fold.data.tags["model_uri"]
     by_person: dict[str, list[RealRecording]] = {}
     for recording in read_all_real(data_dir):
         by_person.setdefault(recording.subject, []).append(recording)
     out = []
     with tempfile.TemporaryDirectory() as tmp:
-        for k, (person, run_id) in enumerate(sorted(folds.items())):
-            log.info("fold %d/%d: %s", k + 1, len(folds), person)
-            uri = client.get_run(run_id).data.tags["model_uri"]
+        for k, (person, uri) in enumerate(uris.items()):
+            log.info("fold %d/%d: %s", k + 1, len(uris), person)
             onnx_path = next(Path(mlflow.artifacts.download_artifacts(uri, dst_path=f"{tmp}/{k}")).rglob("*.onnx"))
             predict = onnx_predictor(onnx_path)
             for recording in by_person[person]:
@@ -101,6 +143,37 @@ def fold_predictions(summary_run_id: str, data_dir: Path) -> list[HeldOut]:
                     sensors.append(SensorPrediction(s.segment, np.log(np.clip(probs, 1e-12, 1.0)), is_moving(windows)))
                 out.append(HeldOut(person, recording.name, recording.activity, sensors))
     return out
+
+
+def _write_predictions(held_out: list[HeldOut], stem: Path) -> None:
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    arrays, index = {}, []
+    for i, rec in enumerate(held_out):
+        segments = []
+        for j, sensor in enumerate(rec.sensors):
+            arrays[f"{i}_{j}_log_probs"] = sensor.log_probs.astype(np.float32)
+            arrays[f"{i}_{j}_moving"] = sensor.moving
+            segments.append(int(sensor.segment))
+        index.append({"person": rec.person, "recording": rec.recording, "activity": rec.activity, "segments": segments})
+    np.savez_compressed(stem.with_suffix(".npz"), **arrays)
+    stem.with_suffix(".json").write_text(json.dumps(index, indent=1))
+
+
+def _read_predictions(stem: Path) -> list[HeldOut]:
+    index = json.loads(stem.with_suffix(".json").read_text())
+    with np.load(stem.with_suffix(".npz")) as arrays:
+        return [
+            HeldOut(
+                rec["person"],
+                rec["recording"],
+                rec["activity"],
+                [
+                    SensorPrediction(seg, arrays[f"{i}_{j}_log_probs"].astype(np.float64), arrays[f"{i}_{j}_moving"])
+                    for j, seg in enumerate(rec["segments"])
+                ],
+            )
+            for i, rec in enumerate(index)
+        ]
 
 
 @dataclass(frozen=True)
@@ -204,20 +277,87 @@ def choose_threshold(p: np.ndarray, correct: np.ndarray, moving: np.ndarray) -> 
     return 0.999
 
 
+@dataclass(frozen=True)
+class SessionTable:
+    """Per session: ``SESSION_FEATURES`` from its sensors' probabilities, whether every sensor is right, its
+    person, and its fewest moving windows on a sensor."""
+
+    features: np.ndarray  # (N, 2)
+    correct: np.ndarray  # (N,) bool
+    person: np.ndarray  # (N,) str
+    moving: np.ndarray  # (N,) the session's least-moved sensor's moving windows
+    session: np.ndarray  # (N,) the session ids of ``Samples``
+
+
+def session_table(samples: Samples, p: np.ndarray) -> SessionTable:
+    """Group the sensor rows of ``samples`` (with their probabilities ``p``) into sessions."""
+    order = np.argsort(samples.session, kind="stable")
+    ids, starts = np.unique(samples.session[order], return_index=True)
+    groups = np.split(order, starts[1:])
+    return SessionTable(
+        np.array([session_features(p[g]) for g in groups]),
+        np.array([samples.correct[g].all() for g in groups]),
+        np.array([samples.person[g[0]] for g in groups]),
+        np.array([samples.moving[g].min() for g in groups]),
+        ids,
+    )
+
+
+def fit_session(table: SessionTable, mask: np.ndarray, threshold: float = TARGET) -> SessionConfidence:
+    coef, intercept = fit_logistic(
+        table.features[mask], table.correct[mask].astype(float), _person_weights(table.person[mask])
+    )
+    return SessionConfidence(tuple(float(c) for c in coef), intercept, threshold)
+
+
+def session_cross_fitted(table: SessionTable, mask: np.ndarray) -> np.ndarray:
+    """Each session's probability from a session calibration fitted on the other people's sessions (within
+    ``mask``; NaN outside)."""
+    p = np.full(len(table.correct), np.nan)
+    for person in np.unique(table.person[mask]):
+        own = table.person == person
+        p[own & mask] = fit_session(table, mask & ~own).p(table.features[own & mask])
+    return p
+
+
+def calibrated_model(samples: Samples, mask: np.ndarray) -> ConfidenceModel:
+    """The whole recipe fitted on the people of ``mask``: the sensors' calibration and threshold, then the
+    session's calibration on their cross-fitted sensor probabilities and its threshold on the session
+    probabilities cross-fitted again by person. No figure of a person outside ``mask`` is read."""
+    inner = cross_fitted(samples, mask)
+    sensor_threshold = choose_threshold(inner[mask], samples.correct[mask], samples.moving[mask])
+    table = session_table(samples, np.where(mask, inner, 0.0))
+    within = np.isin(table.person, np.unique(samples.person[mask]))
+    session_p = session_cross_fitted(table, within)
+    session_threshold = choose_threshold(session_p[within], table.correct[within], table.moving[within])
+    sensors = fit(samples, mask, sensor_threshold)
+    return replace(sensors, session=fit_session(table, within, session_threshold))
+
+
 def nested(samples: Samples) -> tuple[np.ndarray, dict[str, ConfidenceModel]]:
-    """Leave one person out around the whole recipe: for each person, the calibration is fitted on the others and
-    its threshold chosen on the others' cross-fitted probabilities (``choose_threshold``), so that the person's
-    probabilities and the answers committed for them come from a recipe that never saw them. Returns each
-    sample's probability and, per person, the calibration (with its threshold) that judged them."""
+    """Leave one person out around the whole recipe (``calibrated_model``): for each person, calibrations and
+    thresholds are fitted on the others only, so that the person's probabilities and the answers committed for
+    them come from a recipe that never saw them. Returns each sample's probability and, per person, the
+    calibration that judged them."""
     p = np.zeros(len(samples.correct))
     models = {}
     for person in np.unique(samples.person):
         own = samples.person == person
-        inner = cross_fitted(samples, ~own)
-        threshold = choose_threshold(inner[~own], samples.correct[~own], samples.moving[~own])
-        models[person] = fit(samples, ~own, threshold)
+        models[person] = calibrated_model(samples, ~own)
         p[own] = models[person].p_correct(samples.features[own])
     return p, models
+
+
+def nested_sessions(
+    samples: Samples, p: np.ndarray, models: dict[str, ConfidenceModel]
+) -> tuple[SessionTable, np.ndarray]:
+    """The sessions of ``nested``'s sensor probabilities, each with its probability that all its sensors are right
+    from the session calibration of the recipe that never saw its person."""
+    table = session_table(samples, p)
+    p_all = np.array(
+        [models[person].session.p(f[None])[0] for person, f in zip(table.person, table.features, strict=True)]  # type: ignore[union-attr]
+    )
+    return table, p_all
 
 
 def expected_calibration_error(p: np.ndarray, correct: np.ndarray, bins: int = 10) -> float:
@@ -234,8 +374,9 @@ def expected_calibration_error(p: np.ndarray, correct: np.ndarray, bins: int = 1
 
 
 def selective(samples: Samples, p: np.ndarray, thresholds: np.ndarray) -> dict[str, float]:
-    """Per sensor and per session: of the answers given (probability at least the sample's threshold, on
-    ``MIN_MOVING_WINDOWS`` or more; status ``assigned``), how many are right, and how often the service abstains."""
+    """Per sensor and per session, committing per sensor (probability at least the sample's threshold, on
+    ``MIN_MOVING_WINDOWS`` or more; a session when all its sensors are): of the answers given, how many are right,
+    and how often the service abstains."""
     given = (p >= thresholds) & (samples.moving >= MIN_MOVING_WINDOWS)
     out = {
         "sensor_selective_accuracy": float(samples.correct[given].mean()) if given.any() else float("nan"),
@@ -252,6 +393,34 @@ def selective(samples: Samples, p: np.ndarray, thresholds: np.ndarray) -> dict[s
         "session_confident_wrong": float((committed & ~right).sum()),
         "sessions": float(len(ids)),
     }
+    return out
+
+
+def selective_sessions(
+    samples: Samples, table: SessionTable, p_all: np.ndarray, thresholds: np.ndarray
+) -> dict[str, float]:
+    """Committing per session (``p_all`` at least the session's threshold, every sensor on ``MIN_MOVING_WINDOWS``
+    or more), as the service does with a session calibration: of the sessions committed, how many are right; how
+    often it abstains; the same per sensor count; and per number of sensors worn."""
+    committed = (p_all >= thresholds) & (table.moving >= MIN_MOVING_WINDOWS)
+    sensor_given = np.isin(samples.session, table.session[committed])
+    out = {
+        "all_selective_accuracy": float(table.correct[committed].mean()) if committed.any() else float("nan"),
+        "all_abstain_rate": float(1.0 - committed.mean()),
+        "all_confident_wrong": float((committed & ~table.correct).sum()),
+        "all_sensor_selective_accuracy": (
+            float(samples.correct[sensor_given].mean()) if sensor_given.any() else float("nan")
+        ),
+        "all_sensor_coverage": float(sensor_given.mean()),
+        "all_sessions_right": float(table.correct.mean()),
+    }
+    sizes = np.rint(np.exp(table.features[:, 1])).astype(int)
+    for size in np.unique(sizes):
+        at = sizes == size
+        out[f"all_abstain_rate_{size}_sensors"] = float(1.0 - committed[at].mean())
+        out[f"all_sessions_{size}_sensors"] = float(at.sum())
+        if (committed & at).any():
+            out[f"all_selective_accuracy_{size}_sensors"] = float(table.correct[committed & at].mean())
     return out
 
 
@@ -359,11 +528,15 @@ def calibrate(
     samples = sessions(held_out)
     p, per_person = nested(samples)
     thresholds = np.array([per_person[person].threshold for person in samples.person])
-    everyone = cross_fitted(samples)
-    final = fit(samples, threshold=choose_threshold(everyone, samples.correct, samples.moving))
+    final = calibrated_model(samples, np.ones(len(samples.correct), bool))
+    table, p_all = nested_sessions(samples, p, per_person)
+    session_thresholds = np.array([per_person[person].session.threshold for person in table.person])  # type: ignore[union-attr]
     metrics = {"ece": expected_calibration_error(p, samples.correct), "samples": float(len(p))}
+    metrics |= {"all_ece": expected_calibration_error(p_all, table.correct)}
     metrics |= selective(samples, p, thresholds)
+    metrics |= selective_sessions(samples, table, p_all, session_thresholds)
     metrics |= {f"threshold/{person}": m.threshold for person, m in per_person.items()}
+    metrics |= {f"all_threshold/{person}": m.session.threshold for person, m in per_person.items()}  # type: ignore[union-attr]
     for span in SPANS_S:
         at = samples.span_s == span
         if at.any():
@@ -388,15 +561,25 @@ def calibrate(
             {
                 "target_selective_accuracy": TARGET,
                 "threshold": final.threshold,
+                "session_threshold": final.session.threshold,  # type: ignore[union-attr]
                 "min_moving_windows": MIN_MOVING_WINDOWS,
                 "features": CONFIDENCE_FEATURES,
+                "session_features": SESSION_FEATURES,
             }
         )
         mlflow.log_metrics({k: v for k, v in metrics.items() if np.isfinite(v)})
-        mlflow.log_dict({"coef": final.coef, "intercept": final.intercept}, "calibration/model.json")
+        session = final.session
+        mlflow.log_dict(
+            {"coef": final.coef, "intercept": final.intercept, "session": vars(session) if session else None},
+            "calibration/model.json",
+        )
         mlflow.log_dict(timing, "calibration/time_to_answer.json")
-        title = f"joint assignment, held-out people ({len(np.unique(samples.person))}); ECE {metrics['ece']:.3f}"
+        people = len(np.unique(samples.person))
+        title = f"one sensor's segment, held-out people ({people}); ECE {metrics['ece']:.3f}"
         mlflow.log_artifact(str(reliability_png(p, samples.correct, Path(tmp) / "reliability.png", title)), "plots")
+        title = f"the whole joint assignment, held-out people ({people}); ECE {metrics['all_ece']:.3f}"
+        png = reliability_png(p_all, table.correct, Path(tmp) / "reliability_session.png", title)
+        mlflow.log_artifact(str(png), "plots")
         metrics["run"] = run.info.run_id  # type: ignore[assignment]
     return final, metrics, timing
 

@@ -275,10 +275,10 @@ def record_real_loso(model_dir: Path, summary_run_id: str, command: str) -> Mani
     model, each fold trained without the person it is scored on."""
     from training.i2s.pipeline import HELD_OUT_METRICS
 
-    summary = mlflow.get_run(summary_run_id)
+    summary = mlflow.get_run(local_run_id(summary_run_id))  # the id a manifest names may be restored
     if summary.data.tags.get("real_loso") != "summary":
         raise ValueError(f"run {summary_run_id} is not a real-loso summary run")
-    folds = json.loads(mlflow.artifacts.load_text(f"runs:/{summary_run_id}/evaluation/real_loso.json"))
+    folds = json.loads(mlflow.artifacts.load_text(f"runs:/{summary.info.run_id}/evaluation/real_loso.json"))
     metrics = {}
     for name, fold in folds.items():
         for key in (*HELD_OUT_METRICS, "n_windows"):
@@ -326,7 +326,8 @@ def real_table(summary_run_id: str, model_dirs: list[Path], data_dir: Path) -> s
     trained on those recordings (their manifests' ``real_recordings`` evaluation, weighted by window count)."""
     from service.core.recordings import read_all_real
 
-    folds = json.loads(mlflow.artifacts.load_text(f"runs:/{summary_run_id}/evaluation/real_loso.json"))
+    rid = local_run_id(summary_run_id)
+    folds = json.loads(mlflow.artifacts.load_text(f"runs:/{rid}/evaluation/real_loso.json"))
     person_of = {r.name: (r.subject, r.source) for r in read_all_real(data_dir)}
     columns = []
     for model_dir in model_dirs:

@@ -116,6 +116,7 @@ function setCell(sensorId, field, text, className = "num") {
 function onMessage(m) {
   if (m.type === "assignment") {
     byId("status").textContent = m.status;
+    byId("p-all").textContent = fmt(m.p_all_correct);
     byId("dropped").textContent = m.results_dropped;
     for (const s of m.sensors) {
       const right = s.segment === page.rows[s.sensor_id].label;

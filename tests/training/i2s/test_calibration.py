@@ -4,21 +4,38 @@ the time to answer follow the service's joint answer, and the status commits onl
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import mlflow
 import numpy as np
 import pytest
+from mlflow.tracking import MlflowClient
 
-from service.core.assignment import ConfidenceModel, confidence_features, joint_assignment, vote_counts
+from service.core.assignment import (
+    ConfidenceModel,
+    SessionConfidence,
+    confidence_features,
+    joint_assignment,
+    session_features,
+    vote_counts,
+)
 from service.core.segments import SEGMENTS
 from training.i2s.calibration import (
     HOP_S,
     HeldOut,
     SensorPrediction,
+    _read_predictions,
+    _write_predictions,
+    calibrated_model,
     choose_threshold,
     cross_fitted,
     expected_calibration_error,
     fit_logistic,
+    fold_predictions,
     nested,
+    nested_sessions,
     selective,
+    selective_sessions,
     sessions,
     time_to_answer,
 )
@@ -141,3 +158,84 @@ def test_time_to_answer_is_counted_from_the_first_moving_window() -> None:
     assert timing["committed_s"] == 0.0 and timing["committed_right"] == 0.0
     never = ConfidenceModel((0.0, 0.0, 0.0), -10.0, 0.99, 1)
     assert np.isnan(time_to_answer(held, {"p": never})["rec"]["committed_s"])
+
+
+def test_the_session_probability_nests_the_product_of_the_sensors_and_decides_the_status() -> None:
+    """With coefficients (1, 0) and intercept 0 the probability that every sensor is right is the product of the
+    sensors' probabilities; with a session calibration the status follows it, not each sensor's own threshold."""
+    p = np.array([0.97, 0.89, 0.99])
+    product = SessionConfidence((1.0, 0.0), 0.0, 0.9)
+    assert product.p(session_features(p)[None])[0] == pytest.approx(np.prod(p))
+    assert session_features(np.ones(3))[0] == 30.0 and session_features(np.zeros(2))[0] == -30.0  # clipped logits
+    assert session_features(p)[1] == pytest.approx(np.log(3))
+    assigned, moving = np.ones(3, bool), np.full(3, 20)
+    per_sensor = ConfidenceModel((0.0, 0.0, 0.0), 0.0, 0.95, 8)
+    assert per_sensor.status(p, moving, assigned) == "not_enough_walking"  # 0.89 < 0.95
+    assert per_sensor.p_all_correct(p, assigned) is None
+    lenient = replace(per_sensor, session=SessionConfidence((1.0, 0.0), 3.0, 0.95))  # logit 0.26 + 3 → 0.96
+    assert lenient.p_all_correct(p, assigned) == pytest.approx(1 / (1 + np.exp(-(np.log(0.8547 / 0.1453) + 3))), 1e-3)
+    assert lenient.status(p, moving, assigned) == "assigned"
+    assert lenient.status(p, np.array([20, 20, 7]), assigned) == "not_enough_walking"  # one sensor under 8
+    assert replace(lenient, session=product).status(p, moving, assigned) == "not_enough_walking"  # 0.855 < 0.9
+    assert lenient.status(p, moving, np.zeros(3, bool)) == "not_enough_walking"  # nothing assigned
+
+
+def test_the_session_calibration_of_a_person_never_reads_that_persons_sessions() -> None:
+    rng = np.random.default_rng(4)
+    people = _people(rng)
+    samples = sessions(people)
+    own = samples.person == "person0"
+    model = calibrated_model(samples, ~own)
+    flipped = replace(samples, correct=np.where(own, ~samples.correct, samples.correct))
+    assert calibrated_model(flipped, ~own) == model  # person0's labels changed, the recipe without them did not
+    assert calibrated_model(flipped, np.ones(len(own), bool)) != calibrated_model(samples, np.ones(len(own), bool))
+    p, models = nested(samples)
+    table, p_all = nested_sessions(samples, p, models)
+    assert len(table.correct) == len(np.unique(samples.session)) and 0.0 < table.correct.mean() < 1.0
+    for session in table.session[:50]:
+        rows = samples.session == session
+        k = int(np.flatnonzero(table.session == session)[0])
+        assert table.correct[k] == samples.correct[rows].all() and table.moving[k] == samples.moving[rows].min()
+        person = table.person[k]
+        expected = models[person].p_all_correct(p[rows], np.ones(rows.sum(), bool))
+        assert p_all[k] == pytest.approx(expected)
+    thresholds = np.array([models[person].session.threshold for person in table.person])
+    figures = selective_sessions(samples, table, p_all, thresholds)
+    assert figures["all_abstain_rate"] < 1.0
+    assert figures["all_selective_accuracy"] > figures["all_sessions_right"]  # committing picks the right ones
+    never = selective_sessions(samples, table, p_all, np.full(len(p_all), 2.0))
+    assert never["all_abstain_rate"] == 1.0 and np.isnan(never["all_selective_accuracy"])
+
+
+def test_held_out_predictions_survive_the_round_trip_through_their_artifact(tmp_path) -> None:
+    rng = np.random.default_rng(5)
+    held = _people(rng)[:2]
+    _write_predictions(held, tmp_path / "held_out_predictions")
+    back = _read_predictions(tmp_path / "held_out_predictions")
+    assert [(h.person, h.recording, h.activity) for h in back] == [(h.person, h.recording, h.activity) for h in held]
+    for a, b in zip(held, back, strict=True):
+        for sa, sb in zip(a.sensors, b.sensors, strict=True):
+            assert sa.segment == sb.segment and (sa.moving == sb.moving).all()
+            np.testing.assert_allclose(sa.log_probs, sb.log_probs, atol=1e-6)
+
+
+def test_held_out_predictions_are_kept_with_the_summary_run_and_found_by_its_original_id(
+    mlflow_server: str, tmp_path
+) -> None:
+    """A snapshot keeps no fold's model file: the calibration reads the held-out predictions stored with the
+    summary run, also in a store where that run was restored under a new id; without them it says what to do."""
+    client = MlflowClient()
+    experiment = mlflow.set_experiment("calibration-test").experiment_id
+    fold = client.create_run(experiment, tags={"real_loso_held_out": "person0"}).info.run_id
+    original = "0123456789abcdef0123456789abcdef"
+    summary = client.create_run(
+        experiment, tags={"real_loso": "summary", "fold_run.person0": fold, "restored_from_run_id": original}
+    ).info.run_id
+    with pytest.raises(ValueError, match="run real-loso again"):
+        fold_predictions(original, tmp_path / "no-data")  # found by its original id; its fold has no model
+    held = _people(np.random.default_rng(6))[:1]
+    _write_predictions(held, tmp_path / "out" / "held_out_predictions")
+    client.log_artifacts(summary, str(tmp_path / "out"), "evaluation")
+    back = fold_predictions(original, tmp_path / "no-data")
+    assert [h.recording for h in back] == ["rec0"] and len(back[0].sensors) == len(held[0].sensors)
+    np.testing.assert_allclose(back[0].sensors[2].log_probs, held[0].sensors[2].log_probs, atol=1e-6)
