@@ -34,8 +34,8 @@ class Settings(BaseSettings):
     capacity_windows_per_s: float = Field(
         0.0,
         ge=0,
-        description="windows/s the inference workers hold; 0: measured by a start-up probe (then refined by every "
-        "full chunk)",
+        description="windows/s the inference workers hold, kept as set; 0: measured by a start-up probe (then "
+        "refined by the chunks run)",
     )
     stream_capacity_fraction: float = Field(
         0.5,

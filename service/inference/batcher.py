@@ -101,6 +101,7 @@ class MicroBatcher:
         self.task: asyncio.Task | None = None
         self.seconds_per_window: float | None = None  # worker-seconds per window in full chunks (in their threads)
         self.seconds_per_small_window: float | None = None  # the same in chunks of SMALL_CHUNK windows
+        self.capacity_fixed = False  # set by the operator (``set_capacity``): never refined by measurement
         self.reserved = 0  # windows of admitted requests whose bodies are still being read or parsed
         self.reserved_requests = 0
         self.request_overhead_s = 0.0  # event-loop time to parse one request (EWMA, measured by the routes)
@@ -122,7 +123,9 @@ class MicroBatcher:
         return None if not self.seconds_per_window else self.workers / self.seconds_per_window
 
     def set_capacity(self, windows_per_s: float) -> None:
+        """Fix the capacity: the chunks run from now on do not change it."""
         self.seconds_per_window = self.seconds_per_small_window = self.workers / windows_per_s
+        self.capacity_fixed = True
 
     async def probe(self, make_chunk: Callable[[int], np.ndarray]) -> float:
         """Measure full chunks, and chunks of ``SMALL_CHUNK`` windows, on every worker at once (after a warm-up
@@ -259,7 +262,9 @@ class MicroBatcher:
         finally:
             self.in_flight_windows.remove(size)
             self.wake.set()
-        if size == self.chunk:
+        if self.capacity_fixed:
+            pass
+        elif size == self.chunk:
             self.seconds_per_window = _ewma(self.seconds_per_window, seconds / size)
         elif size == SMALL_CHUNK:
             self.seconds_per_small_window = _ewma(self.seconds_per_small_window, seconds / size)

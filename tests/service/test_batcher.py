@@ -141,7 +141,7 @@ def test_small_chunks_bring_down_a_full_chunk_cost_measured_under_contention() -
     async def main() -> tuple[float, float]:
         rec = _Recorder(0.004)  # 2 ms per window in chunks of 2
         batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0, spare=0)
-        batcher.set_capacity(1 / 0.004)  # what the burst left: 4 ms per window in full chunks
+        batcher.seconds_per_window = batcher.seconds_per_small_window = 0.004  # what the burst left: 4 ms per window
         before = batcher.stream_capacity_windows_per_s
         batcher.start()
         for k in range(30):
@@ -152,3 +152,18 @@ def test_small_chunks_bring_down_a_full_chunk_cost_measured_under_contention() -
     before, after = asyncio.run(main())
     assert before == pytest.approx(250.0)
     assert after == pytest.approx(500.0, rel=0.05)
+
+
+def test_a_capacity_set_by_the_operator_is_kept_whatever_the_chunks_cost() -> None:
+    async def main() -> tuple[float | None, float | None]:
+        rec = _Recorder(0.004)  # 2 ms per window in chunks of 2, 0.5 ms in full chunks of 8
+        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0, spare=0)
+        batcher.set_capacity(100.0)
+        batcher.start()
+        for k in range(10):
+            await batcher.infer(_windows(k, 2), 0.0)
+            await batcher.infer(_windows(k, 8), 0.0)
+        await batcher.stop()
+        return batcher.capacity_windows_per_s, batcher.stream_capacity_windows_per_s
+
+    assert asyncio.run(main()) == (pytest.approx(100.0), pytest.approx(100.0))

@@ -164,7 +164,9 @@ def run_real_loso(
     data plus every other person's recordings, ``data.real_fraction`` of each batch), tagged ``real_loso_held_out``; a
     summary run pools the held-out windows (``pooled_*``, weighted by window count; and per source,
     ``<source>.pooled_*``) and logs the per-person bars. ``people`` runs those folds only (each still trains on everyone
-    else). Returns the summary run id and the per-person figures (keys ``pooled`` and ``pooled/<source>``)."""
+    else). The summary run keeps every fold's predictions of its held-out person's windows, which the confidence
+    calibration reads (``training.i2s.calibration.fold_predictions``). Returns the summary run id and the
+    per-person figures (keys ``pooled`` and ``pooled/<source>``)."""
     if cfg.task != "assignment" or cfg.data.real_fraction <= 0.0:
         raise ValueError(
             f"real-data folds train assignment with data.real_fraction > 0; got task {cfg.task}, "
@@ -214,6 +216,9 @@ def run_real_loso(
         )
         mlflow.log_artifact(str(png), "plots")
         summary_id = run.info.run_id
+    from training.i2s.calibration import fold_predictions
+
+    fold_predictions(summary_id, data_dir)  # each fold's held-out predictions, kept with the summary run
     return summary_id, folds | pooled
 
 

@@ -284,6 +284,13 @@ def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
         assert summary.data.metrics[f"movingreality.pooled_{key}"] == pytest.approx(folds["movingreality_pp03"][key])
         assert 0.0 <= expected <= 1.0
     assert "plots/real_loso.png" in {a.path for a in client.list_artifacts(summary_id, "plots")}
+    from training.i2s.calibration import PREDICTIONS_ARTIFACT, fold_predictions
+
+    kept = {a.path for a in client.list_artifacts(summary_id, "evaluation")}
+    assert {f"{PREDICTIONS_ARTIFACT}.npz", f"{PREDICTIONS_ARTIFACT}.json"} <= kept
+    held = fold_predictions(summary_id, data_dir)  # read back from the summary run: each fold's own person
+    assert {h.person for h in held} == set(chosen)
+    assert sum(len(h.sensors[0].moving) for h in held if h.person == "ximu3_unknown") > 0
     from service.core.manifest import read_manifest
     from training.i2s.ship import real_table
 
