@@ -26,8 +26,9 @@ Server → client
   in moments of their own) · assignment (joint, one-to-one over the session's evidence, and per sensor the robust
   mean alignment over its last WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread, its calibrated
   p_correct, the probability p_all_correct that every sensor is right, and status, as /v1/imu/assign; after each
-  group of results) · gap / late (sequence problems, in order with the results) · error (then close, after the results
-  of every accepted packet).
+  group of results) · warning (once per sensor, when its first 4 windows read implausibly for its declared
+  units: the REST routes' `warnings`) · gap / late (sequence problems, in order with the results) · error (then
+  close, after the results of every accepted packet).
   Pose sessions also get: calibration ({"status": "waiting" | "calibrated", ...}: how the session calibrates;
   declared sessions are calibrated at the start, still-pose sessions after a still span, assignment sessions when
   the assignment is sure of the model's segments) · pose (from the streaming model, as frames complete: first_frame,

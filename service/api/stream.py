@@ -45,11 +45,15 @@ from service.core.pose_stream import AlignResult, FrameAligner, StreamLagError
 from service.core.rotations import canonical_quat
 from service.core.segments import SEGMENTS, segment_indices, segment_names
 from service.core.stream import SensorStream
-from service.core.units import ACC_UNITS, GYR_UNITS
+from service.core.units import ACC_UNITS, GYR_UNITS, unit_warnings
 from service.inference.pose import LivePose, PoseModel
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
 
 log = logging.getLogger(__name__)
+
+# A sensor's units are checked over its first windows (about 3 s of readings), as the REST routes check a request's.
+UNIT_CHECK_WINDOWS = 4
+
 router = APIRouter()
 
 
@@ -100,6 +104,8 @@ class Session:
             else None
         )
         self.windows = np.zeros(len(self.streams), dtype=np.int64)
+        # Each sensor's first UNIT_CHECK_WINDOWS windows, checked once for implausible units, then dropped.
+        self.unit_check: list[list[np.ndarray] | None] = [[] for _ in self.streams]
         self.alignments = [RunningAlignment(alignment_windows) for _ in self.streams]
         self.max_pending = max_pending
         self.work: deque[Work] = deque()
@@ -228,6 +234,21 @@ class Session:
             }
             for end_s, answer in answered
         ]
+
+    def check_units(self, item: Work) -> dict | None:
+        """A ``warning`` message once a sensor's first ``UNIT_CHECK_WINDOWS`` windows read implausibly for its
+        declared units (``service.core.units.unit_warnings``, as the REST routes give ``warnings``); None otherwise.
+        Each sensor is checked once."""
+        first = self.unit_check[item.sensor]
+        if first is None or not item.windows:
+            return None
+        first.extend(item.windows[: UNIT_CHECK_WINDOWS - len(first)])
+        if len(first) < UNIT_CHECK_WINDOWS:
+            return None
+        self.unit_check[item.sensor] = None
+        stream = self.streams[item.sensor]
+        found = unit_warnings(np.stack(first), stream.acc_unit, stream.gyr_unit)
+        return {"type": "warning", "sensor_id": stream.sensor_id, "warnings": found} if found else None
 
     def assignment_message(self, dropped: int) -> dict:
         joint = joint_assignment(
@@ -389,6 +410,8 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
             row += 1
         if item.windows:
             record_answer_latency(app, time.perf_counter() - item.received)
+        if (warning := session.check_units(item)) is not None:
+            outbox.put(warning)
     for moment in session.moment_messages():
         if outbox.put(moment):
             app.state.metrics.dropped.inc()

@@ -245,3 +245,25 @@ def test_a_lone_surrogate_in_a_message_is_reported_not_crashed_on(client: TestCl
     error = next(m for m in messages if m["type"] == "error")
     assert "unknown sensor_id" in error["detail"]
     assert messages[-1]["code"] == 1008
+
+
+def test_a_sensor_whose_readings_do_not_fit_its_declared_units_gets_one_warning(client: TestClient) -> None:
+    """As the REST routes' ``warnings``: sensor a sends g while declaring m/s² and is warned once, after its first
+    four windows; sensor b, in the declared unit, is not; nothing stops the stream."""
+    n = 128 + 16 * 8
+    x = _signal(n)
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}, {"sensor_id": "b"}]}))
+        ws.receive_text()
+        for seq in range(0, n, 16):
+            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16] / 9.80665))  # g, declared as m/s²
+            ws.send_bytes(encode_binary(1, seq, x[seq : seq + 16]))
+        ws.send_text(json.dumps({"type": "stop"}))
+        messages = _collect(ws)
+    warnings = [m for m in messages if m["type"] == "warning"]
+    assert [w["sensor_id"] for w in warnings] == ["a"]
+    [text] = warnings[0]["warnings"]
+    assert text.startswith("acc_unit:") and "'g'" in text
+    a_results = [m for m in messages if m["type"] == "result" and m["sensor_id"] == "a"]
+    assert len(a_results) == 9 and messages[-1]["code"] == 1000  # every window answered, the stream went on
+    assert messages.index(warnings[0]) > messages.index(a_results[3])  # after the four windows it reads
