@@ -252,14 +252,13 @@ def calibrate(
     import math
     import shutil
 
-    import mlflow
-
     from service.core.assignment import CONFIDENCE_FEATURES
     from service.core.manifest import ConfidenceSpec, read_manifest, write_manifest
     from training.i2s.calibration import calibrate as run_calibration
-    from training.tracking import default_tracking_uri
+    from training.i2s.calibration import servable
+    from training.tracking import setup_tracking
 
-    mlflow.set_tracking_uri(default_tracking_uri())
+    setup_tracking("i2s")  # beside the runs it calibrates, so that the snapshot keeps it
     manifest = read_manifest(model_dir / "manifest.json")
     if manifest.task != "i2s_assignment":
         raise typer.BadParameter(f"{model_dir} is a {manifest.task} model; calibrate takes i2s_assignment models")
@@ -273,7 +272,10 @@ def calibrate(
         manifest.version, manifest.created_utc = version, dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
         write_manifest(manifest, target / "manifest.json")
         model_dir = target
-    model, metrics, timing = run_calibration(loso_run, resolve_data_dir(data_dir), model_dir, cache_dir)
+    fitted, metrics, timing = run_calibration(loso_run, resolve_data_dir(data_dir), model_dir, cache_dir)
+    model = servable(fitted)
+    if model.session is None and fitted.session is not None:
+        typer.echo("no session probability reached the target: the manifest keeps the per-sensor rule", err=True)
     run_id = str(metrics.pop("run"))
     manifest.confidence = ConfidenceSpec(
         features=list(CONFIDENCE_FEATURES),

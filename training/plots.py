@@ -235,7 +235,14 @@ def traces_png(
     return path
 
 
-def reliability_png(p: np.ndarray, correct: np.ndarray, path: Path, title: str, bins: int = 10) -> Path:
+def reliability_png(
+    p: np.ndarray,
+    correct: np.ndarray,
+    path: Path,
+    title: str,
+    bins: int = 10,
+    what: tuple[str, str] = ("p_correct", "sensors"),
+) -> Path:
     """Reliability diagram: per probability bin, the share right against the mean probability, with counts."""
     edges = np.linspace(0.0, 1.0, bins + 1)
     which = np.clip(np.digitize(p, edges[1:-1]), 0, bins - 1)
@@ -249,8 +256,8 @@ def reliability_png(p: np.ndarray, correct: np.ndarray, path: Path, title: str, 
     ax.legend(loc="upper left")
     bx.bar((edges[:-1] + edges[1:]) / 2, [(which == b).sum() for b in range(bins)], width=0.09)
     bx.set_yscale("log")
-    bx.set_xlabel("p_correct (calibrated on the other people)")
-    bx.set_ylabel("sensors")
+    bx.set_xlabel(f"{what[0]} (calibrated on the other people)")
+    bx.set_ylabel(what[1])
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

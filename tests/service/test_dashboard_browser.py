@@ -80,6 +80,8 @@ def test_the_page_streams_its_recording_and_shows_the_right_assignment_and_pose(
     served = max((REPO / "onnx_models" / "i2s_assignment").iterdir(), key=lambda d: version_key(d.name))
     if read_manifest(served / "manifest.json").confidence.session is not None:  # the whole assignment's probability
         assert 0.0 <= float(browser.find_element("id", "p-all").text) <= 1.0
+    else:  # calibrated per sensor only: no probability of the whole answer to show
+        assert not browser.find_element("id", "p-all-wrap").is_displayed()
 
     figure = browser.find_element("id", "figure")
     _wait(browser, 10, lambda d: int(figure.get_attribute("data-frames")) > 0, "no pose frame drawn")

@@ -266,15 +266,26 @@ def cross_fitted(samples: Samples, mask: np.ndarray | None = None) -> np.ndarray
     return p
 
 
+UNREACHED = 0.999  # ``choose_threshold``'s answer when no probability on its grid (0.500-0.998) reaches ``TARGET``
+
+
 def choose_threshold(p: np.ndarray, correct: np.ndarray, moving: np.ndarray) -> float:
     """The lowest probability (on a 0.001 grid) above which at least ``MIN_GIVEN`` answers with enough moving
-    windows are right at least ``TARGET`` of the time; 0.999 if none is."""
+    windows are right at least ``TARGET`` of the time; ``UNREACHED`` if none is."""
     enough = moving >= MIN_MOVING_WINDOWS
-    for t in np.arange(0.5, 0.999, 0.001):
+    for t in np.arange(0.5, UNREACHED, 0.001):
         given = enough & (p >= t)
         if given.sum() >= MIN_GIVEN and correct[given].mean() >= TARGET:
             return float(round(t, 3))
-    return 0.999
+    return UNREACHED
+
+
+def servable(model: ConfidenceModel) -> ConfidenceModel:
+    """``model`` as a manifest should carry it: without its session calibration when no session probability
+    reached ``TARGET`` (a service committing on it would never commit), so that the service commits per sensor."""
+    if model.session is not None and model.session.threshold >= UNREACHED:
+        return replace(model, session=None)
+    return model
 
 
 @dataclass(frozen=True)
@@ -578,7 +589,9 @@ def calibrate(
         title = f"one sensor's segment, held-out people ({people}); ECE {metrics['ece']:.3f}"
         mlflow.log_artifact(str(reliability_png(p, samples.correct, Path(tmp) / "reliability.png", title)), "plots")
         title = f"the whole joint assignment, held-out people ({people}); ECE {metrics['all_ece']:.3f}"
-        png = reliability_png(p_all, table.correct, Path(tmp) / "reliability_session.png", title)
+        png = reliability_png(
+            p_all, table.correct, Path(tmp) / "reliability_session.png", title, what=("p_all_correct", "sessions")
+        )
         mlflow.log_artifact(str(png), "plots")
         metrics["run"] = run.info.run_id  # type: ignore[assignment]
     return final, metrics, timing

@@ -117,6 +117,7 @@ function onMessage(m) {
   if (m.type === "assignment") {
     byId("status").textContent = m.status;
     byId("p-all").textContent = fmt(m.p_all_correct);
+    byId("p-all-wrap").hidden = m.p_all_correct === null || m.p_all_correct === undefined;  // per-sensor models: none
     byId("dropped").textContent = m.results_dropped;
     for (const s of m.sensors) {
       const right = s.segment === page.rows[s.sensor_id].label;

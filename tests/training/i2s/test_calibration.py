@@ -36,6 +36,7 @@ from training.i2s.calibration import (
     nested_sessions,
     selective,
     selective_sessions,
+    servable,
     sessions,
     time_to_answer,
 )
@@ -239,3 +240,12 @@ def test_held_out_predictions_are_kept_with_the_summary_run_and_found_by_its_ori
     back = fold_predictions(original, tmp_path / "no-data")
     assert [h.recording for h in back] == ["rec0"] and len(back[0].sensors) == len(held[0].sensors)
     np.testing.assert_allclose(back[0].sensors[2].log_probs, held[0].sensors[2].log_probs, atol=1e-6)
+
+
+def test_a_session_calibration_that_never_reaches_the_target_is_not_served() -> None:
+    per_sensor = ConfidenceModel((1.0, 0.0, 0.0), 0.0, 0.95, 8)
+    never = replace(per_sensor, session=SessionConfidence((1.0, 0.0), 0.0, 0.999))
+    reached = replace(per_sensor, session=SessionConfidence((1.0, 0.0), 0.0, 0.97))
+    assert servable(never) == per_sensor and servable(reached) == reached and servable(per_sensor) == per_sensor
+    p = np.linspace(0.5, 1.0, 1000)
+    assert choose_threshold(p, np.zeros(len(p), bool), np.full(len(p), 20)) == 0.999  # UNREACHED
