@@ -446,15 +446,17 @@ def test_assign_carries_a_calibrated_probability_and_a_status(client: TestClient
         assert out["status"] == "not_enough_walking" and out["p_all_correct"] < 1e-6
 
 
-def test_the_streams_assignment_message_carries_the_calibrated_answer(tiny_models: Path) -> None:
+def _streamed_assignments(client: TestClient, sensors: int) -> list[dict]:
+    """The ``assignment`` messages of a stream whose ``sensors`` all send the same 20 hops of a smooth signal."""
     t = np.arange(16 * 20) / 60.0
     x = np.stack([np.sin(t), np.cos(t), 9.81 + 0 * t, 2 * np.sin(3 * t), 0 * t, np.cos(2 * t)], axis=1)
-    with _calibrated_client(tiny_models) as calibrated, calibrated.websocket_connect("/v1/stream") as ws:
-        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+    out = []
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": f"s{k}"} for k in range(sensors)]}))
         assert json.loads(ws.receive_text())["type"] == "started"
-        statuses = []
         for seq in range(0, len(x), 16):
-            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
+            for k in range(sensors):
+                ws.send_bytes(encode_binary(k, seq, x[seq : seq + 16]))
         ws.send_text(json.dumps({"type": "stop"}))
         while True:
             try:
@@ -462,29 +464,21 @@ def test_the_streams_assignment_message_carries_the_calibrated_answer(tiny_model
             except WebSocketDisconnect:
                 break
             if m["type"] == "assignment":
-                statuses.append((m["sensors"][0]["windows"], m["status"], m["sensors"][0]["p_correct"]))
+                out.append(m)
+    return out
+
+
+def test_the_streams_assignment_message_carries_the_calibrated_answer(tiny_models: Path) -> None:
+    with _calibrated_client(tiny_models) as calibrated:
+        messages = _streamed_assignments(calibrated, 1)
+    statuses = [(m["sensors"][0]["windows"], m["status"], m["sensors"][0]["p_correct"]) for m in messages]
     assert statuses and statuses[-1][1] == "assigned" and statuses[-1][2] > 0.99
     assert all(status == "not_enough_walking" for n, status, _ in statuses if n < 3)
 
 
 def test_the_streams_assignment_message_carries_the_probability_that_all_is_right(tiny_models: Path) -> None:
-    t = np.arange(16 * 20) / 60.0
-    x = np.stack([np.sin(t), np.cos(t), 9.81 + 0 * t, 2 * np.sin(3 * t), 0 * t, np.cos(2 * t)], axis=1)
-    with _calibrated_client(tiny_models, session=True) as calibrated, calibrated.websocket_connect("/v1/stream") as ws:
-        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}, {"sensor_id": "b"}]}))
-        assert json.loads(ws.receive_text())["type"] == "started"
-        for seq in range(0, len(x), 16):  # the same readings on both: one of them cannot be right
-            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
-            ws.send_bytes(encode_binary(1, seq, x[seq : seq + 16]))
-        ws.send_text(json.dumps({"type": "stop"}))
-        last = None
-        while True:
-            try:
-                m = json.loads(ws.receive_text())
-            except WebSocketDisconnect:
-                break
-            if m["type"] == "assignment":
-                last = m
-    assert last is not None and last["status"] == "not_enough_walking"
+    with _calibrated_client(tiny_models, session=True) as calibrated:
+        last = _streamed_assignments(calibrated, 2)[-1]  # the same readings on both: one of them cannot be right
+    assert last["status"] == "not_enough_walking"
     assert last["p_all_correct"] == pytest.approx(np.prod([s["p_correct"] for s in last["sensors"]]))
     assert last["p_all_correct"] < 0.01
