@@ -284,7 +284,7 @@ class AssignResponse(BaseModel):
                             "window_segments": ["Pelvis"] * 11 + [None],
                         }
                     ],
-                    "p_all_correct": 0.997,
+                    "p_all_correct": None,
                     "status": "assigned",
                     "model_versions": EXAMPLE_VERSIONS,
                 }
@@ -299,10 +299,10 @@ class AssignResponse(BaseModel):
         "model's manifest, `confidence.session`); null for a model without that calibration",
     )
     status: Literal["assigned", "not_enough_walking", "uncalibrated"] = Field(
-        description="`assigned`: on enough moving windows per sensor, `p_all_correct` reaches the model's threshold "
-        "(its manifest, `confidence.session.threshold`; for a model calibrated per sensor only, every assigned "
-        "sensor's `p_correct` reaches `confidence.threshold`); `not_enough_walking`: not yet, walk on (or the "
-        "motion is not gait); `uncalibrated`: the model carries no calibration"
+        description="`assigned`: on enough moving windows per sensor, every assigned sensor's `p_correct` reaches "
+        "the model's threshold (its manifest, `confidence.threshold`), or, for a model that also calibrates the whole "
+        "answer, `p_all_correct` reaches `confidence.session.threshold`; `not_enough_walking`: not yet, walk on (or "
+        "the motion is not gait); `uncalibrated`: the model carries no calibration"
     )
     model_versions: dict[str, str]
     warnings: list[str] = Field(
