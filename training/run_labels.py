@@ -46,7 +46,9 @@ def run_title(params: Mapping[str, str], tags: Mapping[str, str], shipped: list[
     recipe = params.get("name") or tags.get(RUN_NAME_TAG, "run").split(" · ")[0]  # a title's first part, again
     parts = [recipe]
     held_out = _listed(params.get("data.test_subjects"))
-    if tags.get("real_loso") == "summary":
+    if "calibrated_from" in tags:  # training.i2s.calibration: the confidence fitted on a real-loso run's folds
+        parts.append(f"fitted on the leave-one-person-out run {tags['calibrated_from'][:8]}")
+    elif tags.get("real_loso") == "summary":
         parts.append("leave one person out, the summary")
     elif "real_loso_held_out" in tags:
         parts.append(f"held out {tags['real_loso_held_out']}")

@@ -57,6 +57,7 @@ from service.core.segments import SEGMENTS
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, sliding_windows
 from training.i2s.evaluate import onnx_predictor
 from training.plots import reliability_png
+from training.run_labels import label_run
 from training.snapshot import local_run_id
 
 log = logging.getLogger(__name__)
@@ -594,6 +595,7 @@ def calibrate(
         )
         mlflow.log_artifact(str(png), "plots")
         metrics["run"] = run.info.run_id  # type: ignore[assignment]
+    label_run(MlflowClient(), str(metrics["run"]))  # its name and description in the UI
     return final, metrics, timing
 
 

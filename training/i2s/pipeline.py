@@ -216,6 +216,7 @@ def run_real_loso(
         )
         mlflow.log_artifact(str(png), "plots")
         summary_id = run.info.run_id
+    label_run(MlflowClient(), summary_id)  # its name and description in the UI
     from training.i2s.calibration import fold_predictions
 
     fold_predictions(summary_id, data_dir)  # each fold's held-out predictions, kept with the summary run
