@@ -262,9 +262,19 @@ class MicroBatcher:
         finally:
             self.in_flight_windows.remove(size)
             self.wake.set()
-        if self.capacity_fixed:
-            pass
-        elif size == self.chunk:
+        if not self.capacity_fixed:
+            self._refine(size, seconds)
+        if self.on_batch:
+            self.on_batch(size, seconds)
+        row = 0
+        for job, lo, hi in parts:
+            if not job.future.done():
+                job.store(lo, hi, probs[row : row + hi - lo], None if quats is None else quats[row : row + hi - lo])
+            row += hi - lo
+
+    def _refine(self, size: int, seconds: float) -> None:
+        """Refine the measured cost per window from a chunk of ``size`` windows that took ``seconds``."""
+        if size == self.chunk:
             self.seconds_per_window = _ewma(self.seconds_per_window, seconds / size)
         elif size == SMALL_CHUNK:
             self.seconds_per_small_window = _ewma(self.seconds_per_small_window, seconds / size)
@@ -274,10 +284,3 @@ class MicroBatcher:
             # burst of streams left the stream admission at a fraction of its capacity until the next burst.
             if self.seconds_per_window and self.seconds_per_small_window < self.seconds_per_window:
                 self.seconds_per_window = self.seconds_per_small_window
-        if self.on_batch:
-            self.on_batch(size, seconds)
-        row = 0
-        for job, lo, hi in parts:
-            if not job.future.done():
-                job.store(lo, hi, probs[row : row + hi - lo], None if quats is None else quats[row : row + hi - lo])
-            row += hi - lo

@@ -256,15 +256,21 @@ def fit(samples: Samples, mask: np.ndarray | None = None, threshold: float = TAR
     return ConfidenceModel(tuple(float(c) for c in coef), intercept, threshold, MIN_MOVING_WINDOWS)
 
 
+def _by_person(person: np.ndarray, mask: np.ndarray, fit_predict) -> np.ndarray:
+    """Each row's probability from ``fit_predict(train, rows)``, a fit on the other people's rows within ``mask``
+    predicting ``rows``; NaN outside ``mask``."""
+    p = np.full(len(person), np.nan)
+    for name in np.unique(person[mask]):
+        own = person == name
+        p[own & mask] = fit_predict(mask & ~own, own & mask)
+    return p
+
+
 def cross_fitted(samples: Samples, mask: np.ndarray | None = None) -> np.ndarray:
     """Each sample's probability from a calibration fitted on the other people's sessions only (within ``mask``;
     samples outside it read NaN)."""
     mask = np.ones(len(samples.correct), bool) if mask is None else mask
-    p = np.full(len(samples.correct), np.nan)
-    for person in np.unique(samples.person[mask]):
-        own = samples.person == person
-        p[own & mask] = fit(samples, mask & ~own).p_correct(samples.features[own & mask])
-    return p
+    return _by_person(samples.person, mask, lambda train, rows: fit(samples, train).p_correct(samples.features[rows]))
 
 
 UNREACHED = 0.999  # ``choose_threshold``'s answer when no probability on its grid (0.500-0.998) reaches ``TARGET``
@@ -325,11 +331,7 @@ def fit_session(table: SessionTable, mask: np.ndarray, threshold: float = TARGET
 def session_cross_fitted(table: SessionTable, mask: np.ndarray) -> np.ndarray:
     """Each session's probability from a session calibration fitted on the other people's sessions (within
     ``mask``; NaN outside)."""
-    p = np.full(len(table.correct), np.nan)
-    for person in np.unique(table.person[mask]):
-        own = table.person == person
-        p[own & mask] = fit_session(table, mask & ~own).p(table.features[own & mask])
-    return p
+    return _by_person(table.person, mask, lambda train, rows: fit_session(table, train).p(table.features[rows]))
 
 
 def calibrated_model(samples: Samples, mask: np.ndarray) -> ConfidenceModel:
