@@ -81,7 +81,10 @@ PARENT_INDEX: tuple[int, ...] = tuple(
 #   trunk: z from the segment's origin to the neck's (rigs curve the lumbar bones 20-40° forward; the MVN frames
 #   of the spine are upright in stance);  up: z along d − p (neck);
 #   down: z along p − d (limbs hang in neutral stance, z superior);
-#   left / right: y along ±(d − p) (shoulders run sideways);  foot: ankle → toe reads FOOT_AXIS in the frame;
+#   left / right: y along ±(d − p) (shoulders run sideways);  foot: level with the ground while the foot stands
+#   flat (``_flat_stance``), x the ankle → toe heading, z up: rigs put the toe joint at different heights, so a
+#   fixed ankle → toe pitch (Zimmermann et al. 2018 §2.4.1's, which the I2S frames keep) tilts one rig's feet
+#   against another's (Bandai-Namco's flat feet read 16° toes-down with it, CMU's 5-15° toes-up);
 #   parent: the parent's target (head, hands, toes: their end points are not reliable across rigs; Bandai-Namco's
 #   end sites have zero length).
 _AXIS_RULE: dict[str, str] = {
@@ -101,12 +104,18 @@ for _s in BODY_SEGMENTS:
         _AXIS_RULE[_s] = "foot"
     _AXIS_RULE.setdefault(_s, "down")
 _AXIS_RULE.pop("Pelvis")
-# Zimmermann et al. 2018 §2.4.1, as in skeleton.py
-FOOT_AXIS = np.array([0.9, 0.0, -0.4]) / np.linalg.norm([0.9, 0.0, -0.4])
+# Flat stance: ankle and toe slower than this and within STANCE_HEIGHT_M of their lowest in the clip
+STANCE_SPEED_M_S = 0.2
+STANCE_HEIGHT_M = 0.03
+MIN_STANCE_FRAMES = 10
 
 
 class MappingError(ValueError):
     """A skeleton mapping that does not fit the skeleton or the canonical body; the message says what."""
+
+
+class NoStanceError(MappingError):
+    """A clip whose feet never stand flat, so it cannot define the foot frames; its rig's other clips can."""
 
 
 @dataclass(frozen=True)
@@ -371,12 +380,21 @@ def _frame_y_x(y: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
     return np.stack([x, y, np.cross(x, y)], axis=-1)
 
 
-def _foot_frame(ankle: np.ndarray, toe: np.ndarray, y_hint: np.ndarray) -> np.ndarray:
-    u = _unit(toe - ankle)
-    y = _unit(y_hint - np.sum(y_hint * u, -1, keepdims=True) * u)
-    w = np.cross(u, y)
-    c, s = FOOT_AXIS[0], -FOOT_AXIS[2]
-    return np.stack([c * u + s * w, y, c * w - s * u], axis=-1)
+def _flat_stance(ankle: np.ndarray, toe: np.ndarray, sample_rate_hz: float) -> np.ndarray:
+    """Frames ``(T,)`` bool where the foot stands flat: ankle and toe still and both near their lowest; in a clip
+    where that never happens (a dance on tiptoe), the frames where both are still."""
+    still, low = np.ones(len(ankle), dtype=bool), np.ones(len(ankle), dtype=bool)
+    for p in (ankle, toe):
+        speed = np.linalg.norm(np.gradient(p, 1.0 / sample_rate_hz, axis=0), axis=-1) if len(p) > 1 else np.zeros(1)
+        still &= speed < STANCE_SPEED_M_S
+        low &= p[:, 2] <= np.percentile(p[:, 2], 2) + STANCE_HEIGHT_M
+    return still & low if (still & low).sum() >= MIN_STANCE_FRAMES else still
+
+
+def _foot_frame(ankle: np.ndarray, toe: np.ndarray) -> np.ndarray:
+    """Level foot frames: x the horizontal ankle → toe heading, z up (meaningful where the foot stands flat)."""
+    up = np.broadcast_to([0.0, 0.0, 1.0], ankle.shape)
+    return _frame_z_x(up, toe - ankle)
 
 
 def _rigid_offset(R_bone: np.ndarray, target: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -490,9 +508,15 @@ def clip_offsets(poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict
             targets[s] = _frame_z_x(axis, heading)
         elif rule in ("left", "right"):
             targets[s] = _frame_y_x(axis, heading)
-        else:  # foot: y from the shank's frame
-            targets[s] = _foot_frame(p, d, targets[BODY_PARENT[s]][..., 1])
-            weights[s] = np.ones(len(P))
+        else:  # foot: level while it stands flat
+            flat = _flat_stance(p, d, poses.sample_rate_hz)
+            if flat.sum() < MIN_STANCE_FRAMES:
+                raise NoStanceError(
+                    f"mapping {mapping.name!r}: segment {s} stands flat in {flat.sum()} frames of {len(P)} "
+                    f"(at least {MIN_STANCE_FRAMES} define its frame); fit the frames on clips with standing or walking"
+                )
+            targets[s] = _foot_frame(p, d)
+            weights[s] = flat.astype(float)
     out = np.empty((len(BODY_SEGMENTS), 3, 3))
     for k, s in enumerate(BODY_SEGMENTS):
         out[k] = _rigid_offset(R[:, poses.index(mapping.segments[s][0])], targets[s], weights[s])

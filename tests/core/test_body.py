@@ -122,3 +122,30 @@ def test_the_clips_of_one_rig_share_their_segment_frames(data_dir: Path) -> None
             rig[arm][None].repeat(len(R_bone), 0),
             atol=1e-9,
         )
+
+
+def _flat_foot_pitch_deg(motion, side: str) -> float:
+    """Median pitch of the foot's x axis over the frames where the foot stands flat (toe still and at its lowest)."""
+    k, toe = BODY_SEGMENTS.index(f"{side}Foot"), BODY_SEGMENTS.index(f"{side}Toe")
+    p = motion.origin_m[:, toe]
+    speed = np.linalg.norm(np.gradient(p, 1.0 / motion.sample_rate_hz, axis=0), axis=-1)
+    flat = (speed < 0.1) & (p[:, 2] < np.percentile(p[:, 2], 5) + 0.02)
+    assert flat.sum() > 10
+    return float(np.degrees(np.median(np.arcsin(np.clip(motion.R_world_segment[flat, k, 2, 0], -1, 1)))))
+
+
+def test_feet_are_level_when_they_stand_flat_on_every_rig(data_dir: Path) -> None:
+    """Rigs put the toe joint at different heights: with a fixed ankle → toe pitch Bandai-Namco's flat feet read
+    about 16° toes-down and CMU's 5-15° toes-up. The foot frame is level in flat stance (DESIGN.md §2) on the rig's
+    frames fitted on some of its walks, and on another walk of the same rig."""
+    from service.core.body import read_clip_offsets, rig_offsets
+
+    rigs = {
+        "bandai_namco_2": [f"mocap/bandai_namco/dataset-2/dataset-2_walk_normal_00{i}.bvh.gz" for i in (1, 2, 3, 4)],
+        "cmu_iclone": [f"mocap/cmu_iclone/{n}.bvh" for n in ("07_01", "07_02", "06_01", "05_01")],
+    }
+    for source, paths in rigs.items():
+        rig = rig_offsets([read_clip_offsets(data_dir / p, source=source) for p in paths[:3]])
+        motion = read_body_motion(data_dir / paths[3], source=source, offsets=rig)
+        for side in ("Left", "Right"):
+            assert abs(_flat_foot_pitch_deg(motion, side)) < 6.0, (source, side)

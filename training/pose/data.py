@@ -30,7 +30,8 @@ from training.data.catalog import CatalogEntry, read_catalog
 
 log = logging.getLogger(__name__)
 
-MOTION_VERSION = "4"  # 2: upright trunk frames for L5 and T8; 3: one set of segment offsets per rig; 4: from walks
+MOTION_VERSION = "5"  # 2: upright trunk frames for L5 and T8; 3: one set of segment offsets per rig; 4: from walks;
+# 5: feet level in flat stance
 MODEL_RATE_HZ = 60.0
 BANDAI_LICENCE = "CC BY-NC 4.0 (Bandai Namco Research Motiondataset): non-commercial use only"
 

@@ -292,7 +292,7 @@ def user_clips(paths: list[Path], mapping_file: Path | None) -> list[MotionClip]
     rig (their segment frames come from all of them together)."""
     import hashlib
 
-    from service.core.body import load_mapping, read_clip_offsets, rig_offsets
+    from service.core.body import NoStanceError, load_mapping, read_clip_offsets, rig_offsets
     from training.pose.data import load_motion
 
     mapping = load_mapping(mapping_file) if mapping_file else None
@@ -302,7 +302,16 @@ def user_clips(paths: list[Path], mapping_file: Path | None) -> list[MotionClip]
     if not files:
         raise ValueError(f"no .bvh or .bvh.gz files in {[str(p) for p in paths]}")
     # the clips of one call share a rig: one set of segment frames for all of them (service.core.body.rig_offsets)
-    offsets = rig_offsets([read_clip_offsets(f, mapping) for f in files])
+    # (fitted on the clips whose feet stand flat somewhere: the foot frames are level there)
+    per_clip, no_stance = [], []
+    for f in files:
+        try:
+            per_clip.append(read_clip_offsets(f, mapping))
+        except NoStanceError as exc:
+            no_stance.append(exc)
+    if not per_clip:
+        raise no_stance[0]
+    offsets = rig_offsets(per_clip)
     clips = []
     for f in files:
         digest = hashlib.sha256(f.read_bytes()).hexdigest()[:20]
