@@ -33,7 +33,8 @@ Server → client
   declared sessions are calibrated at the start, still-pose sessions after a still span, assignment sessions when
   the assignment is sure of the model's segments) · pose (from the streaming model, as frames complete: first_frame,
   frames, q_world_segment and joint_positions_m per frame in "started"'s pose.segments order; each frame answers
-  look_ahead_frames late).
+  look_ahead_frames late) · warning (pose-only sessions: once per sensor, when the first 2 s of body frames
+  read implausibly for its declared units).
   With "pose": {"output": "binary"} each pose message is a binary pose block instead (little-endian): uint16 1,
   uint16 S segments, uint32 first_frame, uint32 frames, then frames × S × 4 float32 q_world_segment (w x y z) and
   frames × S × 3 float32 joint_positions_m: 12 + 28 × frames × S bytes (``decode_pose_block``).

@@ -53,6 +53,7 @@ log = logging.getLogger(__name__)
 
 # A sensor's units are checked over its first windows (about 3 s of readings), as the REST routes check a request's.
 UNIT_CHECK_WINDOWS = 4
+UNIT_CHECK_SECONDS = 2.0  # a pose session's, as long as an I2S window
 
 router = APIRouter()
 
@@ -120,6 +121,8 @@ class Session:
         self.run_i2s = True
         self.width = 6  # values per sample: 10 in pose sessions
         self._units_all: np.ndarray | None = None
+        # A pose session's first UNIT_CHECK_SECONDS of body frames, checked once for implausible units, then dropped.
+        self.pose_unit_check: list[np.ndarray] | None = []
         self.pose_threshold = 0.9
         self.outbox: Outbox | None = None
 
@@ -312,9 +315,30 @@ async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples
     await _pose_frames(app, session, joined)
 
 
+def _pose_unit_warnings(session: Session, frames: np.ndarray) -> list[dict]:
+    """``warning`` messages, once per sensor, when a pose session's first ``UNIT_CHECK_SECONDS`` of body frames
+    ``(n, sensors, 10)`` read implausibly for the sensor's declared units (as the I2S stream's ``check_units``;
+    an I2S-and-pose session is checked there)."""
+    if session.pose_unit_check is None or session.run_i2s or not len(frames):
+        return []
+    session.pose_unit_check.append(frames)
+    first = np.concatenate(session.pose_unit_check)
+    if len(first) < UNIT_CHECK_SECONDS * session.streams[0].sample_rate_hz:
+        return []
+    session.pose_unit_check = None
+    messages = []
+    for k, stream in enumerate(session.streams):
+        found = unit_warnings(first[None, :, k, :6], stream.acc_unit, stream.gyr_unit)
+        if found:
+            messages.append({"type": "warning", "sensor_id": stream.sensor_id, "warnings": found})
+    return messages
+
+
 async def _pose_frames(app: FastAPI, session: Session, joined: AlignResult) -> None:
     """Run the live pose on the body frames all sensors have reached; queue its messages."""
     outbox = session.outbox
+    for warning in _pose_unit_warnings(session, joined.frames):
+        outbox.put(warning)
     if not len(joined.frames) or session.pose_order is None:
         return
     received = time.perf_counter()

@@ -340,6 +340,33 @@ def test_frame_packets_and_binary_pose_blocks_answer_as_the_json_stream_does(ser
     np.testing.assert_allclose(q_bin, q_ref, atol=2e-5)  # JSON carries 5 decimals, the blocks float32
 
 
+def test_a_pose_sensor_whose_readings_do_not_fit_its_declared_units_gets_one_warning(server: str, walk) -> None:
+    """As the I2S stream: the left forearm sends g while declaring m/s² and is warned once, after the first 2 s of
+    body frames; the other sensors are not; every frame is still answered."""
+    motion, raw = walk
+    n = min(240, motion.n_frames) // 8 * 8
+    assert n >= 144
+    rows = np.stack([_rows(raw, k)[:n] for k in range(len(SIX_SENSORS))], axis=1)  # (n, 6, 10)
+    wrong = SIX_SENSORS.index("LeftForeArm")
+    rows[:, wrong, :3] /= 9.80665
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}
+    frames = [encode_binary(ALL_SENSORS, f, rows[f : f + 8]) for f in range(0, n, 8)]
+    messages, code, reason = asyncio.run(_stream(server.replace("http", "ws") + "/v1/stream", start, frames))
+    assert code == 1000, reason
+    warnings = [m for m in messages if m["type"] == "warning"]
+    assert [w["sensor_id"] for w in warnings] == ["leftforearm"]
+    [text] = warnings[0]["warnings"]
+    assert text.startswith("acc_unit:") and "'g'" in text
+    poses = [m for m in messages if m["type"] == "pose"]
+    assert sum(p["frames"] for p in poses) == n - 5
+    before = [p for p in poses if messages.index(p) < messages.index(warnings[0])]
+    assert sum(p["frames"] for p in before) >= 120 - 5 - 8  # checked on the first 2 s, not before
+
+
 def test_a_bad_frame_packet_closes_naming_its_sensor_after_the_earlier_answers(server: str, walk) -> None:
     motion, raw = walk
     rows = np.stack([_rows(raw, k)[:64] for k in range(len(SIX_SENSORS))], axis=1)
