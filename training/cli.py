@@ -448,6 +448,7 @@ def evaluate_pose(
 
     from service.core.manifest import read_manifest, write_manifest
     from training.pose.config import PoseConfig
+    from training.pose.evaluate import per_segment_mean
     from training.pose.pipeline import evaluate_shipped_pose, load_pose_data, results_table, user_clips
 
     if paths:
@@ -474,11 +475,16 @@ def evaluate_pose(
         new = evaluation_record(HELD_OUT, f"python -m training.cli evaluate-pose --model {model}", old.data, summary)
         others = [e for e in manifest.evaluations if e.name != HELD_OUT]
         write_manifest(manifest.model_copy(update={"evaluations": [new, *others]}), model / "manifest.json")
+    error, constant = per_segment_mean(results), per_segment_mean(results, constant=True)
     if as_json:
         per_clip = [{"clip": r.path, "frames": r.frames, **r.metrics} for r in results]
-        typer.echo(json.dumps({"clips": per_clip, **summary}, indent=1))
+        segments = {s: {"angle_deg": error[s], "constant_per_clip_deg": constant[s]} for s in error}
+        typer.echo(json.dumps({"clips": per_clip, **summary, "segments": segments}, indent=1))
         return
     typer.echo(results_table(results))
+    typer.echo("segment          angle°  of it constant per clip°")
+    for s in error:
+        typer.echo(f"{s:16s} {error[s]:6.2f}  {constant[s]:6.2f}")
     for kind in ("activity", "subject"):
         for key, m in summary[kind].items():
             typer.echo(

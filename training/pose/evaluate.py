@@ -56,6 +56,9 @@ class ClipResult:
     frames: int
     metrics: dict[str, float]
     per_segment_deg: dict[str, float]
+    # the constant part of each segment's error in this clip: the angle of the rotation mean of R_true⁻¹ R_pred
+    # (how the person holds a segment no sensor sees, or a frame convention that differs between rigs)
+    per_segment_constant_deg: dict[str, float]
 
 
 def clip_metrics(
@@ -95,7 +98,13 @@ def clip_metrics(
         "jitter_true_mps3": jitter(p_true),
     }
     per_segment = {BODY_SEGMENTS[k]: float(err[:, k].mean()) for k in covered}
-    return ClipResult(clip.path, clip.activity, clip.group, clip.motion.n_frames, metrics, per_segment)
+    constant = {
+        BODY_SEGMENTS[k]: float(
+            np.degrees(Rotation.from_matrix(np.einsum("tji,tjk->tik", R_true[:, k], R_pred[:, k])).mean().magnitude())
+        )
+        for k in covered
+    }
+    return ClipResult(clip.path, clip.activity, clip.group, clip.motion.n_frames, metrics, per_segment, constant)
 
 
 def evaluate_clips(
@@ -133,10 +142,11 @@ def summarise(results: list[ClipResult]) -> dict[str, dict[str, dict[str, float]
     }
 
 
-def per_segment_mean(results: list[ClipResult]) -> dict[str, float]:
+def per_segment_mean(results: list[ClipResult], constant: bool = False) -> dict[str, float]:
+    """Frame-weighted mean per segment of the error (or, ``constant``, of its constant part per clip)."""
     acc, w = defaultdict(float), defaultdict(float)
     for r in results:
-        for s, v in r.per_segment_deg.items():
+        for s, v in (r.per_segment_constant_deg if constant else r.per_segment_deg).items():
             acc[s] += v * r.frames
             w[s] += r.frames
     return {s: acc[s] / w[s] for s in BODY_SEGMENTS if s in acc}

@@ -125,6 +125,10 @@ def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
     assert [Path(c["clip"]).name for c in report["clips"]] == ["07_01.bvh", "07_02.bvh"]
     assert 0.0 < report["overall"]["all"]["angle_all_deg"] < 180.0 and report["overall"]["all"]["jpe_cm"] > 0.0
     assert set(report["activity"]) == {"walks"}
+    # per segment, the error and its constant part per clip, which cannot exceed it by more than the mean's slack
+    assert len(report["segments"]) == 21
+    for seg in report["segments"].values():
+        assert 0.0 <= seg["constant_per_clip_deg"] <= seg["angle_deg"] + 1.0
     unmapped = subprocess.run(base, capture_output=True, text=True, cwd=REPO, timeout=300)
     assert unmapped.returncode != 0
     assert "--mapping" in " ".join((unmapped.stdout + unmapped.stderr).split())
