@@ -25,6 +25,9 @@ class PoseDataConfig(Strict):
     # Frames per activity beyond which an activity's clips are drawn less often (Bandai-Namco waves and raises a
     # hand for 2.2 h of its 3.9 h): a simple balance, not Zheng et al. 2021's selection algorithm (eq. 4-13).
     activity_cap_frames: int = 72_000
+    # Share of the drawn training sequences from Bandai-Namco (None: by frames, about 97 %). Its clips are three
+    # actors; the CMU training clips are many people, which is what held-out people need.
+    bandai_share: float | None = Field(None, ge=0.0, le=1.0)
 
 
 class PoseModelConfig(Strict):

@@ -47,11 +47,18 @@ def fixed_sessions(clips: list[MotionClip], cfg: PoseConfig, seed: int) -> list[
     return [session_of(c, cfg, np.random.default_rng([seed, int(c.digest[:12], 16)])) for c in clips]
 
 
-def clip_weights(clips: list[MotionClip], cap_frames: int) -> np.ndarray:
+def clip_weights(clips: list[MotionClip], cap_frames: int, bandai_share: float | None = None) -> np.ndarray:
+    """How often each clip is drawn: by its frames, less for activities beyond ``cap_frames``; with
+    ``bandai_share``, Bandai-Namco's clips together get that share of the draws and the others the rest."""
     frames = Counter()
     for c in clips:
         frames[c.activity] += c.motion.n_frames
     w = np.array([c.motion.n_frames * min(1.0, cap_frames / frames[c.activity]) for c in clips], dtype=np.float64)
+    if bandai_share is not None:
+        bandai = np.array([c.source.startswith("bandai_namco") for c in clips])
+        if bandai.any() and (~bandai).any():
+            w[bandai] *= bandai_share / w[bandai].sum()
+            w[~bandai] *= (1.0 - bandai_share) / w[~bandai].sum()
     return w / w.sum()
 
 
@@ -141,7 +148,7 @@ def train_pose(
     net = build_net(cfg, n_features)
     net.set_normalisation(*feature_stats(train_clips, cfg, rng))
     opt = torch.optim.Adam(net.parameters(), lr=cfg.train.lr)
-    weights = clip_weights(train_clips, cfg.data.activity_cap_frames)
+    weights = clip_weights(train_clips, cfg.data.activity_cap_frames, cfg.data.bandai_share)
     result = PoseTrainResult(net)
     best_state, bad = copy.deepcopy(net.state_dict()), 0
     L, W = cfg.model.look_ahead, cfg.train.sequence_frames
