@@ -491,7 +491,7 @@ _EXAMPLE_TRACK = {
     "joint_position_m": [[0.0, 0.0, 0.0]],
 }
 EXAMPLE_POSE_IMU_RESPONSE = {
-    "model": {"name": "pose_lower3", "version": "1.0.0"},
+    "model": {"name": "pose_lower3", "version": "2.0.0"},
     "sample_rate_hz": 60.0,
     "frames": 1,
     "look_ahead_frames": 75,
