@@ -15,7 +15,7 @@ from service.core.body import SKELETON_MAPPINGS
 from service.core.manifest import read_manifest
 from service.inference.pose import PoseModel
 from service.inference.registry import load_model
-from training.pose.config import PoseConfig
+from training.pose.config import SIX_SENSORS, PoseConfig
 from training.pose.pipeline import run_pose_experiment
 
 REPO = Path(__file__).resolve().parents[3]
@@ -125,10 +125,13 @@ def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
     assert [Path(c["clip"]).name for c in report["clips"]] == ["07_01.bvh", "07_02.bvh"]
     assert 0.0 < report["overall"]["all"]["angle_all_deg"] < 180.0 and report["overall"]["all"]["jpe_cm"] > 0.0
     assert set(report["activity"]) == {"walks"}
-    # per segment, the error and its constant part per clip, which cannot exceed it by more than the mean's slack
+    # per segment, the error and its constant part per clip; where the errors are small (the sensors' own segments,
+    # whatever this tiny network answers) the rotation mean's angle is at most the mean angle, up to its slack
     assert len(report["segments"]) == 21
-    for seg in report["segments"].values():
-        assert 0.0 <= seg["constant_per_clip_deg"] <= seg["angle_deg"] + 1.0
+    for name, seg in report["segments"].items():
+        assert 0.0 <= seg["constant_per_clip_deg"] <= 180.0
+        if name in SIX_SENSORS:
+            assert seg["angle_deg"] < 20.0 and seg["constant_per_clip_deg"] <= seg["angle_deg"] + 0.5
     unmapped = subprocess.run(base, capture_output=True, text=True, cwd=REPO, timeout=300)
     assert unmapped.returncode != 0
     assert "--mapping" in " ".join((unmapped.stdout + unmapped.stderr).split())
