@@ -253,6 +253,24 @@ class Session:
         found = unit_warnings(np.stack(first), stream.acc_unit, stream.gyr_unit)
         return {"type": "warning", "sensor_id": stream.sensor_id, "warnings": found} if found else None
 
+    def check_pose_units(self, frames: np.ndarray) -> list[dict]:
+        """``warning`` messages, once per sensor, when a pose session's first ``UNIT_CHECK_SECONDS`` of body frames
+        ``(n, sensors, 10)`` read implausibly for the sensor's declared units (as ``check_units`` for I2S windows;
+        an I2S-and-pose session is checked there)."""
+        if self.pose_unit_check is None or self.run_i2s or not len(frames):
+            return []
+        self.pose_unit_check.append(frames)
+        first = np.concatenate(self.pose_unit_check)
+        if len(first) < UNIT_CHECK_SECONDS * self.streams[0].sample_rate_hz:
+            return []
+        self.pose_unit_check = None
+        messages = []
+        for k, stream in enumerate(self.streams):
+            found = unit_warnings(first[None, :, k, :6], stream.acc_unit, stream.gyr_unit)
+            if found:
+                messages.append({"type": "warning", "sensor_id": stream.sensor_id, "warnings": found})
+        return messages
+
     def assignment_message(self, dropped: int) -> dict:
         joint = joint_assignment(
             [e[None] for e in self.evidence], self.allow_shared, worn=self.worn, candidates=self.candidates
@@ -315,29 +333,10 @@ async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples
     await _pose_frames(app, session, joined)
 
 
-def _pose_unit_warnings(session: Session, frames: np.ndarray) -> list[dict]:
-    """``warning`` messages, once per sensor, when a pose session's first ``UNIT_CHECK_SECONDS`` of body frames
-    ``(n, sensors, 10)`` read implausibly for the sensor's declared units (as the I2S stream's ``check_units``;
-    an I2S-and-pose session is checked there)."""
-    if session.pose_unit_check is None or session.run_i2s or not len(frames):
-        return []
-    session.pose_unit_check.append(frames)
-    first = np.concatenate(session.pose_unit_check)
-    if len(first) < UNIT_CHECK_SECONDS * session.streams[0].sample_rate_hz:
-        return []
-    session.pose_unit_check = None
-    messages = []
-    for k, stream in enumerate(session.streams):
-        found = unit_warnings(first[None, :, k, :6], stream.acc_unit, stream.gyr_unit)
-        if found:
-            messages.append({"type": "warning", "sensor_id": stream.sensor_id, "warnings": found})
-    return messages
-
-
 async def _pose_frames(app: FastAPI, session: Session, joined: AlignResult) -> None:
     """Run the live pose on the body frames all sensors have reached; queue its messages."""
     outbox = session.outbox
-    for warning in _pose_unit_warnings(session, joined.frames):
+    for warning in session.check_pose_units(joined.frames):
         outbox.put(warning)
     if not len(joined.frames) or session.pose_order is None:
         return
