@@ -28,6 +28,9 @@ class FlexDataConfig(Strict):
 class FlexModelConfig(Strict):
     kind: Literal["bilstm", "transformer", "fcn", "tcn"] = "bilstm"
     calibration: bool = False  # C: Chen et al. 2024 eq. 2
+    # how eq. 2's linear layer starts (the paper does not say): "default" PyTorch's random init; "baseline" every
+    # output the mean of the pooled minima, so the module starts as a subtraction of the window's baseline
+    calibration_init: Literal["default", "baseline"] = "default"
     median: bool = False  # M: Chen et al. 2024 §3.4.4
     window: int = 100  # calibrated sequence length (§4.2.4, Table 6)
     steps: int = 5  # input sequence length to the network (§4.2.4)

@@ -27,7 +27,7 @@ class DynamicCalibration(nn.Module):
     min pooling (stride 1, no padding), average pooling (stride 1, padding ``avg_padding``), and a linear layer
     back to the window's length (the baseline per sample), shared by the channels."""
 
-    def __init__(self, window: int, min_kernel: int, avg_kernel: int, avg_padding: int) -> None:
+    def __init__(self, window: int, min_kernel: int, avg_kernel: int, avg_padding: int, init: str = "default") -> None:
         super().__init__()
         self.min_kernel, self.avg_kernel, self.avg_padding = min_kernel, avg_kernel, avg_padding
         pooled = window - min_kernel + 1
@@ -35,6 +35,14 @@ class DynamicCalibration(nn.Module):
         if pooled < 1:
             raise ValueError(f"window {window} is too short for kernels {min_kernel} and {avg_kernel}")
         self.linear = nn.Linear(pooled, window)
+        if init == "baseline":
+            # each sample's baseline starts as the mean of the pooled minima that no zero padding reached, so an
+            # offset of every reading (a drifted baseline) is taken out exactly
+            inner = slice(avg_padding, pooled - avg_padding)
+            with torch.no_grad():
+                self.linear.weight.zero_()
+                self.linear.weight[:, inner] = 1.0 / len(range(pooled)[inner])
+                self.linear.bias.zero_()
 
     def baseline(self, y: torch.Tensor) -> torch.Tensor:
         """``(B, T, C)`` → the baseline ``(B, T, C)`` that is subtracted."""
@@ -142,7 +150,9 @@ class FlexNet(nn.Module):
         self.register_buffer("target_mean", target_mean.float().view(1, 1, outputs))
         self.register_buffer("target_std", target_std.clamp_min(0.5).float().view(1, 1, outputs))
         self.calibration = (
-            DynamicCalibration(cfg.window, cfg.min_kernel, cfg.avg_kernel, cfg.avg_padding) if cfg.calibration else None
+            DynamicCalibration(cfg.window, cfg.min_kernel, cfg.avg_kernel, cfg.avg_padding, cfg.calibration_init)
+            if cfg.calibration
+            else None
         )
         if cfg.kind == "bilstm":
             self.net: nn.Module = BiLSTMNet(channels, outputs, cfg.bilstm_sizes)

@@ -45,6 +45,10 @@ class PoseTrainConfig(Strict):
     batch_size: int = 32
     sequences_per_epoch: int = 1024
     lr: float = 1e-3
+    # "cosine": the rate falls from lr to lr * lr_floor over max_epochs (half a cosine, per epoch), so the last
+    # epochs settle instead of wandering about a plateau at the full rate
+    lr_schedule: Literal["constant", "cosine"] = "constant"
+    lr_floor: float = Field(0.05, gt=0.0, le=1.0)
     max_epochs: int = 30
     patience: int = 6
     time_budget_s: float = 1800.0

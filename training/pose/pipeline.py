@@ -157,7 +157,7 @@ def run_pose_experiment(
             data.train,
             val_sessions,
             on_epoch=lambda e, row: mlflow.log_metrics(
-                {"train_loss": row["train_loss"], "val_angle_deg_epoch": row["val_angle_deg"]}, step=e
+                {"train_loss": row["train_loss"], "val_angle_deg_epoch": row["val_angle_deg"], "lr": row["lr"]}, step=e
             ),
         )
         net = result.net

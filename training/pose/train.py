@@ -148,6 +148,11 @@ def train_pose(
     net = build_net(cfg, n_features)
     net.set_normalisation(*feature_stats(train_clips, cfg, rng))
     opt = torch.optim.Adam(net.parameters(), lr=cfg.train.lr)
+    sched = (
+        torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.train.max_epochs, eta_min=cfg.train.lr * cfg.train.lr_floor)
+        if cfg.train.lr_schedule == "cosine"
+        else None
+    )
     weights = clip_weights(train_clips, cfg.data.activity_cap_frames, cfg.data.bandai_share)
     result = PoseTrainResult(net)
     best_state, bad = copy.deepcopy(net.state_dict()), 0
@@ -172,8 +177,17 @@ def train_pose(
             opt.step()
             losses.append(loss.item())
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
+        lr = opt.param_groups[0]["lr"]
+        if sched:
+            sched.step()
         val = validation_angle(net, val_sessions)
-        row = {"epoch": epoch, "train_loss": float(np.mean(losses)), "val_angle_deg": val, "wall_s": time.time() - t0}
+        row = {
+            "epoch": epoch,
+            "train_loss": float(np.mean(losses)),
+            "val_angle_deg": val,
+            "lr": lr,
+            "wall_s": time.time() - t0,
+        }
         result.history.append(row)
         log.info("%s epoch %d: loss %.4f, validation %.2f°", cfg.name, epoch, row["train_loss"], val)
         if on_epoch:

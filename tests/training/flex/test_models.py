@@ -59,6 +59,16 @@ def test_the_calibration_module_pools_as_eq_2_and_keeps_the_window() -> None:
     assert not torch.allclose(cal.baseline(dipped), cal.baseline(y))
 
 
+def test_the_baseline_init_starts_the_calibration_as_a_subtraction_of_the_window_baseline() -> None:
+    cal = DynamicCalibration(100, 15, 10, 8, init="baseline")
+    y = torch.rand(3, 100, 4)
+    with torch.no_grad():
+        out, shifted = cal(y), cal(y + 0.7)
+    torch.testing.assert_close(shifted, out)  # a drifted baseline (an offset of every reading) is taken out
+    with torch.no_grad():  # a window that does not move reads zero
+        torch.testing.assert_close(cal(torch.full((1, 100, 2), 0.4)), torch.zeros(1, 100, 2))
+
+
 @pytest.mark.parametrize("kind, calibration, median", VARIANTS)
 def test_each_variant_answers_one_pose_per_window_and_exports_with_parity(
     kind, calibration, median, tmp_path: Path

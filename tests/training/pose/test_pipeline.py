@@ -38,11 +38,14 @@ def shipped(
     models = tmp_path_factory.mktemp("onnx_models")
     cache = canonical_cache
     out = {}
-    for name, model in (
-        ("tiny_full6", {"kind": "bilstm", "hidden": 16, "layers": 1}),
-        ("tiny_full6_stream", {"kind": "lstm", "hidden": 16, "layers": 2, "look_ahead": 5}),
+    for name, model, schedule in (
+        ("tiny_full6", {"kind": "bilstm", "hidden": 16, "layers": 1}, "cosine"),
+        ("tiny_full6_stream", {"kind": "lstm", "hidden": 16, "layers": 2, "look_ahead": 5}, "constant"),
     ):
-        cfg = PoseConfig.model_validate({"name": name, "model": model, **TINY, "tracking": {"experiment": "test-pose"}})
+        train = {**TINY["train"], "lr_schedule": schedule}
+        cfg = PoseConfig.model_validate(
+            {"name": name, "model": model, **TINY, "train": train, "tracking": {"experiment": "test-pose"}}
+        )
         out[name] = run_pose_experiment(cfg, data_dir, cache, models, "0.0.1", workers=2)
     return out
 
@@ -53,6 +56,9 @@ def test_the_job_logs_its_run_registers_and_ships_a_valid_model(shipped: dict[st
     run = client.get_run(result["run_id"])
     m = run.data.metrics
     assert len(client.get_metric_history(run.info.run_id, "val_angle_deg_epoch")) == 2
+    # the cosine schedule over 2 epochs: the full rate, then halfway down to its floor (5 % of it)
+    lrs = [h.value for h in sorted(client.get_metric_history(run.info.run_id, "lr"), key=lambda h: h.step)]
+    assert lrs == pytest.approx([1e-3, 1e-3 * (0.05 + 0.95 / 2)])
     for key in (
         "test_walk_angle_unsensed_deg",
         "test_walk_jpe_cm",
