@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import platform
 import time
@@ -107,6 +108,11 @@ async def _stream(
         await ws.recv()  # started
 
         async def receive() -> None:
+            # a close (a refusal at capacity) ends this task quietly; the sender's next send raises it as the outcome
+            with contextlib.suppress(websockets.ConnectionClosed):
+                await _receive()
+
+        async def _receive() -> None:
             async for text in ws:
                 m = decode_pose_block(text) if isinstance(text, bytes) else orjson.loads(text)
                 if m["type"] == "pose":

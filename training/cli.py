@@ -435,7 +435,7 @@ def pose_real_check(
 @app.command("evaluate-pose")
 def evaluate_pose(
     paths: list[Path] = typer.Argument(None, help="BVH files or folders (default: the held-out subjects)"),
-    model: Path = typer.Option(..., help="a shipped pose model, e.g. onnx_models/pose_full6/2.1.0"),
+    model: Path = typer.Option(..., help="a shipped pose model, e.g. onnx_models/pose_full6/2.2.0"),
     mapping: Path | None = typer.Option(None, help="JSON/YAML mapping of an unknown skeleton onto the body"),
     data_dir: Path | None = DataDir,
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
