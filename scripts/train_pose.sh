@@ -15,8 +15,8 @@ done
 # pose_full6) and no time budget, so that a slower or busier machine compares the same training: axis-angle against
 # 6D at the lower-body size; Vlutters 2016's FFNN against the Bi-LSTM of Zheng et al. 2021 with six sensors (its
 # unidirectional LSTM is pose_full6_stream, which sees 5 frames ahead). The figures in docs/pose.md are of the 1.x
-# recipe (feet as Zimmermann et al. 2018, Bandai-Namco by frames); the next line is the share comparison behind 2.1.0 (at 2.1.0's
-# constant rate and 18 epochs).
+# recipe (feet as Zimmermann et al. 2018, Bandai-Namco by frames). pose_full6_by_frames is the share comparison
+# behind 2.1.0 (at 2.1.0's constant rate and 18 epochs).
 python -m training.cli pose-train training/configs/pose_lower3.yaml -s name=pose_lower3_axisangle \
   -s model.representation=axis_angle -s train.max_epochs=13 -s train.time_budget_s=1e9
 python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_ffn -s model.kind=ffn \
