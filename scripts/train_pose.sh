@@ -27,3 +27,5 @@ python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_
 C="-s train.lr_schedule=cosine -s train.max_epochs=24 -s train.patience=24"
 python -m training.cli pose-train training/configs/pose_full6_stream.yaml $C
 python -m training.cli pose-train training/configs/pose_lower3.yaml $C
+# a second seed of the served six-sensor recipe (how far a seed moves the figures; not shipped)
+python -m training.cli pose-train training/configs/pose_full6.yaml -s seed=1 -s name=pose_full6_seed1
