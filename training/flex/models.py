@@ -38,10 +38,10 @@ class DynamicCalibration(nn.Module):
         if init == "baseline":
             # each sample's baseline starts as the mean of the pooled minima that no zero padding reached, so an
             # offset of every reading (a drifted baseline) is taken out exactly
-            inner = slice(avg_padding, pooled - avg_padding)
+            inner = pooled - 2 * avg_padding
             with torch.no_grad():
                 self.linear.weight.zero_()
-                self.linear.weight[:, inner] = 1.0 / len(range(pooled)[inner])
+                self.linear.weight[:, avg_padding : avg_padding + inner] = 1.0 / inner
                 self.linear.bias.zero_()
 
     def baseline(self, y: torch.Tensor) -> torch.Tensor:
