@@ -394,11 +394,12 @@ def pose_acc_check(
     difference, on CMU and on Bandai-Namco (30 fps, resampled to 60 Hz first)."""
     import json
 
-    from training.pose.data import build_motions, pose_entries
+    from training.data.catalog import mocap_entries
+    from training.pose.data import build_motions
     from training.pose.simulate import acceleration_check
 
     root = resolve_data_dir(data_dir)
-    entries = [e for e in pose_entries(root) if e.activity == activity]
+    entries = [e for e in mocap_entries(root, [activity])]
     typer.echo(json.dumps(acceleration_check(build_motions(root, entries, cache_dir)), indent=1))
 
 

@@ -23,6 +23,9 @@ METRES_PER_UNIT = {
     "bandai_namco_2": 0.01,
 }
 
+# what a model trained on Bandai-Namco's clips carries (its manifest says so)
+BANDAI_LICENCE = "CC BY-NC 4.0 (Bandai Namco Research Motiondataset): non-commercial use only"
+
 
 def resolve_data_dir(explicit: str | Path | None = None) -> Path:
     """The data directory: ``explicit`` if given, else ``$WEARMOCAP_DATA_DIR``; must hold index.csv."""
@@ -72,10 +75,15 @@ def read_catalog(data_dir: Path) -> list[CatalogEntry]:
         ]
 
 
-def mocap_entries(data_dir: Path, activities: list[str] | None = None) -> list[CatalogEntry]:
-    """Usable BVH clips (``exclude`` empty), optionally restricted to activities."""
+def mocap_entries(
+    data_dir: Path, activities: list[str] | None = None, sources: list[str] | None = None
+) -> list[CatalogEntry]:
+    """Usable BVH clips (``exclude`` empty), plain or gzipped, optionally restricted to activities and sources."""
     return [
         e
         for e in read_catalog(data_dir)
-        if e.path.endswith(".bvh") and not e.exclude and (activities is None or e.activity in activities)
+        if e.path.endswith((".bvh", ".bvh.gz"))
+        and not e.exclude
+        and (activities is None or e.activity in activities)
+        and (sources is None or e.source in sources)
     ]

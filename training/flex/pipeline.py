@@ -22,6 +22,7 @@ from mlflow.tracking import MlflowClient
 from service.core.manifest import Evaluation, sha256_file
 from service.inference.registry import load_model
 from training.config import flatten
+from training.data.catalog import BANDAI_LICENCE, mocap_entries
 from training.flex.config import FlexConfig
 from training.flex.data import FlexClip, WindowSet, clip_seed, clip_suit, flex_clip, window_set
 from training.flex.evaluate import clip_metrics, flat_metrics, mean_pose_predictor
@@ -29,7 +30,7 @@ from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_par
 from training.flex.simulate import AGEING_BEYOND, FLEX_RATE_HZ, draw_sensor, draw_suit, simulate_counts
 from training.flex.train import FlexTrainResult, torch_predictor, train_flex
 from training.plots import bars_png, curves_png, flex_learning_curve_png, traces_png
-from training.pose.data import BANDAI_LICENCE, build_motions, dataset_digest, held_out_split, pose_entries
+from training.pose.data import build_motions, dataset_digest, held_out_split
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
@@ -53,7 +54,7 @@ class FlexData:
 
 
 def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> FlexData:
-    clips = build_motions(data_dir, pose_entries(data_dir, cfg.data.sources), cache_dir, workers)
+    clips = build_motions(data_dir, mocap_entries(data_dir, sources=cfg.data.sources), cache_dir, workers)
     d = cfg.data
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     log.info("flex split: %d train, %d validation, %d test clips", len(train), len(val), len(test))

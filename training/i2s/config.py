@@ -17,6 +17,9 @@ _Strict = Strict  # the I2S sections below predate the common name
 class DataConfig(_Strict):
     activities: list[str] = Field(default_factory=lambda: ["walk"])
     test_subjects: list[str] = Field(default_factory=list)  # LOSO: subject groups held out for testing
+    # the catalogue sources whose clips are simulated (index.csv's `source`); None: every source that has clips of
+    # the activities. A model trained on Bandai-Namco's clips carries their CC BY-NC 4.0 licence (its manifest).
+    sources: list[str] | None = None
     val_fraction: float = 0.05  # Zimmermann et al. 2018 §3.3: 95 % / 5 % training / validation split (by clip)
     # Real recordings mixed into training (Zimmermann et al. 2018 §4.3, assignment only); never evaluated on.
     real_train_recordings: list[str] = Field(default_factory=list)

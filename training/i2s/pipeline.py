@@ -92,6 +92,8 @@ def run_training(
                 "task": cfg.task,
                 "test_subjects": ",".join(cfg.data.test_subjects),
                 "kinematics_version": KINEMATICS_VERSION,
+                # the manifest states Bandai-Namco's licence when the clips include its sets
+                "trains_on_bandai_namco": str(any(c.entry.source.startswith("bandai_namco") for c in clips)).lower(),
             }
             | (tags or {})
         )

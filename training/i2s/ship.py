@@ -20,6 +20,7 @@ from mlflow.tracking import MlflowClient
 from service.core.manifest import Evaluation, Manifest, TensorSpec, read_manifest, sha256_file, write_manifest
 from service.core.segments import SEGMENTS
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
+from training.data.catalog import BANDAI_LICENCE
 from training.i2s.config import ExperimentConfig
 from training.i2s.data.mocap import Clip, KinematicsParams, stiff_knee_variants
 from training.i2s.evaluate import (
@@ -107,7 +108,12 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
             "best_epoch": run.data.metrics.get("best_epoch"),
         }
         # real recordings the network trained on (Zimmermann et al. 2018 §4.3); no real-data evaluation may use them
-        | ({"real_train_recordings": cfg.data.real_train_recordings} if cfg.data.real_train_recordings else {}),
+        | ({"real_train_recordings": cfg.data.real_train_recordings} if cfg.data.real_train_recordings else {})
+        | (
+            {"bandai_namco": True, "licence": BANDAI_LICENCE}
+            if run.data.tags.get("trains_on_bandai_namco") == "true"
+            else {}
+        ),
         mlflow=mlflow_info,
         exporter={
             "torch": torch.__version__,

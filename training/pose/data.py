@@ -26,25 +26,13 @@ from service.core.body import (
     rig_offsets,
 )
 from service.core.rotations import matrix_from_quat, quat_from_matrix
-from training.data.catalog import CatalogEntry, read_catalog
+from training.data.catalog import CatalogEntry, mocap_entries
 
 log = logging.getLogger(__name__)
 
 MOTION_VERSION = "5"  # 2: upright trunk frames for L5 and T8; 3: one set of segment offsets per rig; 4: from walks;
 # 5: feet level in flat stance
 MODEL_RATE_HZ = 60.0
-BANDAI_LICENCE = "CC BY-NC 4.0 (Bandai Namco Research Motiondataset): non-commercial use only"
-
-
-def pose_entries(data_dir: Path, sources: list[str] | None = None) -> list[CatalogEntry]:
-    """Usable BVH clips of the catalogue (``exclude`` empty), plain or gzipped, optionally of some sources."""
-    return [
-        e
-        for e in read_catalog(data_dir)
-        if (e.path.endswith(".bvh") or e.path.endswith(".bvh.gz"))
-        and not e.exclude
-        and (sources is None or e.source in sources)
-    ]
 
 
 @dataclass(frozen=True)
@@ -110,7 +98,7 @@ def build_rig_offsets(data_dir: Path, entries: list[CatalogEntry], cache_dir: Pa
     """Per rig (``rig_key``), the segment offsets of ``rig_offsets`` over the rig's walking clips in the catalogue
     (all its clips where it has fewer than three walks; never only ``entries``: the rig's frames must not depend on
     which clips a run selects)."""
-    everything = pose_entries(data_dir)
+    everything = mocap_entries(data_dir)
     wanted = {rig_key(e) for e in entries}
     rig_entries = [e for e in everything if rig_key(e) in wanted]
     jobs = [(data_dir, e, cache_dir) for e in rig_entries]

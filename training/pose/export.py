@@ -14,8 +14,9 @@ import torch
 from service.core.body import Body
 from service.core.calibration import ACC_SCALE_MPS2, FEATURE_VERSION, features_per_frame
 from service.core.manifest import Evaluation, Manifest, PoseSpec, TensorSpec, read_manifest, sha256_file, write_manifest
+from training.data.catalog import BANDAI_LICENCE
 from training.pose.config import PoseConfig
-from training.pose.data import BANDAI_LICENCE, MODEL_RATE_HZ
+from training.pose.data import MODEL_RATE_HZ
 from training.pose.models import PoseNet, StreamingExport
 
 OPSET = 17

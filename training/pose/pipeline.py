@@ -25,6 +25,7 @@ from service.core.manifest import Evaluation, sha256_file
 from service.inference.pose import PoseModel, whole_body
 from service.inference.registry import load_model
 from training.config import flatten
+from training.data.catalog import mocap_entries
 from training.plots import pose_learning_curve_png, pose_segment_errors_png, skeleton_snapshots_png
 from training.pose.config import PoseConfig
 from training.pose.data import (
@@ -32,7 +33,6 @@ from training.pose.data import (
     build_motions,
     dataset_digest,
     held_out_split,
-    pose_entries,
     trains_on_bandai,
 )
 from training.pose.evaluate import (
@@ -65,7 +65,7 @@ class PoseData:
 
 
 def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> PoseData:
-    clips = build_motions(data_dir, pose_entries(data_dir, cfg.data.sources), cache_dir, workers)
+    clips = build_motions(data_dir, mocap_entries(data_dir, sources=cfg.data.sources), cache_dir, workers)
     d = cfg.data
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     log.info("pose split: %d train, %d validation, %d test clips", len(train), len(val), len(test))

@@ -104,6 +104,7 @@ def test_assignment_job_logs_everything_and_moves_champion_only_on_a_win(
     shipped = export_run(run_id, tmp_path / "onnx_models", version="0.0.1")
     manifest = read_manifest(shipped / "manifest.json")
     assert manifest.mlflow["run_id"] == run_id and manifest.task == "i2s_assignment"
+    assert "licence" not in manifest.training_data  # the config's sources are CMU's (public domain)
     with np.load(shipped / "golden.npz") as z:
         got = load_models(tmp_path / "onnx_models", 1)["i2s_assignment"].run(z["imu"])
         np.testing.assert_allclose(got, z["expected"], atol=manifest.parity_atol)
@@ -116,7 +117,8 @@ def test_alignment_job_runs_and_exports_unit_quaternions(
     mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path
 ) -> None:
     flexion = ["tracking.experiment=test-i2s", "train.functional_axes=[LeftLowerLeg,RightLowerLeg]"]
-    cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", TINY + flexion + [ONE_REAL])
+    bandai = "data.sources=[cmu_iclone,bandai_namco_1]"  # gzipped clips at 30 fps, resampled to 60 Hz
+    cfg = load_config(REPO / "training/configs/i2s_alignment.yaml", TINY + flexion + [ONE_REAL, bandai])
     run_id = run_training(cfg, data_dir, kinematics_cache, register=False, eval_max_windows=1500)
     run = MlflowClient().get_run(run_id)
     assert run.data.metrics["test_mean_angle_error_deg"] > 0.0
@@ -131,6 +133,8 @@ def test_alignment_job_runs_and_exports_unit_quaternions(
     assert manifest.output_kind == "quaternion_per_segment"
     assert manifest.exporter["kinematics_version"] == int(KINEMATICS_VERSION) == 2  # functional segment frames
     assert manifest.exporter["functional_axes"] == ["LeftLowerLeg", "RightLowerLeg"]
+    assert run.data.tags["trains_on_bandai_namco"] == "true"
+    assert manifest.training_data["licence"].startswith("CC BY-NC 4.0")
 
 
 def test_a_training_fitted_elsewhere_is_tracked_here_and_only_with_its_own_config_and_clips(

@@ -27,7 +27,8 @@ _KIN_FIELDS = [f.name for f in dataclasses.fields(SegmentKinematics) if f.name !
 def load_clips(cfg: ExperimentConfig, data_dir: Path, cache_dir: Path) -> list[Clip]:
     """The config's clips, followed by their stiff-knee variants when ``augmentation.stiff_knee_share`` > 0."""
     params = KinematicsParams(cfg.data.sample_rate_hz, cfg.data.cutoff_hz, cfg.data.filter_order)
-    clips = build_kinematics(data_dir, mocap_entries(data_dir, cfg.data.activities), cache_dir, params)
+    entries = mocap_entries(data_dir, cfg.data.activities, cfg.data.sources)
+    clips = build_kinematics(data_dir, entries, cache_dir, params)
     aug = cfg.augmentation
     if aug.stiff_knee_share > 0:
         clips += stiff_knee_variants(data_dir, clips, cache_dir, aug.stiff_knee_keep_max, cfg.seed, params)
