@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from service.core.skeleton import SegmentTrajectories
 from training.i2s.data.imu_sim import (
     ALIGNMENT_AXES,
+    ClipTooShort,
     SensorSpec,
     alignment_grid,
     body_angular_velocity,
@@ -25,6 +26,19 @@ def _trajectory(R: np.ndarray, pos: np.ndarray) -> SegmentTrajectories:
     Rs = np.repeat(R[:, None], 7, axis=1)
     p = np.repeat(pos[:, None], 7, axis=1)
     return SegmentTrajectories(Rs, p, p, RATE)
+
+
+def test_a_clip_too_short_for_the_zero_lag_filter_is_refused_by_name_and_one_just_long_enough_is_simulated() -> None:
+    """Some Bandai-Namco clips last under a second: at 30 fps the order-8 filter's edge padding needs 28 frames."""
+
+    def still(n: int) -> SegmentTrajectories:
+        R, p = np.repeat(np.eye(3)[None, None], n, axis=0).repeat(7, axis=1), np.zeros((n, 7, 3))
+        return SegmentTrajectories(R, p, p, 30.0)
+
+    with pytest.raises(ClipTooShort, match="27 frames"):
+        segment_kinematics(still(27))
+    kin = segment_kinematics(still(28))
+    assert kin.R_world_segment.shape[1] == 7 and kin.sample_rate_hz == RATE
 
 
 def _readings(kin, segment: int, R_si: np.ndarray) -> np.ndarray:

@@ -58,9 +58,17 @@ def _continuous_quats(R: np.ndarray) -> np.ndarray:
     return np.where(flips[:, None] == 1, -q, q)
 
 
+class ClipTooShort(ValueError):
+    """A clip too short for the zero-lag filter (some Bandai-Namco clips last under a second); it would hold no
+    model window either."""
+
+
 def lowpass_segments(traj: SegmentTrajectories, cutoff_hz: float = 10.0, order: int = 8) -> SegmentTrajectories:
     """Zero-lag Butterworth on positions and (sign-continuous) quaternions, Zimmermann et al. 2018 §2.4.2."""
     sos = butter(order, cutoff_hz, fs=traj.sample_rate_hz, output="sos")
+    pad = 3 * (2 * len(sos) + 1)  # sosfiltfilt's default edge padding, which needs more frames than it pads
+    if len(traj.R_world_segment) <= pad:
+        raise ClipTooShort(f"{len(traj.R_world_segment)} frames; the order-{order} zero-lag filter needs over {pad}")
     R = np.empty_like(traj.R_world_segment)
     for s in range(traj.R_world_segment.shape[1]):
         q = sosfiltfilt(sos, _continuous_quats(traj.R_world_segment[:, s]), axis=0)

@@ -19,7 +19,7 @@ from service.core.bvh import read_bvh
 from service.core.kinematics import forward_kinematics
 from service.core.skeleton import SegmentTrajectories, functional_frames, segment_trajectories, skeleton_map_for
 from training.data.catalog import METRES_PER_UNIT, CatalogEntry
-from training.i2s.data.imu_sim import LEG_CHAIN, SegmentKinematics, segment_kinematics, stiffened_knee
+from training.i2s.data.imu_sim import LEG_CHAIN, ClipTooShort, SegmentKinematics, segment_kinematics, stiffened_knee
 
 log = logging.getLogger(__name__)
 
@@ -101,11 +101,14 @@ def _cached(path: Path, compute) -> SegmentKinematics:
     return kin
 
 
-def _load_or_compute(args: tuple[Path, CatalogEntry, KinematicsParams, Path]) -> Clip:
+def _load_or_compute(args: tuple[Path, CatalogEntry, KinematicsParams, Path]) -> Clip | None:
     data_dir, entry, params, cache_dir = args
     bvh_path = data_dir / entry.path
     digest = clip_digest(bvh_path, params)
-    kin = _cached(cache_dir / f"{digest}.npz", lambda: compute_kinematics(bvh_path, entry, params))
+    try:
+        kin = _cached(cache_dir / f"{digest}.npz", lambda: compute_kinematics(bvh_path, entry, params))
+    except ClipTooShort:
+        return None
     return Clip(entry, kin, digest)
 
 
@@ -170,10 +173,16 @@ def build_kinematics(
     """Segment kinematics of every entry, from the cache where possible, with a progress bar."""
     jobs = [(data_dir, e, params, cache_dir) for e in entries]
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        clips = list(
+        loaded = list(
             tqdm(pool.map(_load_or_compute, jobs, chunksize=2), total=len(jobs), desc="kinematics", unit="clip")
         )
-    log.info("kinematics of %d clips (cache %s)", len(clips), cache_dir)
+    clips = [c for c in loaded if c is not None]
+    log.info(
+        "kinematics of %d clips (cache %s); %d too short for the filter left out",
+        len(clips),
+        cache_dir,
+        len(loaded) - len(clips),
+    )
     return clips
 
 
