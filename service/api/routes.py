@@ -292,6 +292,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
                 segment=SEGMENTS[seg] if seg >= 0 else None,
                 confidence=float(joint.confidence[k]),
                 p_correct=None if p_correct is None else float(p_correct[k]),
+                committed=None if calibrated.committed is None else bool(calibrated.committed[k]),
                 margin=finite_or_none(joint.margin[k]),
                 windows=len(per_sensor[k]),
                 moving_windows=int(moving[k].sum()),

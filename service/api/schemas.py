@@ -240,6 +240,12 @@ class SensorAssignment(BaseModel):
         "favour it, the margin per window and the number of moving windows, fitted on sessions of people the "
         "model never trained on (the model's manifest, `confidence`); null for a model without calibration",
     )
+    committed: bool | None = Field(
+        None,
+        description="`p_correct` reaches the model's threshold (`confidence.threshold`) on at least "
+        "`confidence.min_moving_windows` moving windows: this sensor's segment is as sure as the calibration's "
+        "selective accuracy (models.md), whether or not the session's other sensors are; null without calibration",
+    )
     margin: float | None = Field(
         description="summed log-probability lead of the assigned segment over the sensor's best other segment "
         "(among those declared for it); negative when the one-to-one constraint overrode the sensor's own "
@@ -275,6 +281,7 @@ class AssignResponse(BaseModel):
                             "segment": "Pelvis",
                             "confidence": 0.999,
                             "p_correct": 0.998,
+                            "committed": True,
                             "margin": 41.2,
                             "windows": 12,
                             "moving_windows": 11,

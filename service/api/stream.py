@@ -286,6 +286,7 @@ class Session:
                     "segment": SEGMENTS[g] if g >= 0 and n else None,
                     "confidence": float(joint.confidence[k]) if n else 0.0,
                     "p_correct": None if p_correct is None else float(p_correct[k]),
+                    "committed": None if calibrated.committed is None else bool(calibrated.committed[k]),
                     "margin": finite_or_none(joint.margin[k]) if n else 0.0,
                     "windows": int(n),
                     "alignment": None if mean is None else alignment_answer(g, mean[0]),

@@ -326,6 +326,12 @@ class ConfidenceModel:
             return None
         return float(self.session.p(session_features(p_correct[assigned])[None])[0])
 
+    def committed(self, p_correct: np.ndarray, moving_windows: np.ndarray, assigned: np.ndarray) -> np.ndarray:
+        """Per sensor: it has a segment, ``min_moving_windows`` moving windows and ``p_correct`` at the threshold.
+        These are the answers whose share of right ones is the calibration's selective accuracy; a session whose
+        weakest sensor stays below (the thighs of a seven-sensor suit, often) still commits the others."""
+        return assigned & (moving_windows >= self.min_moving_windows) & (p_correct >= self.threshold)
+
     def status(self, p_correct: np.ndarray, moving_windows: np.ndarray, assigned: np.ndarray) -> str:
         """``assigned`` when every sensor that got a segment has ``min_moving_windows`` moving windows and the
         probability that decides (the class docstring) reaches its threshold; ``not_enough_walking`` otherwise (and
@@ -335,7 +341,7 @@ class ConfidenceModel:
         if self.session is not None:
             sure = self.p_all_correct(p_correct, assigned) >= self.session.threshold  # type: ignore[operator]
         else:
-            sure = bool((p_correct[assigned] >= self.threshold).all())
+            sure = bool(self.committed(p_correct, moving_windows, assigned)[assigned].all())
         return "assigned" if sure else "not_enough_walking"
 
 
@@ -379,16 +385,19 @@ class CalibratedAnswer:
     p_correct: np.ndarray | None  # per sensor the probability that its segment is right (0 for one without)
     p_all_correct: float | None  # that every assigned sensor is right (a model with a session calibration)
     status: str
+    committed: np.ndarray | None  # per sensor: sure of its own segment (``ConfidenceModel.committed``)
 
 
 def assignment_confidence(
     model: ConfidenceModel | None, joint: JointAssignment, votes: np.ndarray, moving: np.ndarray
 ) -> CalibratedAnswer:
-    """A session's calibrated answer: per sensor the probability that its segment is right, the probability that all
-    are, and the session's status (``ConfidenceModel.status``); status ``uncalibrated`` and no probabilities for a
-    model whose manifest has no ``confidence`` section."""
+    """A session's calibrated answer: per sensor the probability that its segment is right and whether it is sure
+    of it, the probability that all are, and the session's status (``ConfidenceModel.status``); status
+    ``uncalibrated`` and no probabilities for a model whose manifest has no ``confidence`` section."""
     if model is None:
-        return CalibratedAnswer(None, None, "uncalibrated")
+        return CalibratedAnswer(None, None, "uncalibrated", None)
     assigned = joint.segment >= 0
     p = np.where(assigned, model.p_correct(confidence_features(joint.segment, joint.margin, votes, moving)), 0.0)
-    return CalibratedAnswer(p, model.p_all_correct(p, assigned), model.status(p, moving, assigned))
+    return CalibratedAnswer(
+        p, model.p_all_correct(p, assigned), model.status(p, moving, assigned), model.committed(p, moving, assigned)
+    )

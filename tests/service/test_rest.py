@@ -428,14 +428,19 @@ def test_assign_carries_a_calibrated_probability_and_a_status(client: TestClient
         got = calibrated.post("/v1/imu/assign", json={"sensors": one}).json()
         assert got["status"] == "assigned", got
         assert got["sensors"][0]["p_correct"] == pytest.approx(1.0 / (1.0 + np.exp(-10.0)))  # all 4 votes agree
+        assert got["sensors"][0]["committed"] is True and plain["sensors"][0]["committed"] is None
         few = calibrated.post("/v1/imu/assign", json={"sensors": [{"sensor_id": "a", "windows": [_window()] * 2}]})
         assert few.json()["status"] == "not_enough_walking"  # 2 moving windows < 3
+        assert few.json()["sensors"][0]["committed"] is False
         # identical data on three sensors: the two that the one-to-one answer moved off their windows' favourite
         # have no vote for their segment, so the session does not commit
         three = [{"sensor_id": f"s{k}", "windows": [_window()] * 4} for k in range(3)]
         out = calibrated.post("/v1/imu/assign", json={"sensors": three}).json()
         assert out["status"] == "not_enough_walking"
         assert sorted(round(s["p_correct"], 4) for s in out["sensors"]) == [0.0, 0.0, 1.0]
+        # the one sure sensor is committed on its own while the session waits for the others
+        assert [s["committed"] for s in out["sensors"]] == [s["p_correct"] > 0.99 for s in out["sensors"]]
+        assert sum(s["committed"] for s in out["sensors"]) == 1
         still = [{"sensor_id": "a", "windows": [_window() | {"samples": [[0, 0, 9.81, 0, 0, 0]] * 128}] * 4}]
         assert calibrated.post("/v1/imu/assign", json={"sensors": still}).json()["status"] == "not_enough_walking"
         assert got["p_all_correct"] is None  # calibrated per sensor only
@@ -473,6 +478,8 @@ def test_the_streams_assignment_message_carries_the_calibrated_answer(tiny_model
         messages = _streamed_assignments(calibrated, 1)
     statuses = [(m["sensors"][0]["windows"], m["status"], m["sensors"][0]["p_correct"]) for m in messages]
     assert statuses and statuses[-1][1] == "assigned" and statuses[-1][2] > 0.99
+    assert messages[-1]["sensors"][0]["committed"] is True
+    assert all(not m["sensors"][0]["committed"] for m in messages if m["sensors"][0]["windows"] < 3)
     assert all(status == "not_enough_walking" for n, status, _ in statuses if n < 3)
 
 

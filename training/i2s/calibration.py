@@ -407,6 +407,14 @@ def selective(samples: Samples, p: np.ndarray, thresholds: np.ndarray) -> dict[s
         "session_confident_wrong": float((committed & ~right).sum()),
         "sessions": float(len(ids)),
     }
+    # per number of sensors worn: how many sensors commit on their own (the service's per-sensor `committed`)
+    _, index, counts = np.unique(samples.session, return_inverse=True, return_counts=True)
+    size = counts[index]
+    for n in np.unique(size):
+        at = size == n
+        out[f"sensor_coverage_{n}_sensors"] = float(given[at].mean())
+        if (given & at).any():
+            out[f"sensor_selective_accuracy_{n}_sensors"] = float(samples.correct[given & at].mean())
     return out
 
 

@@ -108,6 +108,14 @@ def test_sessions_score_the_services_joint_answer_and_the_cross_fitted_calibrati
     thresholds = np.array([models[person].threshold for person in samples.person])
     figures = selective(samples, nested_p, thresholds)
     assert figures["sensor_coverage"] > 0.2 and figures["sensor_selective_accuracy"] > samples.correct.mean()
+    # per number of sensors worn, the shares of committed sensors add up to the overall one
+    sizes = {int(k.split("_")[2]) for k in figures if k.startswith("sensor_coverage_")}
+    _, index, counts = np.unique(samples.session, return_inverse=True, return_counts=True)
+    weights = {n: float((counts[index] == n).mean()) for n in sizes}
+    assert len(sizes) > 1 and sum(weights.values()) == pytest.approx(1.0)
+    assert sum(weights[n] * figures[f"sensor_coverage_{n}_sensors"] for n in sizes) == pytest.approx(
+        figures["sensor_coverage"]
+    )
 
 
 def test_the_threshold_is_the_lowest_probability_whose_answers_reach_the_target() -> None:
@@ -172,6 +180,9 @@ def test_the_session_probability_nests_the_product_of_the_sensors_and_decides_th
     assigned, moving = np.ones(3, bool), np.full(3, 20)
     per_sensor = ConfidenceModel((0.0, 0.0, 0.0), 0.0, 0.95, 8)
     assert per_sensor.status(p, moving, assigned) == "not_enough_walking"  # 0.89 < 0.95
+    assert per_sensor.committed(p, moving, assigned).tolist() == [True, False, True]  # the others commit alone
+    assert per_sensor.committed(p, np.array([20, 20, 7]), assigned).tolist() == [True, False, False]
+    assert not per_sensor.committed(p, moving, np.zeros(3, bool)).any()
     assert per_sensor.p_all_correct(p, assigned) is None
     lenient = replace(per_sensor, session=SessionConfidence((1.0, 0.0), 3.0, 0.95))  # logit 0.26 + 3 → 0.96
     assert lenient.p_all_correct(p, assigned) == pytest.approx(1 / (1 + np.exp(-(np.log(0.8547 / 0.1453) + 3))), 1e-3)
