@@ -76,6 +76,7 @@ def test_the_page_streams_its_recording_and_shows_the_right_assignment_and_pose(
     _wait(browser, 15, lambda d: _cells(d, "segment") == labels, f"never showed {labels}")
     assert all(int(n) > 0 for n in _cells(browser, "windows").values())
     assert all(0.0 < float(p) <= 1.0 for p in _cells(browser, "p_correct").values())
+    assert set(_cells(browser, "committed").values()) <= {"yes", "no"}  # each sensor on its own
     assert browser.find_element("id", "status").text in ("assigned", "not_enough_walking")
     served = max((REPO / "onnx_models" / "i2s_assignment").iterdir(), key=lambda d: version_key(d.name))
     if read_manifest(served / "manifest.json").confidence.session is not None:  # the whole assignment's probability

@@ -46,7 +46,7 @@ function showRecording(meta) {
     const cell = (field) => el("td", { dataset: { field }, className: "num", textContent: "–" });
     const row = el("tr", { dataset: { sensor: s.sensor_id } }, el("td", { textContent: s.sensor_id }));
     row.append(el("td", { textContent: s.segment }));
-    for (const field of ["segment", "p_correct", "confidence", "windows", "moment"]) row.append(cell(field));
+    for (const field of ["segment", "p_correct", "committed", "confidence", "windows", "moment"]) row.append(cell(field));
     page.rows[s.sensor_id] = { row, label: s.segment };
     tbody.append(row);
   }
@@ -123,6 +123,7 @@ function onMessage(m) {
       const right = s.segment === page.rows[s.sensor_id].label;
       setCell(s.sensor_id, "segment", s.segment || "–", s.segment ? (right ? "right" : "wrong") : "");
       setCell(s.sensor_id, "p_correct", fmt(s.p_correct));
+      setCell(s.sensor_id, "committed", s.committed === null || s.committed === undefined ? "–" : s.committed ? "yes" : "no", "");
       setCell(s.sensor_id, "confidence", fmt(s.confidence));
       setCell(s.sensor_id, "windows", String(s.windows));
     }
