@@ -412,6 +412,7 @@ def selective(samples: Samples, p: np.ndarray, thresholds: np.ndarray) -> dict[s
     size = counts[index]
     for n in np.unique(size):
         at = size == n
+        out[f"sensor_answers_{n}_sensors"] = float(at.sum())
         out[f"sensor_coverage_{n}_sensors"] = float(given[at].mean())
         if (given & at).any():
             out[f"sensor_selective_accuracy_{n}_sensors"] = float(samples.correct[given & at].mean())
