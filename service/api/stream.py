@@ -171,6 +171,12 @@ class Session:
         self.run_i2s = opts.calibration == "assignment"
         self.width = 10
         self.pose_threshold = opts.assignment_confidence
+        self.hand_over_when = opts.hand_over
+        if self.run_i2s and opts.hand_over == "committed" and self.confidence is None:
+            raise ProtocolError(
+                "pose: hand_over 'committed' needs an assignment model with a calibration (its manifest's "
+                "`confidence`); the served one has none: use hand_over 'confidence'"
+            )
         self.pose_output = opts.output
 
     def pose_units_all(self) -> np.ndarray:
@@ -184,9 +190,18 @@ class Session:
         s = self.streams[k]
         return np.array([ACC_UNITS[s.acc_unit]] * 3 + [GYR_UNITS[s.gyr_unit]] * 3 + [1.0] * 4)
 
+    def sure_enough(self, sensor: dict) -> bool:
+        """A sensor's place is sure enough to pose on (``PoseStreamOptions.hand_over``): its softmax confidence at
+        ``assignment_confidence`` (quick; it reaches 1 within seconds, right or wrong), or committed by the
+        assignment model's calibration (the answers its selective accuracy counts; it may take long)."""
+        if self.hand_over_when == "committed":
+            return bool(sensor["committed"])
+        return sensor["confidence"] >= self.pose_threshold
+
     def hand_over(self, message: dict) -> dict | None:
         """Assignment calibration: once the joint assignment puts a sensor on each of the model's segments with
-        an alignment and enough confidence, those become the pose calibration; the calibration message."""
+        an alignment and each is sure (``sure_enough``), those become the pose calibration; the calibration
+        message."""
         live = self.pose
         if live is None or live.calibrated or live.method != "assignment":
             return None
@@ -195,8 +210,7 @@ class Session:
         if not all(seg in by_segment for seg in need):
             return None
         chosen = [by_segment[seg] for seg in need]
-        threshold = self.pose_threshold
-        if any(s["alignment"] is None or s["confidence"] < threshold for _, s in chosen):
+        if any(s["alignment"] is None or not self.sure_enough(s) for _, s in chosen):
             return None
         self.pose_order = [k for k, _ in chosen]
         live.q_segment_sensor = canonical_quat(np.array([s["alignment"]["q_segment_imu"] for _, s in chosen]))

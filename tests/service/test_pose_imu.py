@@ -402,7 +402,8 @@ def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str
         "worn_segments": list(MOVINGREALITY_SEGMENTS.values()),
         "pose": {"calibration": "assignment", "assignment_confidence": 0.8},
     }
-    messages, code, reason = asyncio.run(_stream(server.replace("http", "ws") + "/v1/stream", start, packets))
+    url = server.replace("http", "ws") + "/v1/stream"
+    messages, code, reason = asyncio.run(_stream(url, start, packets))
     assert code == 1000, reason
     calibrated = [m for m in messages if m["type"] == "calibration" and m["status"] == "calibrated"]
     assert calibrated, [m for m in messages if m["type"] == "assignment"][-1]
@@ -416,6 +417,95 @@ def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str
     knee = np.degrees(Rotation.from_matrix(np.einsum("tji,tjk->tik", R[:, thigh], R[:, shank])).magnitude())
     print(f"MovingReality pp01 left knee angle: p5 {np.percentile(knee, 5):.1f}, p95 {np.percentile(knee, 95):.1f} deg")
     assert np.percentile(knee, 95) - np.percentile(knee, 5) > 10.0  # the knee bends in gait
+
+    # Handed over only once the calibration commits each of the model's sensors: never before an assignment
+    # message in which all three are committed (with the segments declared worn, this person's pelvis stays below
+    # the threshold for the minute streamed here, so the pose may never start).
+    start["pose"] = {"calibration": "assignment", "hand_over": "committed"}
+    messages, code, reason = asyncio.run(_stream(url, start, packets))
+    assert code == 1000, reason
+    handed = [i for i, m in enumerate(messages) if m["type"] == "calibration" and m["status"] == "calibrated"]
+    first = handed[0] if handed else None
+    sure = [
+        i
+        for i, m in enumerate(messages)
+        if m["type"] == "assignment" and all(s["committed"] for s in m["sensors"] if s["segment"] in LOWER)
+    ]
+    assert (first is None and not sure) or (sure and sure[0] < first), (first, sure[:3])
+    assert any(m["type"] == "assignment" for m in messages)
+
+
+def test_a_real_recording_is_handed_over_once_its_sensors_are_committed(server: str) -> None:
+    """The live view's recording (the capacitive study's subject, stiff-knee walking, seven Xsens sensors, 60 Hz):
+    with ``hand_over: committed`` the pose starts after the first assignment message that commits the pelvis and
+    both shanks, on the right segments."""
+    meta = json.loads((REPO / "service/static/dashboard/recording.json").read_text())
+    frames, ids = meta["imu"]["frames"], [s["sensor_id"] for s in meta["imu"]["sensors"]]
+    raw = np.fromfile(REPO / "service/static/dashboard/recording.bin", dtype="<f4")[: len(ids) * frames * 10]
+    rows = raw.reshape(len(ids), frames, 10)  # sensor-major, as the live view reads it
+    start = {
+        "type": "start",
+        "sensors": [{"sensor_id": name} for name in ids],
+        "pose": {"calibration": "assignment", "hand_over": "committed"},
+    }
+
+    async def hop_by_hop() -> list[dict]:
+        """One hop of every sensor at a time, each answered (its assignment message) before the next is sent, so
+        that every hop's assignment is judged, as at real time."""
+        messages = []
+        async with websockets.connect(server.replace("http", "ws") + "/v1/stream", max_size=None) as ws:
+            await ws.send(json.dumps(start))
+            for t in range(0, frames - 15, 16):
+                for k, name in enumerate(ids):
+                    rows_k = rows[k, t : t + 16].tolist()
+                    await ws.send(json.dumps({"type": "samples", "sensor_id": name, "seq": t, "samples": rows_k}))
+                expected = len(ids) * max(0, (t + 16 - 128) // 16 + 1)  # results once this hop is in
+                while expected:
+                    m = json.loads(await asyncio.wait_for(ws.recv(), 10.0))
+                    messages.append(m)
+                    done = sum(m["type"] == "result" for m in messages) >= expected
+                    if done and m["type"] == "assignment":
+                        break
+            await ws.send(json.dumps({"type": "stop"}))
+            async for text in ws:
+                messages.append(json.loads(text))
+        return messages
+
+    messages = asyncio.run(hop_by_hop())
+    handed = [i for i, m in enumerate(messages) if m["type"] == "calibration" and m["status"] == "calibrated"]
+    assert handed, [m for m in messages if m["type"] == "assignment"][-1]
+    truth = {s["sensor_id"]: s["segment"] for s in meta["imu"]["sensors"]}
+    assert messages[handed[0]]["segments"] == {k: v for k, v in truth.items() if v in LOWER}
+    sure = [
+        i
+        for i, m in enumerate(messages)
+        if m["type"] == "assignment" and sum(s["committed"] for s in m["sensors"] if s["segment"] in LOWER) == 3
+    ]
+    assert sure and sure[0] < handed[0]
+    assert any(m["type"] == "pose" for m in messages[handed[0] :])
+
+
+def test_handing_over_on_committed_sensors_needs_a_calibrated_assignment_model(tmp_path: Path) -> None:
+    import shutil
+
+    from service.core.manifest import read_manifest, write_manifest
+
+    for name in ("i2s_assignment", "i2s_alignment", "pose_lower3_stream"):
+        served = max((MODELS / name).iterdir(), key=lambda d: [int(x) for x in d.name.split(".")])
+        shutil.copytree(served, tmp_path / name / served.name)
+    manifest_path = next((tmp_path / "i2s_assignment").iterdir()) / "manifest.json"
+    manifest = read_manifest(manifest_path)
+    manifest.confidence = None  # an assignment model without calibration
+    write_manifest(manifest, manifest_path)
+    start = {
+        "type": "start",
+        "sensors": [{"sensor_id": k} for k in "abc"],
+        "pose": {"calibration": "assignment", "hand_over": "committed"},
+    }
+    with TestClient(create_app(Settings(models_dir=tmp_path))) as client, client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps(start))
+        error = json.loads(ws.receive_text())
+    assert error["type"] == "error" and "needs an assignment model with a calibration" in error["detail"], error
 
 
 @pytest.mark.parametrize(
