@@ -399,7 +399,7 @@ def pose_acc_check(
     from training.pose.simulate import acceleration_check
 
     root = resolve_data_dir(data_dir)
-    entries = [e for e in mocap_entries(root, [activity])]
+    entries = mocap_entries(root, [activity])
     typer.echo(json.dumps(acceleration_check(build_motions(root, entries, cache_dir)), indent=1))
 
 
