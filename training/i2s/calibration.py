@@ -22,7 +22,8 @@ overlap and agree with each other, so their softmax reaches 1 within seconds, ri
    sessions uncommitted for good. The service commits on this probability when the manifest carries it.
 4. Time to answer (``time_to_answer``): each recording replayed from its start, the running joint answer after
    every window, as the stream's ``assignment`` message gives it; the seconds from the first moving window until
-   the answer is right and stays right, and until the session's status is ``assigned``.
+   the answer is right and stays right, until the session's status is ``assigned``, and until each sensor
+   commits on its own (``ConfidenceModel.committed``).
 
 Each threshold (a sensor's, a session's) is the lowest probability above which the answers are right at least 99.5 %
 of the time (the selective accuracy asked for; ``choose_threshold``). It is chosen inside the leave-one-person-out
@@ -462,11 +463,16 @@ def time_to_answer(held_out: list[HeldOut], models: dict[str, ConfidenceModel]) 
         truth = np.array([s.segment for s in rec.sensors])
         right = np.zeros(n_windows, bool)
         status = np.zeros(n_windows, bool)
+        sensor_committed = np.full(len(truth), -1)  # per sensor the first window it commits at (-1: never)
+        sensor_right = np.zeros(len(truth), bool)  # and whether its segment was right then
+        model = models[rec.person]
         for t in range(first, n_windows):
             segment, features, n = answer(rec.sensors, slice(0, t + 1))
             right[t] = (segment == truth).all()
-            model = models[rec.person]
-            status[t] = model.status(model.p_correct(features), n, segment >= 0) == "assigned"
+            p = model.p_correct(features)
+            status[t] = model.status(p, n, segment >= 0) == "assigned"
+            new = model.committed(p, n, segment >= 0) & (sensor_committed < 0)
+            sensor_committed[new], sensor_right[new] = t, (segment == truth)[new]
         wrong_after = np.flatnonzero(~right[first:])
         settle = first + (wrong_after[-1] + 1 if len(wrong_after) else 0)
         committed = np.flatnonzero(status)
@@ -475,6 +481,11 @@ def time_to_answer(held_out: list[HeldOut], models: dict[str, ConfidenceModel]) 
             "committed_s": (committed[0] - first) * HOP_S if len(committed) else float("nan"),
             "committed_right": float(right[committed[0]]) if len(committed) else float("nan"),
             "duration_s": (n_windows - first) * HOP_S,
+            # each sensor on its own (``ConfidenceModel.committed``): seconds to its first commitment (NaN: never)
+            "sensor_committed_s": [(c - first) * HOP_S if c >= 0 else float("nan") for c in sensor_committed.tolist()],
+            "sensor_committed_right": [
+                float(r) if c >= 0 else float("nan") for c, r in zip(sensor_committed, sensor_right, strict=True)
+            ],
         }
     return out
 
@@ -576,6 +587,14 @@ def calibrate(
         )
         metrics[f"time_to_{key.removesuffix('_s')}_never"] = float(np.isnan(values).sum())
     metrics["committed_wrong_recordings"] = float(sum(t["committed_right"] == 0.0 for t in timing.values()))
+    alone = np.array([s for t in walking for s in t["sensor_committed_s"]])  # every sensor of every walk
+    metrics["time_to_sensor_committed_median_s"] = (
+        float(np.nanmedian(alone)) if np.isfinite(alone).any() else float("nan")
+    )
+    metrics["sensors_committed_share"] = float(np.isfinite(alone).mean()) if len(alone) else float("nan")
+    metrics["sensors_committed_wrong"] = float(
+        sum(r == 0.0 for t in timing.values() for r in t["sensor_committed_right"])
+    )
     metrics["recordings_replayed"] = float(len(timing))
     metrics |= non_gait_sessions(onnx_predictor(model_dir / "model.onnx"), final, data_dir, cache_dir)
     with mlflow.start_run(run_name="i2s_assignment_confidence") as run, tempfile.TemporaryDirectory() as tmp:

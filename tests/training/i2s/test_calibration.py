@@ -165,8 +165,10 @@ def test_time_to_answer_is_counted_from_the_first_moving_window() -> None:
     timing = time_to_answer(held, {"p": eager})["rec"]
     assert timing["right_s"] == pytest.approx(33 * HOP_S)  # moving windows 0-19 wrong, then 14 right ones
     assert timing["committed_s"] == 0.0 and timing["committed_right"] == 0.0
+    assert timing["sensor_committed_s"] == [0.0, 0.0] and timing["sensor_committed_right"] == [0.0, 0.0]
     never = ConfidenceModel((0.0, 0.0, 0.0), -10.0, 0.99, 1)
     assert np.isnan(time_to_answer(held, {"p": never})["rec"]["committed_s"])
+    assert np.isnan(time_to_answer(held, {"p": never})["rec"]["sensor_committed_s"]).all()
 
 
 def test_the_session_probability_nests_the_product_of_the_sensors_and_decides_the_status() -> None:
