@@ -27,6 +27,11 @@ METRES_PER_UNIT = {
 BANDAI_LICENCE = "CC BY-NC 4.0 (Bandai Namco Research Motiondataset): non-commercial use only"
 
 
+def is_bandai_namco(source: str) -> bool:
+    """Either Bandai-Namco set (``bandai_namco_1``, ``bandai_namco_2``): three unnamed actors, CC BY-NC 4.0."""
+    return source.startswith("bandai_namco")
+
+
 def resolve_data_dir(explicit: str | Path | None = None) -> Path:
     """The data directory: ``explicit`` if given, else ``$WEARMOCAP_DATA_DIR``; must hold index.csv."""
     value = explicit if explicit is not None else os.environ.get(DATA_DIR_ENV)

@@ -22,7 +22,7 @@ from mlflow.tracking import MlflowClient
 from service.core.manifest import Evaluation, sha256_file
 from service.inference.registry import load_model
 from training.config import flatten
-from training.data.catalog import BANDAI_LICENCE, mocap_entries
+from training.data.catalog import BANDAI_LICENCE, is_bandai_namco, mocap_entries
 from training.flex.config import FlexConfig
 from training.flex.data import FlexClip, WindowSet, clip_seed, clip_suit, flex_clip, window_set
 from training.flex.evaluate import clip_metrics, flat_metrics, mean_pose_predictor
@@ -65,7 +65,7 @@ def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: in
         conv(test),
         dataset_digest(train),
         dataset_digest(val),
-        any(c.source.startswith("bandai_namco") for c in train),
+        any(is_bandai_namco(c.source) for c in train),
         str(data_dir),
     )
 

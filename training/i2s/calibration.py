@@ -502,7 +502,7 @@ def non_gait_sessions(
     """Simulated seven-sensor sessions of non-gait motion (``NON_GAIT``, up to ``NON_GAIT_CLIPS_PER_ACTIVITY``
     Bandai-Namco clips each, every sensor at a random eq. 8 alignment, each clip one session): how many the served
     model with its calibration commits to (status ``assigned``), and how many of those are wrong."""
-    from training.data.catalog import read_catalog
+    from training.data.catalog import is_bandai_namco, read_catalog
     from training.i2s.data.imu_sim import alignment, imu_readings
     from training.i2s.data.mocap import KinematicsParams, build_kinematics
 
@@ -510,7 +510,7 @@ def non_gait_sessions(
     entries = []
     for activity in NON_GAIT:
         found = sorted(
-            (e for e in read_catalog(data_dir) if e.activity == activity and e.source.startswith("bandai_namco")),
+            (e for e in read_catalog(data_dir) if e.activity == activity and is_bandai_namco(e.source)),
             key=lambda e: e.path,
         )
         if found:
@@ -592,9 +592,7 @@ def calibrate(
         float(np.nanmedian(alone)) if np.isfinite(alone).any() else float("nan")
     )
     metrics["sensors_committed_share"] = float(np.isfinite(alone).mean()) if len(alone) else float("nan")
-    metrics["sensors_committed_wrong"] = float(
-        sum(r == 0.0 for t in timing.values() for r in t["sensor_committed_right"])
-    )
+    metrics["sensors_committed_wrong"] = float(sum(r == 0.0 for t in walking for r in t["sensor_committed_right"]))
     metrics["recordings_replayed"] = float(len(timing))
     metrics |= non_gait_sessions(onnx_predictor(model_dir / "model.onnx"), final, data_dir, cache_dir)
     with mlflow.start_run(run_name="i2s_assignment_confidence") as run, tempfile.TemporaryDirectory() as tmp:

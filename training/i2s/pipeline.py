@@ -19,6 +19,7 @@ from mlflow.tracking import MlflowClient
 from service.core.manifest import read_manifest
 from service.core.recordings import RealRecording, read_all_real, read_recording
 from training.config import flatten
+from training.data.catalog import is_bandai_namco
 from training.i2s.config import ExperimentConfig
 from training.i2s.data.mocap import KINEMATICS_VERSION, Clip, as_recorded, dataset_digest
 from training.i2s.data.split import load_clips, recordings_digest, split_clips
@@ -93,7 +94,7 @@ def run_training(
                 "test_subjects": ",".join(cfg.data.test_subjects),
                 "kinematics_version": KINEMATICS_VERSION,
                 # the manifest states Bandai-Namco's licence when the clips include its sets
-                "trains_on_bandai_namco": str(any(c.entry.source.startswith("bandai_namco") for c in clips)).lower(),
+                "trains_on_bandai_namco": str(any(is_bandai_namco(c.entry.source) for c in clips)).lower(),
             }
             | (tags or {})
         )

@@ -26,7 +26,7 @@ from service.core.body import (
     rig_offsets,
 )
 from service.core.rotations import matrix_from_quat, quat_from_matrix
-from training.data.catalog import CatalogEntry, mocap_entries
+from training.data.catalog import CatalogEntry, is_bandai_namco, mocap_entries
 
 log = logging.getLogger(__name__)
 
@@ -198,4 +198,4 @@ def dataset_digest(clips: list[MotionClip]) -> str:
 
 
 def trains_on_bandai(clips: list[MotionClip]) -> bool:
-    return any(c.source.startswith("bandai_namco") for c in clips)
+    return any(is_bandai_namco(c.source) for c in clips)

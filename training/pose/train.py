@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from training.data.catalog import is_bandai_namco
 from training.pose.config import PoseConfig
 from training.pose.data import MotionClip
 from training.pose.models import PoseNet
@@ -55,7 +56,7 @@ def clip_weights(clips: list[MotionClip], cap_frames: int, bandai_share: float |
         frames[c.activity] += c.motion.n_frames
     w = np.array([c.motion.n_frames * min(1.0, cap_frames / frames[c.activity]) for c in clips], dtype=np.float64)
     if bandai_share is not None:
-        bandai = np.array([c.source.startswith("bandai_namco") for c in clips])
+        bandai = np.array([is_bandai_namco(c.source) for c in clips])
         if bandai.any() and (~bandai).any():
             w[bandai] *= bandai_share / w[bandai].sum()
             w[~bandai] *= (1.0 - bandai_share) / w[~bandai].sum()
