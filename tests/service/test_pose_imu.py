@@ -431,6 +431,12 @@ def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str
         for i, m in enumerate(messages)
         if m["type"] == "assignment" and all(s["committed"] for s in m["sensors"] if s["segment"] in LOWER)
     ]
+    last = [m for m in messages if m["type"] == "assignment"][-1]
+    print(
+        "pp01, worn segments declared, hand_over committed:",
+        "handed over" if first else "never handed over;",
+        {s["segment"]: round(s["p_correct"], 3) for s in last["sensors"] if s["segment"] in LOWER},
+    )
     assert (first is None and not sure) or (sure and sure[0] < first), (first, sure[:3])
     assert any(m["type"] == "assignment" for m in messages)
 
@@ -482,6 +488,8 @@ def test_a_real_recording_is_handed_over_once_its_sensors_are_committed(server: 
         if m["type"] == "assignment" and sum(s["committed"] for s in m["sensors"] if s["segment"] in LOWER) == 3
     ]
     assert sure and sure[0] < handed[0]
+    n = messages[sure[0]]["sensors"][0]["windows"]
+    print(f"live view's recording, hand_over committed: handed over at window {n} ({(128 + 16 * (n - 1)) / 60:.1f} s)")
     assert any(m["type"] == "pose" for m in messages[handed[0] :])
 
 
