@@ -26,7 +26,7 @@ overlap and agree with each other, so their softmax reaches 1 within seconds, ri
    commits on its own (``ConfidenceModel.committed``).
 
 Each threshold (a sensor's, a session's) is the lowest probability above which the answers are right at least 99.5 %
-of the time (the selective accuracy asked for; ``choose_threshold``). It is chosen inside the leave-one-person-out
+of the time (the selective accuracy asked for) with 95 % confidence (``choose_threshold``). It is chosen inside the leave-one-person-out
 loop too (``nested``): each person is judged by calibrations and thresholds fitted on the others only.
 """
 
@@ -65,6 +65,7 @@ log = logging.getLogger(__name__)
 
 TARGET = 0.995  # the selective accuracy asked for: the threshold is the lowest probability that reaches it
 MIN_GIVEN = 200  # answers above a candidate threshold needed to judge it
+BOUND_Z = 1.645  # the one-sided 95 % normal quantile of ``lower_bound``
 MIN_MOVING_WINDOWS = 8  # about 2 s of walking after the first window (hop 16 samples at 60 Hz)
 SPANS_S = (2.0, 4.0, 8.0, 15.0, 30.0, 60.0, 120.0)
 STARTS_PER_SPAN = 8
@@ -277,13 +278,25 @@ def cross_fitted(samples: Samples, mask: np.ndarray | None = None) -> np.ndarray
 UNREACHED = 0.999  # ``choose_threshold``'s answer when no probability on its grid (0.500-0.998) reaches ``TARGET``
 
 
+def lower_bound(right: int, given: int, z: float = BOUND_Z) -> float:
+    """The one-sided Wilson lower confidence bound (Wilson 1927) of a share ``right / given``."""
+    if given == 0:
+        return 0.0
+    share, z2 = right / given, z * z
+    centre = share + z2 / (2 * given)
+    spread = z * np.sqrt(share * (1.0 - share) / given + z2 / (4 * given * given))
+    return float((centre - spread) / (1.0 + z2 / given))
+
+
 def choose_threshold(p: np.ndarray, correct: np.ndarray, moving: np.ndarray) -> float:
     """The lowest probability (on a 0.001 grid) above which at least ``MIN_GIVEN`` answers with enough moving
-    windows are right at least ``TARGET`` of the time; ``UNREACHED`` if none is."""
+    windows are right at least ``TARGET`` of the time, with 95 % confidence (``lower_bound``): a threshold whose
+    answers merely reach ``TARGET`` on the people it is fitted on falls short on the next person about half the
+    time. ``UNREACHED`` if none is."""
     enough = moving >= MIN_MOVING_WINDOWS
     for t in np.arange(0.5, UNREACHED, 0.001):
         given = enough & (p >= t)
-        if given.sum() >= MIN_GIVEN and correct[given].mean() >= TARGET:
+        if given.sum() >= MIN_GIVEN and lower_bound(int(correct[given].sum()), int(given.sum())) >= TARGET:
             return float(round(t, 3))
     return UNREACHED
 

@@ -28,6 +28,7 @@ from training.i2s.calibration import (
     _write_predictions,
     calibrated_model,
     choose_threshold,
+    lower_bound,
     cross_fitted,
     expected_calibration_error,
     fit_logistic,
@@ -128,6 +129,28 @@ def test_the_threshold_is_the_lowest_probability_whose_answers_reach_the_target(
     assert correct[p >= threshold].mean() >= 0.995 and correct[p >= threshold - 0.01].mean() < 0.995
     assert choose_threshold(p, np.zeros(len(p), bool), moving) == 0.999  # never reached
     assert choose_threshold(p, correct, np.full(len(p), 2)) == 0.999  # too few moving windows to count
+
+
+def test_the_threshold_asks_for_the_target_with_confidence_not_just_on_the_fitted_answers() -> None:
+    # every answer below 0.9 wrong, one in a hundred wrong between 0.9 and 0.95, none above: from 0.9 up the answers
+    # read 99.5 % (what a threshold on the share alone takes), but that share is no 95 % bound on the next ones
+    p = np.linspace(0.5, 1.0, 20000, endpoint=False)
+    correct = p >= 0.9
+    doubtful = np.flatnonzero((p >= 0.9) & (p < 0.95))
+    correct[doubtful[::100]] = False
+    moving = np.full(len(p), 20)
+
+    def bound_above(t: float) -> float:
+        given = p >= t
+        return lower_bound(int(correct[given].sum()), int(given.sum()))
+
+    assert correct[p >= 0.9].mean() >= 0.995
+    threshold = choose_threshold(p, correct, moving)
+    assert 0.9 < threshold < 0.95
+    assert bound_above(threshold) >= 0.995 > bound_above(threshold - 0.001)
+    # the bound itself: below the share, closing on it as answers grow, 0 without answers
+    assert lower_bound(299, 300) < lower_bound(2990, 3000) < 2990 / 3000
+    assert lower_bound(0, 0) == 0.0 and 0.99 < lower_bound(1000, 1000) < 1.0
 
 
 def test_status_commits_only_on_enough_moving_windows_and_probability() -> None:
