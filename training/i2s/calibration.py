@@ -26,8 +26,9 @@ overlap and agree with each other, so their softmax reaches 1 within seconds, ri
    commits on its own (``ConfidenceModel.committed``).
 
 Each threshold (a sensor's, a session's) is the lowest probability above which the answers are right at least 99.5 %
-of the time (the selective accuracy asked for) with 95 % confidence (``choose_threshold``). It is chosen inside the leave-one-person-out
-loop too (``nested``): each person is judged by calibrations and thresholds fitted on the others only.
+of the time (the selective accuracy asked for) with 95 % confidence (``choose_threshold``). It is chosen inside the
+leave-one-person-out loop too (``nested``): each person is judged by calibrations and thresholds fitted on the
+others only.
 """
 
 from __future__ import annotations
