@@ -561,6 +561,7 @@ def evaluate_flex(
     overall, per motion type and joint, jitter, and under ageing beyond the training range and a replaced sensor."""
     import json
 
+    from service.core.flex import JOINT_COMPONENTS
     from service.inference.registry import load_model
     from training.flex.config import FlexConfig
     from training.flex.pipeline import evaluate_served, load_flex_data
@@ -571,11 +572,24 @@ def evaluate_flex(
     if as_json:
         typer.echo(json.dumps(out, indent=1))
         return
-    typer.echo(f"held-out: {out['test']['mae_deg']:.2f}° jitter {out['test']['jitter_deg_s3'] / 1e4:.3f}e4 °/s³")
+    test = out["test"]
+    typer.echo(
+        f"held-out: {test['mae_deg']:.2f}° jitter {test['jitter_deg_s3'] / 1e4:.3f}e4 °/s³; without each clip's "
+        f"constant offset per angle {test['offset_free_mae_deg']:.2f}°"
+    )
     for a, v in out["test"]["per_activity"].items():
         typer.echo(f"  {a:18s} {v['mae_deg']:6.2f}°  ({v['frames']} frames)")
+    typer.echo(
+        f"  {'joint':22s} {'mean':>6s}  " + "  ".join(f"{c:>9s}" for c in JOINT_COMPONENTS) + "  bias (answer − truth)"
+    )
     for j, v in out["test"]["per_joint"].items():
-        typer.echo(f"  {j:22s} {v:6.2f}°")
+        parts, bias = out["test"]["per_component"][j], out["test"]["bias"][j]
+        typer.echo(
+            f"  {j:22s} {v:6.2f}°  "
+            + "  ".join(f"{parts[c]:8.2f}°" for c in JOINT_COMPONENTS)
+            + "  "
+            + " ".join(f"{bias[c]:+6.1f}" for c in JOINT_COMPONENTS)
+        )
     for b, v in out["ageing"].items():
         typer.echo(f"ageing {b}: {v['mae_deg']:.2f}° jitter {v['jitter_deg_s3'] / 1e4:.3f}e4")
     typer.echo(f"one sensor replaced mid-clip: {out['replaced']['mae_deg']:.2f}°")
@@ -589,19 +603,28 @@ def capacitive_train(
     ship: bool = typer.Option(False, help="ship the model under onnx_models/<name>/<version>"),
     version: str | None = typer.Option(None, help="the shipped version (default 0.0.0+<run id>)"),
     models_dir: Path = typer.Option(Path("onnx_models")),
+    held_out_run: list[str] = typer.Option(
+        [], help="a run of the same recipe that held a trial out: its figures go into the manifest (repeatable)"
+    ),
 ) -> None:
-    """Train knee flexion from real capacitive sleeves (one trial type trains, the other is held out), log it to
-    MLflow and register it."""
+    """Train knee flexion from real capacitive sleeves (one trial type trains, the other is held out; or every
+    trial, for a model to ship, with its recipe's held-out runs named), log it to MLflow and register it."""
     from training.flex.capacitive import run_capacitive_experiment
     from training.flex.config import load_capacitive_config
 
     for path in configs or [Path("training/configs/flex_capacitive_knee.yaml")]:
         cfg = load_capacitive_config(path, overrides)
-        out = run_capacitive_experiment(cfg, resolve_data_dir(data_dir), models_dir if ship else None, version)
+        out = run_capacitive_experiment(
+            cfg, resolve_data_dir(data_dir), models_dir if ship else None, version, held_out_run
+        )
         m = out["metrics"]
+        held_out = (
+            f"held-out {cfg.test_trial} {m['test_mae_deg']:.2f}° (mean flexion {m['test_mean_flexion_mae_deg']:.2f}°)"
+            if cfg.test_trial
+            else "no trial held out"
+        )
         typer.echo(
-            f"{cfg.name} ({cfg.variant}): validation {m['val_mae_deg']:.2f}°, held-out {cfg.test_trial} "
-            f"{m['test_mae_deg']:.2f}° (mean flexion {m['test_mean_flexion_mae_deg']:.2f}°), "
+            f"{cfg.name} ({cfg.variant}): validation {m['val_mae_deg']:.2f}°, {held_out}, "
             f"{m['train_wall_time_s']:.0f} s; run {out['run_id']}"
         )
 

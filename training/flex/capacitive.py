@@ -7,6 +7,10 @@ trial (the same session and mounting). Both legs' sleeves train one model (each 
 ``val_share`` of the training trial of each leg is the validation part (early stopping, the choice between
 variants); the other trial type is the test and never chooses anything.
 
+The model shipped for other people's sleeves trains on every trial (``also_train``): it has no held-out trial of
+its own, so its manifest carries the held-out figures of runs of the same recipe that held one out
+(``held_out_evaluation``), as an I2S model trained on every person carries its recipe's leave-one-person-out ones.
+
 The sleeves and the Xsens sensors are only roughly synchronised (the dataset's ReadMe): rows are paired by
 index at 100 Hz as the files give them.
 """
@@ -40,6 +44,7 @@ from training.flex.train import torch_predictor, train_flex
 from training.plots import flex_learning_curve_png, traces_png
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
+from training.snapshot import local_run_id
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 
 log = logging.getLogger(__name__)
@@ -61,9 +66,10 @@ class LegRecording:
 
 
 def read_trials(cfg: CapacitiveConfig, data_dir: Path) -> dict[str, list[LegRecording]]:
-    """Both trials, both legs, at ``cfg.rate_hz``; the hinge of each knee fitted on the training trial."""
-    oriented = {t: read_capacitive_oriented(data_dir, t, cfg.source) for t in (cfg.train_trial, cfg.test_trial)}
-    out: dict[str, list[LegRecording]] = {cfg.train_trial: [], cfg.test_trial: []}
+    """Every trial of ``cfg``, both legs, at ``cfg.rate_hz``; the hinge of each knee fitted on ``cfg.train_trial``."""
+    names = cfg.training_trials + ([cfg.test_trial] if cfg.test_trial else [])
+    oriented = {t: read_capacitive_oriented(data_dir, t, cfg.source) for t in names}
+    out: dict[str, list[LegRecording]] = {t: [] for t in names}
     for side in SIDES:
         thigh, shank = f"{side}UpperLeg", f"{side}LowerLeg"
         fit = oriented[cfg.train_trial]
@@ -111,12 +117,22 @@ def leg_sets(recs: list[LegRecording], window: int, val_share: float | None) -> 
 
 
 def run_capacitive_experiment(
-    cfg: CapacitiveConfig, data_dir: Path, ship_to: Path | None = None, version: str | None = None
+    cfg: CapacitiveConfig,
+    data_dir: Path,
+    ship_to: Path | None = None,
+    version: str | None = None,
+    held_out_runs: list[str] = (),
 ) -> dict:
-    """Train one network on the training trial's sleeves, report the held-out trial, log, register, ship."""
+    """Train one network on the training trials' sleeves, report the held-out trial (if any), log, register, ship.
+    ``held_out_runs``: runs of the same recipe that held a trial out, whose figures the manifest carries
+    (``held_out_evaluation``); for a model that trains on every trial."""
     trials = read_trials(cfg, data_dir)
     W = cfg.model.window
-    sets = leg_sets(trials[cfg.train_trial], W, cfg.val_share) | leg_sets(trials[cfg.test_trial], W, None)
+    sets = leg_sets([r for t in cfg.training_trials for r in trials[t]], W, cfg.val_share)
+    if cfg.test_trial:
+        sets |= leg_sets(trials[cfg.test_trial], W, None)
+    recipe_figures = [held_out_evaluation(run_id, cfg) for run_id in held_out_runs]
+    trained_on = " and ".join(cfg.training_trials)
     setup_tracking(cfg.tracking.experiment)
     with mlflow.start_run(run_name=cfg.name) as run, tempfile.TemporaryDirectory() as tmp_dir:
         tmp = Path(tmp_dir)
@@ -125,7 +141,9 @@ def run_capacitive_experiment(
                 "task": "flex_pose",
                 "variant": cfg.variant,
                 "mlflow.note.content": f"{cfg.variant} on real capacitive sleeves ({cfg.source}): trained on "
-                f"{cfg.train_trial}, tested on {cfg.test_trial}, knee flexion of both legs.",
+                f"{trained_on}, "
+                + (f"tested on {cfg.test_trial}" if cfg.test_trial else "no trial held out")
+                + ", knee flexion of both legs.",
             }
         )
         mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
@@ -141,19 +159,21 @@ def run_capacitive_experiment(
         net, lat = result.net, result.net.latency_samples
         predict = torch_predictor(net)
         val = clip_metrics(predict, sets["val"], 0, lat, cfg.joints, [])
-        test = clip_metrics(predict, sets["test"], 0, lat, cfg.joints, [])
-        traces = _per_clip(predict, sets["test"], lat)
-        per_leg = {leg: float(np.abs(p - t).mean()) for leg, (p, t) in traces.items()}
-        mean = mean_pose_predictor(sets["train"].angles.mean(axis=0))
-        baseline = clip_metrics(mean, sets["test"], 0, lat, cfg.joints, [])
-        metrics = {
-            "val_mae_deg": val["mae_deg"],
-            "test_mae_deg": test["mae_deg"],
-            "test_jitter_deg_s3": test["jitter_deg_s3"],
-            "test_mean_flexion_mae_deg": baseline["mae_deg"],
-            "train_wall_time_s": result.wall_s,
-            "best_epoch": result.best_epoch,
-        } | {f"test_{leg.lower()}_knee_mae_deg": v for leg, v in per_leg.items()}
+        metrics = {"val_mae_deg": val["mae_deg"], "train_wall_time_s": result.wall_s, "best_epoch": result.best_epoch}
+        # the part each scored trial reads (here the validation parts: the last val_share of each trial and leg)
+        scored = "test" if cfg.test_trial else "val"
+        traces = _per_clip(predict, sets[scored], lat)
+        if cfg.test_trial:
+            test = clip_metrics(predict, sets["test"], 0, lat, cfg.joints, [])
+            mean = mean_pose_predictor(sets["train"].angles.mean(axis=0))
+            baseline = clip_metrics(mean, sets["test"], 0, lat, cfg.joints, [])
+            metrics |= {
+                "test_mae_deg": test["mae_deg"],
+                "test_jitter_deg_s3": test["jitter_deg_s3"],
+                "test_mean_flexion_mae_deg": baseline["mae_deg"],
+            } | {f"test_{leg.lower()}_knee_mae_deg": float(np.abs(p - t).mean()) for leg, (p, t) in traces.items()}
+        else:
+            metrics |= {f"val_{_slug(part)}_mae_deg": float(np.abs(p - t).mean()) for part, (p, t) in traces.items()}
         mlflow.log_metrics(metrics)
         mlflow.set_tag("stopped", result.stopped)
         label_run(MlflowClient(), run.info.run_id)  # its name and description in the UI
@@ -166,8 +186,8 @@ def run_capacitive_experiment(
                     np.arange(n) / cfg.rate_hz,
                     {f"{leg} knee": t[:n] for leg, (_, t) in traces.items()},
                     {f"{leg} knee": p[:n] for leg, (p, _) in traces.items()},
-                    tmp / "trace_test.png",
-                    f"{cfg.name}: held-out {cfg.test_trial}",
+                    tmp / f"trace_{scored}.png",
+                    f"{cfg.name}: held-out {cfg.test_trial}" if cfg.test_trial else f"{cfg.name}: validation parts",
                 )
             ),
             "plots",
@@ -177,20 +197,25 @@ def run_capacitive_experiment(
         mlflow.log_artifact(str(tmp / "summary.json"), "evaluation")
 
         onnx_path = export_flex_onnx(net, tmp / "model.onnx")
-        x, _ = sets["test"].batch(np.zeros(8, int), sets["test"].ends[:: len(sets["test"].ends) // 8][:8], 1)
+        x, _ = sets[scored].batch(np.zeros(8, int), sets[scored].ends[:: len(sets[scored].ends) // 8][:8], 1)
         golden = {"counts": x.astype(np.float32), "expected": predict(x).astype(np.float32)}
         parity = onnx_parity(onnx_path, golden)
         if parity > 1e-3:
             raise RuntimeError(f"onnxruntime differs from torch by {parity:.2e} deg on the golden input")
         np.savez(tmp / "golden.npz", **golden)
         version = version or "0.0.0+" + run.info.run_id[:8]
-        evaluation = Evaluation(
-            name=f"held-out trial {cfg.test_trial}",
-            command=f"python -m training.cli evaluate-capacitive --model onnx_models/{cfg.name}/{version}",
-            data=f"{cfg.source} {cfg.test_trial}, both legs (trained on {cfg.train_trial} only); reference: the "
-            "functional knee hinge angle between the Xsens femur and tibia sensors",
-            metrics={k: round(v, 4) for k, v in metrics.items() if k.startswith("test_")},
-        )
+        evaluations = recipe_figures
+        if cfg.test_trial:
+            evaluations = [
+                Evaluation(
+                    name=f"held-out trial {cfg.test_trial}",
+                    command=f"python -m training.cli evaluate-capacitive --model onnx_models/{cfg.name}/{version}",
+                    data=f"{cfg.source} {cfg.test_trial}, both legs (trained on {trained_on} only); reference: the "
+                    "functional knee hinge angle between the Xsens femur and tibia sensors",
+                    metrics={k: round(v, 4) for k, v in metrics.items() if k.startswith("test_")},
+                ),
+                *evaluations,
+            ]
         manifest = build_flex_manifest(
             cfg,
             net,
@@ -198,7 +223,7 @@ def run_capacitive_experiment(
             sha256_file(onnx_path),
             {
                 "sources": [cfg.source],
-                "train_trial": cfg.train_trial,
+                "train_trials": cfg.training_trials,
                 "test_trial": cfg.test_trial,
                 "subjects": ["Sub01"],
                 "licence": "capacitive sensing dataset of Pearl et al. 2022 (see the data's LICENSE)",
@@ -206,7 +231,7 @@ def run_capacitive_experiment(
                 "best_epoch": result.best_epoch,
                 "stopped": result.stopped,
             },
-            [evaluation],
+            evaluations,
             {"run_id": run.info.run_id, "experiment_id": run.info.experiment_id},
             channels=list(CAPACITIVE_CHANNELS),
             units={c: CHANNEL_UNITS for c in CAPACITIVE_CHANNELS},
@@ -220,23 +245,54 @@ def run_capacitive_experiment(
         proto = onnx.load(str(onnx_path))
         info = log_onnx_model(proto, golden, manifest, input_key="counts")
         registered = mlflow.register_model(info.model_uri, cfg.registered_model)
-        digest = f"{cfg.source}|{cfg.train_trial}|val{cfg.val_share}|{cfg.rate_hz}"
+        digest = f"{cfg.source}|{'+'.join(cfg.training_trials)}|val{cfg.val_share}|{cfg.rate_hz}"
         maybe_promote(cfg.registered_model, registered.version, "val_mae_deg", val["mae_deg"], False, digest)
         manifest = with_registry(manifest, info, registered)
         if ship_to is not None:
             shipped = ship_files(ship_to, manifest, onnx_path, tmp / "golden.npz")
             served = load_model(shipped, 2)
-            a = clip_metrics(served.run, sets["test"], 0, lat, cfg.joints, [])["mae_deg"]
-            if abs(a - test["mae_deg"]) > 0.02:
-                raise RuntimeError(f"the shipped model scores {a:.3f}° where torch scored {test['mae_deg']:.3f}°")
+            a = clip_metrics(served.run, sets[scored], 0, lat, cfg.joints, [])["mae_deg"]
+            b = metrics[f"{scored}_mae_deg"]
+            if abs(a - b) > 0.02:
+                raise RuntimeError(f"the shipped model scores {a:.3f}° where torch scored {b:.3f}°")
             summary["shipped"] = str(shipped)
         return summary
+
+
+def held_out_evaluation(run_id: str, cfg: CapacitiveConfig) -> Evaluation:
+    """The held-out-trial figures of a ``capacitive-train`` run of the same recipe (network and inputs) as
+    ``cfg``, for the manifest of a model trained on every trial."""
+    run = mlflow.get_run(local_run_id(run_id))  # the id a manifest names may be restored
+    params, metrics = run.data.params, run.data.metrics
+    recipe = {k: str(v) for k, v in flatten(cfg.model_dump()).items() if k.startswith("model.")}
+    # parameters added since a run was logged (absent there) had their default then
+    differs = {k: (params[k], v) for k, v in recipe.items() if k in params and params[k] != v}
+    if "model.kind" not in params or differs:
+        raise ValueError(f"run {run_id} is not this recipe: (its, ours) {differs}")
+    if "test_mae_deg" not in metrics:
+        raise ValueError(f"run {run_id} held no trial out")
+    trained = params.get("train_trial"), params.get("also_train", "[]")
+    return Evaluation(
+        name=f"recipe held out on {params.get('test_trial')}",
+        command=f"python -m training.cli capacitive-train (MLflow run {run_id}, the name {run.info.run_name})",
+        data=f"{params.get('source')} {params.get('test_trial')}, both legs, scored by the same recipe trained on "
+        f"{trained[0]}" + ("" if trained[1] == "[]" else f" and {trained[1]}") + " only (not this file: it trained "
+        "on that trial too); reference: the functional knee hinge angle between the Xsens femur and tibia sensors",
+        metrics={k: round(v, 4) for k, v in metrics.items() if k.startswith("test_")},
+    )
+
+
+def _slug(part: str) -> str:
+    """``CSBaseline/Left (last part)`` → ``csbaseline_left``."""
+    return part.removesuffix(" (last part)").replace("/", "_").lower()
 
 
 def sleeve_tables(cfg: CapacitiveConfig, sets: dict[str, WindowSet]) -> dict[str, pd.DataFrame]:
     """The recordings of each part (train, validation, test) as MLflow dataset tables."""
     out = {}
     for context, key in (("train", "train"), ("validation", "val"), ("test", "test")):
+        if key not in sets:
+            continue
         ws = sets[key]
         out[context] = pd.DataFrame(
             {
@@ -250,20 +306,34 @@ def sleeve_tables(cfg: CapacitiveConfig, sets: dict[str, WindowSet]) -> dict[str
 
 
 def _per_clip(predict, ws: WindowSet, latency: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Leg ("Left", "Right") → predicted and reference knee flexion over every answered sample."""
+    """Leg ("Left", "Right"), or trial and leg where several trials are scored, → predicted and reference knee
+    flexion over every answered sample."""
     out = {}
+    several = len({c.path.split("/")[0] for c in ws.clips}) > 1
     for i, c in enumerate(ws.clips):
         ends = ws.ends[ws.clip_of_end == i]
         x, _ = ws.batch(np.zeros(len(ends), int), ends, 1)
-        out[c.path.split("/")[-1]] = (predict(x)[:, 0, 0], ws.angles[ends - 1 - latency][:, 0, 0])
+        out[c.path if several else c.path.split("/")[-1]] = (
+            predict(x)[:, 0, 0],
+            ws.angles[ends - 1 - latency][:, 0, 0],
+        )
     return out
 
 
 def evaluate_capacitive(loaded, cfg: CapacitiveConfig, data_dir: Path) -> dict:
-    """A shipped capacitive model (through onnxruntime) on the held-out trial, per leg and both."""
+    """A shipped capacitive model (through onnxruntime) on ``cfg.test_trial``, per leg and both, and whether the
+    model trained on that trial (then the figure is not a held-out one)."""
     trials = read_trials(cfg, data_dir)
     test = leg_sets(trials[cfg.test_trial], loaded.manifest.window_samples, None)["test"]
     lat = loaded.manifest.flex.latency_samples
     legs = {leg: float(np.abs(p - t).mean()) for leg, (p, t) in _per_clip(loaded.run, test, lat).items()}
     both = clip_metrics(loaded.run, test, 0, lat, ["Knee"], [])
-    return {"mae_deg": both["mae_deg"], "jitter_deg_s3": both["jitter_deg_s3"], "per_leg_mae_deg": legs}
+    data = loaded.manifest.training_data
+    trained = data.get("train_trials") or [data.get("train_trial")]
+    return {
+        "trial": cfg.test_trial,
+        "trained_on_this_trial": cfg.test_trial in trained,
+        "mae_deg": both["mae_deg"],
+        "jitter_deg_s3": both["jitter_deg_s3"],
+        "per_leg_mae_deg": legs,
+    }

@@ -107,13 +107,19 @@ class FlexConfig(_FlexRun):
 
 class CapacitiveConfig(_FlexRun):
     """Real capacitive sleeves (seven channels on one leg's shank and thigh) → that knee's flexion. Both legs'
-    sleeves train one model; one trial type trains, the other is held out."""
+    sleeves train one model; one trial type trains, the other is held out. A model for others to use trains on
+    every trial (``also_train``, no ``test_trial``) and carries the held-out figures of its recipe's runs."""
 
     source: str = "capacitive_sub01"
-    train_trial: str = "CSBaseline"
-    test_trial: str = "CSStiffKnee"
+    train_trial: str = "CSBaseline"  # trains, and the knee hinge reference is fitted on it
+    test_trial: str | None = "CSStiffKnee"
+    also_train: list[str] = Field(default_factory=list)  # further trials that train (their last val_share validates)
     rate_hz: float = 50.0  # the sleeves record at 100 Hz; window 100 at 50 Hz holds about two strides
     val_share: float = Field(0.2, gt=0.0, lt=0.5)  # the training trial's last part, per leg: early stopping
+
+    @property
+    def training_trials(self) -> list[str]:
+        return [self.train_trial, *self.also_train]
 
     @property
     def joints(self) -> list[str]:
@@ -126,6 +132,14 @@ class CapacitiveConfig(_FlexRun):
     @property
     def components(self) -> int:
         return 1
+
+    @model_validator(mode="after")
+    def _trials_are_distinct(self) -> CapacitiveConfig:
+        if self.test_trial in self.training_trials or len(set(self.training_trials)) < len(self.training_trials):
+            raise ValueError(
+                f"each trial trains or is held out, once: training {self.training_trials}, held out {self.test_trial}"
+            )
+        return self
 
 
 def load_flex_config(path: str | Path, overrides: list[str] | None = None) -> FlexConfig:

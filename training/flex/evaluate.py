@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from service.core.flex import JOINT_COMPONENTS
 from training.flex.data import WindowSet
 from training.flex.simulate import FLEX_RATE_HZ
 
@@ -34,7 +35,8 @@ def clip_metrics(
 ) -> dict:
     """Per clip every frame answered (hop 1): errors per joint and the jitter."""
     pred, truth = predict_windows(predict, ws, suit, latency)
-    err = np.abs(pred - truth)  # (W, J, 3)
+    signed = pred - truth  # (W, J, 3)
+    err = np.abs(signed)
     rows = []
     sensed = [joints.index(j) for j in sensors if j in joints]
     for i, c in enumerate(ws.clips):
@@ -47,6 +49,10 @@ def clip_metrics(
                 "activity": c.activity,
                 "frames": int(m.sum()),
                 "per_joint": err[m].mean(axis=(0, 2)),
+                "per_component": err[m].mean(axis=0),
+                "bias": signed[m].mean(axis=0),
+                # the error left once each angle's constant offset over the clip is taken out
+                "offset_free": np.abs(signed[m] - signed[m].mean(axis=0)).mean(),
                 "sensed_flexion": err[m][:, sensed, 0].mean() if sensed else np.nan,
                 "jitter": jerk,
             }
@@ -65,15 +71,25 @@ def summarise(rows: list[dict], joints: list[str]) -> dict:
 
     everything = list(range(len(rows)))
     per_joint = np.average(np.stack([r["per_joint"] for r in rows]), axis=0, weights=w)
+
+    def per_component(key: str) -> dict[str, dict[str, float]]:
+        v = np.average(np.stack([r[key] for r in rows]), axis=0, weights=w)  # (J, components)
+        names = JOINT_COMPONENTS[: v.shape[1]]  # a knee-flexion model has the first only
+        return {j: dict(zip(names, v[k].round(4).tolist(), strict=True)) for k, j in enumerate(joints)}
+
     by_activity = defaultdict(list)
     for i, r in enumerate(rows):
         by_activity[r["activity"]].append(i)
     return {
         "mae_deg": mean("per_joint", everything),
         "sensed_flexion_mae_deg": mean("sensed_flexion", everything),
+        "offset_free_mae_deg": mean("offset_free", everything),
         "jitter_deg_s3": mean("jitter", everything),
         "frames": int(w.sum()),
         "per_joint": dict(zip(joints, per_joint.round(4).tolist(), strict=True)),
+        # each angle's error, and its mean signed error (answer − truth): a constant offset the sensors cannot see
+        "per_component": per_component("per_component"),
+        "bias": per_component("bias"),
         "per_activity": {
             a: {"mae_deg": mean("per_joint", s), "frames": int(w[s].sum())} for a, s in by_activity.items()
         },
@@ -86,7 +102,8 @@ def mean_pose_predictor(mean_deg: np.ndarray) -> Predictor:
 
 
 def flat_metrics(summary: dict, prefix: str) -> dict[str, float]:
-    out = {f"{prefix}_{k}": summary[k] for k in ("mae_deg", "sensed_flexion_mae_deg", "jitter_deg_s3")}
+    keys = ("mae_deg", "sensed_flexion_mae_deg", "offset_free_mae_deg", "jitter_deg_s3")
+    out = {f"{prefix}_{k}": summary[k] for k in keys}
     out |= {f"{prefix}_joint_{j}_deg": v for j, v in summary["per_joint"].items()}
     out |= {f"{prefix}_activity_{a}_deg": v["mae_deg"] for a, v in summary["per_activity"].items()}
     return {k: float(v) for k, v in out.items() if np.isfinite(v)}

@@ -89,6 +89,12 @@ def test_the_shipped_flex_model_is_served_and_scores_as_in_its_run(flex_runs: di
     logged = flat = flex_runs["results"][0]
     assert served["test"]["mae_deg"] == pytest.approx(logged["test"]["mae_deg"], abs=0.02)
     assert served["ageing"][0.3]["mae_deg"] == pytest.approx(flat["ageing"][0.3]["mae_deg"], abs=0.02)
+    # each joint's error is the mean of its three angles' errors, and no angle's bias exceeds its error
+    test = served["test"]
+    for joint, error in test["per_joint"].items():
+        parts, bias = test["per_component"][joint], test["bias"][joint]
+        assert np.mean(list(parts.values())) == pytest.approx(error, abs=1e-3)
+        assert all(abs(bias[c]) <= parts[c] + 1e-3 for c in parts)
 
 
 def test_sleeve_channels_are_read_by_name_and_a_failed_read_out_ends_the_recording(data_dir: Path) -> None:
@@ -122,3 +128,24 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
     again = evaluate_capacitive(loaded, cfg, data_dir)
     assert again["mae_deg"] == pytest.approx(m["test_mae_deg"], abs=0.02)
     assert again["per_leg_mae_deg"]["Left"] == pytest.approx(m["test_left_knee_mae_deg"], abs=0.02)
+    assert not again["trained_on_this_trial"]
+
+    # the model for others trains on both trials and carries that run's held-out figures as its recipe's
+    every = cfg.model_copy(update={"name": "tiny_capacitive_all", "also_train": ["CSStiffKnee"], "test_trial": None})
+    final = run_capacitive_experiment(every, data_dir, tmp_path, "0.0.2", [out["run_id"]])
+    assert not any(k.startswith("test_") for k in final["metrics"])
+    assert {"val_csbaseline_left_mae_deg", "val_csstiffknee_right_mae_deg"} <= set(final["metrics"])
+    manifest = read_manifest(tmp_path / "tiny_capacitive_all" / "0.0.2" / "manifest.json")
+    assert manifest.training_data["train_trials"] == ["CSBaseline", "CSStiffKnee"]
+    [recipe] = manifest.evaluations
+    assert recipe.name == "recipe held out on CSStiffKnee" and out["run_id"] in recipe.command
+    assert recipe.metrics["test_mae_deg"] == pytest.approx(m["test_mae_deg"], abs=1e-3)
+    scored = evaluate_capacitive(load_model(tmp_path / "tiny_capacitive_all" / "0.0.2", 1), cfg, data_dir)
+    assert scored["trained_on_this_trial"]
+    # a run of another recipe (no calibration module) is refused as the held-out figure
+    other = cfg.model_copy(
+        update={"name": "tiny_capacitive_plain", "model": cfg.model.model_copy(update={"calibration": False})}
+    )
+    plain = run_capacitive_experiment(other, data_dir)
+    with pytest.raises(ValueError, match="not this recipe"):
+        run_capacitive_experiment(every, data_dir, None, None, [plain["run_id"]])
