@@ -24,9 +24,17 @@ import websockets
 from benchmarks.servers import REPO, start_service, stop
 from service.api.protocol import encode_binary
 from service.core.manifest import read_manifest
+from service.inference.registry import version_key
 
 RESULTS = REPO / "benchmarks" / "results"
-MODELS = {"flex_bilstm_cm": "1.0.0", "flex_capacitive_knee": "1.0.0"}
+
+
+def _served(name: str) -> str:
+    """The version the service serves by default: the newest under onnx_models/<name>."""
+    return max((REPO / "onnx_models" / name).iterdir(), key=lambda d: version_key(d.name)).name
+
+
+MODELS = {name: _served(name) for name in ("flex_bilstm_cm", "flex_capacitive_knee")}
 
 
 def _readings(name: str, n: int, seed: int = 0) -> np.ndarray:
@@ -59,10 +67,9 @@ def rest(base: str, repeats: int = 5) -> dict:
     return out
 
 
-async def _one_stream(url: str, x: np.ndarray, packet: int, rate: float, lat: list[float], frames: list[int]) -> None:
+async def _one_stream(url: str, x: np.ndarray, packet: int, rate: float, lat: list[float], frames: list[int]) -> bool:
+    """One session streamed at real time; False when the service refused it at capacity (close code 1013)."""
     async with websockets.connect(url, max_size=None) as ws:
-        await ws.send(json.dumps({"type": "start", "model": "flex_bilstm_cm", "channels": _channels()}))
-        json.loads(await ws.recv())
         sent: dict[int, float] = {}
 
         async def receive() -> None:
@@ -74,14 +81,22 @@ async def _one_stream(url: str, x: np.ndarray, packet: int, rate: float, lat: li
                     lat.append((time.perf_counter() - sent[seq]) * 1e3)
                     frames.append(m["frames"])
 
-        task = asyncio.create_task(receive())
-        t0 = time.perf_counter()
-        for k in range(0, len(x) - packet + 1, packet):
-            await asyncio.sleep(max(0.0, t0 + (k + packet) / rate - time.perf_counter()))
-            sent[k + packet - 1] = time.perf_counter()
-            await ws.send(encode_binary(0, k, x[k : k + packet]))
-        await ws.send(json.dumps({"type": "stop"}))
-        await task
+        try:
+            await ws.send(json.dumps({"type": "start", "model": "flex_bilstm_cm", "channels": _channels()}))
+            json.loads(await ws.recv())
+            task = asyncio.create_task(receive())
+            t0 = time.perf_counter()
+            for k in range(0, len(x) - packet + 1, packet):
+                await asyncio.sleep(max(0.0, t0 + (k + packet) / rate - time.perf_counter()))
+                sent[k + packet - 1] = time.perf_counter()
+                await ws.send(encode_binary(0, k, x[k : k + packet]))
+            await ws.send(json.dumps({"type": "stop"}))
+            await task
+        except websockets.exceptions.ConnectionClosedError as e:
+            if e.rcvd is None or e.rcvd.code != 1013:
+                raise
+            return False
+        return True
 
 
 def _channels() -> list[str]:
@@ -95,11 +110,12 @@ async def streams(base: str, n: int, seconds: float, packet: int) -> dict:
     frames: list[int] = []
     x = [_readings("flex_bilstm_cm", int(seconds * rate), seed=k) for k in range(n)]
     t0 = time.perf_counter()
-    await asyncio.gather(*(_one_stream(url, x[k], packet, rate, lat, frames) for k in range(n)))
+    admitted = await asyncio.gather(*(_one_stream(url, x[k], packet, rate, lat, frames) for k in range(n)))
     wall = time.perf_counter() - t0
-    expected = n * (int(seconds * rate) - 99)
+    expected = sum(admitted) * (int(seconds * rate) - 99)
     return {
         "streams": n,
+        "refused_at_capacity": n - sum(admitted),
         "answers": int(sum(frames)),
         "answers_expected": expected,
         "answers_per_s": sum(frames) / wall,
