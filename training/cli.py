@@ -631,12 +631,16 @@ def capacitive_train(
 
 @app.command("evaluate-capacitive")
 def evaluate_capacitive_command(
-    model: Path = typer.Option(Path("onnx_models/flex_capacitive_knee/1.0.0"), help="a shipped capacitive model"),
+    model: Path = typer.Option(
+        Path("onnx_models/flex_capacitive_knee/1.0.0"),
+        help="a shipped capacitive model (1.0.0 held the stiff-knee trial out; 1.1.0 trained on it)",
+    ),
     data_dir: Path | None = DataDir,
     test_trial: str = typer.Option("CSStiffKnee"),
     train_trial: str = typer.Option("CSBaseline", help="the trial the knee hinge reference is fitted on"),
 ) -> None:
-    """A shipped capacitive knee model (onnxruntime) on a held-out trial: knee flexion MAE per leg and both."""
+    """A shipped capacitive knee model (onnxruntime) on a trial: knee flexion MAE per leg and both, and whether the
+    model trained on that trial (then it is no held-out figure)."""
     import json
 
     from service.inference.registry import load_model

@@ -71,6 +71,18 @@ def test_the_page_streams_its_recording_and_shows_the_right_assignment_and_pose(
     assert "http://127.0.0.1:5000/#/models/i2s_assignment" in run_links, run_links
     assert browser.find_element("css selector", '#models tr[data-model="pose_lower3_stream"]')
     labels = {s["sensor_id"]: s["segment"] for s in RECORDING["imu"]["sensors"]}
+    # the page names every served model that trained on its recording (then the view is no held-out figure)
+    source, trial = RECORDING["name"].split("/")
+    for name in ("i2s_assignment", "flex_capacitive_knee"):
+        newest = max((REPO / "onnx_models" / name).iterdir(), key=lambda d: version_key(d.name))
+        manifest = read_manifest(newest / "manifest.json")
+        data = manifest.training_data
+        trials = data.get("train_trials") or [data.get("train_trial")]
+        seen = RECORDING["name"] in data.get("real_train_recordings", []) or (
+            source in data.get("sources", []) and trial in trials
+        )
+        named = f"{name} {manifest.version}" in browser.find_element("id", "recording").text
+        assert named == seen, (name, manifest.version, seen)
 
     browser.find_element("id", "play").click()  # at real time: the first windows are full after 128 samples (2.1 s)
     _wait(browser, 15, lambda d: _cells(d, "segment") == labels, f"never showed {labels}")

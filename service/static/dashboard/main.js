@@ -53,11 +53,18 @@ function showRecording(meta) {
 }
 
 function trainedOn(meta) {
-  const assignment = page.models.i2s_assignment;
-  const seen = assignment && (assignment.training_data.real_train_recordings || []).includes(meta.name);
-  if (seen) {
+  // meta.name is "<source>/<trial>": the I2S models list their real recordings, the capacitive ones source and trials
+  const [source, trial] = meta.name.split("/");
+  const seen = Object.values(page.models).filter((m) => {
+    const data = m.training_data || {};
+    if ((data.real_train_recordings || []).includes(meta.name)) return true;
+    const trials = data.train_trials || (data.train_trial ? [data.train_trial] : []);
+    return (data.sources || []).includes(source) && trials.includes(trial);
+  });
+  if (seen.length) {
+    const names = seen.map((m) => `${m.name} ${m.version}`).join(", ");
     byId("recording").textContent +=
-      ` The served i2s_assignment ${assignment.version} was trained on this recording too: this view shows the` +
+      ` The served ${names} ${seen.length > 1 ? "were" : "was"} trained on this recording too: this view shows the` +
       " service at work, not a held-out figure (those are in the manifests above).";
   }
 }
