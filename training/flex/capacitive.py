@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -121,7 +122,7 @@ def run_capacitive_experiment(
     data_dir: Path,
     ship_to: Path | None = None,
     version: str | None = None,
-    held_out_runs: list[str] = (),
+    held_out_runs: Sequence[str] = (),
 ) -> dict:
     """Train one network on the training trials' sleeves, report the held-out trial (if any), log, register, ship.
     ``held_out_runs``: runs of the same recipe that held a trial out, whose figures the manifest carries
@@ -271,13 +272,15 @@ def held_out_evaluation(run_id: str, cfg: CapacitiveConfig) -> Evaluation:
         raise ValueError(f"run {run_id} is not this recipe: (its, ours) {differs}")
     if "test_mae_deg" not in metrics:
         raise ValueError(f"run {run_id} held no trial out")
-    trained = params.get("train_trial"), params.get("also_train", "[]")
+    trained, held_out = params.get("train_trial"), params.get("test_trial")
+    also = "" if params.get("also_train", "[]") == "[]" else f" and {params['also_train']}"
     return Evaluation(
-        name=f"recipe held out on {params.get('test_trial')}",
-        command=f"python -m training.cli capacitive-train (MLflow run {run_id}, the name {run.info.run_name})",
-        data=f"{params.get('source')} {params.get('test_trial')}, both legs, scored by the same recipe trained on "
-        f"{trained[0]}" + ("" if trained[1] == "[]" else f" and {trained[1]}") + " only (not this file: it trained "
-        "on that trial too); reference: the functional knee hinge angle between the Xsens femur and tibia sensors",
+        name=f"recipe held out on {held_out}",
+        command=f"python -m training.cli capacitive-train <this model's config> -s train_trial={trained} "
+        f"-s test_trial={held_out} (MLflow run {run_id}, {run.info.run_name})",
+        data=f"{params.get('source')} {held_out}, both legs, scored by the same recipe trained on {trained}{also} "
+        "only (not this file: it trained on that trial too); reference: the functional knee hinge angle between "
+        "the Xsens femur and tibia sensors",
         metrics={k: round(v, 4) for k, v in metrics.items() if k.startswith("test_")},
     )
 
