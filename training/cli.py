@@ -636,8 +636,13 @@ def evaluate_capacitive_command(
         help="a shipped capacitive model (1.0.0 held the stiff-knee trial out; 1.1.0 trained on it)",
     ),
     data_dir: Path | None = DataDir,
-    test_trial: str = typer.Option("CSStiffKnee"),
-    train_trial: str = typer.Option("CSBaseline", help="the trial the knee hinge reference is fitted on"),
+    test_trial: str = typer.Option("CSStiffKnee", help="the trial scored"),
+    train_trial: str = typer.Option(
+        "CSBaseline", help="the trial of the same session the knee hinge reference is fitted on (may be the same)"
+    ),
+    source: str = typer.Option(
+        "capacitive_sub01", help="the subject's folder under imu_real/ (another subject in the same layout works)"
+    ),
 ) -> None:
     """A shipped capacitive knee model (onnxruntime) on a trial: knee flexion MAE per leg and both, and whether the
     model trained on that trial (then it is no held-out figure)."""
@@ -645,12 +650,10 @@ def evaluate_capacitive_command(
 
     from service.inference.registry import load_model
     from training.flex.capacitive import evaluate_capacitive
-    from training.flex.config import CapacitiveConfig
 
     loaded = load_model(model, 2)
-    rate = loaded.manifest.sample_rate_hz
-    cfg = CapacitiveConfig(name=loaded.manifest.name, train_trial=train_trial, test_trial=test_trial, rate_hz=rate)
-    typer.echo(json.dumps(evaluate_capacitive(loaded, cfg, resolve_data_dir(data_dir)), indent=1))
+    out = evaluate_capacitive(loaded, resolve_data_dir(data_dir), test_trial, train_trial, source)
+    typer.echo(json.dumps(out, indent=1))
 
 
 @app.command("evaluate-csv")

@@ -323,19 +323,33 @@ def _per_clip(predict, ws: WindowSet, latency: int) -> dict[str, tuple[np.ndarra
     return out
 
 
-def evaluate_capacitive(loaded, cfg: CapacitiveConfig, data_dir: Path) -> dict:
-    """A shipped capacitive model (through onnxruntime) on ``cfg.test_trial``, per leg and both, and whether the
-    model trained on that trial (then the figure is not a held-out one)."""
+def evaluate_capacitive(
+    loaded, data_dir: Path, trial: str, hinge_trial: str | None = None, source: str = "capacitive_sub01"
+) -> dict:
+    """A shipped capacitive model (through onnxruntime) on one trial of a capacitive-study subject (``source``: the
+    folder under ``imu_real``, e.g. another subject's ``capacitive_sub02`` in the same layout), per leg and both, and
+    whether the model trained on that trial (then the figure is not a held-out one). ``hinge_trial``: the trial of
+    the same session the knee hinge reference is fitted on (default: ``trial`` itself)."""
+    hinge_trial = hinge_trial or trial
+    cfg = CapacitiveConfig(
+        name=loaded.manifest.name,
+        source=source,
+        train_trial=hinge_trial,
+        test_trial=None if trial == hinge_trial else trial,
+        rate_hz=loaded.manifest.sample_rate_hz,
+    )
     trials = read_trials(cfg, data_dir)
-    test = leg_sets(trials[cfg.test_trial], loaded.manifest.window_samples, None)["test"]
+    test = leg_sets(trials[trial], loaded.manifest.window_samples, None)["test"]
     lat = loaded.manifest.flex.latency_samples
     legs = {leg: float(np.abs(p - t).mean()) for leg, (p, t) in _per_clip(loaded.run, test, lat).items()}
     both = clip_metrics(loaded.run, test, 0, lat, ["Knee"], [])
     data = loaded.manifest.training_data
     trained = data.get("train_trials") or [data.get("train_trial")]
     return {
-        "trial": cfg.test_trial,
-        "trained_on_this_trial": cfg.test_trial in trained,
+        "source": source,
+        "trial": trial,
+        "hinge_fitted_on": hinge_trial,
+        "trained_on_this_trial": source in data.get("sources", []) and trial in trained,
         "mae_deg": both["mae_deg"],
         "jitter_deg_s3": both["jitter_deg_s3"],
         "per_leg_mae_deg": legs,

@@ -125,7 +125,7 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
     loaded = load_model(tmp_path / "tiny_capacitive" / "0.0.1", 1)
     assert loaded.manifest.channels == list(CAPACITIVE_CHANNELS) and loaded.manifest.joints == ["Knee"]
     assert loaded.manifest.sample_rate_hz == 50.0 and loaded.manifest.value_range is None
-    again = evaluate_capacitive(loaded, cfg, data_dir)
+    again = evaluate_capacitive(loaded, data_dir, "CSStiffKnee", "CSBaseline")
     assert again["mae_deg"] == pytest.approx(m["test_mae_deg"], abs=0.02)
     assert again["per_leg_mae_deg"]["Left"] == pytest.approx(m["test_left_knee_mae_deg"], abs=0.02)
     assert not again["trained_on_this_trial"]
@@ -140,8 +140,19 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
     [recipe] = manifest.evaluations
     assert recipe.name == "recipe held out on CSStiffKnee" and out["run_id"] in recipe.command
     assert recipe.metrics["test_mae_deg"] == pytest.approx(m["test_mae_deg"], abs=1e-3)
-    scored = evaluate_capacitive(load_model(tmp_path / "tiny_capacitive_all" / "0.0.2", 1), cfg, data_dir)
-    assert scored["trained_on_this_trial"]
+    scored = evaluate_capacitive(load_model(tmp_path / "tiny_capacitive_all" / "0.0.2", 1), data_dir, "CSStiffKnee")
+    assert scored["trained_on_this_trial"] and scored["hinge_fitted_on"] == "CSStiffKnee"  # a trial on its own
+    assert 0.0 < scored["mae_deg"] < 90.0 and set(scored["per_leg_mae_deg"]) == {"Left", "Right"}
+    # another subject recorded the same way is scored from its own folder (here the same files under another name)
+    other = tmp_path / "other_data"
+    (other / "imu_real" / "capacitive_subx").mkdir(parents=True)
+    (other / "imu_real" / "capacitive_subx" / "CSStiffKnee").symlink_to(
+        data_dir / "imu_real" / "capacitive_sub01" / "CSStiffKnee"
+    )
+    theirs = evaluate_capacitive(
+        load_model(tmp_path / "tiny_capacitive_all" / "0.0.2", 1), other, "CSStiffKnee", source="capacitive_subx"
+    )
+    assert not theirs["trained_on_this_trial"] and theirs["mae_deg"] == pytest.approx(scored["mae_deg"], abs=1e-6)
     # a run of another recipe (no calibration module) is refused as the held-out figure
     other = cfg.model_copy(
         update={"name": "tiny_capacitive_plain", "model": cfg.model.model_copy(update={"calibration": False})}
