@@ -618,10 +618,11 @@ def capacitive_train(
             cfg, resolve_data_dir(data_dir), models_dir if ship else None, version, held_out_run
         )
         m = out["metrics"]
+        what = f"the {cfg.held_out_leg} leg's sleeve" if cfg.held_out_leg else cfg.test_trial
         held_out = (
-            f"held-out {cfg.test_trial} {m['test_mae_deg']:.2f}° (mean flexion {m['test_mean_flexion_mae_deg']:.2f}°)"
-            if cfg.test_trial
-            else "no trial held out"
+            f"held-out {what} {m['test_mae_deg']:.2f}° (mean flexion {m['test_mean_flexion_mae_deg']:.2f}°)"
+            if "test_mae_deg" in m
+            else "nothing held out"
         )
         typer.echo(
             f"{cfg.name} ({cfg.variant}): validation {m['val_mae_deg']:.2f}°, {held_out}, "

@@ -129,9 +129,15 @@ def run_capacitive_experiment(
     (``held_out_evaluation``); for a model that trains on every trial."""
     trials = read_trials(cfg, data_dir)
     W = cfg.model.window
-    sets = leg_sets([r for t in cfg.training_trials for r in trials[t]], W, cfg.val_share)
+    training = [r for t in cfg.training_trials for r in trials[t]]
+    if cfg.held_out_leg:
+        sets = leg_sets([r for r in training if r.side != cfg.held_out_leg], W, cfg.val_share)
+        sets |= leg_sets([r for r in training if r.side == cfg.held_out_leg], W, None)
+    else:
+        sets = leg_sets(training, W, cfg.val_share)
     if cfg.test_trial:
         sets |= leg_sets(trials[cfg.test_trial], W, None)
+    held_out = f"the {cfg.held_out_leg} leg's sleeve" if cfg.held_out_leg else cfg.test_trial
     recipe_figures = [held_out_evaluation(run_id, cfg) for run_id in held_out_runs]
     trained_on = " and ".join(cfg.training_trials)
     setup_tracking(cfg.tracking.experiment)
@@ -143,7 +149,7 @@ def run_capacitive_experiment(
                 "variant": cfg.variant,
                 "mlflow.note.content": f"{cfg.variant} on real capacitive sleeves ({cfg.source}): trained on "
                 f"{trained_on}, "
-                + (f"tested on {cfg.test_trial}" if cfg.test_trial else "no trial held out")
+                + (f"tested on {held_out}" if held_out else "nothing held out")
                 + ", knee flexion of both legs.",
             }
         )
@@ -162,9 +168,9 @@ def run_capacitive_experiment(
         val = clip_metrics(predict, sets["val"], 0, lat, cfg.joints, [])
         metrics = {"val_mae_deg": val["mae_deg"], "train_wall_time_s": result.wall_s, "best_epoch": result.best_epoch}
         # the part each scored trial reads (here the validation parts: the last val_share of each trial and leg)
-        scored = "test" if cfg.test_trial else "val"
+        scored = "test" if held_out else "val"
         traces = _per_clip(predict, sets[scored], lat)
-        if cfg.test_trial:
+        if held_out:
             test = clip_metrics(predict, sets["test"], 0, lat, cfg.joints, [])
             mean = mean_pose_predictor(sets["train"].angles.mean(axis=0))
             baseline = clip_metrics(mean, sets["test"], 0, lat, cfg.joints, [])
@@ -172,9 +178,9 @@ def run_capacitive_experiment(
                 "test_mae_deg": test["mae_deg"],
                 "test_jitter_deg_s3": test["jitter_deg_s3"],
                 "test_mean_flexion_mae_deg": baseline["mae_deg"],
-            } | {f"test_{leg.lower()}_knee_mae_deg": float(np.abs(p - t).mean()) for leg, (p, t) in traces.items()}
+            } | {_part_metric("test", part): float(np.abs(p - t).mean()) for part, (p, t) in traces.items()}
         else:
-            metrics |= {f"val_{_slug(part)}_mae_deg": float(np.abs(p - t).mean()) for part, (p, t) in traces.items()}
+            metrics |= {_part_metric("val", part): float(np.abs(p - t).mean()) for part, (p, t) in traces.items()}
         mlflow.log_metrics(metrics)
         mlflow.set_tag("stopped", result.stopped)
         label_run(MlflowClient(), run.info.run_id)  # its name and description in the UI
@@ -188,7 +194,7 @@ def run_capacitive_experiment(
                     {f"{leg} knee": t[:n] for leg, (_, t) in traces.items()},
                     {f"{leg} knee": p[:n] for leg, (p, _) in traces.items()},
                     tmp / f"trace_{scored}.png",
-                    f"{cfg.name}: held-out {cfg.test_trial}" if cfg.test_trial else f"{cfg.name}: validation parts",
+                    f"{cfg.name}: held-out {held_out}" if held_out else f"{cfg.name}: validation parts",
                 )
             ),
             "plots",
@@ -206,13 +212,18 @@ def run_capacitive_experiment(
         np.savez(tmp / "golden.npz", **golden)
         version = version or "0.0.0+" + run.info.run_id[:8]
         evaluations = recipe_figures
-        if cfg.test_trial:
+        if held_out:
+            scored_data = (
+                f"{cfg.source} {trained_on}, the {cfg.held_out_leg} leg (trained on the other leg's sleeve only)"
+                if cfg.held_out_leg
+                else f"{cfg.source} {cfg.test_trial}, both legs (trained on {trained_on} only)"
+            )
             evaluations = [
                 Evaluation(
-                    name=f"held-out trial {cfg.test_trial}",
+                    name=f"held-out leg {cfg.held_out_leg}" if cfg.held_out_leg else f"held-out trial {cfg.test_trial}",
                     command=f"python -m training.cli evaluate-capacitive --model onnx_models/{cfg.name}/{version}",
-                    data=f"{cfg.source} {cfg.test_trial}, both legs (trained on {trained_on} only); reference: the "
-                    "functional knee hinge angle between the Xsens femur and tibia sensors",
+                    data=f"{scored_data}; reference: the functional knee hinge angle between the Xsens femur and "
+                    "tibia sensors",
                     metrics={k: round(v, 4) for k, v in metrics.items() if k.startswith("test_")},
                 ),
                 *evaluations,
@@ -226,6 +237,7 @@ def run_capacitive_experiment(
                 "sources": [cfg.source],
                 "train_trials": cfg.training_trials,
                 "test_trial": cfg.test_trial,
+                "held_out_leg": cfg.held_out_leg,
                 "subjects": ["Sub01"],
                 "licence": "capacitive sensing dataset of Pearl et al. 2022 (see the data's LICENSE)",
                 "train_wall_time_s": round(result.wall_s, 1),
@@ -271,23 +283,34 @@ def held_out_evaluation(run_id: str, cfg: CapacitiveConfig) -> Evaluation:
     if "model.kind" not in params or differs:
         raise ValueError(f"run {run_id} is not this recipe: (its, ours) {differs}")
     if "test_mae_deg" not in metrics:
-        raise ValueError(f"run {run_id} held no trial out")
+        raise ValueError(f"run {run_id} held nothing out")
     trained, held_out = params.get("train_trial"), params.get("test_trial")
     also = "" if params.get("also_train", "[]") == "[]" else f" and {params['also_train']}"
+    leg = params.get("held_out_leg", "None")
+    if leg != "None":  # a sleeve it never saw, over the trials it trained on
+        name, scored = f"recipe held out on the {leg} leg's sleeve", f"{trained}{also}, the {leg} leg"
+        overrides = f"-s also_train={params['also_train']} -s test_trial=null -s held_out_leg={leg}"
+        why = "not this file: it trained on that sleeve too"
+    else:
+        name, scored = f"recipe held out on {held_out}", f"{held_out}, both legs"
+        overrides = f"-s train_trial={trained} -s test_trial={held_out}"
+        why = f"trained on {trained}{also} only; not this file: it trained on that trial too"
     return Evaluation(
-        name=f"recipe held out on {held_out}",
-        command=f"python -m training.cli capacitive-train <this model's config> -s train_trial={trained} "
-        f"-s test_trial={held_out} (MLflow run {run_id}, {run.info.run_name})",
-        data=f"{params.get('source')} {held_out}, both legs, scored by the same recipe trained on {trained}{also} "
-        "only (not this file: it trained on that trial too); reference: the functional knee hinge angle between "
-        "the Xsens femur and tibia sensors",
+        name=name,
+        command=f"python -m training.cli capacitive-train <this model's config> {overrides} (MLflow run {run_id}, "
+        f"{run.info.run_name})",
+        data=f"{params.get('source')} {scored}, scored by the same recipe ({why}); reference: the functional knee "
+        "hinge angle between the Xsens femur and tibia sensors",
         metrics={k: round(v, 4) for k, v in metrics.items() if k.startswith("test_")},
     )
 
 
-def _slug(part: str) -> str:
-    """``CSBaseline/Left (last part)`` → ``csbaseline_left``."""
-    return part.removesuffix(" (last part)").replace("/", "_").lower()
+def _part_metric(prefix: str, part: str) -> str:
+    """``test``, ``Left`` → ``test_left_knee_mae_deg``; ``val``, ``CSBaseline/Left (last part)`` →
+    ``val_csbaseline_left_mae_deg``."""
+    if "/" not in part:
+        return f"{prefix}_{part.lower()}_knee_mae_deg"
+    return f"{prefix}_{part.removesuffix(' (last part)').replace('/', '_').lower()}_mae_deg"
 
 
 def sleeve_tables(cfg: CapacitiveConfig, sets: dict[str, WindowSet]) -> dict[str, pd.DataFrame]:

@@ -114,6 +114,9 @@ class CapacitiveConfig(_FlexRun):
     train_trial: str = "CSBaseline"  # trains, and the knee hinge reference is fitted on it
     test_trial: str | None = "CSStiffKnee"
     also_train: list[str] = Field(default_factory=list)  # further trials that train (their last val_share validates)
+    # a leg whose sleeve never trains and is the test over the training trials: a sleeve the model never saw, the
+    # nearest this one person's data comes to another person's sleeve
+    held_out_leg: Literal["Left", "Right"] | None = None
     rate_hz: float = 50.0  # the sleeves record at 100 Hz; window 100 at 50 Hz holds about two strides
     val_share: float = Field(0.2, gt=0.0, lt=0.5)  # the training trial's last part, per leg: early stopping
 
@@ -139,6 +142,8 @@ class CapacitiveConfig(_FlexRun):
             raise ValueError(
                 f"each trial trains or is held out, once: training {self.training_trials}, held out {self.test_trial}"
             )
+        if self.held_out_leg and self.test_trial:
+            raise ValueError(f"hold out a leg ({self.held_out_leg}) or a trial ({self.test_trial}), not both")
         return self
 
 

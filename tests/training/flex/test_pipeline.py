@@ -153,6 +153,24 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
         load_model(tmp_path / "tiny_capacitive_all" / "0.0.2", 1), other, "CSStiffKnee", source="capacitive_subx"
     )
     assert not theirs["trained_on_this_trial"] and theirs["mae_deg"] == pytest.approx(scored["mae_deg"], abs=1e-6)
+    # a leg's sleeve held out over both trials (the nearest to another person's sleeve): its figures go in as well
+    leg = cfg.model_copy(
+        update={
+            "name": "tiny_capacitive_leg",
+            "also_train": ["CSStiffKnee"],
+            "test_trial": None,
+            "held_out_leg": "Left",
+        }
+    )
+    left_out = run_capacitive_experiment(leg, data_dir)
+    assert {"test_csbaseline_left_mae_deg", "test_csstiffknee_left_mae_deg", "test_mae_deg"} <= set(left_out["metrics"])
+    assert not any("right" in k for k in left_out["metrics"] if k.startswith("test_"))
+    with_leg = run_capacitive_experiment(every, data_dir, tmp_path, "0.0.3", [out["run_id"], left_out["run_id"]])
+    assert with_leg["shipped"]
+    names = [e.name for e in read_manifest(tmp_path / "tiny_capacitive_all" / "0.0.3" / "manifest.json").evaluations]
+    assert names == ["recipe held out on CSStiffKnee", "recipe held out on the Left leg's sleeve"]
+    with pytest.raises(ValueError, match="not both"):
+        CapacitiveConfig.model_validate({"name": "x", "held_out_leg": "Left"})  # the stiff-knee trial is held out too
     # a run of another recipe (no calibration module) is refused as the held-out figure
     other = cfg.model_copy(
         update={"name": "tiny_capacitive_plain", "model": cfg.model.model_copy(update={"calibration": False})}
