@@ -57,6 +57,11 @@ def _wait(driver, seconds: float, condition, message: str):
     return WebDriverWait(driver, seconds, poll_frequency=0.2).until(lambda d: condition(d), message)
 
 
+def _served(name: str) -> Path:
+    """The version the service serves by default: the newest under onnx_models/<name>."""
+    return max((REPO / "onnx_models" / name).iterdir(), key=lambda d: version_key(d.name))
+
+
 def _cells(driver, field: str) -> dict[str, str]:
     rows = driver.find_elements("css selector", "#sensors tbody tr")
     return {
@@ -74,8 +79,7 @@ def test_the_page_streams_its_recording_and_shows_the_right_assignment_and_pose(
     # the page names every served model that trained on its recording (then the view is no held-out figure)
     source, trial = RECORDING["name"].split("/")
     for name in ("i2s_assignment", "flex_capacitive_knee"):
-        newest = max((REPO / "onnx_models" / name).iterdir(), key=lambda d: version_key(d.name))
-        manifest = read_manifest(newest / "manifest.json")
+        manifest = read_manifest(_served(name) / "manifest.json")
         data = manifest.training_data
         trials = data.get("train_trials") or [data.get("train_trial")]
         seen = RECORDING["name"] in data.get("real_train_recordings", []) or (
@@ -90,7 +94,7 @@ def test_the_page_streams_its_recording_and_shows_the_right_assignment_and_pose(
     assert all(0.0 < float(p) <= 1.0 for p in _cells(browser, "p_correct").values())
     assert set(_cells(browser, "committed").values()) <= {"yes", "no"}  # each sensor on its own
     assert browser.find_element("id", "status").text in ("assigned", "not_enough_walking")
-    served = max((REPO / "onnx_models" / "i2s_assignment").iterdir(), key=lambda d: version_key(d.name))
+    served = _served("i2s_assignment")
     if read_manifest(served / "manifest.json").confidence.session is not None:  # the whole assignment's probability
         assert 0.0 <= float(browser.find_element("id", "p-all").text) <= 1.0
     else:  # calibrated per sensor only: no probability of the whole answer to show

@@ -41,6 +41,7 @@ def clip_metrics(
     sensed = [joints.index(j) for j in sensors if j in joints]
     for i, c in enumerate(ws.clips):
         m = ws.clip_of_end == i
+        per_component = err[m].mean(axis=0)  # (J, 3)
         p = pred[m]
         jerk = np.abs(np.diff(p, n=3, axis=0)).mean() * FLEX_RATE_HZ**3 if len(p) > 3 else np.nan
         rows.append(
@@ -48,8 +49,8 @@ def clip_metrics(
                 "clip": c.path,
                 "activity": c.activity,
                 "frames": int(m.sum()),
-                "per_joint": err[m].mean(axis=(0, 2)),
-                "per_component": err[m].mean(axis=0),
+                "per_joint": per_component.mean(axis=1),
+                "per_component": per_component,
                 "bias": signed[m].mean(axis=0),
                 # the error left once each angle's constant offset over the clip is taken out
                 "offset_free": np.abs(signed[m] - signed[m].mean(axis=0)).mean(),
