@@ -67,8 +67,11 @@ def rest(base: str, repeats: int = 5) -> dict:
     return out
 
 
-async def _one_stream(url: str, x: np.ndarray, packet: int, rate: float, lat: list[float], frames: list[int]) -> bool:
-    """One session streamed at real time; False when the service refused it at capacity (close code 1013)."""
+async def _one_stream(
+    url: str, x: np.ndarray, packet: int, rate: float, lat: list[float], frames: list[int], refusals: list[str]
+) -> bool:
+    """One session streamed at real time; False when the service refused it at capacity (close code 1013, its
+    reason in ``refusals``)."""
     async with websockets.connect(url, max_size=None) as ws:
         sent: dict[int, float] = {}
 
@@ -95,6 +98,9 @@ async def _one_stream(url: str, x: np.ndarray, packet: int, rate: float, lat: li
         except websockets.exceptions.ConnectionClosedError as e:
             if e.rcvd is None or e.rcvd.code != 1013:
                 raise
+            refusals.append(
+                e.rcvd.reason.split(":")[1].split(";")[0].strip() if ":" in e.rcvd.reason else e.rcvd.reason
+            )
             return False
         return True
 
@@ -108,14 +114,16 @@ async def streams(base: str, n: int, seconds: float, packet: int) -> dict:
     url = base.replace("http", "ws") + "/v1/stream/flex"
     lat: list[float] = []
     frames: list[int] = []
+    refusals: list[str] = []
     x = [_readings("flex_bilstm_cm", int(seconds * rate), seed=k) for k in range(n)]
     t0 = time.perf_counter()
-    admitted = await asyncio.gather(*(_one_stream(url, x[k], packet, rate, lat, frames) for k in range(n)))
+    admitted = await asyncio.gather(*(_one_stream(url, x[k], packet, rate, lat, frames, refusals) for k in range(n)))
     wall = time.perf_counter() - t0
     expected = sum(admitted) * (int(seconds * rate) - 99)
     return {
         "streams": n,
         "refused_at_capacity": n - sum(admitted),
+        "refusal_reasons": sorted(set(refusals)),
         "answers": int(sum(frames)),
         "answers_expected": expected,
         "answers_per_s": sum(frames) / wall,

@@ -23,14 +23,15 @@ from service.api.pose_routes import router as pose_router
 from service.api.request_cost import seed_request_cost
 from service.api.routes import router
 from service.api.stream import router as stream_router
-from service.api.stream_admission import StreamAdmission
+from service.api.stream_admission import StreamAdmission, flex_batch_observer
 from service.core.assignment import ConfidenceModel
 from service.inference.batcher import MicroBatcher
-from service.inference.flex import FlexModel
+from service.inference.flex import FlexModel, probe_sessions, process_live_flex
 from service.inference.pose import PoseModel
 from service.inference.pose_batcher import LivePoseBatcher
 from service.inference.registry import load_model_report, load_registry_models
 from service.inference.runner import ModelRunner
+from service.inference.session_batcher import SessionBatcher
 from service.settings import Settings, get_settings, parse_pins
 
 log = logging.getLogger(__name__)
@@ -78,6 +79,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         batcher.start()
 
         pose_batcher = app.state.pose_batcher = LivePoseBatcher(runner, 1, app.state.metrics.observe_pose_batch)
+        flex_batcher = app.state.flex_batcher = SessionBatcher(runner, process_live_flex, 1)
+        for name, model in app.state.flex_models.items():
+            per_batch, per_frame = await flex_batcher.probe(name, probe_sessions(model, 32, 2), 32, 2)
+            app.state.streams.set_frame_cost(name, per_frame)
+            log.info("flex probe %s: %.2f ms per batch + %.3f ms per frame", name, 1e3 * per_batch, 1e3 * per_frame)
+        flex_batcher.on_batch = flex_batch_observer(
+            app.state.streams, lambda name: flex_batcher.per_batch_s.get(name, 0)
+        )
         for name, model in app.state.pose_models.items():
             if model.spec.streaming:
                 per_batch, per_frame = await pose_batcher.probe(model, 32 if model.batchable else 2)

@@ -18,7 +18,8 @@ Server → client
   the model's rate is the first one answered; each answer is latency_samples behind the newest reading it saw;
   nothing comes until the first window of window_samples is full) · gap / late · error (then close, after the
   answers of every accepted packet).
-Close codes: 1003 unsupported data, 1008 protocol violation (wrong channels, values out of range, NaN), 1009
+Close codes: 1003 unsupported data, 1008 protocol violation (wrong channels, values out of range, NaN; a failed
+read-out where the manifest declares ``flex.readout_check``, after the answers of the readings before it), 1009
 message too big, 1011 no flex model loaded, 1013 at capacity (try again later), 1000 after stop; 1008 also for a
 wrong key or origin and for a consumer that stays behind (``service.api.outbox``).
 """
@@ -39,7 +40,7 @@ from service.api.protocol import ProtocolError, decode_binary
 from service.api.schemas import Sample
 from service.api.stream import _first_error, _parse_text
 from service.api.stream_admission import admit_or_refuse, record_answer_latency
-from service.inference.flex import FlexModel, LiveFlex, check_rows
+from service.inference.flex import FlexModel, LiveFlex, check_rows, readout_message
 from service.inference.predict import InputError
 
 log = logging.getLogger(__name__)
@@ -140,8 +141,18 @@ async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, out
             }
         )
         live.jump_to(seq)
-    (first, angles), seconds = await ws.app.state.runner.run_call_timed(live.push, rows)
-    ws.app.state.streams.observe(live.model.name, len(rows) // live.factor, seconds)
+    failure = None if live.readout is None else live.readout.first_failure(rows)
+    if failure is not None:
+        rows = rows[: failure.row]  # the readings before the failure are answered, then the stream closes
+    if len(rows):
+        await _answer(ws, live, rows, outbox, received)
+    if failure is not None:
+        where = f"reading {seq + failure.row} (packet seq {seq}, row {failure.row})"
+        raise ProtocolError(readout_message(failure, live.model, where))
+
+
+async def _answer(ws: WebSocket, live: LiveFlex, rows: np.ndarray, outbox: Outbox, received: float) -> None:
+    first, angles = await ws.app.state.flex_batcher.submit(live, rows)
     if len(angles):
         message = {
             "type": "angles",
@@ -151,7 +162,7 @@ async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, out
         }
         if outbox.put(message):
             ws.app.state.metrics.dropped.inc()
-        record_answer_latency(ws.app, time.perf_counter() - received)
+        record_answer_latency(ws.app, time.perf_counter() - received, flex=True)
 
 
 async def _serve(ws: WebSocket, live: LiveFlex, outbox: Outbox) -> None:
@@ -218,5 +229,9 @@ async def flex_stream(ws: WebSocket) -> None:
 def _admit(ws: WebSocket, live: LiveFlex) -> int:
     """The session's admission key; ProtocolError 1013 when the streams are at capacity."""
     app = ws.app
+    why = app.state.streams.flex_refusal()
+    if why:
+        app.state.metrics.streams_refused.labels("capacity").inc()
+        raise ProtocolError(why, 1013)
     rate = live.model.manifest.sample_rate_hz
     return admit_or_refuse(app, app.state.streams.model_demand(app.state.batcher, live.model.name, rate))

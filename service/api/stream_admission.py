@@ -3,13 +3,14 @@
 A stream's demand is counted in windows per second of the I2S models (a 60 Hz sensor: one window per 16-sample
 hop, 3.75 windows/s, whatever rate it is sent at, since it is resampled to 60 Hz). Pose and flex sessions run
 other models; their demand is converted to the same unit through their models' measured seconds per frame and
-the I2S seconds per window. A flex model's seconds per frame are an EWMA over its calls; a model not yet measured
-counts as free until its first call (the first session of a model is admitted on the I2S demand alone). Live pose
-sessions run in batches (``service.inference.pose_batcher``), whose cost is a fixed part per batch plus a part per
-frame: the part per frame is what one more session adds, measured at start-up with batches of one and of many
-sessions (``LivePoseBatcher.probe``), as the I2S capacity is, on an idle machine. It is not updated from the
-batches under load: their times in the worker thread grow with the event loop's share of the interpreter (three
-to four times on two cores), while the I2S seconds per window they are compared with do not.
+the I2S seconds per window. Live pose and live flex sessions run in batches (``service.inference.session_batcher``),
+whose cost is a fixed part per batch plus a part per frame: the part per frame is what one more session adds,
+measured at start-up with batches of one and of many sessions (``SessionBatcher.probe``), as the I2S capacity is,
+on an idle machine. A pose model's is not updated from the batches under load: their times in the worker thread grow
+with the event loop's share of the interpreter (three to four times on two cores), while the I2S seconds per window
+they are compared with do not. A flex model's is refined under load (an EWMA of its batches' seconds beyond their
+fixed part, over their frames): with the probe's figure alone a burst of 50 suits all got in, at p99 96-187 ms
+(flex.md, Speed).
 
 A new stream is refused (close code 1013, "try again later") while the event loop is behind: when a timer that
 should fire every ``LAG_TICK_S`` fired more than ``latency_target_ms`` × ``LAG_SHARE`` late at the 90th percentile
@@ -29,6 +30,7 @@ import asyncio
 import itertools
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -38,14 +40,14 @@ from service.inference.batcher import MicroBatcher
 from service.inference.pose_batcher import LivePoseBatcher
 
 I2S_WINDOWS_PER_SENSOR_S = 60.0 / 16  # model rate / hop
-EWMA_WEIGHT = 0.2
 WINDOW_S = 10.0  # of recent answer latencies
 MIN_LATENCIES = 50  # fewer than this in the window: too few to judge
 LAG_TICK_S = 0.02  # the event-loop lag timer's period
 LAG_WINDOW_S = 2.0  # of recent lag measurements
 LAG_SHARE = 0.25  # of the latency target: the loop lag (p90) beyond which new streams are refused
+EWMA_WEIGHT = 0.2  # of a live flex batch's cost per frame
 RISING_WINDOW_S = 1.0  # of the most recent answer latencies: a load that is still rising
-RISING_SHARE = 0.35  # of the latency target: their p99 beyond which new pose sessions are refused
+RISING_SHARE = 0.35  # of the latency target: their p99 beyond which new pose or flex sessions are refused
 
 
 class StreamAdmission:
@@ -57,6 +59,7 @@ class StreamAdmission:
         # packets/s, 4,096 the last second of 270
         self.latencies: deque[tuple[float, float]] = deque(maxlen=16384)
         self.pose_latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # the live pose answers' alone
+        self.flex_latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # the live flex answers' alone
         self.demand: dict[int, float] = {}  # session → windows/s
         self.seconds_per_frame: dict[str, float] = {}  # pose or flex model name → seconds per frame (one worker)
         self.ids = itertools.count()
@@ -99,7 +102,7 @@ class StreamAdmission:
         return 0.0 if not spw or cost is None else frames_per_s * cost / spw
 
     def observe(self, model: str, frames: int, seconds: float) -> None:
-        """A call of a pose or flex model on ``frames`` frames took ``seconds``."""
+        """A live flex batch's part per frame took ``seconds`` for ``frames`` frames (EWMA from the probe's value)."""
         if frames <= 0:
             return
         per_frame = seconds / frames
@@ -107,24 +110,29 @@ class StreamAdmission:
         self.seconds_per_frame[model] = per_frame if old is None else (1 - EWMA_WEIGHT) * old + EWMA_WEIGHT * per_frame
 
     def set_frame_cost(self, model: str, per_frame_s: float) -> None:
-        """A batched model's seconds per frame, measured by its start-up probe (one more session's cost)."""
+        """A live pose or flex model's seconds per frame, measured by its start-up probe (one more session's cost)."""
         self.seconds_per_frame[model] = per_frame_s
 
-    def observe_latency(self, seconds: float, pose: bool = False) -> None:
-        """A stream packet's answers (live pose answers: ``pose``) were queued ``seconds`` after it arrived."""
+    def observe_latency(self, seconds: float, pose: bool = False, flex: bool = False) -> None:
+        """A stream packet's answers (live pose answers: ``pose``; live flex answers: ``flex``) were queued
+        ``seconds`` after it arrived."""
         self.latencies.append((time.monotonic(), seconds))
         if pose:
             self.pose_latencies.append(self.latencies[-1])
+        if flex:
+            self.flex_latencies.append(self.latencies[-1])
 
-    def recent_p99_ms(self, window_s: float = WINDOW_S, pose: bool = False) -> float | None:
-        """p99 of the admitted streams' answer latencies (of live pose answers only: ``pose``) of the last
-        ``window_s``; None without enough of them (or streams)."""
+    def recent_p99_ms(self, window_s: float = WINDOW_S, pose: bool = False, flex: bool = False) -> float | None:
+        """p99 of the admitted streams' answer latencies (of live pose or flex answers only: ``pose``, ``flex``) of
+        the last ``window_s``; None without enough of them (or streams)."""
         if not self.demand:
             self.latencies.clear()  # no stream is open: what was measured is over
             self.pose_latencies.clear()
+            self.flex_latencies.clear()
             return None
         since = time.monotonic() - window_s
-        recent = [s for t, s in (self.pose_latencies if pose else self.latencies) if t >= since]
+        kept = self.pose_latencies if pose else self.flex_latencies if flex else self.latencies
+        recent = [s for t, s in kept if t >= since]
         return None if len(recent) < MIN_LATENCIES else 1000 * float(np.percentile(recent, 99))
 
     def pose_refusal(self, pose_batcher: LivePoseBatcher) -> str:
@@ -150,6 +158,19 @@ class StreamAdmission:
                 f"at capacity: the live pose sessions keep their worker busy {100 * pose_batcher.busy_share():.0f} % "
                 f"of the time, {100 * projected:.0f} % with this one (at most {100 * self.pose_busy_limit:.0f} %); "
                 "try again later"
+            )
+        return ""
+
+    def flex_refusal(self) -> str:
+        """Why a new live flex session is refused while the load still rises ("" if not; ``admit`` still judges its
+        demand): the live flex answers of the last second take more than ``RISING_SHARE`` of the target at p99, as
+        for pose sessions (``pose_refusal``). The flex model's cost is probed on an idle machine; under load the
+        event loop and the clients take their share of the same cores, which only the answers' latency shows."""
+        rising = self.recent_p99_ms(RISING_WINDOW_S, flex=True)
+        if rising is not None and rising > RISING_SHARE * self.latency_target_ms:
+            return (
+                f"at capacity: the live flex answers of the last second take {rising:.0f} ms at p99 (at most "
+                f"{RISING_SHARE * self.latency_target_ms:.0f} ms for a new flex session); try again later"
             )
         return ""
 
@@ -183,6 +204,19 @@ class StreamAdmission:
             self.demand.pop(key, None)
 
 
+def flex_batch_observer(
+    streams: StreamAdmission, fixed_s: Callable[[str], float]
+) -> Callable[[str, list[tuple], float], None]:
+    """The ``on_batch`` of the live flex batches: a batch's seconds beyond its fixed part (``fixed_s(model)``, the
+    start-up probe's) over its sessions' model-rate frames: what one more session adds, as the load makes it."""
+
+    def observe(model: str, calls: list[tuple], seconds: float) -> None:
+        frames = sum(len(rows) // live.factor for live, rows in calls)
+        streams.observe(model, frames, max(seconds - fixed_s(model), 0.0))
+
+    return observe
+
+
 def admit_or_refuse(app: Any, windows_per_s: float) -> int:
     """Admit a session of this demand (its key) or raise ``ProtocolError`` 1013 with the reason; counted in
     ``/metrics``."""
@@ -194,8 +228,8 @@ def admit_or_refuse(app: Any, windows_per_s: float) -> int:
     return key
 
 
-def record_answer_latency(app: Any, seconds: float, pose: bool = False) -> None:
-    """A stream packet's answers (live pose answers: ``pose``) were queued ``seconds`` after it arrived: for
-    ``/metrics`` and for admission."""
+def record_answer_latency(app: Any, seconds: float, pose: bool = False, flex: bool = False) -> None:
+    """A stream packet's answers (live pose answers: ``pose``; live flex answers: ``flex``) were queued ``seconds``
+    after it arrived: for ``/metrics`` and for admission."""
     app.state.metrics.stream_result.observe(seconds)
-    app.state.streams.observe_latency(seconds, pose)
+    app.state.streams.observe_latency(seconds, pose, flex)

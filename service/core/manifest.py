@@ -58,6 +58,15 @@ class PoseSpec(BaseModel):
     body_height_m: float
 
 
+class ReadoutCheckSpec(BaseModel):
+    """The read-out failure rule of a model's sensors (``service.core.flex.ReadoutCheck``): a reading off its
+    channel's median over the first ``reference_s`` seconds by more than ``max_deviation`` of it has failed."""
+
+    model_config = ConfigDict(extra="forbid")
+    reference_s: float = Field(gt=0.0)
+    max_deviation: float = Field(gt=0.0)
+
+
 class FlexSpec(BaseModel):
     """What a ``flex_pose`` model needs and gives (Chen et al. 2024 §3.4): the input is ``(batch, window_samples,
     channels)`` raw readings, the newest last; the answer is the pose ``latency_samples`` before the newest one.
@@ -72,6 +81,7 @@ class FlexSpec(BaseModel):
     latency_samples: int
     angle_convention: str
     simulated_sensor: str = ""  # the sensor model trained on, for simulated-data models
+    readout_check: ReadoutCheckSpec | None = None  # refuse readings of a failed read-out (capacitive sleeves)
 
 
 class SessionConfidenceSpec(BaseModel):

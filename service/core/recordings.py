@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.core.flex import ReadoutCheck
 from service.core.resample import resample_timestamps, resample_uniform
 from service.core.segments import segment_index
 from service.core.units import to_contract_units
@@ -395,16 +396,17 @@ CAPACITIVE_CHANNELS: tuple[str, ...] = (
     "Top_Thigh",
 )
 CAPACITIVE_FAILURE = 0.5  # a read-out failure: a channel off its median of the first 10 s by over half of it
+CAPACITIVE_REFERENCE_S = 10.0
 
 
 def read_capacitive_sleeve(
-    data_dir: Path, trial: str, side: str, source: str = "capacitive_sub01"
+    data_dir: Path, trial: str, side: str, source: str = "capacitive_sub01", until_failure: bool = True
 ) -> tuple[np.ndarray, float]:
     """One leg's sleeve (``side`` "Left" or "Right": ``*_LCS.mot`` / ``*_RCS.mot``) → ``(T, 7)`` raw capacitance
     readings in ``CAPACITIVE_CHANNELS`` order and the rate (Hz, from the time column). The recording stops at its
     first read-out failure (a channel not finite, or off its median over the first 10 s by more than
     ``CAPACITIVE_FAILURE`` of it): Sub01's right sleeve fails from 39.7 s of the baseline trial on (readings
-    climbing to 1e6-1e8) and never recovers."""
+    climbing to 1e6-1e8) and never recovers. ``until_failure=False`` keeps every row, failed or not."""
     folder = data_dir / "imu_real" / source / trial
     (path,) = folder.glob(f"OpenSim_*_{trial}_{side[0]}CS.mot")
     lines = path.read_text().splitlines()
@@ -414,9 +416,9 @@ def read_capacitive_sleeve(
     cols = [names.index(c) for c in CAPACITIVE_CHANNELS]
     cs = x[:, cols]
     rate = 1.0 / float(np.median(np.diff(x[:, 0])))
-    ref = np.median(cs[: int(10 * rate)], axis=0)
-    with np.errstate(invalid="ignore"):
-        bad = ~np.isfinite(cs).all(axis=1) | (np.abs(cs - ref) > CAPACITIVE_FAILURE * np.abs(ref)).any(axis=1)
-    if bad.any():
-        cs = cs[: int(np.argmax(bad))]
+    check = ReadoutCheck(rate, CAPACITIVE_REFERENCE_S, CAPACITIVE_FAILURE)
+    check.first_failure(cs[: check.reference_rows])  # the reference: the median of the first 10 s
+    failure = check.first_failure(cs) if until_failure else None
+    if failure is not None:
+        cs = cs[: failure.row]
     return cs, rate

@@ -3,11 +3,12 @@ or live over a stream, with the model's calibration window of the last ``window_
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.flex import FlexWindow, block_windows
+from service.core.flex import FlexWindow, ReadoutCheck, ReadoutFailure, block_windows
 from service.core.resample import resample_uniform
 from service.inference.predict import InputError
 from service.inference.registry import LoadedModel
@@ -41,6 +42,11 @@ class FlexModel:
     @property
     def latency(self) -> int:
         return self.manifest.flex.latency_samples
+
+    def readout_check(self, rate_hz: float) -> ReadoutCheck | None:
+        """A fresh read-out failure check for readings at ``rate_hz``, if the manifest declares one."""
+        spec = self.manifest.flex.readout_check
+        return None if spec is None else ReadoutCheck(rate_hz, spec.reference_s, spec.max_deviation)
 
     def run_windows(self, windows: np.ndarray) -> np.ndarray:
         """``(n, window, C)`` → ``(n, joints, components)`` degrees."""
@@ -86,6 +92,17 @@ def check_rows(x: np.ndarray, model: FlexModel, where: str) -> None:
             )
 
 
+def readout_message(failure: ReadoutFailure, model: FlexModel, where: str) -> str:
+    """What a client is told when its sensor's read-out fails: where, which channel, what it read and expected."""
+    spec = model.manifest.flex.readout_check
+    return (
+        f"{where}: channel {model.manifest.channels[failure.channel]} read {failure.value:.6g} where its first "
+        f"{spec.reference_s:g} s read {failure.reference:.6g} (median): more than {spec.max_deviation:.0%} off, so "
+        f"the sensor's read-out has failed (a loose connection or a failing board reads so); the readings before "
+        f"it are answered, none from it on"
+    )
+
+
 def block_rows(samples: list[list[float]], rate_hz: float | None, model: FlexModel, max_samples: int) -> np.ndarray:
     """A REST block → rows at the model's rate, validated; it must cover the calibration window."""
     m = model.manifest
@@ -106,6 +123,13 @@ def block_rows(samples: list[list[float]], rate_hz: float | None, model: FlexMod
         )
     x = np.asarray(samples, dtype=np.float64)
     check_rows(x, model, "samples")
+    readout = model.readout_check(rate)
+    failure = None if readout is None else readout.first_failure(x)
+    if failure is not None:
+        raise InputError(
+            readout_message(failure, model, f"samples[{failure.row}]")
+            + f" (send samples[:{failure.row}] for the angles before it)"
+        )
     if not np.isclose(rate, m.sample_rate_hz):
         x = resample_uniform(x, rate, m.sample_rate_hz)
     if len(x) < model.window:
@@ -129,9 +153,11 @@ class LiveFlex:
         self._pending = np.zeros((0, len(model.manifest.channels)))
         self.samples_in = 0  # readings accepted, at the stream's rate
         self.model_samples = 0  # samples pushed into the window, at the model's rate
+        self.readout = model.readout_check(model.manifest.sample_rate_hz * factor)  # one reference per stream
 
-    def push(self, rows: np.ndarray) -> tuple[int, np.ndarray]:
-        """Accept readings at the stream's rate → (model-rate index of the first answer, answers ``(n, J, K)``)."""
+    def take(self, rows: np.ndarray) -> tuple[int, np.ndarray]:
+        """Accept readings at the stream's rate → (model-rate index of the first answer, the model inputs they
+        complete ``(n, window, C)``)."""
         self.samples_in += len(rows)
         rows = np.concatenate([self._pending, rows])
         usable = len(rows) // self.factor * self.factor
@@ -140,9 +166,12 @@ class LiveFlex:
         windows = self.buffer.push(reduced)
         first = self.model_samples + len(reduced) - len(windows) - self.model.latency
         self.model_samples += len(reduced)
-        if not windows:
-            return first, np.zeros((0, len(self.model.manifest.joints), len(self.model.manifest.joint_components)))
-        return first, self.model.run_windows(np.stack(windows))
+        shape = (len(windows), self.model.window, len(self.model.manifest.channels))
+        return first, np.stack(windows) if windows else np.zeros(shape, np.float32)
+
+    def push(self, rows: np.ndarray) -> tuple[int, np.ndarray]:
+        """Accept readings at the stream's rate → (model-rate index of the first answer, answers ``(n, J, K)``)."""
+        return process_live_flex([(self, rows)])[0]
 
     def jump_to(self, seq: int) -> None:
         """After a gap up to reading ``seq``: the window starts again (its calibration would mix readings from
@@ -151,3 +180,29 @@ class LiveFlex:
         self._pending = self._pending[:0]
         self.samples_in = seq
         self.model_samples = seq // self.factor
+
+
+def process_live_flex(jobs: list[tuple[LiveFlex, np.ndarray]]) -> list[tuple[int, np.ndarray]]:
+    """New readings of several live sessions of one model → each session's (first answered sample, answers), with
+    one network call for the windows of all of them (``service.inference.session_batcher``): each window is
+    answered as it would be alone."""
+    taken = [live.take(rows) for live, rows in jobs]
+    model = jobs[0][0].model
+    windows = [w for _, w in taken if len(w)]
+    out = model.run_windows(np.concatenate(windows)) if windows else None
+    answers, at = [], 0
+    for first, w in taken:
+        answers.append((first, out[at : at + len(w)] if len(w) else model.run_windows(w)))
+        at += len(w)
+    return answers
+
+
+def probe_sessions(model: FlexModel, sessions: int, packet: int) -> Callable[[int], list[tuple]]:
+    """``calls_for`` of ``SessionBatcher.probe`` for a flex model: sessions whose calibration window is full (a
+    still sensor in the middle of the model's value range), ``packet`` readings each."""
+    lo, hi = model.manifest.value_range or (1000.0, 1000.0)
+    still = np.full((model.window - 1, len(model.manifest.channels)), (lo + hi) / 2)
+    lives = [LiveFlex(model, 1) for _ in range(sessions)]
+    for live in lives:
+        live.take(still)
+    return lambda n: [(live, still[:packet]) for live in lives[:n]]

@@ -10,6 +10,7 @@ from service.core.body import BODY_SEGMENTS
 from service.core.flex import (
     FLEX_JOINTS,
     FlexWindow,
+    ReadoutCheck,
     bend_angles_deg,
     block_windows,
     fit_hinge,
@@ -115,3 +116,31 @@ def test_the_stream_window_yields_exactly_the_block_windows() -> None:
     assert len(streamed) == 57 - 20 + 1
     with pytest.raises(ValueError, match="fewer than the window"):
         block_windows(x[:10], 20)
+
+
+def test_a_read_out_failure_is_the_first_reading_off_its_channel_s_reference_by_more_than_the_limit() -> None:
+    rng = np.random.default_rng(0)
+    x = 1000.0 + 50.0 * rng.standard_normal((3000, 3))  # within 20 % of the reference: healthy
+    x[:, 1] *= 10.0  # channels read on their own scales
+    assert ReadoutCheck(100.0, 10.0, 0.5).first_failure(x) is None
+    x[2500:, 1] *= 1.6  # 60 % above its first 10 s
+    assert ReadoutCheck(100.0, 10.0, 0.5).first_failure(x).row == 2500
+    failure = ReadoutCheck(100.0, 10.0, 0.5).first_failure(x)
+    assert failure.channel == 1 and failure.value == x[2500, 1] and abs(failure.reference - 10_000) < 100
+    x[2200, 2] = np.nan
+    assert ReadoutCheck(100.0, 10.0, 0.5).first_failure(x).row == 2200
+
+
+def test_a_streamed_read_out_is_judged_against_the_same_reference_as_a_block() -> None:
+    rng = np.random.default_rng(1)
+    x = 500.0 + 20.0 * rng.standard_normal((2500, 2))
+    x[1700:, 0] = 5e6
+    check = ReadoutCheck(50.0, 10.0, 0.5)
+    found = None
+    for k in range(0, len(x), 7):
+        failure = check.first_failure(x[k : k + 7])
+        if failure is not None:
+            found = k + failure.row
+            break
+    assert found == 1700 and check.reference is not None
+    np.testing.assert_allclose(check.reference, np.median(x[:500], axis=0))

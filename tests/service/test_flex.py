@@ -213,3 +213,71 @@ def test_a_flex_manifest_that_does_not_describe_its_tensors_is_refused(tmp_path:
     with pytest.raises(ValueError, match="needs a 'flex' section"):
         read_manifest(target / "manifest.json")
     assert load_models(root, 1) == {}  # refused with a log line, nothing served
+
+
+def test_live_sessions_batched_together_answer_as_each_alone(flex_client: TestClient) -> None:
+    """The live flex batches (``process_live_flex``): sessions at different points of their streams, some with a
+    full window and some still filling it, answered in one network call exactly as one by one."""
+    from service.inference.flex import LiveFlex, process_live_flex
+
+    model = flex_client.app.state.flex_models["flex_pose"]
+    blocks = [_block(160, seed) for seed in range(4)]
+    alone = [LiveFlex(model, 1) for _ in blocks]
+    together = [LiveFlex(model, 1) for _ in blocks]
+    starts = [0, 40, 90, 130]  # where each session's stream is when the batches start
+    for live_a, live_b, x, s in zip(alone, together, blocks, starts, strict=True):
+        live_a.push(x[:s])
+        live_b.push(x[:s])
+    for k in range(3):
+        parts = [x[s + 10 * k : s + 10 * (k + 1)] for x, s in zip(blocks, starts, strict=True)]
+        batched = process_live_flex([(live, rows) for live, rows in zip(together, parts, strict=True)])
+        for live, rows, (first, angles) in zip(alone, parts, batched, strict=True):
+            first_alone, angles_alone = live.push(rows)
+            assert first == first_alone
+            np.testing.assert_allclose(angles, angles_alone, atol=1e-5)
+    assert [len(a) for _, a in batched] == [0, 0, 10, 10]  # two still fill their window, two answer every sample
+
+
+def test_a_live_flex_stream_runs_in_the_batcher_measured_at_start_up(flex_client: TestClient) -> None:
+    """A stream goes through the service's flex batcher, whose model cost the start-up probe measured."""
+    batcher = flex_client.app.state.flex_batcher
+    before = len(batcher.batches)
+    x = _block(130, 3)
+    with flex_client.websocket_connect("/v1/stream/flex") as ws:
+        ws.send_text(json.dumps({"type": "start", "model": "flex_pose", "channels": CHANNELS}))
+        assert json.loads(ws.receive_text())["type"] == "started"
+        ws.send_bytes(encode_binary(0, 0, x.astype(np.float32)))
+        message = json.loads(ws.receive_text())
+        ws.send_text(json.dumps({"type": "stop"}))
+    np.testing.assert_allclose(np.asarray(message["angles_deg"])[:, :, 0], _expected(x), atol=2e-3)
+    assert len(batcher.batches) > before
+    assert flex_client.app.state.streams.seconds_per_frame["flex_pose"] > 0
+
+
+def test_flex_sessions_are_refused_while_the_flex_answers_rise(flex_client: TestClient, monkeypatch) -> None:
+    """As for pose sessions: while the live flex answers of the last second pass 35 % of the latency target at p99
+    (the load still rising), a new flex session is refused with 1013 and the reason; I2S answers that wait for
+    company in their micro-batches do not count."""
+    import service.api.stream_admission as stream_admission
+
+    monkeypatch.setattr(stream_admission, "RISING_WINDOW_S", 3.0)  # room for a slow machine
+    admission = flex_client.app.state.streams
+    start = json.dumps({"type": "start", "model": "flex_pose", "channels": CHANNELS})
+    with flex_client.websocket_connect("/v1/stream/flex") as first:
+        first.send_text(start)
+        assert json.loads(first.receive_text())["type"] == "started"
+        for _ in range(60):
+            admission.observe_latency(0.03, flex=True)  # within a third of the target
+            admission.observe_latency(0.07)  # I2S answers: not counted here
+        with flex_client.websocket_connect("/v1/stream/flex") as ws:
+            ws.send_text(start)
+            assert json.loads(ws.receive_text())["type"] == "started"
+            ws.send_text(json.dumps({"type": "stop"}))
+        for _ in range(60):
+            admission.observe_latency(0.07, flex=True)  # rising past 35 % of it
+        assert admission.recent_p99_ms() < admission.latency_target_ms
+        with flex_client.websocket_connect("/v1/stream/flex") as ws:
+            ws.send_text(start)
+            error = json.loads(ws.receive_text())
+        assert error["close_code"] == 1013 and "flex answers of the last second take 70 ms" in error["detail"], error
+        first.send_text(json.dumps({"type": "stop"}))

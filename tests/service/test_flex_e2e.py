@@ -107,3 +107,43 @@ def test_stream_and_rest_mistakes_are_client_errors(server: str) -> None:
 
     code, detail = asyncio.run(bad())
     assert code == 1008 and "channels: flex_bilstm_cm takes ['LeftKnee_flex'" in detail
+
+
+def test_a_failed_sleeve_read_out_is_refused_after_the_readings_before_it_are_answered(
+    server: str, data_dir: Path
+) -> None:
+    """Sub01's right sleeve fails 39.7 s into the baseline trial (reading 3972 at 100 Hz: its Bot_Thigh channel
+    jumps from about 1,160 to 1,750 and on to 1e8): REST refuses the block with where and what, a stream answers
+    every reading before it and then closes."""
+    x, rate = read_capacitive_sleeve(data_dir, "CSBaseline", "Right", until_failure=False)
+    x = x[:4500].astype(np.float32)
+    r = httpx.post(f"{server}/v1/pose/flex", json={"model": SLEEVE, "samples": x.tolist(), "sample_rate_hz": rate})
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert "samples[3972]: channel Bot_Thigh read" in detail and "read-out has failed" in detail
+    assert "send samples[:3972]" in detail
+    before = _rest(server, {"model": SLEEVE, "samples": x[:3972].tolist(), "sample_rate_hz": rate})
+
+    async def stream() -> tuple[list[dict], int]:
+        async with websockets.connect(server.replace("http", "ws") + "/v1/stream/flex", max_size=None) as ws:
+            channels = block_channels(server)
+            await ws.send(json.dumps({"type": "start", "model": SLEEVE, "channels": channels, "sample_rate_hz": rate}))
+            for k in range(0, len(x), 10):
+                try:
+                    await ws.send(encode_binary(0, k, x[k : k + 10]))
+                except websockets.ConnectionClosed:
+                    break
+            messages = []
+            with pytest.raises(websockets.ConnectionClosed) as exc:
+                while True:
+                    messages.append(json.loads(await ws.recv()))
+            return messages, exc.value.rcvd.code
+
+    messages, code = asyncio.run(stream())
+    assert code == 1008
+    error = messages[-1]
+    assert error["type"] == "error" and "reading 3972 (packet seq 3970, row 2): channel Bot_Thigh" in error["detail"]
+    answered = [m for m in messages if m["type"] == "angles"]
+    last = answered[-1]["first_sample"] + answered[-1]["frames"] - 1
+    assert last == 3972 // 2 - 1  # every reading before the failure answered (pairs averaged to 50 Hz)
+    assert len(before["angles_deg"]["Knee"]["flexion"]) == before["frames"] > 0

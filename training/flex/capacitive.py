@@ -31,8 +31,14 @@ import pandas as pd
 from mlflow.tracking import MlflowClient
 
 from service.core.flex import fit_hinge, hinge_angle_deg
-from service.core.manifest import Evaluation, sha256_file
-from service.core.recordings import CAPACITIVE_CHANNELS, read_capacitive_oriented, read_capacitive_sleeve
+from service.core.manifest import Evaluation, ReadoutCheckSpec, sha256_file
+from service.core.recordings import (
+    CAPACITIVE_CHANNELS,
+    CAPACITIVE_FAILURE,
+    CAPACITIVE_REFERENCE_S,
+    read_capacitive_oriented,
+    read_capacitive_sleeve,
+)
 from service.core.resample import resample_uniform
 from service.inference.registry import load_model
 from training.config import flatten
@@ -254,6 +260,7 @@ def run_capacitive_experiment(
             components=["flexion"],
             simulated_sensor="",
             angle_convention=HINGE_CONVENTION,
+            readout_check=ReadoutCheckSpec(reference_s=CAPACITIVE_REFERENCE_S, max_deviation=CAPACITIVE_FAILURE),
         )
         proto = onnx.load(str(onnx_path))
         info = log_onnx_model(proto, golden, manifest, input_key="counts")

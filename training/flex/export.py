@@ -11,7 +11,7 @@ import onnxruntime as ort
 import torch
 
 from service.core.flex import JOINT_COMPONENTS
-from service.core.manifest import Evaluation, FlexSpec, Manifest, TensorSpec
+from service.core.manifest import Evaluation, FlexSpec, Manifest, ReadoutCheckSpec, TensorSpec
 from training.flex.config import FlexConfig
 from training.flex.models import FlexNet
 from training.flex.simulate import ADC_MAX, FLEX_RATE_HZ
@@ -64,6 +64,7 @@ def build_flex_manifest(
     components: list[str] | None = None,
     simulated_sensor: str = "training.flex.simulate (resistive strips, Chen et al. 2024 eq. 1, 12-bit)",
     angle_convention: str = ANGLE_CONVENTION,
+    readout_check: ReadoutCheckSpec | None = None,
 ) -> Manifest:
     channels = channels or [f"{j}_flex" for j in cfg.sensors]
     joints = joints or list(cfg.joints)
@@ -109,6 +110,7 @@ def build_flex_manifest(
             latency_samples=net.latency_samples,
             angle_convention=angle_convention,
             simulated_sensor=simulated_sensor,
+            readout_check=readout_check,
         ),
         sha256=sha256,
         training_data=training_data,
