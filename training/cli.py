@@ -532,13 +532,19 @@ def flex_train(
 
     paths = configs or [Path(f"training/configs/flex_{v}.yaml") for v in FLEX_TABLE5]
     cfgs = _flex_configs(paths, overrides)
+    split = {c.data.model_dump_json(exclude={"bandai_share", "suits_per_clip", "activity_cap_frames"}) for c in cfgs}
+    if len(split) > 1:
+        raise typer.BadParameter("one flex-train call takes configs of one data split (sources and subjects)")
     data = load_flex_data(cfgs[0], resolve_data_dir(data_dir), cache_dir)
-    sets = build_sets(cfgs[0], data)
+    sets_by_data: dict[str, dict] = {}  # configs that draw their training windows alike share the simulated sets
     results = []
     for cfg in cfgs:
+        key = f"{cfg.data.model_dump_json()}|{cfg.model.window}"
+        if key not in sets_by_data:
+            sets_by_data[key] = build_sets(cfg, data)
         shipping = ship == cfg.name
         target = models_dir if shipping else None
-        results.append(run_flex_experiment(cfg, data, sets, target, version if shipping else None))
+        results.append(run_flex_experiment(cfg, data, sets_by_data[key], target, version if shipping else None))
         r = results[-1]
         typer.echo(
             f"{cfg.variant:12s} held-out {r['test']['mae_deg']:.2f}° (mean pose {r['mean_pose']['mae_deg']:.2f}°) "
@@ -552,7 +558,7 @@ def flex_train(
 
 @app.command("evaluate-flex")
 def evaluate_flex(
-    model: Path = typer.Option(Path("onnx_models/flex_bilstm_cm/1.0.0"), help="a shipped flex model folder"),
+    model: Path = typer.Option(Path("onnx_models/flex_bilstm_cm/1.1.0"), help="a shipped flex model folder"),
     data_dir: Path | None = DataDir,
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
     as_json: bool = typer.Option(False, "--json"),

@@ -93,8 +93,10 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
     # their files do not ship (a real-data fine-tune, the flex comparison networks): left out
     assert "i2s_assignment_finetune v1" in report.versions_without_model
     assert {v.split()[0] for v in report.versions_without_model} <= {"i2s_assignment_finetune"} | {
-        f"flex_{v}" for v in ("bilstm", "bilstm_c", "bilstm_m", "transformer", "fcn", "tcn")
-    } | {f"flex_capacitive_knee_{v}" for v in ("plain", "m", "cm", "minmax", "reverse", "leg_left", "leg_right")}
+        f"flex_{v}" for v in ("bilstm", "bilstm_c", "bilstm_m", "transformer", "fcn", "tcn", "bilstm_half_cmu")
+    } | {f"flex_{v}_last" for v in ("bilstm", "bilstm_cm", "bilstm_cm_baseline")} | {
+        f"flex_capacitive_knee_{v}" for v in ("plain", "m", "cm", "minmax", "reverse", "leg_left", "leg_right")
+    }
     # a manifest's run id finds its restored run (what `evaluate` needs on a fresh clone), a run here finds itself
     assert local_run_id(manifest.mlflow["run_id"]) == by_origin[manifest.mlflow["run_id"]].info.run_id
     assert local_run_id(trained.info.run_id) == trained.info.run_id

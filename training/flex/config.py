@@ -23,6 +23,8 @@ class FlexDataConfig(Strict):
     sources: list[str] | None = None
     suits_per_clip: int = Field(3, ge=1)  # simulated suits (sensor draws) per training clip, fixed per build
     activity_cap_frames: int = 24_000  # at 20 Hz; as pose's cap: Bandai's waves and hand raises drawn less often
+    # Bandai-Namco's share of the drawn windows (None: by frames, 97 % of them Bandai-Namco's three actors)
+    bandai_share: float | None = Field(None, ge=0.0, le=1.0)
 
 
 class FlexModelConfig(Strict):
@@ -57,6 +59,9 @@ class FlexTrainConfig(Strict):
     time_budget_s: float = 300.0
     threads: int = 2
     grad_clip: float = 1.0
+    # which epoch's weights the run keeps: the best on validation (ours), or the last (Chen et al. 2024 §3.4.1
+    # trains until the error stops falling and says nothing of going back to an earlier epoch)
+    keep: Literal["best", "last"] = "best"
 
 
 class _FlexRun(Strict):

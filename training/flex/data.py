@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.core.flex import bend_angles_deg, joint_angles_deg
+from training.data.catalog import is_bandai_namco
 from training.flex.simulate import FLEX_RATE_HZ, SensorParams, draw_suit, simulate_counts
 from training.pose.data import MODEL_RATE_HZ, MotionClip
 
@@ -88,8 +89,12 @@ def window_set(
     window: int,
     activity_cap_frames: int | None = None,
     counts_fn=None,
+    bandai_share: float | None = None,
 ) -> WindowSet:
-    """Simulate ``n_suits`` suits per clip (``counts_fn(clip, k) → (T, S)`` counts overrides the default draw)."""
+    """Simulate ``n_suits`` suits per clip (``counts_fn(clip, k) → (T, S)`` counts overrides the default draw).
+    Windows are drawn by frames, less for activities beyond ``activity_cap_frames``; with ``bandai_share``,
+    Bandai-Namco's windows together get that share of the draws and the others the rest (as pose's
+    ``clip_weights``)."""
     lengths = [len(c.angles) for c in clips]
     starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
 
@@ -106,6 +111,11 @@ def window_set(
         per_activity[c.activity] += c.frames
     cap = activity_cap_frames or max(per_activity.values())
     w = np.array([min(1.0, cap / per_activity[clips[i].activity]) for i in clip_of_end])
+    if bandai_share is not None:
+        bandai = np.array([is_bandai_namco(c.source) for c in clips])[clip_of_end]
+        if bandai.any() and (~bandai).any():
+            w[bandai] *= bandai_share / w[bandai].sum()
+            w[~bandai] *= (1.0 - bandai_share) / w[~bandai].sum()
     return WindowSet(
         counts,
         np.concatenate([c.angles for c in clips]),

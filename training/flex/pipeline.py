@@ -346,7 +346,14 @@ def build_sets(cfg: FlexConfig, data: FlexData, train: bool = True) -> dict[str,
     w = cfg.model.window
     sets = {"val": window_set(data.val, 1, VAL_SEED, w), "test": window_set(data.test, 1, TEST_SEED, w)}
     if train:
-        sets["train"] = window_set(data.train, cfg.data.suits_per_clip, cfg.seed, w, cfg.data.activity_cap_frames)
+        sets["train"] = window_set(
+            data.train,
+            cfg.data.suits_per_clip,
+            cfg.seed,
+            w,
+            cfg.data.activity_cap_frames,
+            bandai_share=cfg.data.bandai_share,
+        )
     for b in AGEING_BEYOND:
         sets[f"ageing_{b}"] = ageing_set(sets["test"], TEST_SEED, b)
     sets["replaced"] = replacement_set(sets["test"], TEST_SEED)

@@ -113,6 +113,9 @@ def train_flex(
         if time.monotonic() - t0 > cfg.train.time_budget_s:
             stopped = f"time budget {cfg.train.time_budget_s:.0f} s"
             break
-    net.load_state_dict(best_state)
+    if cfg.train.keep == "best":
+        net.load_state_dict(best_state)
+    else:
+        best_epoch = len(history) - 1  # the epoch whose weights the run keeps
     net.eval()
     return FlexTrainResult(net, history, best_epoch, time.monotonic() - t0, stopped)

@@ -96,3 +96,27 @@ def test_only_the_last_steps_reach_the_network_without_calibration() -> None:
         net = _net("bilstm", calibration, False)
         with torch.no_grad():
             assert torch.allclose(net(x), net(earlier)) is same
+
+
+@pytest.mark.parametrize("keep", ["best", "last"])
+def test_training_keeps_the_best_validation_epoch_or_the_last(keep: str) -> None:
+    from training.flex.config import FlexConfig
+    from training.flex.data import FlexClip, window_set
+    from training.flex.train import train_flex, validation_mae
+
+    rng = np.random.default_rng(0)
+    bend = np.abs(np.cumsum(rng.standard_normal((400, 4)), axis=0)).astype(np.float32)
+    angles = np.repeat(bend[:, :1, None], 3, axis=2)[:, [0] * 12]  # 12 joints that follow the first sensor
+    clip = FlexClip("c", "cmu_iclone", "g", "walk", angles.astype(np.float32), bend, 99)
+    ws = window_set([clip], 1, 0, 100)
+    cfg = FlexConfig(
+        name="t",
+        model={"kind": "fcn", "window": 100, "steps": 5},
+        train={"max_epochs": 4, "windows_per_epoch": 64, "patience": 100, "keep": keep, "threads": 1},
+    )
+    result = train_flex(cfg, ws, ws)
+    scores = [h["val_mae_deg"] for h in result.history]
+    assert len(scores) == 4
+    kept = int(np.argmin(scores)) if keep == "best" else 3
+    assert result.best_epoch == kept
+    assert validation_mae(result.net, ws) == pytest.approx(scores[kept], rel=1e-5)

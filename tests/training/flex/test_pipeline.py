@@ -178,3 +178,25 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
     plain = run_capacitive_experiment(other, data_dir)
     with pytest.raises(ValueError, match="not this recipe"):
         run_capacitive_experiment(every, data_dir, None, None, [plain["run_id"]])
+
+
+def test_bandai_share_sets_bandai_namco_s_part_of_the_draws_and_leaves_the_rest_by_frames() -> None:
+    from training.flex.data import FlexClip, window_set
+
+    def clip(path: str, source: str, activity: str, frames: int) -> FlexClip:
+        T = frames + 4
+        return FlexClip(path, source, "g", activity, np.zeros((T, 1, 3), np.float32), np.zeros((T, 4), np.float32), 4)
+
+    clips = [
+        clip("b1", "bandai_namco_1", "walk", 900),
+        clip("b2", "bandai_namco_2", "run", 90),
+        clip("c1", "cmu_iclone", "walk", 60),
+        clip("c2", "cmu_li2018", "walk", 30),
+    ]
+    by_frames = window_set(clips, 1, 0, 5)
+    share = window_set(clips, 1, 0, 5, bandai_share=0.5)
+    bandai = np.isin(share.clip_of_end, [0, 1])
+    assert by_frames.weights[bandai].sum() == pytest.approx(990 / 1080)
+    assert share.weights[bandai].sum() == pytest.approx(0.5)
+    # within each side, windows keep their relative weights: c1's 60 frames draw twice c2's 30
+    assert share.weights[share.clip_of_end == 2].sum() == pytest.approx(2 * share.weights[share.clip_of_end == 3].sum())
