@@ -125,6 +125,27 @@ def pose_learning_curve_png(history: list[dict[str, float]], path: Path, title: 
     return path
 
 
+def data_selection_png(trace: list[float], frames: dict[str, tuple[int, int]], path: Path, title: str) -> Path:
+    """Zheng et al. 2021 §5: the score of eq. 4 after each deletion, and per activity the frames of the similar data
+    (D_B) against those kept (D)."""
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    a.plot(range(len(trace)), trace, color="C0")
+    a.set_xlabel("deletions")
+    a.set_ylabel("f(D), eq. 4")
+    names = sorted(frames, key=lambda k: -frames[k][0])[:25]
+    x = np.arange(len(names))
+    b.bar(x - 0.2, [frames[n][0] / 60.0 for n in names], 0.4, label="similar (D_B)", color="0.6")
+    b.bar(x + 0.2, [frames[n][1] / 60.0 for n in names], 0.4, label="selected (D)", color="C0")
+    b.set_xticks(x, names, rotation=60, ha="right", fontsize=7)
+    b.set_ylabel("seconds")
+    b.legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def pose_segment_errors_png(per_segment: dict[str, float], sensors: list[str], path: Path, title: str) -> Path:
     """Mean global orientation error per segment; the sensors' own segments in grey."""
     names = list(per_segment)

@@ -14,6 +14,18 @@ from training.config import Strict, TrackingConfig, read_yaml
 SIX_SENSORS = ["Pelvis", "Head", "LeftForeArm", "RightForeArm", "LeftLowerLeg", "RightLowerLeg"]
 
 
+class PoseSelectionConfig(Strict):
+    """Zheng et al. 2021 §5 (``training/pose/selection.py``): the training clips narrowed to what resembles a
+    reference set of one scenario, which is then trained on with them."""
+
+    # the reference D_ref: training clips of these activities (and of these sources; None: every source)
+    reference_activities: list[str] = Field(min_length=1)
+    reference_sources: list[str] | None = None
+    unit_s: float = Field(0.5, gt=0.0)  # §5.2: units of 50 frames, 0.5 s
+    eta0: float = Field(0.8, gt=0.0, le=1.0)  # §5.2, eq. 5
+    weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # α, β, γ of eq. 4 (the paper gives none)
+
+
 class PoseDataConfig(Strict):
     # Held-out subjects (never trained on, reported as the test set) and validation subjects (early stopping and
     # every choice between variants). Splits are by subject; Bandai-Namco names no actors and stays in training.
@@ -28,6 +40,7 @@ class PoseDataConfig(Strict):
     # Share of the drawn training sequences from Bandai-Namco (None: by frames, about 97 %). Its clips are three
     # actors; the CMU training clips are many people, which is what held-out people need.
     bandai_share: float | None = Field(None, ge=0.0, le=1.0)
+    selection: PoseSelectionConfig | None = None  # None: every training clip
 
 
 class PoseModelConfig(Strict):

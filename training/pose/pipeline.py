@@ -26,9 +26,10 @@ from service.inference.pose import PoseModel, whole_body
 from service.inference.registry import load_model
 from training.config import flatten
 from training.data.catalog import mocap_entries
-from training.plots import pose_learning_curve_png, pose_segment_errors_png, skeleton_snapshots_png
+from training.plots import data_selection_png, pose_learning_curve_png, pose_segment_errors_png, skeleton_snapshots_png
 from training.pose.config import PoseConfig
 from training.pose.data import (
+    MODEL_RATE_HZ,
     MotionClip,
     build_motions,
     dataset_digest,
@@ -44,6 +45,7 @@ from training.pose.evaluate import (
     summarise,
 )
 from training.pose.export import build_pose_manifest, export_pose_onnx, golden_pair, is_streaming, onnx_parity
+from training.pose.selection import Selection, select, selected_clips
 from training.pose.simulate import Session
 from training.pose.train import PoseTrainResult, fixed_sessions, torch_predictor, train_pose
 from training.run_labels import label_run
@@ -62,6 +64,7 @@ class PoseData:
     train: list[MotionClip]
     val: list[MotionClip]
     test: list[MotionClip]
+    selection: Selection | None = None  # with ``data.selection``: how ``train`` was chosen
 
 
 def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> PoseData:
@@ -69,7 +72,23 @@ def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: in
     d = cfg.data
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     log.info("pose split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
-    return PoseData(train, val, test)
+    if d.selection is None:
+        return PoseData(train, val, test)
+    s = d.selection
+    is_ref = [
+        c.activity in s.reference_activities and (s.reference_sources is None or c.source in s.reference_sources)
+        for c in train
+    ]
+    reference = [c for c, r in zip(train, is_ref, strict=True) if r]
+    rest = [c for c, r in zip(train, is_ref, strict=True) if not r]
+    if not reference:
+        raise ValueError(
+            f"no training clip is a reference: activities {s.reference_activities}, sources {s.reference_sources}"
+        )
+    unit = max(1, round(s.unit_s * MODEL_RATE_HZ))
+    selection = select(rest, reference, unit, s.eta0, cfg.train.sequence_frames, s.weights)
+    # Zheng et al. 2021 §5.1: the selected data and the reference data are trained on
+    return PoseData(reference + selected_clips(rest, selection.runs), val, test, selection)
 
 
 def default_body(clips: list[MotionClip]) -> Body:
@@ -120,6 +139,26 @@ def _snapshot(net_predict, clip: MotionClip, session: Session, cfg: PoseConfig, 
     )
 
 
+def _log_selection(sel: Selection, cfg: PoseConfig, tmp: Path) -> None:
+    """How Zheng et al. 2021 §5 chose the training data: sizes, the score per deletion, frames per activity."""
+    mlflow.log_metrics(
+        {
+            "selection_reference_frames": sel.reference_frames,
+            "selection_similar_frames": sum(r.frames for r in sel.candidates),
+            "selection_selected_frames": sum(r.frames for r in sel.runs),
+            "selection_similar_runs": len(sel.candidates),
+            "selection_selected_runs": len(sel.runs),
+            "selection_deletions": len(sel.trace) - 1,
+        }
+    )
+    for step, f in enumerate(sel.trace):
+        mlflow.log_metric("selection_score", f, step=step)
+    by_label = sel.frames_by_label()
+    mlflow.log_dict({k: {"similar": v[0], "selected": v[1]} for k, v in by_label.items()}, "selection/frames.json")
+    title = f"{cfg.name}: data selected for {', '.join(cfg.data.selection.reference_activities)}"
+    mlflow.log_artifact(str(data_selection_png(sel.trace, by_label, tmp / "data_selection.png", title)), "plots")
+
+
 def evaluation_record(name: str, command: str, data: str, summary: dict) -> Evaluation:
     metrics = {k: round(v, 4) for k, v in flat_metrics(summary, "test").items()}
     return Evaluation(name=name, command=command, data=data, metrics=metrics)
@@ -152,6 +191,8 @@ def run_pose_experiment(
         )
         mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
         _log_datasets(data, data_dir)
+        if data.selection is not None:
+            _log_selection(data.selection, cfg, tmp)
         result: PoseTrainResult = train_pose(
             cfg,
             data.train,
