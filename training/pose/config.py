@@ -24,6 +24,8 @@ class PoseSelectionConfig(Strict):
     unit_s: float = Field(0.5, gt=0.0)  # §5.2: units of 50 frames, 0.5 s
     eta0: float = Field(0.8, gt=0.0, le=1.0)  # §5.2, eq. 5
     weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # α, β, γ of eq. 4 (the paper gives none)
+    # step 2 (§5.3, eq. 12-13) after step 1; off: train on step 1's similar data D_B (docs/pose.md, Comparisons)
+    optimise: bool = True
 
 
 class PoseDataConfig(Strict):

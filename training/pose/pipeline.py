@@ -86,7 +86,7 @@ def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: in
             f"no training clip is a reference: activities {s.reference_activities}, sources {s.reference_sources}"
         )
     unit = max(1, round(s.unit_s * MODEL_RATE_HZ))
-    selection = select(rest, reference, unit, s.eta0, cfg.train.sequence_frames, s.weights)
+    selection = select(rest, reference, unit, s.eta0, cfg.train.sequence_frames, s.weights, s.optimise)
     # Zheng et al. 2021 §5.1: the selected data and the reference data are trained on
     return PoseData(reference + selected_clips(rest, selection.runs), val, test, selection)
 

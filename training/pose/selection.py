@@ -172,8 +172,10 @@ def select(
     eta0: float,
     min_frames: int,
     weights: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    optimise: bool = True,
 ) -> Selection:
-    """Both steps of Zheng et al. 2021 §5 over ``clips`` (D_A) for the ``reference`` clips (D_ref)."""
+    """Both steps of Zheng et al. 2021 §5 over ``clips`` (D_A) for the ``reference`` clips (D_ref); without
+    ``optimise`` step 1 only (every similar run is kept; the trace still holds D_B's score)."""
     candidates = similar_runs(clips, reference, unit_frames, eta0, min_frames)
     ref_features = np.concatenate([pose_features(c) for c in reference])
     if not candidates:
@@ -186,7 +188,13 @@ def select(
     log_q = np.log(q / q.sum(axis=1, keepdims=True))
     counts = np.stack([_histograms(f, lo, width) for f in run_features])  # (K, F, BINS)
     frames = np.array([r.frames for r in candidates], dtype=np.float64)
-    alive, trace = greedy_deletion(counts, frames, log_q, weights)
+    if optimise:
+        alive, trace = greedy_deletion(counts, frames, log_q, weights)
+    else:
+        alive, trace = (
+            np.ones(len(frames), dtype=bool),
+            [float(score(counts.sum(axis=0), frames.sum(), log_q, weights))],
+        )
     chosen = [r for r, keep in zip(candidates, alive, strict=True) if keep]
     log.info(
         "data selection: %d of %d similar runs kept (%d of %d frames), reference %d frames",
