@@ -146,12 +146,9 @@ class StreamAdmission:
           latencies count here nor does this refuse I2S sessions.)
         - when the pose worker's busy share, projected with the sessions opened since and this one
           (``LivePoseBatcher.projected_busy_share``), passes ``pose_busy_limit``."""
-        rising = self.recent_p99_ms(RISING_WINDOW_S, pose=True)
-        if rising is not None and rising > RISING_SHARE * self.latency_target_ms:
-            return (
-                f"at capacity: the live pose answers of the last second take {rising:.0f} ms at p99 (at most "
-                f"{RISING_SHARE * self.latency_target_ms:.0f} ms for a new pose session); try again later"
-            )
+        rising = self._rising("pose")
+        if rising:
+            return rising
         projected = pose_batcher.projected_busy_share()
         if projected > self.pose_busy_limit:
             return (
@@ -166,13 +163,18 @@ class StreamAdmission:
         demand): the live flex answers of the last second take more than ``RISING_SHARE`` of the target at p99, as
         for pose sessions (``pose_refusal``). The flex model's cost is probed on an idle machine; under load the
         event loop and the clients take their share of the same cores, which only the answers' latency shows."""
-        rising = self.recent_p99_ms(RISING_WINDOW_S, flex=True)
-        if rising is not None and rising > RISING_SHARE * self.latency_target_ms:
-            return (
-                f"at capacity: the live flex answers of the last second take {rising:.0f} ms at p99 (at most "
-                f"{RISING_SHARE * self.latency_target_ms:.0f} ms for a new flex session); try again later"
-            )
-        return ""
+        return self._rising("flex")
+
+    def _rising(self, kind: str) -> str:
+        """The refusal of a new ``kind`` ("pose" or "flex") session while that kind's live answers of the last second
+        take more than ``RISING_SHARE`` of the target at p99, else ""."""
+        rising = self.recent_p99_ms(RISING_WINDOW_S, pose=kind == "pose", flex=kind == "flex")
+        if rising is None or rising <= RISING_SHARE * self.latency_target_ms:
+            return ""
+        return (
+            f"at capacity: the live {kind} answers of the last second take {rising:.0f} ms at p99 (at most "
+            f"{RISING_SHARE * self.latency_target_ms:.0f} ms for a new {kind} session); try again later"
+        )
 
     def admit(self, batcher: MicroBatcher, windows_per_s: float) -> tuple[int | None, str]:
         """(a session key, "") if admitted, else (None, why)."""

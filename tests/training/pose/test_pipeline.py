@@ -38,13 +38,15 @@ def shipped(
     models = tmp_path_factory.mktemp("onnx_models")
     cache = canonical_cache
     out = {}
-    for name, model, schedule in (
-        ("tiny_full6", {"kind": "bilstm", "hidden": 16, "layers": 1}, "cosine"),
-        ("tiny_full6_stream", {"kind": "lstm", "hidden": 16, "layers": 2, "look_ahead": 5}, "constant"),
+    # the streaming model trains on data selected for walking (Zheng et al. 2021 §5, both steps)
+    walking = {**TINY["data"], "selection": {"reference_activities": ["walk"]}}
+    for name, model, schedule, data in (
+        ("tiny_full6", {"kind": "bilstm", "hidden": 16, "layers": 1}, "cosine", TINY["data"]),
+        ("tiny_full6_stream", {"kind": "lstm", "hidden": 16, "layers": 2, "look_ahead": 5}, "constant", walking),
     ):
         train = {**TINY["train"], "lr_schedule": schedule}
         cfg = PoseConfig.model_validate(
-            {"name": name, "model": model, **TINY, "train": train, "tracking": {"experiment": "test-pose"}}
+            {"name": name, "model": model, "data": data, "train": train, "tracking": {"experiment": "test-pose"}}
         )
         out[name] = run_pose_experiment(cfg, data_dir, cache, models, "0.0.1", workers=2)
     return out
@@ -80,6 +82,19 @@ def test_the_job_logs_its_run_registers_and_ships_a_valid_model(shipped: dict[st
     assert manifest.evaluations[0].metrics["test_walk_angle_all_deg"] == pytest.approx(
         m["test_walk_angle_all_deg"], abs=0.05
     )
+
+
+def test_a_run_on_selected_data_logs_what_was_selected(shipped: dict[str, dict]) -> None:
+    client = MlflowClient()
+    run_id = shipped["tiny_full6_stream"]["run_id"]
+    m = client.get_run(run_id).data.metrics
+    assert 0 < m["selection_selected_frames"] <= m["selection_similar_frames"] and m["selection_reference_frames"] > 0
+    trace = sorted(client.get_metric_history(run_id, "selection_score"), key=lambda h: h.step)
+    assert len(trace) == m["selection_deletions"] + 1
+    assert "plots/data_selection.png" in {a.path for a in client.list_artifacts(run_id, "plots")}
+    assert m["selection_selected_runs"] >= 1 and "selection/frames.json" in {
+        a.path for a in client.list_artifacts(run_id, "selection")
+    }
 
 
 def test_the_streaming_model_frame_by_frame_equals_its_offline_evaluation(shipped: dict[str, dict]) -> None:
