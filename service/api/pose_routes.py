@@ -43,7 +43,8 @@ def pose_models(request: Request) -> dict[str, PoseModel]:
 
 
 def choose_model(models: dict[str, PoseModel], segments: list[str], name: str | None, streaming: bool) -> PoseModel:
-    """The named model, else the one (offline unless ``streaming``) whose sensors are exactly ``segments``."""
+    """The named model, else the one (offline unless ``streaming``) whose sensors are exactly ``segments``, a general
+    one before one trained for a scenario."""
     if not models:
         raise HTTPException(503, "no imu_pose model is loaded")
     if name is not None:
@@ -59,7 +60,8 @@ def choose_model(models: dict[str, PoseModel], segments: list[str], name: str | 
                 f"(missing {missing}, not used {extra})",
             )
         return model
-    for model in models.values():
+    # a model trained for one scenario (``selected_for`` in its manifest) only when named or the only match
+    for model in sorted(models.values(), key=lambda m: "selected_for" in m.loaded.manifest.training_data):
         if sorted(model.spec.sensors) == sorted(segments) and model.spec.streaming == streaming:
             return model
     placements = sorted({", ".join(m.spec.sensors) for m in models.values()})

@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
 from benchmarks.servers import REPO, start_service, stop
-from service.api.pose_routes import calibrate, read_sensors
+from service.api.pose_routes import calibrate, choose_model, read_sensors
 from service.api.protocol import ALL_SENSORS, decode_pose_block, encode_binary
 from service.api.schemas import PoseImuRequest
 from service.app import create_app
@@ -82,6 +82,24 @@ def test_the_shipped_placements_are_served(pose_models: dict[str, PoseModel]) ->
     placements = {(tuple(m.spec.sensors), m.spec.streaming) for m in pose_models.values()}
     assert (tuple(SIX_SENSORS), False) in placements and (tuple(SIX_SENSORS), True) in placements
     assert (tuple(LOWER), False) in placements and (tuple(LOWER), True) in placements
+
+
+def test_without_a_name_a_general_model_answers_before_one_trained_for_a_scenario(
+    pose_models: dict[str, PoseModel],
+) -> None:
+    from types import SimpleNamespace
+
+    general = pose_models["pose_full6"]
+    walking = SimpleNamespace(
+        spec=general.spec,
+        loaded=SimpleNamespace(
+            manifest=SimpleNamespace(training_data={"selected_for": {"reference_activities": ["walk"]}})
+        ),
+    )
+    for models in ({"a_walk": walking, "pose_full6": general}, {"pose_full6": general, "z_walk": walking}):
+        assert choose_model(models, SIX_SENSORS, None, streaming=False) is general
+        assert choose_model(models, SIX_SENSORS, "a_walk" if "a_walk" in models else "z_walk", False) is walking
+    assert choose_model({"walk": walking}, SIX_SENSORS, None, streaming=False) is walking  # the only match
 
 
 def test_service_and_training_compute_the_same_features(walk, pose_models: dict[str, PoseModel]) -> None:

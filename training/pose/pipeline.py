@@ -265,6 +265,14 @@ def run_pose_experiment(
             "epochs_run": len(result.history),
             "stopped": result.stopped,
         }
+        if data.selection is not None:  # a model for one scenario (Zheng et al. 2021 §5)
+            training_data["selected_for"] = {
+                "reference_activities": cfg.data.selection.reference_activities,
+                "reference_sources": cfg.data.selection.reference_sources,
+                "reference_frames": data.selection.reference_frames,
+                "selected_frames": sum(r.frames for r in data.selection.runs),
+                "greedy_deletion": cfg.data.selection.optimise,
+            }
         evaluation = evaluation_record(
             HELD_OUT,
             f"python -m training.cli evaluate-pose --model onnx_models/{cfg.name}/{version}",

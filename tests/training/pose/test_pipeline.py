@@ -95,6 +95,9 @@ def test_a_run_on_selected_data_logs_what_was_selected(shipped: dict[str, dict])
     assert m["selection_selected_runs"] >= 1 and "selection/frames.json" in {
         a.path for a in client.list_artifacts(run_id, "selection")
     }
+    manifest = read_manifest(Path(shipped["tiny_full6_stream"]["shipped"]) / "manifest.json")
+    assert manifest.training_data["selected_for"]["reference_activities"] == ["walk"]
+    assert manifest.training_data["selected_for"]["selected_frames"] == m["selection_selected_frames"]
 
 
 def test_the_streaming_model_frame_by_frame_equals_its_offline_evaluation(shipped: dict[str, dict]) -> None:
