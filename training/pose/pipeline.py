@@ -139,6 +139,16 @@ def _snapshot(net_predict, clip: MotionClip, session: Session, cfg: PoseConfig, 
     )
 
 
+def _judging(data: PoseData, cfg: PoseConfig, val_sessions: list[Session]) -> list[Session]:
+    """The validation sessions that choose the epoch: a model for one scenario is judged on that scenario's
+    validation clips (its reference activities), where the validation subjects have any."""
+    if data.selection is None:
+        return val_sessions
+    wanted = cfg.data.selection.reference_activities
+    scenario = [s for c, s in zip(data.val, val_sessions, strict=True) if c.activity in wanted]
+    return scenario or val_sessions
+
+
 def _log_selection(sel: Selection, cfg: PoseConfig, tmp: Path) -> None:
     """How Zheng et al. 2021 §5 chose the training data: sizes, the score per deletion, frames per activity."""
     mlflow.log_metrics(
@@ -196,7 +206,7 @@ def run_pose_experiment(
         result: PoseTrainResult = train_pose(
             cfg,
             data.train,
-            val_sessions,
+            _judging(data, cfg, val_sessions),
             on_epoch=lambda e, row: mlflow.log_metrics(
                 {"train_loss": row["train_loss"], "val_angle_deg_epoch": row["val_angle_deg"], "lr": row["lr"]}, step=e
             ),
