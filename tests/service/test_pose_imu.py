@@ -142,6 +142,19 @@ def test_rest_pose_from_declared_alignments_matches_the_model_and_the_truth(serv
     assert np.allclose(body["segments"]["Pelvis"]["joint_position_m"], 0.0) and 0.4 < np.median(head[:, 2]) < 0.8
 
 
+def test_a_walking_model_answers_when_named_and_the_general_one_otherwise(client: TestClient, walk) -> None:
+    _, raw = walk
+    lower = _body(raw, LOWER, frames=slice(0, 240))
+    general = client.post("/v1/pose/imu", json=lower)
+    named = client.post("/v1/pose/imu", json=lower | {"model": "pose_lower3_walk"})
+    assert general.status_code == 200 and named.status_code == 200, (general.text, named.text)
+    assert general.json()["model"]["name"] == "pose_lower3" and named.json()["model"]["name"] == "pose_lower3_walk"
+    thigh = [np.array(r.json()["segments"]["LeftUpperLeg"]["q_world_segment"]) for r in (general, named)]
+    assert not np.allclose(thigh[0], thigh[1], atol=1e-3)  # another network answered
+    wrong = client.post("/v1/pose/imu", json=lower | {"model": "pose_full6_walk"})
+    assert wrong.status_code == 422 and "pose_full6_walk takes sensors on" in wrong.text
+
+
 def test_rest_pose_with_a_still_npose_calibration(server: str, data_dir: Path) -> None:
     """A 2 s N-pose before the walk: the service finds every mounting from it (no alignment declared)."""
     walk = load_motion(data_dir / WALK, "cmu_iclone")
