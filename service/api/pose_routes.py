@@ -27,6 +27,7 @@ from service.inference.pose import (
     QUAT_NORM_TOLERANCE,
     PoseModel,
     covered_segments,
+    general_first,
     pose_answer,
     whole_body,
 )
@@ -60,8 +61,7 @@ def choose_model(models: dict[str, PoseModel], segments: list[str], name: str | 
                 f"(missing {missing}, not used {extra})",
             )
         return model
-    # a model trained for one scenario (``selected_for`` in its manifest) only when named or the only match
-    for model in sorted(models.values(), key=lambda m: "selected_for" in m.loaded.manifest.training_data):
+    for model in general_first(models):
         if sorted(model.spec.sensors) == sorted(segments) and model.spec.streaming == streaming:
             return model
     placements = sorted({", ".join(m.spec.sensors) for m in models.values()})

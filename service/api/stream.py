@@ -46,7 +46,7 @@ from service.core.rotations import canonical_quat
 from service.core.segments import SEGMENTS, segment_indices, segment_names
 from service.core.stream import SensorStream
 from service.core.units import ACC_UNITS, GYR_UNITS, unit_warnings
-from service.inference.pose import LivePose, PoseModel
+from service.inference.pose import LivePose, PoseModel, general_first
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
 
 log = logging.getLogger(__name__)
@@ -131,7 +131,7 @@ class Session:
         opts = start.pose
         segments = [s.segment for s in start.sensors]
         if opts.calibration == "assignment":
-            candidates = [m for m in models.values() if m.spec.streaming and set(m.spec.sensors) <= set(SEGMENTS)]
+            candidates = [m for m in general_first(models) if m.spec.streaming and set(m.spec.sensors) <= set(SEGMENTS)]
             if opts.model is not None:
                 candidates = [m for m in candidates if m.name == opts.model]
             if not candidates:
@@ -143,7 +143,7 @@ class Session:
         else:
             fitting = [
                 m
-                for m in models.values()
+                for m in general_first(models)
                 if m.spec.streaming and sorted(m.spec.sensors) == sorted(segments) and opts.model in (None, m.name)
             ]
             if not fitting:

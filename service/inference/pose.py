@@ -70,6 +70,12 @@ class PoseModel:
         self.output_index = [BODY_SEGMENTS.index(s) for s in self.spec.output_segments]
 
     @property
+    def scenario(self) -> dict | None:
+        """What the model was trained for when its data were selected for one scenario (``selected_for`` of its
+        manifest's training data), else None: a general model."""
+        return self.loaded.manifest.training_data.get("selected_for")
+
+    @property
     def name(self) -> str:
         return self.loaded.manifest.name
 
@@ -131,6 +137,12 @@ class PoseModel:
                     ys[k] = y[row]
                     out_states[k] = StreamState(h[:, row : row + 1].copy(), c[:, row : row + 1].copy())
         return ys, out_states
+
+
+def general_first(models: dict[str, PoseModel]) -> list[PoseModel]:
+    """The loaded pose models, the general ones before those trained for a scenario: a request that names no model
+    gets a general one where one takes its sensors."""
+    return sorted(models.values(), key=lambda m: m.scenario is not None)
 
 
 def whole_body(

@@ -90,12 +90,7 @@ def test_without_a_name_a_general_model_answers_before_one_trained_for_a_scenari
     from types import SimpleNamespace
 
     general = pose_models["pose_full6"]
-    walking = SimpleNamespace(
-        spec=general.spec,
-        loaded=SimpleNamespace(
-            manifest=SimpleNamespace(training_data={"selected_for": {"reference_activities": ["walk"]}})
-        ),
-    )
+    walking = SimpleNamespace(spec=general.spec, scenario={"reference_activities": ["walk"]})
     for models in ({"a_walk": walking, "pose_full6": general}, {"pose_full6": general, "z_walk": walking}):
         assert choose_model(models, SIX_SENSORS, None, streaming=False) is general
         assert choose_model(models, SIX_SENSORS, "a_walk" if "a_walk" in models else "z_walk", False) is walking
