@@ -37,7 +37,7 @@ class PoseDataConfig(Strict):
     test_activities_of_unlabelled: dict[str, list[str]] = Field(default_factory=lambda: {"cmu_li2018": ["run"]})
     sources: list[str] | None = None  # None: every mocap source of the data directory
     # Frames per activity beyond which an activity's clips are drawn less often (Bandai-Namco waves and raises a
-    # hand for 2.2 h of its 3.9 h): a simple balance, not Zheng et al. 2021's selection algorithm (eq. 4-13).
+    # hand for 2.2 h of its 3.9 h): a simple balance; Zheng et al. 2021's selection for one scenario is `selection`.
     activity_cap_frames: int = 72_000
     # Share of the drawn training sequences from Bandai-Namco (None: by frames, about 97 %). Its clips are three
     # actors; the CMU training clips are many people, which is what held-out people need.
