@@ -452,10 +452,16 @@ def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str
     assert code == 1000, reason
     handed = [i for i, m in enumerate(messages) if m["type"] == "calibration" and m["status"] == "calibrated"]
     first = handed[0] if handed else None
+    # sure: every one of the model's segments carries a committed sensor with an alignment (a segment no sensor is
+    # on at that moment does not count as committed)
     sure = [
         i
         for i, m in enumerate(messages)
-        if m["type"] == "assignment" and all(s["committed"] for s in m["sensors"] if s["segment"] in LOWER)
+        if m["type"] == "assignment"
+        and all(
+            any(s["segment"] == seg and s["committed"] and s["alignment"] is not None for s in m["sensors"])
+            for seg in LOWER
+        )
     ]
     last = [m for m in messages if m["type"] == "assignment"][-1]
     print(
