@@ -1,5 +1,5 @@
 """``wearmocap-train``: thin typer commands over the training library (I2S: simulate, train, register, export,
-evaluate; pose: pose-train, evaluate-pose; flex: flex-train, evaluate-flex, capacitive-train,
+evaluate; pose: pose-train, evaluate-pose, pose-placement; flex: flex-train, evaluate-flex, capacitive-train,
 evaluate-capacitive; snapshot-export / snapshot-restore, ui).
 Run ``python -m training.cli --help``.
 """
@@ -369,6 +369,27 @@ def pose_train(
             f"{activity:18s} angle {m['angle_unsensed_deg']:6.2f}° (mean pose {base['angle_unsensed_deg']:6.2f}°)  "
             f"all {m['angle_all_deg']:6.2f}°  SIP {m['sip_deg']:6.2f}°  JPE {m['jpe_cm']:5.2f} cm"
         )
+
+
+@app.command("pose-placement")
+def pose_placement(
+    config: Path = typer.Argument(Path("training/configs/pose_full6.yaml"), help="a pose config: its training clips"),
+    sensors: int = typer.Option(10, help="how many sensors to place (the pelvis counts)"),
+    frames: int = typer.Option(4000, help="random training frames the MIC is estimated on"),
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+    overrides: list[str] = Override,
+) -> None:
+    """Where to put N sensors (Zheng et al. 2021 §6): mRMR over the maximal information coefficient between the
+    candidate positions' measurements, the pelvis first; one MLflow run (experiment pose_placement)."""
+    from training.pose.config import load_pose_config
+    from training.pose.pipeline import run_placement_search
+
+    cfg = load_pose_config(config, overrides)
+    out = run_placement_search(cfg, resolve_data_dir(data_dir), cache_dir, sensors, frames)
+    typer.echo(f"run_id={out['run_id']}")
+    for k, (name, value, gain) in enumerate(zip(out["order"], out["phi"], out["gain"], strict=True), start=1):
+        typer.echo(f"{k:2d}  {name:15s} Φ {value:+.4f}" + ("" if gain is None else f"  eq. 19 {gain:+.4f}"))
 
 
 @app.command("pose-free-batch")

@@ -146,6 +146,30 @@ def data_selection_png(trace: list[float], frames: dict[str, tuple[int, int]], p
     return path
 
 
+def placement_png(relevance: np.ndarray, positions: tuple[str, ...], order: list[str], phi: list[float], path: Path,
+                  title: str) -> Path:
+    """Zheng et al. 2021 §6: the relevance between positions (eq. 15) in the greedy order, and Φ (eq. 18) as each
+    position joins."""
+    rank = list(order) + [p for p in positions if p not in order]
+    idx = [positions.index(p) for p in rank]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 5), gridspec_kw={"width_ratios": [1.3, 1]})
+    im = a.imshow(relevance[np.ix_(idx, idx)], cmap="viridis")
+    a.set_xticks(range(len(rank)), rank, rotation=70, ha="right", fontsize=7)
+    a.set_yticks(range(len(rank)), rank, fontsize=7)
+    a.set_title("relevance (mean MIC), greedy order first")
+    fig.colorbar(im, ax=a, fraction=0.046)
+    b.plot(range(1, len(phi) + 1), phi, "o-", color="C0")
+    for k, (name, value) in enumerate(zip(order, phi, strict=True)):
+        b.annotate(name, (k + 1, value), fontsize=7, rotation=30, xytext=(3, 3), textcoords="offset points")
+    b.set_xlabel("sensors")
+    b.set_ylabel("Φ = T − R (eq. 18)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def pose_segment_errors_png(per_segment: dict[str, float], sensors: list[str], path: Path, title: str) -> Path:
     """Mean global orientation error per segment; the sensors' own segments in grey."""
     names = list(per_segment)

@@ -26,7 +26,13 @@ from service.inference.pose import PoseModel, whole_body
 from service.inference.registry import load_model
 from training.config import flatten
 from training.data.catalog import mocap_entries
-from training.plots import data_selection_png, pose_learning_curve_png, pose_segment_errors_png, skeleton_snapshots_png
+from training.plots import (
+    data_selection_png,
+    placement_png,
+    pose_learning_curve_png,
+    pose_segment_errors_png,
+    skeleton_snapshots_png,
+)
 from training.pose.config import PoseConfig
 from training.pose.data import (
     MODEL_RATE_HZ,
@@ -45,6 +51,7 @@ from training.pose.evaluate import (
     summarise,
 )
 from training.pose.export import build_pose_manifest, export_pose_onnx, golden_pair, is_streaming, onnx_parity
+from training.pose.placement import CANDIDATES, search_placement
 from training.pose.selection import Selection, select, selected_clips
 from training.pose.simulate import Session
 from training.pose.train import PoseTrainResult, fixed_sessions, torch_predictor, train_pose
@@ -332,6 +339,50 @@ def run_pose_experiment(
             "history": result.history,
             "streaming": is_streaming(cfg),
         }
+
+
+def run_placement_search(
+    cfg: PoseConfig, data_dir: Path, cache_dir: Path, n_sensors: int, frames: int, workers: int = 2
+) -> dict:
+    """Zheng et al. 2021 §6 on a config's training clips, as one MLflow run (experiment ``pose_placement``): the
+    greedy placement of up to ``n_sensors`` sensors (``training.pose.placement``), Φ per step, the relevance
+    between positions (JSON and a plot)."""
+    data = load_pose_data(cfg, data_dir, cache_dir, workers)
+    setup_tracking("pose_placement")
+    with mlflow.start_run(run_name=f"placement_{cfg.name}") as run, tempfile.TemporaryDirectory() as tmp_dir:
+        tmp = Path(tmp_dir)
+        mlflow.set_tags(
+            {
+                "task": "imu_pose_placement",
+                "mlflow.note.content": f"Zheng et al. 2021 §6 (mRMR over MIC) on the training clips of {cfg.name}: "
+                f"where to put {n_sensors} sensors, the pelvis first.",
+            }
+        )
+        mlflow.log_params(
+            {"config": cfg.name, "n_sensors": n_sensors, "frames": frames, "seed": cfg.seed,
+             "bandai_share": str(cfg.data.bandai_share), "candidates": ",".join(CANDIDATES)}
+        )
+        _log_datasets(data, data_dir)
+        placement, mic = search_placement(data.train, n_sensors, frames, cfg.data.bandai_share, cfg.seed)
+        for k, (value, gain) in enumerate(zip(placement.phi, placement.gain, strict=True), start=1):
+            mlflow.log_metric("phi", value, step=k)
+            if gain is not None:
+                mlflow.log_metric("mrmr_gain", gain, step=k)
+        result = {
+            "order": placement.order,
+            "phi": placement.phi,
+            "gain": placement.gain,
+            "positions": list(placement.positions),
+            "relevance": np.round(placement.relevance, 5).tolist(),
+        }
+        mlflow.log_dict(result, "placement/placement.json")
+        np.save(tmp / "mic.npy", mic.astype(np.float32))
+        mlflow.log_artifact(str(tmp / "mic.npy"), "placement")
+        title = f"{cfg.name}: sensor placement (Zheng et al. 2021 §6), {frames} frames"
+        png = placement_png(placement.relevance, placement.positions, placement.order, placement.phi,
+                            tmp / "placement.png", title)
+        mlflow.log_artifact(str(png), "plots")
+        return {"run_id": run.info.run_id, **result}
 
 
 def results_table(results: list[ClipResult]) -> str:
