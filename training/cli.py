@@ -784,7 +784,7 @@ def _restore_into_empty_store() -> None:
 @app.command("snapshot-export")
 def snapshot_export(
     out_dir: Path = typer.Option(SNAPSHOT),
-    experiment: list[str] = typer.Option(["i2s", "pose", "flex", "flex_capacitive"]),
+    experiment: list[str] = typer.Option(["i2s", "pose", "flex", "flex_capacitive", "pose_placement"]),
 ) -> None:
     """Write the finished runs of the tracking store and its registry to a folder (training.snapshot)."""
     import mlflow

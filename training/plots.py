@@ -146,8 +146,9 @@ def data_selection_png(trace: list[float], frames: dict[str, tuple[int, int]], p
     return path
 
 
-def placement_png(relevance: np.ndarray, positions: tuple[str, ...], order: list[str], phi: list[float], path: Path,
-                  title: str) -> Path:
+def placement_png(
+    relevance: np.ndarray, positions: tuple[str, ...], order: list[str], phi: list[float], path: Path, title: str
+) -> Path:
     """Zheng et al. 2021 §6: the relevance between positions (eq. 15) in the greedy order, and Φ (eq. 18) as each
     position joins."""
     rank = list(order) + [p for p in positions if p not in order]

@@ -27,6 +27,8 @@ EXPERIMENTS = {
     "flex": "Joint angles from resistive flex sensors (Chen et al. 2024), on a simulated flex-sensor suit driven by "
     "motion capture.",
     "flex_capacitive": "Knee flexion from the capacitive sleeves of a real subject (capacitive_sub01).",
+    "pose_placement": "Where to put N IMUs for pose (Zheng et al. 2021 §6: mRMR over the maximal information "
+    "coefficient between positions' measurements), on the training clips of a pose config.",
 }
 TASKS = {
     "assignment": "I2S assignment",

@@ -21,6 +21,7 @@ from service.api.schemas import PoseImuRequest
 from service.app import create_app
 from service.core.body import BODY_SEGMENTS, BodyMotion
 from service.core.calibration import pose_features, segment_readings
+from service.core.manifest import read_manifest
 from service.core.recordings import MOVINGREALITY_SEGMENTS, read_movingreality_trial
 from service.core.resample import resample_pose_rows
 from service.core.rotations import matrix_from_quat, quat_from_matrix
@@ -148,6 +149,44 @@ def test_a_walking_model_answers_when_named_and_the_general_one_otherwise(client
     assert not np.allclose(thigh[0], thigh[1], atol=1e-3)  # another network answered
     wrong = client.post("/v1/pose/imu", json=lower | {"model": "pose_full6_walk"})
     assert wrong.status_code == 422 and "pose_full6_walk takes sensors on" in wrong.text
+
+
+def test_sensors_at_the_placement_search_s_six_positions_are_posed_by_its_model(client: TestClient, walk) -> None:
+    """`pose_mrmr6` (Zheng et al. 2021 §6's placement) answers a request whose six sensors sit where it wants them,
+    and only such a request: the default six still get `pose_full6`."""
+    motion = walk[0]
+    sensors = list(read_manifest(MODELS / "pose_mrmr6" / "1.0.0" / "manifest.json").pose.sensors)
+    assert sensors != SIX_SENSORS and sensors[0] == "Pelvis"
+    raw = simulate_sensors(motion, sensors, np.random.default_rng(8))
+    body = {
+        "sample_rate_hz": 60.0,
+        "sensors": [
+            {
+                "sensor_id": s.lower(),
+                "segment": s,
+                "q_world_sensor": raw.q_world_sensor[:240, k].tolist(),
+                "acc": raw.acc_mps2[:240, k].tolist(),
+                "q_segment_sensor": raw.q_segment_sensor[k].tolist(),
+            }
+            for k, s in enumerate(sensors)
+        ],
+    }
+    r = client.post("/v1/pose/imu", json=body)
+    assert r.status_code == 200, r.text
+    answer = r.json()
+    assert answer["model"]["name"] == "pose_mrmr6"
+    assert {s for s, v in answer["segments"].items() if v["source"] == "sensor"} == set(sensors)
+    # the unsensed segments against the truth, in the sensors' world frame
+    Rz = Rotation.from_rotvec([0.0, 0.0, raw.heading_rad]).as_matrix()
+    truth = quat_from_matrix(np.einsum("ij,tsjk->tsik", Rz, motion.R_world_segment[:240]))
+    unsensed = [s for s in BODY_SEGMENTS if s not in sensors]
+    q = np.array([answer["segments"][s]["q_world_segment"] for s in unsensed]).transpose(1, 0, 2)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    idx = [BODY_SEGMENTS.index(s) for s in unsensed]
+    angle = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(q * truth[:, idx], -1)), 0, 1)))
+    assert angle.mean() < 30.0, angle.mean(axis=0)
+    default = client.post("/v1/pose/imu", json=_body(walk[1], SIX_SENSORS, frames=slice(0, 240)))
+    assert default.status_code == 200 and default.json()["model"]["name"] == "pose_full6"
 
 
 def test_rest_pose_with_a_still_npose_calibration(server: str, data_dir: Path) -> None:

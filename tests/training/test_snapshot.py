@@ -111,7 +111,7 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
     # replacing the committed snapshot keeps the versions a restore left out
     (tmp_path / "again").mkdir()
     shutil.copy(SNAPSHOT / "registry.json", tmp_path / "again/registry.json")
-    export_snapshot(tmp_path / "again", ["i2s", "pose", "flex", "flex_capacitive"])
+    export_snapshot(tmp_path / "again", ["i2s", "pose", "flex", "flex_capacitive", "pose_placement"])
     original = {r["run_id"]: r for r in json.loads((SNAPSHOT / "runs.json").read_text())}
     again = json.loads((tmp_path / "again/runs.json").read_text())
     assert {r["run_id"] for r in again} == set(original)

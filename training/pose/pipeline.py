@@ -359,8 +359,14 @@ def run_placement_search(
             }
         )
         mlflow.log_params(
-            {"config": cfg.name, "n_sensors": n_sensors, "frames": frames, "seed": cfg.seed,
-             "bandai_share": str(cfg.data.bandai_share), "candidates": ",".join(CANDIDATES)}
+            {
+                "config": cfg.name,
+                "n_sensors": n_sensors,
+                "frames": frames,
+                "seed": cfg.seed,
+                "bandai_share": str(cfg.data.bandai_share),
+                "candidates": ",".join(CANDIDATES),
+            }
         )
         _log_datasets(data, data_dir)
         placement, mic = search_placement(data.train, n_sensors, frames, cfg.data.bandai_share, cfg.seed)
@@ -379,8 +385,9 @@ def run_placement_search(
         np.save(tmp / "mic.npy", mic.astype(np.float32))
         mlflow.log_artifact(str(tmp / "mic.npy"), "placement")
         title = f"{cfg.name}: sensor placement (Zheng et al. 2021 §6), {frames} frames"
-        png = placement_png(placement.relevance, placement.positions, placement.order, placement.phi,
-                            tmp / "placement.png", title)
+        png = placement_png(
+            placement.relevance, placement.positions, placement.order, placement.phi, tmp / "placement.png", title
+        )
         mlflow.log_artifact(str(png), "plots")
         return {"run_id": run.info.run_id, **result}
 

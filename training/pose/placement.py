@@ -68,10 +68,19 @@ def measurement_groups(positions: tuple[str, ...]) -> list[slice]:
     return [slice(0, 6)] + [slice(6 + 12 * k, 18 + 12 * k) for k in range(len(positions) - 1)]
 
 
-def _bins(x: np.ndarray, k: int) -> np.ndarray:
-    """(n, F) equal-frequency bin of every value among ``k`` (ranks; ties broken by order)."""
-    ranks = np.argsort(np.argsort(x, axis=0, kind="stable"), axis=0)
-    return (ranks * k) // len(x)
+def _ranks(x: np.ndarray) -> np.ndarray:
+    """(n, F) rank of every value in its column, ties broken at random (a fixed draw): a constant column then
+    falls into random bins and tells nothing, instead of following the samples' order."""
+    shuffle = np.random.default_rng(0).permutation(len(x))
+    ranks = np.empty(x.shape, np.int64)
+    order = shuffle[np.argsort(x[shuffle], axis=0, kind="stable")]  # (n, F): sample indices in rank order
+    ranks[order, np.arange(x.shape[1])[None, :]] = np.arange(len(x))[:, None]
+    return ranks
+
+
+def _bins(ranks: np.ndarray, k: int) -> np.ndarray:
+    """(n, F) equal-frequency bin of every value among ``k``."""
+    return (ranks * k) // len(ranks)
 
 
 def _indicators(bins: np.ndarray, k: int) -> np.ndarray:
@@ -90,7 +99,8 @@ def mic_matrix(x: np.ndarray, max_cells: float | None = None) -> np.ndarray:
     side = int(np.sqrt(budget))
     if side < 2:
         raise ValueError(f"{n} samples allow no grid of 2 × 2 cells (B = n^0.6 = {budget:.1f})")
-    indicators = {k: _indicators(_bins(x, k), k) for k in range(2, side + 1)}
+    ranks = _ranks(x)
+    indicators = {k: _indicators(_bins(ranks, k), k) for k in range(2, side + 1)}
     best = np.zeros((f, f))
     for a in range(2, side + 1):
         for b in range(a, side + 1):
@@ -152,9 +162,7 @@ def greedy_placement(rele: np.ndarray, positions: tuple[str, ...], n: int) -> Pl
     return out
 
 
-def sample_frames(
-    clips: list[MotionClip], n: int, bandai_share: float | None, rng: np.random.Generator
-) -> np.ndarray:
+def sample_frames(clips: list[MotionClip], n: int, bandai_share: float | None, rng: np.random.Generator) -> np.ndarray:
     """(n, F) measurements of ``n`` frames drawn at random from ``clips`` (each frame equally likely within its
     group), ``bandai_share`` of them from Bandai-Namco (None: in proportion to the frames)."""
     bandai = [c for c in clips if c.source.startswith("bandai")]
