@@ -182,13 +182,13 @@ class Session:
     def pose_units_all(self) -> np.ndarray:
         """``pose_units`` of every sensor ``(N, 10)``."""
         if self._units_all is None:
-            self._units_all = np.stack([self.pose_units(k) for k in range(len(self.streams))])
+            units = [(ACC_UNITS[s.acc_unit], GYR_UNITS[s.gyr_unit]) for s in self.streams]
+            self._units_all = np.array([[acc] * 3 + [gyr] * 3 + [1.0] * 4 for acc, gyr in units])
         return self._units_all
 
     def pose_units(self, k: int) -> np.ndarray:
         """Per-column factors of sensor ``k``'s rows into m/s², rad/s and a unitless quaternion."""
-        s = self.streams[k]
-        return np.array([ACC_UNITS[s.acc_unit]] * 3 + [GYR_UNITS[s.gyr_unit]] * 3 + [1.0] * 4)
+        return self.pose_units_all()[k]
 
     def sure_enough(self, sensor: dict) -> bool:
         """A sensor's place is sure enough to pose on (``PoseStreamOptions.hand_over``): its softmax confidence at
@@ -345,7 +345,8 @@ async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples
                 "action": "held the last sample",
             }
         )
-    await _pose_frames(app, session, joined)
+    if len(joined.frames):
+        await _pose_frames(app, session, joined)
 
 
 async def _pose_frames(app: FastAPI, session: Session, joined: AlignResult) -> None:

@@ -32,8 +32,11 @@ class FrameAligner:
     def __init__(self, n_sensors: int, width: int) -> None:
         self.n, self.width = n_sensors, width
         self.buffers: list[list[np.ndarray]] = [[] for _ in range(n_sensors)]
-        self.buffered = np.zeros(n_sensors, dtype=np.int64)
-        self.expected = np.zeros(n_sensors, dtype=np.int64)
+        # plain ints: a live session pushes every packet through here, and numpy's per-call cost on N numbers is
+        # larger than the work
+        self.buffered = [0] * n_sensors
+        self.expected = [0] * n_sensors
+        self._none = np.zeros((0, n_sensors, width))
         self.last: list[np.ndarray | None] = [None] * n_sensors
         self.emitted = 0
 
@@ -41,9 +44,9 @@ class FrameAligner:
         """Every sensor's samples ``(n, N, C)`` from ``seq`` at once (a frame packet): released as they are when
         every sensor is at ``seq`` with nothing buffered; None when they are not, and the packet must go through
         ``push`` sensor by sensor."""
-        if self.buffered.any() or np.any(self.expected != seq):
+        if any(self.buffered) or any(e != seq for e in self.expected):
             return None
-        self.expected[:] = seq + len(samples)
+        self.expected = [seq + len(samples)] * self.n
         self.last = list(samples[-1])
         result = AlignResult(samples, self.emitted)
         self.emitted += len(samples)
@@ -51,26 +54,23 @@ class FrameAligner:
 
     def push(self, k: int, seq: int, samples: np.ndarray) -> AlignResult:
         """Add sensor ``k``'s ``samples`` ``(n, C)`` whose first has sequence number ``seq``."""
-        result = AlignResult(np.zeros((0, self.n, self.width)), self.emitted)
+        result = AlignResult(self._none, self.emitted)
         if seq < self.expected[k]:
-            result.late = (int(self.expected[k]), seq)
+            result.late = (self.expected[k], seq)
             return result
         if seq > self.expected[k]:
             hold = self.last[k] if self.last[k] is not None else samples[0]
-            result.filled = int(seq - self.expected[k])
+            result.filled = seq - self.expected[k]
             self.buffers[k].append(np.repeat(hold[None], result.filled, axis=0))
             self.buffered[k] += result.filled
         self.buffers[k].append(samples)
         self.buffered[k] += len(samples)
         self.expected[k] = seq + len(samples)
         self.last[k] = samples[-1]
-        if self.buffered.max() - self.buffered.min() > MAX_LAG_FRAMES:
-            slow = int(np.argmin(self.buffered))
-            raise StreamLagError(
-                f"sensor #{slow} is {int(self.buffered.max() - self.buffered.min())} samples behind the others "
-                f"(at most {MAX_LAG_FRAMES})"
-            )
-        m = int(self.buffered.min())
+        most, m = max(self.buffered), min(self.buffered)
+        if most - m > MAX_LAG_FRAMES:
+            slow = self.buffered.index(m)
+            raise StreamLagError(f"sensor #{slow} is {most - m} samples behind the others (at most {MAX_LAG_FRAMES})")
         if m == 0:
             return result
         out = np.empty((m, self.n, self.width))
@@ -79,7 +79,7 @@ class FrameAligner:
             out[:, j] = joined[:m]
             rest = joined[m:]
             self.buffers[j] = [rest] if len(rest) else []
-        self.buffered -= m
+        self.buffered = [b - m for b in self.buffered]
         result.frames, result.first_frame = out, self.emitted
         self.emitted += m
         return result
