@@ -223,7 +223,7 @@ def check_samples(samples: np.ndarray, max_samples: int, where: str, width: int 
     if width == 10:
         q = samples[:, 6:10]
         norm = np.sqrt(np.einsum("ij,ij->i", q, q))
-        if np.abs(norm - 1.0).max() > 0.1:
+        if np.abs(norm - 1.0).max(initial=0.0) > 0.1:
             i = int(np.argmax(np.abs(norm - 1.0)))
             raise ProtocolError(
                 f"{where}: sample {i}'s q_world_sensor must be a unit quaternion, got norm {norm[i]:.3f}"

@@ -43,7 +43,9 @@ class FrameAligner:
     def push_all(self, seq: int, samples: np.ndarray) -> AlignResult | None:
         """Every sensor's samples ``(n, N, C)`` from ``seq`` at once (a frame packet): released as they are when
         every sensor is at ``seq`` with nothing buffered; None when they are not, and the packet must go through
-        ``push`` sensor by sensor."""
+        ``push`` sensor by sensor. A packet without samples changes nothing."""
+        if not len(samples):
+            return AlignResult(self._none, self.emitted)
         if any(self.buffered) or any(e != seq for e in self.expected):
             return None
         self.expected = [seq + len(samples)] * self.n
@@ -53,8 +55,10 @@ class FrameAligner:
         return result
 
     def push(self, k: int, seq: int, samples: np.ndarray) -> AlignResult:
-        """Add sensor ``k``'s ``samples`` ``(n, C)`` whose first has sequence number ``seq``."""
+        """Add sensor ``k``'s ``samples`` ``(n, C)`` whose first has sequence number ``seq`` (none: nothing)."""
         result = AlignResult(self._none, self.emitted)
+        if not len(samples):
+            return result
         if seq < self.expected[k]:
             result.late = (self.expected[k], seq)
             return result

@@ -37,3 +37,17 @@ def test_a_sensor_that_falls_far_behind_stops_the_session() -> None:
     a = FrameAligner(2, 3)
     with pytest.raises(StreamLagError, match="sensor #1"):
         a.push(0, 0, _rows(0, MAX_LAG_FRAMES + 1, 0))
+
+
+def test_a_packet_without_samples_changes_nothing() -> None:
+    """A binary packet may carry n = 0 samples (the header allows it): nothing is released, held or reported."""
+    a = FrameAligner(2, 3)
+    a.push(0, 0, _rows(0, 2, 0))
+    empty = a.push(1, 0, np.zeros((0, 3)))
+    assert len(empty.frames) == 0 and empty.filled == 0 and empty.late is None
+    assert a.push_all(0, np.zeros((0, 2, 3))) is not None and len(a.push_all(0, np.zeros((0, 2, 3))).frames) == 0
+    out = a.push(1, 0, _rows(0, 2, 1))
+    assert out.first_frame == 0 and len(out.frames) == 2  # as if the empty packets had never come
+    fresh = FrameAligner(2, 3)
+    assert len(fresh.push_all(0, np.zeros((0, 2, 3))).frames) == 0
+    assert len(fresh.push_all(0, np.stack([_rows(0, 2, 0), _rows(0, 2, 1)], axis=1)).frames) == 2

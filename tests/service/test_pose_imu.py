@@ -618,8 +618,10 @@ def test_a_non_unit_quaternion_on_the_stream_closes_it_after_the_accepted_frames
     bad_rows = _rows(raw, 0)[30:40].copy()
     bad_rows[3, 6:10] = [0.1, 0.0, 0.0, 0.0]
     start = {"type": "start", "sensors": sensors, "pose": {}}
+    # binary packets of no samples (one sensor's, and a frame packet's) on the way change nothing
+    empty = [encode_binary(2, 30, np.zeros((0, 10))), encode_binary(ALL_SENSORS, 30, np.zeros((0, 6, 10)))]
     messages, code, reason = asyncio.run(
-        _stream(server.replace("http", "ws") + "/v1/stream", start, [*good, ("Pelvis", 30, bad_rows)])
+        _stream(server.replace("http", "ws") + "/v1/stream", start, [*good, *empty, ("Pelvis", 30, bad_rows)])
     )
     assert code == 1008 and "unit quaternion" in reason
     frames = sum(m["frames"] for m in messages if m["type"] == "pose")
