@@ -217,8 +217,7 @@ def check_samples(samples: np.ndarray, max_samples: int, where: str, width: int 
         if not np.all(np.isfinite(samples)):
             raise ProtocolError(f"{where}: samples must be finite, got NaN or Inf")
         raise ProtocolError(
-            f"{where}: samples must lie in [-{MAX_ABS_READING:g}, {MAX_ABS_READING:g}] (in their unit), "
-            f"got {largest:g}"
+            f"{where}: samples must lie in [-{MAX_ABS_READING:g}, {MAX_ABS_READING:g}] (in their unit), got {largest:g}"
         )
     if width == 10:
         q = samples[:, 6:10]
