@@ -15,6 +15,13 @@ import numpy as np  # noqa: E402
 from service.core.segments import SEGMENTS  # noqa: E402
 
 
+def _save(fig: plt.Figure, path: Path, dpi: int = 110) -> Path:
+    """Write ``fig`` to ``path`` and free it."""
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def confusion_matrix_png(cm: np.ndarray, path: Path, title: str) -> Path:
     fig, ax = plt.subplots(figsize=(7, 6))
     frac = cm / np.maximum(cm.sum(axis=1, keepdims=True), 1)
@@ -36,9 +43,7 @@ def confusion_matrix_png(cm: np.ndarray, path: Path, title: str) -> Path:
     ax.set_ylabel("true")
     ax.set_title(f"{title} (row %, n={int(cm.sum())})")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def error_boxplot_png(segment: np.ndarray, err_deg: np.ndarray, path: Path, title: str) -> Path:
@@ -55,9 +60,7 @@ def error_boxplot_png(segment: np.ndarray, err_deg: np.ndarray, path: Path, titl
     axes[0].set_ylabel("absolute error angle [deg]")
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def learning_curves_png(history: list[dict[str, float]], path: Path, title: str) -> Path:
@@ -71,9 +74,7 @@ def learning_curves_png(history: list[dict[str, float]], path: Path, title: str)
     ax.legend()
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def held_out_bars_png(folds: dict[str, dict[str, float]], path: Path, title: str) -> Path:
@@ -102,9 +103,7 @@ def held_out_bars_png(folds: dict[str, dict[str, float]], path: Path, title: str
     ax.set_title(title)
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=2)  # below: bars reach 100 %
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def pose_learning_curve_png(history: list[dict[str, float]], path: Path, title: str) -> Path:
@@ -120,9 +119,7 @@ def pose_learning_curve_png(history: list[dict[str, float]], path: Path, title: 
     fig.legend(loc="upper right")
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def data_selection_png(trace: list[float], frames: dict[str, tuple[int, int]], path: Path, title: str) -> Path:
@@ -141,9 +138,7 @@ def data_selection_png(trace: list[float], frames: dict[str, tuple[int, int]], p
     b.legend()
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def placement_png(
@@ -166,9 +161,7 @@ def placement_png(
     b.set_ylabel("Φ = T − R (eq. 18)")
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def pose_segment_errors_png(per_segment: dict[str, float], sensors: list[str], path: Path, title: str) -> Path:
@@ -181,9 +174,7 @@ def pose_segment_errors_png(per_segment: dict[str, float], sensors: list[str], p
     ax.set_ylabel("mean angle error (deg)")
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def skeleton_snapshots_png(
@@ -209,9 +200,7 @@ def skeleton_snapshots_png(
             ax.set_title(f"frame {t} {view}", fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=100)
 
 
 def flex_learning_curve_png(history: list[dict[str, float]], path: Path, title: str) -> Path:
@@ -226,9 +215,7 @@ def flex_learning_curve_png(history: list[dict[str, float]], path: Path, title: 
     fig.legend(loc="upper right")
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def bars_png(values: dict[str, float], path: Path, title: str, ylabel: str, highlight: list[str] | None = None) -> Path:
@@ -241,9 +228,7 @@ def bars_png(values: dict[str, float], path: Path, title: str, ylabel: str, high
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def curves_png(
@@ -258,9 +243,7 @@ def curves_png(
     ax.set_title(title)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def traces_png(
@@ -276,9 +259,7 @@ def traces_png(
     axes[0, 0].set_title(title)
     axes[-1, 0].set_xlabel("time (s)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def reliability_png(
@@ -305,6 +286,4 @@ def reliability_png(
     bx.set_xlabel(f"{what[0]} (calibrated on the other people)")
     bx.set_ylabel(what[1])
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
