@@ -42,6 +42,7 @@ import numpy as np
 
 from service.core.body import BODY_SEGMENTS
 from service.core.calibration import pose_features
+from training.data.catalog import is_bandai_namco
 from training.pose.data import MotionClip
 from training.pose.simulate import acceleration
 
@@ -165,8 +166,8 @@ def greedy_placement(rele: np.ndarray, positions: tuple[str, ...], n: int) -> Pl
 def sample_frames(clips: list[MotionClip], n: int, bandai_share: float | None, rng: np.random.Generator) -> np.ndarray:
     """(n, F) measurements of ``n`` frames drawn at random from ``clips`` (each frame equally likely within its
     group), ``bandai_share`` of them from Bandai-Namco (None: in proportion to the frames)."""
-    bandai = [c for c in clips if c.source.startswith("bandai")]
-    other = [c for c in clips if not c.source.startswith("bandai")]
+    bandai = [c for c in clips if is_bandai_namco(c.source)]
+    other = [c for c in clips if not is_bandai_namco(c.source)]
     if bandai_share is None or not bandai or not other:
         groups = [(clips, n)]
     else:
