@@ -69,6 +69,8 @@ class PoseTrainConfig(Strict):
     time_budget_s: float = 1800.0
     threads: int = 2
     acc_method: Literal["finite_difference", "butterworth"] = "finite_difference"
+    # Share of the drawn training sequences performed by the mirror-image body (``data.mirrored``; our addition)
+    mirror: float = Field(0.0, ge=0.0, le=1.0)
 
 
 class PoseConfig(Strict):

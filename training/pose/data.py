@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from service.core.body import (
+    BODY_SEGMENTS,
     BodyMotion,
     SkeletonMapping,
     read_body_motion,
@@ -191,6 +192,33 @@ def held_out_split(
     """``split_by_subject`` with whole clips of unlabelled pools held out by activity (the li2018 runs)."""
     held = [c.path for c in clips if not c.subject and c.activity in test_activities_of_unlabelled.get(c.source, [])]
     return split_by_subject(clips, test_subjects, val_subjects, held)
+
+
+# Each segment's counterpart on the other side (itself on the midline), and the reflection y -> -y.
+_OTHER_SIDE = np.array(
+    [BODY_SEGMENTS.index(s.replace("Left", "#").replace("Right", "Left").replace("#", "Right")) for s in BODY_SEGMENTS]
+)
+_LATERAL = np.array([1.0, -1.0, 1.0])
+
+
+def mirrored(clip: MotionClip) -> MotionClip:
+    """The clip performed by the mirror-image body, left and right swapped (our addition to Zheng et al. 2021, as the
+    I2S simulation's ``mirrored``).
+
+    Reflecting the scene through a vertical plane, M = diag(1, -1, 1), is a valid motion under gravity. A left
+    segment's frame (x anterior, y left, z up) becomes its right counterpart's, R' = M R M (a proper rotation), and
+    every joint position p' = M p. Bandai-Namco's three actors are 97 % of the frames: their mirror images halve
+    whatever side-to-side habit they have (a right knee held in abduction) before the network learns it as the body's.
+    """
+    m = clip.motion
+    flip = np.outer(_LATERAL, _LATERAL)  # (M R M)_ij = s_i R_ij s_j
+    motion = BodyMotion(
+        m.R_world_segment[:, _OTHER_SIDE] * flip,
+        m.origin_m[:, _OTHER_SIDE] * _LATERAL,
+        m.midpoint_m[:, _OTHER_SIDE] * _LATERAL,
+        m.sample_rate_hz,
+    )
+    return MotionClip(clip.path, clip.source, clip.subject, clip.activity, motion, f"{clip.digest}-mirror")
 
 
 def dataset_digest(clips: list[MotionClip]) -> str:

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from training.data.catalog import is_bandai_namco
 from training.pose.config import PoseConfig
-from training.pose.data import MotionClip
+from training.pose.data import MotionClip, mirrored
 from training.pose.models import PoseNet
 from training.pose.simulate import SensorNoise, Session, simulate_session
 
@@ -169,7 +169,10 @@ def train_pose(
             sessions = []
             for i in batch:
                 start = int(rng.integers(0, train_clips[i].motion.n_frames - n + 1))
-                sessions.append(session_of(_crop(train_clips[i], start, start + n), cfg, rng))
+                clip = _crop(train_clips[i], start, start + n)
+                if cfg.train.mirror and rng.random() < cfg.train.mirror:  # no draw without it: older runs replay
+                    clip = mirrored(clip)
+                sessions.append(session_of(clip, cfg, rng))
             x, y, lengths = _batch(sessions, L)
             loss = _loss(net(x), y, lengths, L)
             opt.zero_grad()

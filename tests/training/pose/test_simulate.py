@@ -10,8 +10,9 @@ import pytest
 from service.core.body import BODY_SEGMENTS, BodyMotion
 from service.core.rotations import matrix_from_quat
 from training.pose.config import SIX_SENSORS
-from training.pose.data import load_motion
+from training.pose.data import MotionClip, load_motion, mirrored
 from training.pose.simulate import NO_NOISE, acceleration, root_relative_targets, simulate_sensors, simulate_session
+from training.pose.train import geodesic_deg
 
 
 def test_both_acceleration_methods_differentiate_twice() -> None:
@@ -56,3 +57,33 @@ def test_a_session_recovers_the_true_segments_through_the_declared_calibration(d
     assert s.features.shape == (motion.n_frames, 66) and s.features.dtype == np.float32
     with pytest.raises(ValueError, match="Pelvis"):
         simulate_session(motion, ["Head", "Pelvis"], outputs, np.random.default_rng(1))
+
+
+def test_the_mirror_image_body_swaps_sides_and_keeps_left_on_the_left(data_dir: Path) -> None:
+    motion = load_motion(data_dir / "mocap/cmu_iclone/07_01.bvh", "cmu_iclone")
+    clip = MotionClip("07_01.bvh", "cmu_iclone", "cmu_07", "walk", motion, "d")
+    m = mirrored(clip).motion
+    R, Rm = motion.R_world_segment, m.R_world_segment
+    np.testing.assert_allclose(np.linalg.det(Rm), 1.0, atol=1e-6)  # proper rotations, not reflections
+    i = BODY_SEGMENTS.index
+
+    def lateral(mo: BodyMotion, seg: str) -> np.ndarray:  # the joint's offset from the hips' centre, pelvis frame
+        p = mo.origin_m[:, i(seg)] - mo.origin_m[:, i("Pelvis")]
+        return np.einsum("tji,tj->ti", mo.R_world_segment[:, i("Pelvis")], p)[:, 1]
+
+    # the left hip stays on the pelvis's left (+y), as far out as the original's right hip is to the right
+    assert np.median(lateral(m, "LeftUpperLeg")) > 0.03 and np.median(lateral(m, "RightUpperLeg")) < -0.03
+    np.testing.assert_allclose(lateral(m, "LeftUpperLeg"), -lateral(motion, "RightUpperLeg"), atol=1e-9)
+    # a joint's angle moves to the other side unchanged (the left knee now bends as the right one did)
+    knee = geodesic_deg(R[:, i("RightUpperLeg")], R[:, i("RightLowerLeg")])
+    np.testing.assert_allclose(geodesic_deg(Rm[:, i("LeftUpperLeg")], Rm[:, i("LeftLowerLeg")]), knee, atol=1e-4)
+    assert knee.max() > 30.0  # a walk: the check above compares something that moves
+    # the midline stays the midline; heights are kept; mirrored twice is the clip itself
+    np.testing.assert_allclose(m.origin_m[..., 2], motion.origin_m[:, [i(s) for s in _SIDE_SWAPPED], 2], atol=0)
+    twice = mirrored(mirrored(clip))
+    np.testing.assert_array_equal(twice.motion.R_world_segment, R)
+    np.testing.assert_array_equal(twice.motion.midpoint_m, motion.midpoint_m)
+    assert mirrored(clip).digest != clip.digest
+
+
+_SIDE_SWAPPED = [s.replace("Left", "#").replace("Right", "Left").replace("#", "Right") for s in BODY_SEGMENTS]
