@@ -25,6 +25,8 @@ class FlexDataConfig(Strict):
     activity_cap_frames: int = 24_000  # at 20 Hz; as pose's cap: Bandai's waves and hand raises drawn less often
     # Bandai-Namco's share of the drawn windows (None: by frames, 97 % of them Bandai-Namco's three actors)
     bandai_share: float | None = Field(None, ge=0.0, le=1.0)
+    # also train on every training clip performed by the mirror-image body (``training.pose.data.mirrored``)
+    mirror: bool = False
 
 
 class FlexModelConfig(Strict):

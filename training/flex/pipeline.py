@@ -30,7 +30,7 @@ from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_par
 from training.flex.simulate import AGEING_BEYOND, FLEX_RATE_HZ, draw_sensor, draw_suit, simulate_counts
 from training.flex.train import FlexTrainResult, torch_predictor, train_flex
 from training.plots import bars_png, curves_png, flex_learning_curve_png, traces_png
-from training.pose.data import build_motions, dataset_digest, held_out_split
+from training.pose.data import build_motions, dataset_digest, held_out_split, mirrored
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
@@ -57,6 +57,8 @@ def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: in
     clips = build_motions(data_dir, mocap_entries(data_dir, sources=cfg.data.sources), cache_dir, workers)
     d = cfg.data
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
+    if d.mirror:
+        train = train + [mirrored(c) for c in train]
     log.info("flex split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
     conv = lambda cl: [flex_clip(c, cfg.joints, cfg.sensors, cfg.model.window) for c in cl]  # noqa: E731
     return FlexData(

@@ -218,7 +218,7 @@ def mirrored(clip: MotionClip) -> MotionClip:
         m.midpoint_m[:, _OTHER_SIDE] * _LATERAL,
         m.sample_rate_hz,
     )
-    return MotionClip(clip.path, clip.source, clip.subject, clip.activity, motion, f"{clip.digest}-mirror")
+    return MotionClip(f"{clip.path}#mirror", clip.source, clip.subject, clip.activity, motion, f"{clip.digest}-mirror")
 
 
 def dataset_digest(clips: list[MotionClip]) -> str:

@@ -200,3 +200,21 @@ def test_bandai_share_sets_bandai_namco_s_part_of_the_draws_and_leaves_the_rest_
     assert share.weights[bandai].sum() == pytest.approx(0.5)
     # within each side, windows keep their relative weights: c1's 60 frames draw twice c2's 30
     assert share.weights[share.clip_of_end == 2].sum() == pytest.approx(2 * share.weights[share.clip_of_end == 3].sum())
+
+
+def test_mirror_adds_each_training_clip_performed_by_the_mirror_image_body(
+    data_dir: Path, canonical_cache: Path
+) -> None:
+    cfg = FlexConfig.model_validate({"name": "tiny_flex", **TINY})
+    plain = load_flex_data(cfg, data_dir, canonical_cache)
+    both = load_flex_data(
+        cfg.model_copy(update={"data": cfg.data.model_copy(update={"mirror": True})}), data_dir, canonical_cache
+    )
+    assert [c.path for c in both.val] == [c.path for c in plain.val]  # held-out sides untouched
+    assert [c.path for c in both.test] == [c.path for c in plain.test]
+    assert [c.path for c in both.train] == [c.path for c in plain.train] + [f"{c.path}#mirror" for c in plain.train]
+    assert both.digest_train != plain.digest_train
+    left, right = cfg.sensors.index("LeftKnee"), cfg.sensors.index("RightKnee")
+    for c, m in zip(plain.train, both.train[len(plain.train) :], strict=True):
+        # the mirror body's left knee bends as the clip's right knee did
+        np.testing.assert_allclose(m.bend[:, left], c.bend[:, right], atol=1e-3)
