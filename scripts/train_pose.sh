@@ -6,12 +6,13 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
 : "${WEARMOCAP_DATA_DIR:?set WEARMOCAP_DATA_DIR to the data folder (the one with index.csv)}"
-# the served versions, each the recipe that won on validation (docs/pose.md, Comparisons): pose_lower3 2.0.0 by frames,
-# pose_full6_stream 2.1.0 at a constant rate, pose_full6 and pose_lower3_stream 2.2.0 with the cosine decay
+# the served versions, each the recipe that won on validation (docs/pose.md, Comparisons): pose_lower3 2.1.0 by frames
+# and half its draws from the mirror-image body, pose_full6_stream 2.1.0 at a constant rate, pose_lower3_stream 2.2.0
+# with the cosine decay, pose_full6 2.3.0 with it and half its draws mirrored,
 # and the walking models, trained on data selected for walking (Zheng et al. 2021 §5), each shipped by its rule; then
 # six sensors where Zheng et al. 2021 §6 places them (the placement search first: it is what the config lists)
 python -m training.cli pose-placement training/configs/pose_full6.yaml --sensors 10
-for served in pose_full6:2.2.0 pose_full6_stream:2.1.0 pose_lower3:2.0.0 pose_lower3_stream:2.2.0 \
+for served in pose_full6:2.3.0 pose_full6_stream:2.1.0 pose_lower3:2.1.0 pose_lower3_stream:2.2.0 \
   pose_full6_walk:1.0.0 pose_lower3_walk:1.0.0 pose_lower3_walk_stream:1.0.0 pose_mrmr6:1.0.0; do
   python -m training.cli pose-train "training/configs/${served%%:*}.yaml" --ship --version "${served##*:}"
 done
@@ -21,15 +22,20 @@ done
 # unidirectional LSTM is pose_full6_stream, which sees 5 frames ahead). The figures in docs/pose.md are of the 1.x
 # recipe (feet as Zimmermann et al. 2018, Bandai-Namco by frames). pose_full6_by_frames is the share comparison
 # behind 2.1.0 (at 2.1.0's constant rate and 18 epochs).
-python -m training.cli pose-train training/configs/pose_lower3.yaml -s name=pose_lower3_axisangle \
+python -m training.cli pose-train training/configs/pose_lower3.yaml -s name=pose_lower3_axisangle -s train.mirror=0 \
   -s model.representation=axis_angle -s train.max_epochs=13 -s train.time_budget_s=1e9
-python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_ffn -s model.kind=ffn \
+python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_ffn -s model.kind=ffn -s train.mirror=0 \
   -s train.max_epochs=18 -s train.lr_schedule=constant -s train.time_budget_s=1e9
-python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_by_frames -s data.bandai_share=null \
+python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_by_frames -s data.bandai_share=null -s train.mirror=0 \
   -s train.max_epochs=18 -s train.lr_schedule=constant
 # the cosine decay where it did not win on validation (not shipped)
 C="-s train.lr_schedule=cosine -s train.max_epochs=24 -s train.patience=24"
 python -m training.cli pose-train training/configs/pose_full6_stream.yaml $C
-python -m training.cli pose-train training/configs/pose_lower3.yaml $C
-# a second seed of the served six-sensor recipe (how far a seed moves the figures; not shipped)
-python -m training.cli pose-train training/configs/pose_full6.yaml -s seed=1 -s name=pose_full6_seed1
+python -m training.cli pose-train training/configs/pose_lower3.yaml $C -s train.mirror=0
+# a second seed of 2.2.0's six-sensor recipe (how far a seed moves the figures; not shipped), and 2.2.0 itself (the
+# recipe before the mirror image; archived)
+python -m training.cli pose-train training/configs/pose_full6.yaml -s train.mirror=0 -s seed=1 -s name=pose_full6_seed1
+python -m training.cli pose-train training/configs/pose_full6.yaml -s train.mirror=0 -s name=pose_full6_unmirrored
+# the three-sensor model: 2.0.0's recipe with a second seed, and 2.0.0 itself (archived)
+python -m training.cli pose-train training/configs/pose_lower3.yaml -s train.mirror=0 -s seed=1 -s name=pose_lower3_seed1
+python -m training.cli pose-train training/configs/pose_lower3.yaml -s train.mirror=0 -s name=pose_lower3_unmirrored
