@@ -426,7 +426,7 @@ def pose_acc_check(
 
 @app.command("pose-real-check")
 def pose_real_check(
-    model: Path = typer.Option(Path("onnx_models/pose_lower3/2.0.0"), help="a shipped lower-body pose model"),
+    model: Path = typer.Option(Path("onnx_models/pose_lower3/2.1.0"), help="a shipped lower-body pose model"),
     data_dir: Path | None = DataDir,
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
@@ -457,7 +457,7 @@ def pose_real_check(
 @app.command("evaluate-pose")
 def evaluate_pose(
     paths: list[Path] = typer.Argument(None, help="BVH files or folders (default: the held-out subjects)"),
-    model: Path = typer.Option(..., help="a shipped pose model, e.g. onnx_models/pose_full6/2.2.0"),
+    model: Path = typer.Option(..., help="a shipped pose model, e.g. onnx_models/pose_full6/2.3.0"),
     mapping: Path | None = typer.Option(None, help="JSON/YAML mapping of an unknown skeleton onto the body"),
     data_dir: Path | None = DataDir,
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
