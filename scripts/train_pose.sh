@@ -24,10 +24,10 @@ done
 # behind 2.1.0 (at 2.1.0's constant rate and 18 epochs).
 python -m training.cli pose-train training/configs/pose_lower3.yaml -s name=pose_lower3_axisangle -s train.mirror=0 \
   -s model.representation=axis_angle -s train.max_epochs=13 -s train.time_budget_s=1e9
-python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_ffn -s model.kind=ffn -s train.mirror=0 \
-  -s train.max_epochs=18 -s train.lr_schedule=constant -s train.time_budget_s=1e9
-python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_by_frames -s data.bandai_share=null -s train.mirror=0 \
-  -s train.max_epochs=18 -s train.lr_schedule=constant
+python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_ffn -s model.kind=ffn \
+  -s train.mirror=0 -s train.max_epochs=18 -s train.lr_schedule=constant -s train.time_budget_s=1e9
+python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_by_frames -s data.bandai_share=null \
+  -s train.mirror=0 -s train.max_epochs=18 -s train.lr_schedule=constant
 # the cosine decay where it did not win on validation (not shipped)
 C="-s train.lr_schedule=cosine -s train.max_epochs=24 -s train.patience=24"
 python -m training.cli pose-train training/configs/pose_full6_stream.yaml $C

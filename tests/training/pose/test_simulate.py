@@ -59,6 +59,10 @@ def test_a_session_recovers_the_true_segments_through_the_declared_calibration(d
         simulate_session(motion, ["Head", "Pelvis"], outputs, np.random.default_rng(1))
 
 
+# each segment by its counterpart on the other side (the midline keeps its own)
+_SIDE_SWAPPED = [s.replace("Left", "#").replace("Right", "Left").replace("#", "Right") for s in BODY_SEGMENTS]
+
+
 def test_the_mirror_image_body_swaps_sides_and_keeps_left_on_the_left(data_dir: Path) -> None:
     motion = load_motion(data_dir / "mocap/cmu_iclone/07_01.bvh", "cmu_iclone")
     clip = MotionClip("07_01.bvh", "cmu_iclone", "cmu_07", "walk", motion, "d")
@@ -84,6 +88,3 @@ def test_the_mirror_image_body_swaps_sides_and_keeps_left_on_the_left(data_dir: 
     np.testing.assert_array_equal(twice.motion.R_world_segment, R)
     np.testing.assert_array_equal(twice.motion.midpoint_m, motion.midpoint_m)
     assert mirrored(clip).digest != clip.digest
-
-
-_SIDE_SWAPPED = [s.replace("Left", "#").replace("Right", "Left").replace("#", "Right") for s in BODY_SEGMENTS]
