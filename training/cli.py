@@ -463,6 +463,12 @@ def evaluate_pose(
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
     as_json: bool = typer.Option(False, "--json", help="print per clip and overall metrics as JSON"),
     record: bool = typer.Option(False, help="held-out mode: write the figures into the model's manifest"),
+    validation: bool = typer.Option(
+        False,
+        "--validation",
+        help="score the validation subjects on the sessions training judged its epochs and recipes by, not the "
+        "held-out ones (to compare two files on the same sessions before a choice)",
+    ),
 ) -> None:
     """Score a shipped pose model on mocap: simulate its sensors on the clips and report per clip and overall
     segment-angle error, SIP error, joint-position error and jitter (per activity and subject too)."""
@@ -471,8 +477,19 @@ def evaluate_pose(
     from service.core.manifest import read_manifest, write_manifest
     from training.pose.config import PoseConfig
     from training.pose.evaluate import per_segment_mean
-    from training.pose.pipeline import evaluate_shipped_pose, load_pose_data, results_table, user_clips
+    from training.pose.pipeline import (
+        TEST_SEED,
+        VAL_SEED,
+        evaluate_shipped_pose,
+        load_pose_data,
+        results_table,
+        user_clips,
+    )
 
+    if paths and (validation or record):
+        raise typer.BadParameter("--validation and --record score the data directory's subjects: give no paths")
+    if validation and record:
+        raise typer.BadParameter("--record writes held-out figures; it does not go with --validation")
     if paths:
         clips = user_clips(list(paths), mapping)
     else:
@@ -482,13 +499,15 @@ def evaluate_pose(
             name=manifest.name,
             sensors=manifest.pose.sensors,
             data={
+                "sources": td.get("sources"),  # the sources it trained on: the split its run scored
                 "test_subjects": td["test_subjects"],
                 "val_subjects": td["validation_subjects"],
                 "test_activities_of_unlabelled": td["test_unlabelled_clips"],
             },
         )
-        clips = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir).test
-    results, summary = evaluate_shipped_pose(model, clips)
+        data = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir)
+        clips = data.val if validation else data.test
+    results, summary = evaluate_shipped_pose(model, clips, VAL_SEED if validation else TEST_SEED)
     if record and not paths:
         from training.pose.pipeline import HELD_OUT, evaluation_record
 

@@ -159,3 +159,22 @@ def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
     unmapped = subprocess.run(base, capture_output=True, text=True, cwd=REPO, timeout=300)
     assert unmapped.returncode != 0
     assert "--mapping" in " ".join((unmapped.stdout + unmapped.stderr).split())
+
+
+def test_evaluate_pose_scores_the_validation_subjects_on_the_sessions_training_judged_by(
+    shipped: dict[str, dict], data_dir: Path, canonical_cache: Path
+) -> None:
+    """Two files are compared on the same validation sessions as their runs were (how a recipe is chosen)."""
+    result = shipped["tiny_full6"]
+    base = [sys.executable, "-m", "training.cli", "evaluate-pose", "--model", result["shipped"]]
+    where = ["--data-dir", str(data_dir), "--cache-dir", str(canonical_cache)]
+    done = subprocess.run(
+        [*base, *where, "--validation", "--json"], capture_output=True, text=True, cwd=REPO, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout[done.stdout.index("{") :])
+    assert set(report["subject"]) == {"cmu_03"}  # the validation subject, not the held-out cmu_07
+    val = MlflowClient().get_run(result["run_id"]).data.metrics["val_angle_unsensed_deg"]
+    assert report["overall"]["all"]["angle_unsensed_deg"] == pytest.approx(val, abs=0.05)  # the run's own sessions
+    refused = subprocess.run([*base, *where, "--validation", "--record"], capture_output=True, text=True, cwd=REPO)
+    assert refused.returncode != 0 and "--record" in " ".join((refused.stdout + refused.stderr).split())
