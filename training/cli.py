@@ -508,7 +508,7 @@ def evaluate_pose(
         data = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir)
         clips = data.val if validation else data.test
     results, summary = evaluate_shipped_pose(model, clips, VAL_SEED if validation else TEST_SEED)
-    if record and not paths:
+    if record:
         from training.pose.pipeline import HELD_OUT, evaluation_record
 
         manifest = read_manifest(model / "manifest.json")
