@@ -199,6 +199,7 @@ _OTHER_SIDE = np.array(
     [BODY_SEGMENTS.index(s.replace("Left", "#").replace("Right", "Left").replace("#", "Right")) for s in BODY_SEGMENTS]
 )
 _LATERAL = np.array([1.0, -1.0, 1.0])
+_FLIP = np.outer(_LATERAL, _LATERAL)  # (M R M)_ij = s_i R_ij s_j
 
 
 def mirrored(clip: MotionClip) -> MotionClip:
@@ -211,9 +212,8 @@ def mirrored(clip: MotionClip) -> MotionClip:
     whatever side-to-side habit they have (a right knee held in abduction) before the network learns it as the body's.
     """
     m = clip.motion
-    flip = np.outer(_LATERAL, _LATERAL)  # (M R M)_ij = s_i R_ij s_j
     motion = BodyMotion(
-        m.R_world_segment[:, _OTHER_SIDE] * flip,
+        m.R_world_segment[:, _OTHER_SIDE] * _FLIP,
         m.origin_m[:, _OTHER_SIDE] * _LATERAL,
         m.midpoint_m[:, _OTHER_SIDE] * _LATERAL,
         m.sample_rate_hz,
