@@ -62,6 +62,8 @@ def run_title(params: Mapping[str, str], tags: Mapping[str, str], shipped: list[
     start = _start(params, tags)
     if start:
         parts.append(f"from {start}")
+    if teacher := _teacher(params):
+        parts.append(f"taught by {teacher}")
     if shipped:
         parts.append("shipped " + ", ".join(shipped))
     return " · ".join(parts)
@@ -80,6 +82,8 @@ def run_description(params: Mapping[str, str], tags: Mapping[str, str], shipped:
         words.append(f", fine-tuned on {len(real)} real recordings")
     if start := _start(params, tags):
         words.append(f", warm start from {start}")
+    if teacher := _teacher(params):
+        words.append(f", distilled from {teacher}")
     if shipped:
         words.append(f"; shipped as {', '.join(shipped)}")
     if tags.get("note"):
@@ -130,6 +134,12 @@ def _start(params: Mapping[str, str], tags: Mapping[str, str]) -> str:
     if tags.get("init_from_run"):
         return f"run {tags['init_from_run'][:8]}"
     return ""
+
+
+def _teacher(params: Mapping[str, str]) -> str:
+    """The shipped version a run was distilled from (``train.distill_from``), or ""."""
+    teacher = params.get("train.distill_from")
+    return teacher.rstrip("/").rsplit("/", 1)[-1] if teacher and teacher != "None" else ""
 
 
 def record_shipped(client: MlflowClient, run_id: str, name: str, version: str) -> None:

@@ -93,6 +93,13 @@ class TrainConfig(_Strict):
     # trained: needs max_epochs 0, and takes no init_from_* and no turn averages of its own
     ensemble_of: list[str] | None = None
     max_minutes: float | None = None  # wall-time budget; stops after the epoch that crosses it
+    # assignment: distil this shipped float32 assignment model (onnx_models/<name>/<version>; an ensemble stands for
+    # its members, each with its turn averages) into the one-pass network trained (Hinton et al. 2015; not in
+    # Zimmermann et al. 2018): loss = (1 - distill_weight) × cross entropy + distill_weight × τ² × KL(teacher ‖
+    # student), both softened at τ = distill_temperature (training.i2s.train.distillation_loss)
+    distill_from: str | None = None
+    distill_weight: float = Field(default=0.9, ge=0.0, le=1.0)
+    distill_temperature: float = Field(default=2.0, gt=0.0)
     # which weights a run returns: "best", those of the epoch with the lowest validation loss (the warm start counts
     # as epoch 0) with early stopping after ``patience`` epochs; "last", those of the final epoch, for a fixed budget
     # (max_epochs or max_minutes): to compare augmentations that the validation set, drawn without them, would
@@ -162,6 +169,15 @@ class ExperimentConfig(_Strict):
     @property
     def registered_model(self) -> str:
         return self.tracking.registered_model or self.name
+
+    @model_validator(mode="after")
+    def _a_teacher_teaches_assignment(self) -> ExperimentConfig:
+        if self.train.distill_from is not None and (self.task != "assignment" or self.train.ensemble_of):
+            raise ValueError(
+                "train.distill_from teaches an assignment network that trains; got task "
+                f"{self.task!r}{' and ensemble_of (assembled, not trained)' if self.train.ensemble_of else ''}"
+            )
+        return self
 
 
 def load_config(path: str | Path, overrides: list[str] | None = None) -> ExperimentConfig:

@@ -16,7 +16,6 @@ import torch
 import yaml
 from mlflow.tracking import MlflowClient
 
-from service.core.manifest import read_manifest
 from service.core.recordings import RealRecording, read_all_real, read_recording
 from training.config import flatten
 from training.data.catalog import is_bandai_namco
@@ -28,7 +27,7 @@ from training.i2s.evaluate import evaluate_real, evaluate_real_alignment, evalua
 from training.i2s.export import PARITY_ATOL, export_onnx, golden_pair, onnx_parity
 from training.i2s.ship import build_manifest, run_version
 from training.i2s.train import TrainResult, build_model, load_fitted, train
-from training.i2s.warmstart import ensemble_state, warm_start_from_shipped
+from training.i2s.warmstart import check_real_recordings_declared, ensemble_state, warm_start_from_shipped
 from training.plots import confusion_matrix_png, error_boxplot_png, held_out_bars_png, learning_curves_png
 from training.run_labels import label_run
 from training.snapshot import number_as_in_snapshot
@@ -268,23 +267,11 @@ def _fitted_elsewhere(
     return result
 
 
-def _members_real_recordings_are_held_out_of_evaluation(cfg: ExperimentConfig) -> None:
-    """An ensemble is evaluated on the real recordings its config did not train on; a member that trained on
-    real recordings makes them training data of the ensemble too, so the config must name them."""
-    for member in cfg.train.ensemble_of or []:
-        seen = read_manifest(Path(member) / "manifest.json").training_data.get("real_train_recordings", [])
-        if missing := sorted(set(seen) - set(cfg.data.real_train_recordings)):
-            raise ValueError(
-                f"ensemble member {member} trained on the real recordings {missing}; add them to "
-                f"data.real_train_recordings (now {cfg.data.real_train_recordings}) so that no evaluation uses them"
-            )
-
-
 def _initial_state(cfg: ExperimentConfig, tmp: Path) -> dict | None:
     if cfg.train.ensemble_of:
         if cfg.task != "assignment":
             raise ValueError("ensemble_of assembles assignment models")
-        _members_real_recordings_are_held_out_of_evaluation(cfg)
+        check_real_recordings_declared(cfg.train.ensemble_of, cfg.data.real_train_recordings, "ensemble member")
         mlflow.set_tag("ensemble_of", ",".join(cfg.train.ensemble_of))
         return ensemble_state(cfg.train.ensemble_of, build_model(cfg))  # type: ignore[arg-type]
     if cfg.train.init_from_run:

@@ -26,7 +26,7 @@ from training.i2s.data.mocap import Clip
 from training.i2s.data.split import recordings_digest
 from training.i2s.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, concat_batches
 from training.i2s.models import AlignmentNet, AssignmentNet
-from training.i2s.warmstart import assignment_ensemble
+from training.i2s.warmstart import assignment_ensemble, check_real_recordings_declared, teacher_from_shipped
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +79,30 @@ def task_loss(task: str, output: torch.Tensor, segment: torch.Tensor, q_true: to
     if task == "assignment":
         return nn.functional.cross_entropy(output, segment)
     return quat_distance(output[torch.arange(len(segment)), segment], q_true).mean()
+
+
+def distillation_loss(
+    logits: torch.Tensor, teacher_log_p: torch.Tensor, segment: torch.Tensor, weight: float, temperature: float
+) -> torch.Tensor:
+    """Knowledge distillation (Hinton et al. 2015 §2): (1 − weight) × the cross entropy with the labels plus
+    weight × τ² × KL(teacher ‖ student) between the class distributions softened at temperature τ (the τ² keeps the
+    soft term's gradients at the hard term's scale as τ changes). ``teacher_log_p``: the teacher's log class
+    probabilities (an ensemble's log mean probability)."""
+    hard = nn.functional.cross_entropy(logits, segment)
+    soft_student = torch.log_softmax(logits / temperature, -1)
+    soft_teacher = torch.log_softmax(teacher_log_p / temperature, -1)
+    kl = nn.functional.kl_div(soft_student, soft_teacher, log_target=True, reduction="batchmean")
+    return (1.0 - weight) * hard + weight * temperature**2 * kl
+
+
+def build_teacher(cfg: ExperimentConfig) -> nn.Module | None:
+    """The frozen network ``train.distill_from`` names (None without one); the real recordings it trained on must
+    be this run's training recordings too."""
+    t = cfg.train
+    if t.distill_from is None:
+        return None
+    check_real_recordings_declared([t.distill_from], cfg.data.real_train_recordings, "teacher")
+    return teacher_from_shipped(Path(t.distill_from), t.hidden, t.channels, t.kernel, t.keep_prob)
 
 
 def stereographic_l2_loss(
@@ -217,6 +241,9 @@ def train(
     if init_state is not None:
         model.load_state_dict(init_state)
     model.to(device)
+    teacher = build_teacher(cfg)
+    if teacher is not None:
+        teacher.to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     sampler = WindowSampler(train_clips, cfg.augmentation)
     # Validation: the training distribution of alignments, with only the paper's noise (no other augmentation).
@@ -262,6 +289,10 @@ def train(
             imu, seg, q = (x.to(device, non_blocking=True) for x in next(batches))
             if t.alignment_loss == "stereographic_l2" and isinstance(model, AlignmentNet):
                 loss = stereographic_l2_loss(model, imu, seg, q)
+            elif teacher is not None:
+                with torch.no_grad():
+                    teacher_log_p = teacher(imu)
+                loss = distillation_loss(model(imu), teacher_log_p, seg, t.distill_weight, t.distill_temperature)
             else:
                 loss = task_loss(cfg.task, model(imu), seg, q)
             optimiser.zero_grad()

@@ -158,3 +158,45 @@ def ensemble_state(member_dirs: list[str], ensemble: AssignmentEnsemble) -> dict
 def ensemble_members(exporter: dict, models_root: Path) -> list[str]:
     """The member model dirs an ensemble's manifest names (``models_root/<name>/<version>``)."""
     return [str(models_root / str(member)) for member in exporter.get("ensemble_of", [])]
+
+
+def teacher_from_shipped(
+    model_dir: Path, hidden: int, channels: int, kernel: int, keep_prob: float = 0.8
+) -> AssignmentNet | AssignmentEnsemble:
+    """A shipped float32 assignment model as a frozen torch network in evaluation mode, its output the log of its
+    class probabilities: an ensemble (manifest ``exporter.ensemble_of``) from its members, each with its turn
+    averages and checked against its golden output; a single model likewise."""
+    exporter = read_manifest(model_dir / "manifest.json").exporter
+    if "ensemble_of" in exporter:
+        members = ensemble_members(exporter, model_dir.parent.parent)
+        net: AssignmentNet | AssignmentEnsemble = assignment_ensemble(members, hidden, channels, kernel, keep_prob)
+        net.load_state_dict(ensemble_state(members, net))  # type: ignore[arg-type]
+    else:
+        net = shipped_graph(model_dir, "assignment", hidden, channels, kernel, keep_prob)  # type: ignore[assignment]
+        net.load_state_dict(warm_start_from_shipped(model_dir, net))  # type: ignore[arg-type]
+    net.eval()
+    for p in net.parameters():
+        p.requires_grad_(False)
+    return net
+
+
+def real_recordings_seen(model_dir: Path) -> list[str]:
+    """The real recordings a shipped model trained on, an ensemble's through its members (manifest
+    ``training_data.real_train_recordings``)."""
+    manifest = read_manifest(model_dir / "manifest.json")
+    seen = set(manifest.training_data.get("real_train_recordings", []))
+    for member in ensemble_members(manifest.exporter, model_dir.parent.parent):
+        seen |= set(real_recordings_seen(Path(member)))
+    return sorted(seen)
+
+
+def check_real_recordings_declared(model_dirs: list[str], declared: list[str], role: str) -> None:
+    """Models whose outputs a run builds on (ensemble members, a teacher) make the real recordings they trained
+    on training data of the run too: the run must name them (``data.real_train_recordings``), so that no
+    evaluation of it uses them."""
+    for model_dir in model_dirs:
+        if missing := sorted(set(real_recordings_seen(Path(model_dir))) - set(declared)):
+            raise ValueError(
+                f"{role} {model_dir} trained on the real recordings {missing}; add them to "
+                f"data.real_train_recordings (now {declared}) so that no evaluation uses them"
+            )

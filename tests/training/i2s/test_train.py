@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from training.data.catalog import mocap_entries
@@ -52,3 +53,80 @@ def test_keep_last_returns_the_final_epoch_where_keep_best_returns_the_better_wa
     assert last.best_epoch == 3 and len(last.history) == 3
     changed = [k for k, v in last.model.state_dict().items() if v.is_floating_point() and not torch.equal(v, warm[k])]
     assert len(changed) > 10
+
+
+def test_the_distillation_loss_is_the_cross_entropy_and_the_softened_kl_in_their_shares() -> None:
+    """Hinton et al. 2015: weight 0 is the plain cross entropy; weight 1 is τ² × KL of the softened distributions,
+    zero (with zero gradient) when the student already says what the teacher says, and positive otherwise."""
+    from training.i2s.train import distillation_loss
+
+    torch.manual_seed(0)
+    logits, teacher = torch.randn(8, 7, requires_grad=True), torch.log_softmax(torch.randn(8, 7), -1)
+    segment = torch.randint(0, 7, (8,))
+    plain = torch.nn.functional.cross_entropy(logits, segment)
+    torch.testing.assert_close(distillation_loss(logits, teacher, segment, 0.0, 2.0), plain)
+    soft = distillation_loss(logits, teacher, segment, 1.0, 2.0)
+    p_t, log_p_s = torch.softmax(teacher / 2.0, -1), torch.log_softmax(logits / 2.0, -1)
+    expected = 4.0 * (p_t * (torch.log(p_t) - log_p_s)).sum(-1).mean()
+    torch.testing.assert_close(soft, expected)
+    assert float(soft) > 0.01
+    same = teacher.clone().requires_grad_(True)
+    agreed = distillation_loss(same, teacher, segment, 1.0, 2.0)
+    agreed.backward()
+    assert abs(float(agreed)) < 1e-6 and float(same.grad.abs().max()) < 1e-6
+
+
+def test_the_teacher_is_the_shipped_ensemble() -> None:
+    """The archived 1.9.0 (the mean of 1.6.0's sixteen turns and 1.8.0) rebuilt in torch as a teacher gives the
+    shipped graph's golden probabilities."""
+    from training.i2s.train import build_teacher
+
+    teacher_dir = Path(__file__).resolve().parents[3] / "mlflow_snapshot/models/i2s_assignment/1.9.0"
+    teacher = build_teacher(load_config(CONFIG, [f"train.distill_from={teacher_dir}"]))
+    assert teacher is not None and not any(p.requires_grad for p in teacher.parameters())
+    with np.load(teacher_dir / "golden.npz") as golden, torch.no_grad():
+        p = torch.exp(teacher(torch.from_numpy(golden["imu"]))).numpy()
+        np.testing.assert_allclose(p, golden["expected"], atol=1e-4)
+
+
+def test_a_distilled_network_learns_what_its_teacher_says(data_dir: Path, kinematics_cache: Path, monkeypatch) -> None:
+    """Trained on a teacher's answers alone (weight 1), a network learns them even where they are not the labels:
+    a teacher that gives every window the same distribution, most of it on the first class, pulls the network's
+    mean probability of that class towards its own; the same network trained on the labels does not."""
+    import training.i2s.train as loop
+
+    entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"][:2]
+    clips = build_kinematics(data_dir, entries, kinematics_cache)
+    sets = [*TINY, "train.steps_per_epoch=40", "train.lr=0.003", "train.keep=last", "train.distill_temperature=1.0"]
+    classes = build_model(load_config(CONFIG, TINY)).head.out_features
+    favoured = torch.full((classes,), 0.2 / (classes - 1))
+    favoured[0] = 0.8
+
+    class Constant(torch.nn.Module):
+        def forward(self, imu: torch.Tensor) -> torch.Tensor:
+            return torch.log(favoured).expand(len(imu), classes)
+
+    monkeypatch.setattr(loop, "build_teacher", lambda cfg: Constant() if cfg.train.distill_weight > 0 else None)
+    windows = torch.from_numpy(loop.WindowSampler(clips, loop.Augmentation()).sample(np.random.default_rng(9), 256).imu)
+
+    def first_class_share(weight: float) -> float:
+        net = loop.train(load_config(CONFIG, [*sets, f"train.distill_weight={weight}"]), clips, clips).model
+        with torch.no_grad():
+            return float(torch.softmax(net(windows), -1)[:, 0].mean())
+
+    taught, labelled = first_class_share(1.0), first_class_share(0.0)
+    assert taught > 0.5 and labelled < 0.3, (taught, labelled)
+
+
+def test_only_an_assignment_network_that_trains_has_a_teacher() -> None:
+    import pytest
+
+    teacher = "train.distill_from=mlflow_snapshot/models/i2s_assignment/1.8.0"
+    alignment = Path(__file__).resolve().parents[3] / "training/configs/i2s_alignment.yaml"
+    with pytest.raises(ValueError, match="distill_from teaches an assignment network"):
+        load_config(alignment, [teacher])
+    ensemble = (
+        "train.ensemble_of=[mlflow_snapshot/models/i2s_assignment/1.6.0,mlflow_snapshot/models/i2s_assignment/1.8.0]"
+    )
+    with pytest.raises(ValueError, match="assembled, not trained"):
+        load_config(CONFIG, [teacher, ensemble, "train.max_epochs=0"])

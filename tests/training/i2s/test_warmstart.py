@@ -137,7 +137,7 @@ def test_an_ensemble_must_hold_its_members_real_training_recordings_out_of_evalu
     import shutil
 
     from training.i2s.config import load_config
-    from training.i2s.pipeline import _members_real_recordings_are_held_out_of_evaluation
+    from training.i2s.warmstart import check_real_recordings_declared
 
     member = tmp_path / "i2s_assignment" / "9.9.9"
     shutil.copytree(ARCHIVED / "1.8.0", member)
@@ -147,9 +147,10 @@ def test_an_ensemble_must_hold_its_members_real_training_recordings_out_of_evalu
     config = Path(__file__).resolve().parents[3] / "training/configs/i2s_assignment.yaml"
     members = f"train.ensemble_of=[mlflow_snapshot/models/i2s_assignment/1.6.0,{member}]"
     with pytest.raises(ValueError, match=r"trained on the real recordings \['ximu3_lowerbody'\]"):
-        _members_real_recordings_are_held_out_of_evaluation(load_config(config, [members, "train.max_epochs=0"]))
+        unnamed = load_config(config, [members, "train.max_epochs=0"])
+        check_real_recordings_declared(unnamed.train.ensemble_of, unnamed.data.real_train_recordings, "member")
     named = load_config(config, [members, "train.max_epochs=0", "data.real_train_recordings=[ximu3_lowerbody]"])
-    _members_real_recordings_are_held_out_of_evaluation(named)
+    check_real_recordings_declared(named.train.ensemble_of, named.data.real_train_recordings, "member")
 
 
 def test_the_warm_start_competes_as_epoch_zero(data_dir: Path, kinematics_cache: Path) -> None:
