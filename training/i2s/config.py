@@ -100,6 +100,9 @@ class TrainConfig(_Strict):
     distill_from: str | None = None
     distill_weight: float = Field(default=0.9, ge=0.0, le=1.0)
     distill_temperature: float = Field(default=2.0, gt=0.0)
+    # the activities whose simulated windows the teacher speaks for (None: every window; real windows always): the
+    # others train on their labels alone, e.g. a gait-trained teacher on gait only
+    distill_activities: list[str] | None = None
     # which weights a run returns: "best", those of the epoch with the lowest validation loss (the warm start counts
     # as epoch 0) with early stopping after ``patience`` epochs; "last", those of the final epoch, for a fixed budget
     # (max_epochs or max_minutes): to compare augmentations that the validation set, drawn without them, would
@@ -172,6 +175,8 @@ class ExperimentConfig(_Strict):
 
     @model_validator(mode="after")
     def _a_teacher_teaches_assignment(self) -> ExperimentConfig:
+        if self.train.distill_activities is not None and self.train.distill_from is None:
+            raise ValueError("train.distill_activities names the windows a teacher speaks for; set train.distill_from")
         if self.train.distill_from is not None and (self.task != "assignment" or self.train.ensemble_of):
             raise ValueError(
                 "train.distill_from teaches an assignment network that trains; got task "

@@ -82,17 +82,29 @@ def task_loss(task: str, output: torch.Tensor, segment: torch.Tensor, q_true: to
 
 
 def distillation_loss(
-    logits: torch.Tensor, teacher_log_p: torch.Tensor, segment: torch.Tensor, weight: float, temperature: float
+    logits: torch.Tensor,
+    teacher_log_p: torch.Tensor,
+    segment: torch.Tensor,
+    weight: float,
+    temperature: float,
+    taught: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Knowledge distillation (Hinton et al. 2015 §2): (1 − weight) × the cross entropy with the labels plus
     weight × τ² × KL(teacher ‖ student) between the class distributions softened at temperature τ (the τ² keeps the
-    soft term's gradients at the hard term's scale as τ changes). ``teacher_log_p``: the teacher's log class
-    probabilities (an ensemble's log mean probability)."""
-    hard = nn.functional.cross_entropy(logits, segment)
-    soft_student = torch.log_softmax(logits / temperature, -1)
+    soft term's gradients at the hard term's scale as τ changes), averaged over the windows. ``teacher_log_p``: the
+    teacher's log class probabilities (an ensemble's log mean probability) for the ``taught`` windows ``(B,)`` bool
+    (None: all); the others train on their labels alone."""
+    hard = nn.functional.cross_entropy(logits, segment, reduction="none")
+    if taught is None:
+        taught = torch.ones_like(segment, dtype=torch.bool)
+    soft_student = torch.log_softmax(logits[taught] / temperature, -1)
     soft_teacher = torch.log_softmax(teacher_log_p / temperature, -1)
-    kl = nn.functional.kl_div(soft_student, soft_teacher, log_target=True, reduction="batchmean")
-    return (1.0 - weight) * hard + weight * temperature**2 * kl
+    kl = nn.functional.kl_div(soft_student, soft_teacher, log_target=True, reduction="none").sum(-1)
+    share = torch.zeros_like(hard)
+    share[taught] = weight
+    soft = torch.zeros_like(hard)
+    soft[taught] = temperature**2 * kl
+    return ((1.0 - share) * hard + share * soft).mean()
 
 
 def build_teacher(cfg: ExperimentConfig) -> nn.Module | None:
@@ -116,8 +128,15 @@ def stereographic_l2_loss(
     return ((p[torch.arange(len(segment)), segment] - p_true) ** 2).sum(-1).mean()
 
 
-def to_tensors(batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    return torch.from_numpy(batch.imu), torch.from_numpy(batch.segment), torch.from_numpy(batch.q_segment_imu)
+def to_tensors(batch: Batch) -> tuple[torch.Tensor, ...]:
+    """imu, segment, q_segment_imu and the taught mask (all True where the batch carries none)."""
+    taught = np.ones(len(batch.segment), bool) if batch.taught is None else batch.taught
+    return (
+        torch.from_numpy(batch.imu),
+        torch.from_numpy(batch.segment),
+        torch.from_numpy(batch.q_segment_imu),
+        torch.from_numpy(taught),
+    )
 
 
 def _draw(
@@ -138,7 +157,7 @@ class _SimulatedBatches(torch.utils.data.IterableDataset):
     def __init__(self, sampler: WindowSampler, real: RealWindowSampler | None, cfg: ExperimentConfig) -> None:
         self.sampler, self.real, self.cfg = sampler, real, cfg
 
-    def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    def __iter__(self) -> Iterator[tuple[torch.Tensor, ...]]:
         info = torch.utils.data.get_worker_info()
         rng = np.random.default_rng([self.cfg.seed, info.id if info is not None else 0])
         while True:
@@ -149,7 +168,7 @@ class _SimulatedBatches(torch.utils.data.IterableDataset):
 
 def _training_batches(
     sampler: WindowSampler, real: RealWindowSampler | None, cfg: ExperimentConfig, rng: np.random.Generator
-) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+) -> Iterator[tuple[torch.Tensor, ...]]:
     if cfg.train.loader_workers == 0:
         while True:
             yield to_tensors(_draw(sampler, real, cfg.data.real_fraction, rng, cfg.train.batch_size))
@@ -178,7 +197,7 @@ def _validate(model: nn.Module, task: str, batches: list[Batch], device: torch.d
     model.eval()
     losses, correct, angles = [], 0, []
     for b in batches:
-        imu, seg, q = (x.to(device) for x in to_tensors(b))
+        imu, seg, q, _ = (x.to(device) for x in to_tensors(b))
         out = model(imu)
         losses.append(float(task_loss(task, out, seg, q)) * len(seg))
         if task == "assignment":
@@ -245,7 +264,7 @@ def train(
     if teacher is not None:
         teacher.to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
-    sampler = WindowSampler(train_clips, cfg.augmentation)
+    sampler = WindowSampler(train_clips, cfg.augmentation, taught_activities=t.distill_activities)
     # Validation: the training distribution of alignments, with only the paper's noise (no other augmentation).
     # The clips' variants keep their share, so that validation sees the gaits training does, and with
     # ``moving_only`` it is scored on the windows the service answers, as training draws them.
@@ -286,13 +305,15 @@ def train(
         running = 0.0
         bar = tqdm(range(t.steps_per_epoch), desc=f"{cfg.name} epoch {epoch}/{t.max_epochs}", unit="step", leave=False)
         for _ in bar:
-            imu, seg, q = (x.to(device, non_blocking=True) for x in next(batches))
+            imu, seg, q, taught = (x.to(device, non_blocking=True) for x in next(batches))
             if t.alignment_loss == "stereographic_l2" and isinstance(model, AlignmentNet):
                 loss = stereographic_l2_loss(model, imu, seg, q)
             elif teacher is not None:
                 with torch.no_grad():
-                    teacher_log_p = teacher(imu)
-                loss = distillation_loss(model(imu), teacher_log_p, seg, t.distill_weight, t.distill_temperature)
+                    teacher_log_p = teacher(imu[taught])
+                loss = distillation_loss(
+                    model(imu), teacher_log_p, seg, t.distill_weight, t.distill_temperature, taught
+                )
             else:
                 loss = task_loss(cfg.task, model(imu), seg, q)
             optimiser.zero_grad()

@@ -70,6 +70,14 @@ def test_the_distillation_loss_is_the_cross_entropy_and_the_softened_kl_in_their
     expected = 4.0 * (p_t * (torch.log(p_t) - log_p_s)).sum(-1).mean()
     torch.testing.assert_close(soft, expected)
     assert float(soft) > 0.01
+    # a mask: the untaught windows keep their cross entropy, the taught ones the soft term alone
+    taught = torch.tensor([True, False] * 4)
+    per_window_ce = torch.nn.functional.cross_entropy(logits, segment, reduction="none")
+    per_window_kl = 4.0 * (p_t * (torch.log(p_t) - log_p_s)).sum(-1)
+    masked = distillation_loss(logits, teacher[taught], segment, 1.0, 2.0, taught)
+    torch.testing.assert_close(masked, torch.where(taught, per_window_kl, per_window_ce).mean())
+    none = torch.zeros(8, dtype=torch.bool)
+    torch.testing.assert_close(distillation_loss(logits, teacher[none], segment, 0.9, 2.0, none), plain)
     same = teacher.clone().requires_grad_(True)
     agreed = distillation_loss(same, teacher, segment, 1.0, 2.0)
     agreed.backward()
@@ -130,3 +138,26 @@ def test_only_an_assignment_network_that_trains_has_a_teacher() -> None:
     )
     with pytest.raises(ValueError, match="assembled, not trained"):
         load_config(CONFIG, [teacher, ensemble, "train.max_epochs=0"])
+    with pytest.raises(ValueError, match="set train.distill_from"):
+        load_config(CONFIG, ["train.distill_activities=[walk]"])
+
+
+def test_the_windows_a_teacher_speaks_for_are_those_of_its_activities(data_dir: Path, kinematics_cache: Path) -> None:
+    """``taught_activities`` marks each drawn window by its clip's activity, through the moving-window filter and
+    the mixing with real windows (which count as taught)."""
+    from training.i2s.data.windows import Augmentation, Batch, WindowSampler, concat_batches
+
+    entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"][:1]
+    entries += [e for e in mocap_entries(data_dir, ["dance"]) if e.group == "cmu_05"][:1]
+    clips = build_kinematics(data_dir, entries, kinematics_cache)
+    sampler = WindowSampler(clips, Augmentation(moving_only=True), taught_activities=["walk"])
+    rng = np.random.default_rng(0)
+    b = sampler.sample(rng, 256)
+    assert b.taught is not None and b.taught.dtype == bool and len(b.taught) == 256
+    assert 0 < b.taught.sum() < 256  # both clips drawn
+    walk = sampler.stack.draw_p[[c.entry.activity == "walk" for c in sampler.clips]].sum()
+    assert abs(b.taught.mean() - walk) < 0.15
+    assert WindowSampler(clips, Augmentation()).sample(rng, 8).taught is None
+    real = Batch(np.zeros((4, 128, 6), np.float32), np.zeros(4, np.int64), np.zeros((4, 4), np.float32))
+    mixed = concat_batches(b, real)
+    assert mixed.taught is not None and mixed.taught[-4:].all() and (mixed.taught[:256] == b.taught).all()

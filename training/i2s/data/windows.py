@@ -77,6 +77,8 @@ class Batch:
     imu: np.ndarray  # (B, 128, 6) float32
     segment: np.ndarray  # (B,) int64
     q_segment_imu: np.ndarray  # (B, 4) float32, w >= 0
+    # (B,) bool: the windows a teacher speaks for in distillation (``train.distill_activities``); None: all
+    taught: np.ndarray | None = None
 
 
 _BATCH_FIELDS = [f.name for f in fields(Batch)]
@@ -131,12 +133,23 @@ def _random_tilt(rng: np.random.Generator, n: int, tilt_deg: float) -> np.ndarra
 class WindowSampler:
     """Random simulated windows from a set of clips (training and validation)."""
 
-    def __init__(self, clips: list[Clip], aug: Augmentation, spec: SensorSpec = SensorSpec()) -> None:
+    def __init__(
+        self,
+        clips: list[Clip],
+        aug: Augmentation,
+        spec: SensorSpec = SensorSpec(),
+        taught_activities: list[str] | None = None,
+    ) -> None:
+        """``taught_activities``: the windows of these activities' clips are marked ``Batch.taught`` (None: no
+        mark, a teacher speaks for every window)."""
         self.clips = [c for c in clips if c.n_samples >= WINDOW_SAMPLES + 1]
         if aug.mirror:
             self.clips += [Clip(c.entry, mirrored(c.kin), f"{c.digest}-mirror", c.variant) for c in self.clips]
         self.stack = _Stacked(self.clips, aug.stiff_knee_share)
         self.aug, self.spec = aug, spec
+        self.taught_clip = (
+            None if taught_activities is None else np.array([c.entry.activity in taught_activities for c in self.clips])
+        )
 
     def _alignments(self, rng: np.random.Generator, seg: np.ndarray) -> np.ndarray:
         n = len(seg)
@@ -156,10 +169,10 @@ class WindowSampler:
         for _ in range(_MAX_MOVING_ROUNDS):
             b = self._draw(rng, batch_size)
             keep = is_moving(b.imu)
-            parts.append(Batch(b.imu[keep], b.segment[keep], b.q_segment_imu[keep]))
+            parts.append(Batch(*(None if getattr(b, f) is None else getattr(b, f)[keep] for f in _BATCH_FIELDS)))
             n += int(keep.sum())
             if n >= batch_size:
-                return Batch(*(np.concatenate([getattr(p, f) for p in parts])[:batch_size] for f in _BATCH_FIELDS))
+                return concat_batches(*parts, limit=batch_size)
         raise ValueError(
             f"augmentation.moving_only: {n} moving windows in {_MAX_MOVING_ROUNDS} draws of {batch_size}; "
             "the clips are nearly all still"
@@ -191,7 +204,8 @@ class WindowSampler:
         else:
             imu = imu_readings(lin_acc, up, gyr, ang_acc, R, offset)
         imu = self._sensor_errors(rng, imu)
-        return Batch(imu.astype(np.float32), seg.astype(np.int64), quat_from_matrix(R).astype(np.float32))
+        taught = None if self.taught_clip is None else self.taught_clip[clip]
+        return Batch(imu.astype(np.float32), seg.astype(np.int64), quat_from_matrix(R).astype(np.float32), taught)
 
     def _soft_tissue(self, rng: np.random.Generator, seg: np.ndarray) -> SoftTissue:
         b, share = len(seg), SOFT_TISSUE_SHARE[seg]
@@ -307,9 +321,12 @@ def real_window_samplers(
     return RealWindowSampler(recordings, "train", fraction), RealWindowSampler(recordings, "validation", fraction)
 
 
-def concat_batches(a: Batch, b: Batch) -> Batch:
-    return Batch(
-        np.concatenate([a.imu, b.imu]),
-        np.concatenate([a.segment, b.segment]),
-        np.concatenate([a.q_segment_imu, b.q_segment_imu]),
-    )
+def concat_batches(*batches: Batch, limit: int | None = None) -> Batch:
+    """The batches one after the other (the first ``limit`` windows). Where some carry ``taught`` and others do not,
+    the others' windows count as taught (real windows: gait, which a teacher speaks for)."""
+    if all(b.taught is None for b in batches):
+        taught = None
+    else:
+        taught = np.concatenate([np.ones(len(b.segment), bool) if b.taught is None else b.taught for b in batches])
+    joined = [np.concatenate([getattr(b, f) for b in batches]) for f in ("imu", "segment", "q_segment_imu")]
+    return Batch(*(a[:limit] for a in joined), None if taught is None else taught[:limit])
