@@ -109,6 +109,7 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
         }
         # real recordings the network trained on (Zimmermann et al. 2018 §4.3); no real-data evaluation may use them
         | ({"real_train_recordings": cfg.data.real_train_recordings} if cfg.data.real_train_recordings else {})
+        | (_teacher(cfg) if cfg.train.distill_from else {})
         | (
             {"bandai_namco": True, "licence": BANDAI_LICENCE}
             if run.data.tags.get("trains_on_bandai_namco") == "true"
@@ -134,6 +135,22 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
         | (_ensemble(cfg.train.ensemble_of) if cfg.train.ensemble_of else {}),
         parity_atol=PARITY_ATOL,
     )
+
+
+def _teacher(cfg: ExperimentConfig) -> dict[str, dict]:
+    """What a distilled network's manifest records of its teacher (``train.distill_from``): which shipped file taught
+    it, on which activities' windows (all: null), and how."""
+    t = cfg.train
+    teacher = read_manifest(Path(str(t.distill_from)) / "manifest.json")
+    return {
+        "distilled_from": {
+            "model": f"{teacher.name}/{teacher.version}",
+            "sha256": teacher.sha256,
+            "activities": t.distill_activities,
+            "weight": t.distill_weight,
+            "temperature": t.distill_temperature,
+        }
+    }
 
 
 def _ensemble(member_dirs: list[str]) -> dict[str, list[str]]:

@@ -309,11 +309,12 @@ def train(
             if t.alignment_loss == "stereographic_l2" and isinstance(model, AlignmentNet):
                 loss = stereographic_l2_loss(model, imu, seg, q)
             elif teacher is not None:
-                with torch.no_grad():
-                    teacher_log_p = teacher(imu[taught])
-                loss = distillation_loss(
-                    model(imu), teacher_log_p, seg, t.distill_weight, t.distill_temperature, taught
-                )
+                logits = model(imu)
+                with torch.no_grad():  # a batch without a taught window (rare with few of them) asks nothing
+                    teacher_log_p = (
+                        teacher(imu[taught]) if bool(taught.any()) else logits.new_zeros(0, logits.shape[-1])
+                    )
+                loss = distillation_loss(logits, teacher_log_p, seg, t.distill_weight, t.distill_temperature, taught)
             else:
                 loss = task_loss(cfg.task, model(imu), seg, q)
             optimiser.zero_grad()

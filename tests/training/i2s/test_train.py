@@ -161,3 +161,15 @@ def test_the_windows_a_teacher_speaks_for_are_those_of_its_activities(data_dir: 
     real = Batch(np.zeros((4, 128, 6), np.float32), np.zeros(4, np.int64), np.zeros((4, 4), np.float32))
     mixed = concat_batches(b, real)
     assert mixed.taught is not None and mixed.taught[-4:].all() and (mixed.taught[:256] == b.taught).all()
+
+
+def test_a_distilled_networks_manifest_names_its_teacher() -> None:
+    from service.core.manifest import read_manifest
+    from training.i2s.ship import _teacher
+
+    teacher_dir = Path(__file__).resolve().parents[3] / "mlflow_snapshot/models/i2s_assignment/1.9.0"
+    cfg = load_config(CONFIG, [f"train.distill_from={teacher_dir}", "train.distill_activities=[walk,run]"])
+    record = _teacher(cfg)["distilled_from"]
+    assert record["model"] == "i2s_assignment/1.9.0" and record["activities"] == ["walk", "run"]
+    assert record["sha256"] == read_manifest(teacher_dir / "manifest.json").sha256
+    assert (record["weight"], record["temperature"]) == (0.9, 2.0)
