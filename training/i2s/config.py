@@ -175,8 +175,13 @@ class ExperimentConfig(_Strict):
 
     @model_validator(mode="after")
     def _a_teacher_teaches_assignment(self) -> ExperimentConfig:
-        if self.train.distill_activities is not None and self.train.distill_from is None:
+        taught = self.train.distill_activities
+        if taught is not None and self.train.distill_from is None:
             raise ValueError("train.distill_activities names the windows a teacher speaks for; set train.distill_from")
+        if taught is not None and (not taught or set(taught) - set(self.data.activities)):
+            raise ValueError(
+                f"train.distill_activities must be some of data.activities {self.data.activities}; got {taught}"
+            )
         if self.train.distill_from is not None and (self.task != "assignment" or self.train.ensemble_of):
             raise ValueError(
                 "train.distill_from teaches an assignment network that trains; got task "

@@ -141,7 +141,8 @@ def _teacher(cfg: ExperimentConfig) -> dict[str, dict]:
     """What a distilled network's manifest records of its teacher (``train.distill_from``): which shipped file taught
     it, on which activities' windows (all: null), and how."""
     t = cfg.train
-    teacher = read_manifest(Path(str(t.distill_from)) / "manifest.json")
+    assert t.distill_from is not None
+    teacher = read_manifest(Path(t.distill_from) / "manifest.json")
     return {
         "distilled_from": {
             "model": f"{teacher.name}/{teacher.version}",

@@ -92,8 +92,8 @@ def distillation_loss(
     """Knowledge distillation (Hinton et al. 2015 §2): (1 − weight) × the cross entropy with the labels plus
     weight × τ² × KL(teacher ‖ student) between the class distributions softened at temperature τ (the τ² keeps the
     soft term's gradients at the hard term's scale as τ changes), averaged over the windows. ``teacher_log_p``: the
-    teacher's log class probabilities (an ensemble's log mean probability) for the ``taught`` windows ``(B,)`` bool
-    (None: all); the others train on their labels alone."""
+    teacher's log class probabilities (``build_teacher``) for the ``taught`` windows ``(B,)`` bool (None: all); the
+    others train on their labels alone."""
     hard = nn.functional.cross_entropy(logits, segment, reduction="none")
     if taught is None:
         taught = torch.ones_like(segment, dtype=torch.bool)
@@ -114,7 +114,7 @@ def build_teacher(cfg: ExperimentConfig) -> nn.Module | None:
     if t.distill_from is None:
         return None
     check_real_recordings_declared([t.distill_from], cfg.data.real_train_recordings, "teacher")
-    return teacher_from_shipped(Path(t.distill_from), t.hidden, t.channels, t.kernel, t.keep_prob)
+    return teacher_from_shipped(Path(t.distill_from), t.keep_prob)
 
 
 def stereographic_l2_loss(
@@ -128,7 +128,7 @@ def stereographic_l2_loss(
     return ((p[torch.arange(len(segment)), segment] - p_true) ** 2).sum(-1).mean()
 
 
-def to_tensors(batch: Batch) -> tuple[torch.Tensor, ...]:
+def to_tensors(batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """imu, segment, q_segment_imu and the taught mask (all True where the batch carries none)."""
     taught = np.ones(len(batch.segment), bool) if batch.taught is None else batch.taught
     return (
@@ -252,17 +252,17 @@ def train(
     if (real is not None or real_val is not None) and cfg.task != "assignment":
         raise ValueError("real recordings carry no alignment labels; mix them into assignment training only")
     t = cfg.train
+    device = torch.device(t.device)
+    teacher = build_teacher(cfg)  # before the seed: building it draws torch's random numbers, training must not see
+    if teacher is not None:
+        teacher.to(device)
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(t.threads)
     rng = np.random.default_rng(cfg.seed)
-    device = torch.device(t.device)
     model = build_model(cfg)
     if init_state is not None:
         model.load_state_dict(init_state)
     model.to(device)
-    teacher = build_teacher(cfg)
-    if teacher is not None:
-        teacher.to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     sampler = WindowSampler(train_clips, cfg.augmentation, taught_activities=t.distill_activities)
     # Validation: the training distribution of alignments, with only the paper's noise (no other augmentation).
@@ -396,7 +396,11 @@ def load_fitted(
     Returns the result and the fitted config (for the run's record of where it trained).
     """
     payload = torch.load(path, weights_only=True)
-    theirs, ours = _settings(payload["config"]), _settings(cfg.model_dump(mode="json"))
+    try:  # the fitted config with today's defaults for keys added since it was written
+        fitted_cfg = ExperimentConfig.model_validate(payload["config"]).model_dump(mode="json")
+    except ValueError:  # a key since removed: compared as written, so the message names it
+        fitted_cfg = payload["config"]
+    theirs, ours = _settings(fitted_cfg), _settings(cfg.model_dump(mode="json"))
     differ = sorted(k for k in theirs.keys() | ours.keys() if theirs.get(k) != ours.get(k))
     if differ:
         raise ValueError(

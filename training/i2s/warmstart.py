@@ -16,6 +16,7 @@ import numpy as np
 import onnx
 import torch
 from onnx import numpy_helper
+from torch import nn
 
 from service.core.manifest import read_manifest
 from training.i2s.models import AlignmentNet, AssignmentEnsemble, AssignmentNet
@@ -160,24 +161,52 @@ def ensemble_members(exporter: dict, models_root: Path) -> list[str]:
     return [str(models_root / str(member)) for member in exporter.get("ensemble_of", [])]
 
 
-def teacher_from_shipped(
-    model_dir: Path, hidden: int, channels: int, kernel: int, keep_prob: float = 0.8
-) -> AssignmentNet | AssignmentEnsemble:
-    """A shipped float32 assignment model as a frozen torch network in evaluation mode, its output the log of its
-    class probabilities: an ensemble (manifest ``exporter.ensemble_of``) from its members, each with its turn
-    averages and checked against its golden output; a single model likewise."""
+class _LogProbabilities(nn.Module):
+    """A network's output as log class probabilities (idempotent: an averaged net's output already is one)."""
+
+    def __init__(self, net: nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, imu: torch.Tensor) -> torch.Tensor:
+        return torch.log_softmax(self.net(imu), -1)
+
+
+def assignment_sizes(model_dir: Path) -> tuple[int, int, int]:
+    """(hidden, channels, kernel) of a shipped one-network assignment graph (an ensemble's: its first member's),
+    read from its first convolution's and its GRU's weights."""
+    exporter = read_manifest(model_dir / "manifest.json").exporter
+    if "ensemble_of" in exporter:
+        return assignment_sizes(Path(ensemble_members(exporter, model_dir.parent.parent)[0]))
+    graph = onnx.load(str(model_dir / "model.onnx")).graph
+    inits = {i.name: i for i in graph.initializer}
+    conv = next(n for n in graph.node if n.op_type == "Conv")
+    gru = next(n for n in graph.node if n.op_type == "GRU")
+    channels, _, kernel = inits[conv.input[1]].dims
+    return int(inits[gru.input[2]].dims[-1]), int(channels), int(kernel)
+
+
+def teacher_from_shipped(model_dir: Path, keep_prob: float = 0.8) -> nn.Module:
+    """A shipped float32 assignment model as a frozen torch network in evaluation mode that outputs log class
+    probabilities: an ensemble (manifest ``exporter.ensemble_of``) from its members, each with its turn averages,
+    or one network; its sizes read from its file, its weights checked against every golden output on the way."""
+    hidden, channels, kernel = assignment_sizes(model_dir)
     exporter = read_manifest(model_dir / "manifest.json").exporter
     if "ensemble_of" in exporter:
         members = ensemble_members(exporter, model_dir.parent.parent)
-        net: AssignmentNet | AssignmentEnsemble = assignment_ensemble(members, hidden, channels, kernel, keep_prob)
+        net: nn.Module = assignment_ensemble(members, hidden, channels, kernel, keep_prob)
         net.load_state_dict(ensemble_state(members, net))  # type: ignore[arg-type]
     else:
-        net = shipped_graph(model_dir, "assignment", hidden, channels, kernel, keep_prob)  # type: ignore[assignment]
+        net = shipped_graph(model_dir, "assignment", hidden, channels, kernel, keep_prob)
         net.load_state_dict(warm_start_from_shipped(model_dir, net))  # type: ignore[arg-type]
-    net.eval()
-    for p in net.parameters():
+    teacher = _LogProbabilities(net).eval()
+    for p in teacher.parameters():
         p.requires_grad_(False)
-    return net
+    with np.load(model_dir / "golden.npz") as golden, torch.no_grad():  # the whole, as the service runs it
+        err = float(np.max(np.abs(torch.exp(teacher(torch.from_numpy(golden["imu"]))).numpy() - golden["expected"])))
+    if err > 1e-4:
+        raise ValueError(f"the teacher rebuilt from {model_dir} differs from its golden output by {err:.2e}")
+    return teacher
 
 
 def real_recordings_seen(model_dir: Path) -> list[str]:

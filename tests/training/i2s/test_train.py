@@ -1,4 +1,5 @@
-"""The training loop: its weight average (``train.ema_decay``) and which weights it returns (``train.keep``)."""
+"""The training loop: its weight average (``train.ema_decay``), which weights it returns (``train.keep``), and a
+network taught by a shipped one (``train.distill_from``)."""
 
 from pathlib import Path
 
@@ -76,6 +77,10 @@ def test_the_distillation_loss_is_the_cross_entropy_and_the_softened_kl_in_their
     per_window_kl = 4.0 * (p_t * (torch.log(p_t) - log_p_s)).sum(-1)
     masked = distillation_loss(logits, teacher[taught], segment, 1.0, 2.0, taught)
     torch.testing.assert_close(masked, torch.where(taught, per_window_kl, per_window_ce).mean())
+    half = distillation_loss(logits, teacher[taught], segment, 0.5, 2.0, taught)
+    torch.testing.assert_close(
+        half, torch.where(taught, 0.5 * per_window_ce + 0.5 * per_window_kl, per_window_ce).mean()
+    )
     none = torch.zeros(8, dtype=torch.bool)
     torch.testing.assert_close(distillation_loss(logits, teacher[none], segment, 0.9, 2.0, none), plain)
     same = teacher.clone().requires_grad_(True)
@@ -84,17 +89,19 @@ def test_the_distillation_loss_is_the_cross_entropy_and_the_softened_kl_in_their
     assert abs(float(agreed)) < 1e-6 and float(same.grad.abs().max()) < 1e-6
 
 
-def test_the_teacher_is_the_shipped_ensemble() -> None:
-    """The archived 1.9.0 (the mean of 1.6.0's sixteen turns and 1.8.0) rebuilt in torch as a teacher gives the
-    shipped graph's golden probabilities."""
+def test_the_teacher_is_the_shipped_file_in_log_probabilities() -> None:
+    """The archived 1.9.0 (the mean of 1.6.0's sixteen turns and 1.8.0) and the one-pass 1.8.0, rebuilt in torch as
+    teachers, give their shipped graphs' golden probabilities as log probabilities, frozen."""
     from training.i2s.train import build_teacher
 
-    teacher_dir = Path(__file__).resolve().parents[3] / "mlflow_snapshot/models/i2s_assignment/1.9.0"
-    teacher = build_teacher(load_config(CONFIG, [f"train.distill_from={teacher_dir}"]))
-    assert teacher is not None and not any(p.requires_grad for p in teacher.parameters())
-    with np.load(teacher_dir / "golden.npz") as golden, torch.no_grad():
-        p = torch.exp(teacher(torch.from_numpy(golden["imu"]))).numpy()
-        np.testing.assert_allclose(p, golden["expected"], atol=1e-4)
+    for version in ("1.9.0", "1.8.0"):
+        teacher_dir = Path(__file__).resolve().parents[3] / f"mlflow_snapshot/models/i2s_assignment/{version}"
+        teacher = build_teacher(load_config(CONFIG, [f"train.distill_from={teacher_dir}"]))
+        assert teacher is not None and not any(p.requires_grad for p in teacher.parameters())
+        with np.load(teacher_dir / "golden.npz") as golden, torch.no_grad():
+            p = torch.exp(teacher(torch.from_numpy(golden["imu"]))).numpy()
+            np.testing.assert_allclose(p.sum(-1), 1.0, atol=1e-5)
+            np.testing.assert_allclose(p, golden["expected"], atol=1e-4)
 
 
 def test_a_distilled_network_learns_what_its_teacher_says(data_dir: Path, kinematics_cache: Path, monkeypatch) -> None:
@@ -140,26 +147,42 @@ def test_only_an_assignment_network_that_trains_has_a_teacher() -> None:
         load_config(CONFIG, [teacher, ensemble, "train.max_epochs=0"])
     with pytest.raises(ValueError, match="set train.distill_from"):
         load_config(CONFIG, ["train.distill_activities=[walk]"])
+    with pytest.raises(ValueError, match="must be some of data.activities"):
+        load_config(CONFIG, [teacher, "train.distill_activities=[wlak]"])
 
 
-def test_the_windows_a_teacher_speaks_for_are_those_of_its_activities(data_dir: Path, kinematics_cache: Path) -> None:
-    """``taught_activities`` marks each drawn window by its clip's activity, through the moving-window filter and
-    the mixing with real windows (which count as taught)."""
-    from training.i2s.data.windows import Augmentation, Batch, WindowSampler, concat_batches
+def test_the_windows_a_teacher_speaks_for_are_those_of_its_activities(
+    data_dir: Path, kinematics_cache: Path, monkeypatch
+) -> None:
+    """``taught_activities`` marks each drawn window by its clip's activity, window by window through the
+    moving-window filter and the mixing with real windows (which count as taught), and leaves the draws as they
+    were."""
+    import training.i2s.data.windows as windows
 
     entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"][:1]
     entries += [e for e in mocap_entries(data_dir, ["dance"]) if e.group == "cmu_05"][:1]
     clips = build_kinematics(data_dir, entries, kinematics_cache)
-    sampler = WindowSampler(clips, Augmentation(moving_only=True), taught_activities=["walk"])
-    rng = np.random.default_rng(0)
-    b = sampler.sample(rng, 256)
-    assert b.taught is not None and b.taught.dtype == bool and len(b.taught) == 256
-    assert 0 < b.taught.sum() < 256  # both clips drawn
-    walk = sampler.stack.draw_p[[c.entry.activity == "walk" for c in sampler.clips]].sum()
-    assert abs(b.taught.mean() - walk) < 0.15
-    assert WindowSampler(clips, Augmentation()).sample(rng, 8).taught is None
-    real = Batch(np.zeros((4, 128, 6), np.float32), np.zeros(4, np.int64), np.zeros((4, 4), np.float32))
-    mixed = concat_batches(b, real)
+    aug = windows.Augmentation(moving_only=True)
+    marked = windows.WindowSampler(clips, aug, taught_activities=["walk"])
+    plain = windows.WindowSampler(clips, aug)
+    monkeypatch.setattr(windows, "is_moving", lambda imu: np.arange(len(imu)) % 3 != 0)  # a third dropped
+    draws, draw = [], marked._draw
+    monkeypatch.setattr(marked, "_draw", lambda rng, n: draws.append(draw(rng, n)) or draws[-1])
+    b = marked.sample(np.random.default_rng(0), 256)
+    assert len(draws) == 2  # two draws of 256 keep 2 × 170 windows
+    keep = np.arange(256) % 3 != 0
+    np.testing.assert_array_equal(b.taught, np.concatenate([d.taught[keep] for d in draws])[:256])
+    np.testing.assert_array_equal(b.imu, np.concatenate([d.imu[keep] for d in draws])[:256])
+    for activity, clip in (("walk", clips[:1]), ("dance", clips[1:])):  # each mark is its clip's activity
+        alone = windows.WindowSampler(clip, windows.Augmentation(), taught_activities=["walk"])
+        assert (alone.sample(np.random.default_rng(1), 32).taught == (activity == "walk")).all()
+    same = plain.sample(np.random.default_rng(0), 256)
+    assert same.taught is None
+    for f in ("imu", "segment", "q_segment_imu"):
+        np.testing.assert_array_equal(getattr(b, f), getattr(same, f))
+    assert b.taught is not None and len(b.taught) == 256 and 0 < b.taught.sum() < 256
+    real = windows.Batch(np.zeros((4, 128, 6), np.float32), np.zeros(4, np.int64), np.zeros((4, 4), np.float32))
+    mixed = windows.concat_batches(b, real)
     assert mixed.taught is not None and mixed.taught[-4:].all() and (mixed.taught[:256] == b.taught).all()
 
 
