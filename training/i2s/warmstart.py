@@ -173,11 +173,8 @@ class _LogProbabilities(nn.Module):
 
 
 def assignment_sizes(model_dir: Path) -> tuple[int, int, int]:
-    """(hidden, channels, kernel) of a shipped one-network assignment graph (an ensemble's: its first member's),
-    read from its first convolution's and its GRU's weights."""
-    exporter = read_manifest(model_dir / "manifest.json").exporter
-    if "ensemble_of" in exporter:
-        return assignment_sizes(Path(ensemble_members(exporter, model_dir.parent.parent)[0]))
+    """(hidden, channels, kernel) of a shipped one-network assignment graph, read from its first convolution's and
+    its GRU's weights."""
     graph = onnx.load(str(model_dir / "model.onnx")).graph
     inits = {i.name: i for i in graph.initializer}
     conv = next(n for n in graph.node if n.op_type == "Conv")
@@ -190,10 +187,10 @@ def teacher_from_shipped(model_dir: Path, keep_prob: float = 0.8) -> nn.Module:
     """A shipped float32 assignment model as a frozen torch network in evaluation mode that outputs log class
     probabilities: an ensemble (manifest ``exporter.ensemble_of``) from its members, each with its turn averages,
     or one network; its sizes read from its file, its weights checked against every golden output on the way."""
-    hidden, channels, kernel = assignment_sizes(model_dir)
     exporter = read_manifest(model_dir / "manifest.json").exporter
-    if "ensemble_of" in exporter:
-        members = ensemble_members(exporter, model_dir.parent.parent)
+    members = ensemble_members(exporter, model_dir.parent.parent)
+    hidden, channels, kernel = assignment_sizes(Path(members[0]) if members else model_dir)
+    if members:
         net: nn.Module = assignment_ensemble(members, hidden, channels, kernel, keep_prob)
         net.load_state_dict(ensemble_state(members, net))  # type: ignore[arg-type]
     else:

@@ -328,5 +328,5 @@ def concat_batches(*batches: Batch, limit: int | None = None) -> Batch:
         taught = None
     else:
         taught = np.concatenate([np.ones(len(b.segment), bool) if b.taught is None else b.taught for b in batches])
-    joined = [np.concatenate([getattr(b, f) for b in batches]) for f in ("imu", "segment", "q_segment_imu")]
+    joined = [np.concatenate([getattr(b, f) for b in batches]) for f in _BATCH_FIELDS if f != "taught"]
     return Batch(*(a[:limit] for a in joined), None if taught is None else taught[:limit])
