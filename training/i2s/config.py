@@ -34,6 +34,9 @@ class DataConfig(_Strict):
     # the 4,096 simulated windows outweigh a few hundred real ones and a fine-tune that gains on real data but
     # grows less sure on simulated data returns its warm start unchanged
     real_val_weight: float | None = Field(None, gt=0.0, lt=1.0)
+    # the share of drawn real training windows read as if worn by the mirror-image body (``mirrored_readings``):
+    # the other side's segment, so a group's one-sided habits (a paretic leg, a braced knee) cannot teach the side
+    real_mirror: float = Field(0.0, ge=0.0, le=1.0)
     sample_rate_hz: float = 60.0
     cutoff_hz: float = 10.0
     filter_order: int = 8

@@ -14,6 +14,8 @@ from training.i2s.data.imu_sim import (
     alignment_grid,
     body_angular_velocity,
     imu_readings,
+    mirrored,
+    mirrored_readings,
     quantise,
     segment_kinematics,
 )
@@ -131,6 +133,32 @@ def test_mirrored_kinematics_are_those_of_the_mirrored_mocap(data_dir) -> None:
         np.testing.assert_allclose(getattr(got, name), getattr(expected, name), atol=1e-6, err_msg=name)
     # and it is not the identity: the left foot's angular velocity changed
     assert not np.allclose(expected.gyr_rads[:, 0], original.gyr_rads[:, 0], atol=0.1)
+
+
+def test_mirrored_readings_are_the_mirror_bodys_sensor_on_the_other_side(data_dir) -> None:
+    """``mirrored_readings`` of a sensor's window equal the readings of the mirror-image body's other-side segment
+    (``mirrored``) carrying that sensor mounted M R S, a proper rotation; and no rotation of the original sensor
+    reads them (a reflection is not a remounting), so the side is not lost."""
+    traj = _walk_trajectory(data_dir, 300)
+    kin = segment_kinematics(traj)
+    other = mirrored(kin)
+    M = S = np.diag([1.0, -1.0, 1.0])
+    R = Rotation.random(1, random_state=3).as_matrix()
+    for k in (0, 2, 3):  # left foot, left thigh, pelvis
+        args = [getattr(kin, n)[None, :, k] for n in ("lin_acc_mps2", "up_mps2", "gyr_rads", "ang_acc_rads2")]
+        reading = imu_readings(*args, R_segment_imu=R)
+        twin = [getattr(other, n)[None, :, 6 - k] for n in ("lin_acc_mps2", "up_mps2", "gyr_rads", "ang_acc_rads2")]
+        mounted = M @ R[0] @ S
+        assert np.isclose(np.linalg.det(mounted), 1.0)
+        np.testing.assert_allclose(
+            mirrored_readings(reading), imu_readings(*twin, R_segment_imu=mounted[None]), atol=1e-9
+        )
+    # no rotation of the sensor reads them: the gyroscope alone turns by a half turn about y (−S), but one rotation
+    # of both vectors together (Kabsch on accelerometer and gyroscope rows) leaves a residual; the side is in them
+    both = np.concatenate([reading[0, :, :3] / 9.81, reading[0, :, 3:]])
+    both_m = np.concatenate([mirrored_readings(reading)[0, :, :3] / 9.81, mirrored_readings(reading)[0, :, 3:]])
+    rot, _ = Rotation.align_vectors(both_m, both)
+    assert np.abs(rot.apply(both) - both_m).mean() > 0.1 * np.abs(both).mean()
 
 
 def _walk_trajectory(data_dir, frames: int = 600):

@@ -11,6 +11,7 @@ import pytest
 from service.core.assignment import is_moving
 from service.core.recordings import read_recording
 from service.core.rotations import matrix_from_quat
+from service.core.segments import MIRROR
 from training.data.catalog import mocap_entries
 from training.i2s.config import load_config
 from training.i2s.data.mocap import build_kinematics
@@ -74,6 +75,26 @@ def test_real_windows_are_moving_and_labelled(data_dir: Path) -> None:
     assert set(np.unique(real.segment)) == set(range(7))
     batch = real.sample(np.random.default_rng(0), 32)
     assert np.isnan(batch.q_segment_imu).all()  # no alignment labels on real data
+
+
+def test_mirrored_real_windows_swap_sides_and_flip_the_mirrored_axes(data_dir: Path) -> None:
+    """``mirror``: about that share of drawn windows is read as the mirror-image body's sensor (accelerometer y,
+    gyroscope x and z negated) and labelled as the other side's segment; the rest are drawn as without it, and a
+    share of 0 draws exactly the windows it drew before."""
+    recording = read_recording(data_dir, "capacitive_sub01/CSBaseline")
+    plain = RealWindowSampler([recording])
+    half = RealWindowSampler([recording], mirror=0.5)
+    a = plain.sample(np.random.default_rng(0), 512)
+    b = half.sample(np.random.default_rng(0), 512)  # the same windows (idx is drawn first), some mirrored
+    flipped = ~np.isclose(a.imu, b.imu).all(axis=(1, 2))
+    assert 0.4 < flipped.mean() < 0.6
+    np.testing.assert_array_equal(b.segment[flipped], np.asarray(MIRROR)[a.segment[flipped]])
+    np.testing.assert_array_equal(b.segment[~flipped], a.segment[~flipped])
+    sign = np.array([1, -1, 1, -1, 1, -1], np.float32)
+    np.testing.assert_array_equal(b.imu[flipped], a.imu[flipped] * sign)
+    assert (b.segment[flipped] != a.segment[flipped]).mean() > 0.6  # only the pelvis keeps its label
+    again = RealWindowSampler([recording], mirror=0.0).sample(np.random.default_rng(0), 512)
+    np.testing.assert_array_equal(again.imu, a.imu)
 
 
 def test_real_validation_windows_come_after_every_training_window(data_dir: Path) -> None:

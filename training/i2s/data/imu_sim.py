@@ -123,6 +123,24 @@ def mirrored(kin: SegmentKinematics) -> SegmentKinematics:
     )
 
 
+# A sensor frame reflected through its own x–z plane: the mirror-image body's sensor (``mirrored_readings``).
+_SENSOR_MIRROR = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
+
+
+def mirrored_readings(imu: np.ndarray) -> np.ndarray:
+    """Readings ``(..., 6)`` (accelerometer, gyroscope) as the mirror-image body's sensor reads them (our addition,
+    not Zimmermann et al. 2018): what ``mirrored`` does to a clip, done to recorded windows whose segment motion is
+    unknown.
+
+    A sensor mounted R on a segment that moves with specific force a and angular velocity ω (segment frame) reads
+    Rᵀa and Rᵀω. The mirror-image body (``mirrored``) moves the other side's segment with M a and −M ω; a sensor
+    mounted there as M R S (S = diag(1, −1, 1) reflects the sensor's own y axis, so that M R S is a rotation) reads
+    S Rᵀ a and −S Rᵀ ω: the accelerometer's y and the gyroscope's x and z change sign. Since the mounting is
+    unknown anyway, these readings are a valid recording of the other side's segment (label k ↔ 6 − k).
+    """
+    return imu * _SENSOR_MIRROR
+
+
 # Foot, shank and thigh of each leg, in ``SEGMENTS`` order.
 LEG_CHAIN = {"left": (0, 1, 2), "right": (6, 5, 4)}
 

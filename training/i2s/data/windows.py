@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 from service.core.assignment import is_moving
 from service.core.recordings import RealRecording
 from service.core.rotations import quat_from_matrix
+from service.core.segments import MIRROR
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES, sliding_windows
 from training.i2s.data.imu_sim import (
     SOFT_TISSUE_SHARE,
@@ -28,6 +29,7 @@ from training.i2s.data.imu_sim import (
     alignment_grid,
     imu_readings,
     mirrored,
+    mirrored_readings,
     quantise,
     soft_tissue_motion,
     with_soft_tissue,
@@ -275,7 +277,8 @@ class RealWindowSampler:
 
     ``part`` splits every sensor's recording in time: ``"train"`` takes the first ``1 - val_fraction`` of its
     samples, ``"validation"`` the rest, so no validation window shares a sample with a training window;
-    ``"all"`` takes everything.
+    ``"all"`` takes everything. ``mirror`` is the share of drawn windows read as the mirror-image body's
+    (``mirrored_readings``, label ↔ the other side's segment); a draw of none leaves the random stream as it was.
     """
 
     def __init__(
@@ -283,7 +286,9 @@ class RealWindowSampler:
         recordings: list[RealRecording],
         part: Literal["all", "train", "validation"] = "all",
         val_fraction: float = 0.2,
+        mirror: float = 0.0,
     ) -> None:
+        self.mirror = mirror
         imu, seg = [], []
         for rec in recordings:
             for sensor in rec.sensors:
@@ -304,7 +309,12 @@ class RealWindowSampler:
     def sample(self, rng: np.random.Generator, batch_size: int) -> Batch:
         idx = rng.integers(0, len(self.imu), batch_size)
         nan_q = np.full((batch_size, 4), np.nan, dtype=np.float32)  # alignment unknown on real data
-        return Batch(np.ascontiguousarray(self.imu[idx]), self.segment[idx].astype(np.int64), nan_q)
+        imu, segment = self.imu[idx], self.segment[idx].astype(np.int64)
+        if self.mirror > 0:
+            flip = rng.random(batch_size) < self.mirror
+            imu = np.where(flip[:, None, None], mirrored_readings(imu), imu).astype(np.float32)
+            segment = np.where(flip, np.asarray(MIRROR)[segment], segment)
+        return Batch(np.ascontiguousarray(imu), segment, nan_q)
 
 
 def real_window_samplers(
@@ -316,9 +326,11 @@ def real_window_samplers(
     if not recordings or cfg.data.real_fraction == 0:
         return None, None
     fraction = cfg.data.real_val_fraction
+    mirror = cfg.data.real_mirror  # training windows only: validation reads the recordings as they are
     if fraction == 0:
-        return RealWindowSampler(recordings), None
-    return RealWindowSampler(recordings, "train", fraction), RealWindowSampler(recordings, "validation", fraction)
+        return RealWindowSampler(recordings, mirror=mirror), None
+    train = RealWindowSampler(recordings, "train", fraction, mirror=mirror)
+    return train, RealWindowSampler(recordings, "validation", fraction)
 
 
 def concat_batches(*batches: Batch, limit: int | None = None) -> Batch:
