@@ -176,7 +176,7 @@ async def bench_streams(base: str, n: int, seconds: float) -> dict:
     }
 
 
-async def _answer_session(url: str, recording, seconds: float, start_at: float) -> dict:
+async def answer_session(url: str, recording, seconds: float, start_at: float) -> dict:
     """Stream one labelled recording at real time; the stream time of every ``assignment`` message (the newest
     window end among the results before it), whether it was right, and its status."""
     sensors = [s for s in recording.sensors if s.segment is not None]
@@ -236,7 +236,7 @@ async def bench_time_to_answer(base: str, seconds: float, concurrency: int) -> d
 
     async def one(k: int, recording) -> dict:
         async with gate:
-            return await _answer_session(url, recording, seconds, time.perf_counter() + k % concurrency * 0.01)
+            return await answer_session(url, recording, seconds, time.perf_counter() + k % concurrency * 0.01)
 
     runs = await asyncio.gather(*[one(k, r) for k, r in enumerate(walking)])
     per = {r.name: run for r, run in zip(walking, runs, strict=True)}

@@ -249,13 +249,11 @@ def calibrate(
     a new version whose manifest says which it derives from."""
     import datetime as dt
     import json
-    import math
     import shutil
 
-    from service.core.assignment import CONFIDENCE_FEATURES
-    from service.core.manifest import ConfidenceSpec, read_manifest, write_manifest
+    from service.core.manifest import read_manifest, write_manifest
     from training.i2s.calibration import calibrate as run_calibration
-    from training.i2s.calibration import servable
+    from training.i2s.calibration import confidence_spec, servable
     from training.tracking import setup_tracking
 
     setup_tracking("i2s")  # beside the runs it calibrates, so that the snapshot keeps it
@@ -273,20 +271,14 @@ def calibrate(
         write_manifest(manifest, target / "manifest.json")
         model_dir = target
     fitted, metrics, timing = run_calibration(loso_run, resolve_data_dir(data_dir), model_dir, cache_dir)
-    model = servable(fitted)
-    if model.session is None and fitted.session is not None:
+    if servable(fitted).session is None and fitted.session is not None:
         typer.echo("no session probability reached the target: the manifest keeps the per-sensor rule", err=True)
     run_id = str(metrics.pop("run"))
-    manifest.confidence = ConfidenceSpec(
-        features=list(CONFIDENCE_FEATURES),
-        coef=list(model.coef),
-        intercept=model.intercept,
-        threshold=model.threshold,
-        min_moving_windows=model.min_moving_windows,
-        session=model.session_spec(),
+    manifest.confidence = confidence_spec(
+        fitted,
         fitted_on=f"sessions of the held-out people of real-loso run {loso_run}; figures cross-fitted by person "
         f"(MLflow run {run_id})",
-        metrics={k: round(float(v), 5) for k, v in metrics.items() if math.isfinite(v)},
+        metrics=metrics,
         command=f"python -m training.cli calibrate {source} --loso-run {loso_run}"
         + (f" --version {version}" if version else ""),
     )

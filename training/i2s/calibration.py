@@ -54,6 +54,7 @@ from service.core.assignment import (
     session_assignment,
     session_features,
 )
+from service.core.manifest import ConfidenceSpec
 from service.core.recordings import RealRecording, read_all_real
 from service.core.segments import SEGMENTS
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, sliding_windows
@@ -563,6 +564,23 @@ def non_gait_sessions(
         out |= {f"non_gait_sessions/{activity}": float(n), f"non_gait_committed/{activity}": float(done)}
         out[f"non_gait_committed_wrong/{activity}"] = float(bad)
     return out
+
+
+def confidence_spec(model: ConfidenceModel, fitted_on: str, metrics: dict[str, float], command: str) -> ConfidenceSpec:
+    """The manifest's ``confidence`` of a fitted calibration (``servable`` first: a session probability that reached
+    no threshold is left out, and the service then commits sensor by sensor)."""
+    model = servable(model)
+    return ConfidenceSpec(
+        features=list(CONFIDENCE_FEATURES),
+        coef=list(model.coef),
+        intercept=model.intercept,
+        threshold=model.threshold,
+        min_moving_windows=model.min_moving_windows,
+        session=model.session_spec(),
+        fitted_on=fitted_on,
+        metrics={k: round(float(v), 5) for k, v in metrics.items() if np.isfinite(v)},
+        command=command,
+    )
 
 
 def calibrate(

@@ -166,8 +166,17 @@ def _ensemble(member_dirs: list[str]) -> dict[str, list[str]]:
 
 
 def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
-    """Write ``out_root/<name>/<version>/{model.onnx, manifest.json, golden.npz}`` from an MLflow run; ``name`` is
-    the config's registered model (``tracking.registered_model``, by default the config's name)."""
+    """Write ``out_root/<name>/<version>/{model.onnx, manifest.json, golden.npz}`` from an MLflow run (``write_run``)
+    and record on the run that it shipped as that version."""
+    target = write_run(run_id, out_root, version)
+    record_shipped(MlflowClient(), run_id, target.parent.name, target.name)
+    return target
+
+
+def write_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
+    """``out_root/<name>/<version>/{model.onnx, manifest.json, golden.npz}`` of an MLflow run's model (its parity
+    with the golden output logged); ``name`` is the config's registered model (``tracking.registered_model``, by default
+    the config's name). Nothing is recorded on the run (a benchmark's copy of a fold model is not a release)."""
     run = MlflowClient().get_run(run_id)
     cfg = ExperimentConfig.model_validate(load_run_config(run_id))
     version = version or run_version(run)
@@ -185,8 +194,7 @@ def export_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
         parity = onnx_parity(target / "model.onnx", dict(z))
     manifest = build_manifest(cfg, run, sha256_file(target / "model.onnx"), version)
     write_manifest(manifest, target / "manifest.json")
-    record_shipped(MlflowClient(), run_id, cfg.registered_model, version)
-    log.info("shipped %s (parity %.2e) to %s", cfg.registered_model, parity, target)
+    log.info("wrote %s %s (parity %.2e) to %s", cfg.registered_model, version, parity, target)
     return target
 
 
