@@ -29,6 +29,7 @@ from mlflow.tracking import MlflowClient
 
 from benchmarks.bench_service import RESULTS, answer_session
 from benchmarks.servers import REPO, start_service, stop
+from service.core.assignment import ConfidenceModel
 from service.core.manifest import read_manifest, write_manifest
 from service.core.recordings import RealRecording, read_all_real
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
@@ -38,6 +39,7 @@ from training.i2s.calibration import (
     confidence_spec,
     fold_predictions,
     nested,
+    servable,
     sessions,
     time_to_answer,
 )
@@ -59,22 +61,29 @@ def fold_runs(summary_run_id: str) -> dict[str, str]:
 
 def served_alignment() -> Path:
     """The newest shipped alignment (what the service loads by default)."""
-    versions = (REPO / "onnx_models" / "i2s_alignment").iterdir()
+    versions = [p for p in (REPO / "onnx_models" / "i2s_alignment").iterdir() if p.name.replace(".", "").isdigit()]
     return max(versions, key=lambda p: tuple(int(x) for x in p.name.split(".")))
 
 
-def fold_services(summary_run_id: str, held_out: list[HeldOut], root: Path) -> dict[str, Path]:
+def fold_services(
+    summary_run_id: str, people: list[str], calibrations: dict[str, ConfidenceModel], root: Path
+) -> dict[str, Path]:
     """Per held-out person a models folder: the fold's assignment file, whose manifest carries the confidence
     calibration fitted on the other people's sessions only (``nested``), and the served alignment."""
-    _, per_person = nested(sessions(held_out))
     alignment = served_alignment()
+    folds = fold_runs(summary_run_id)
     out = {}
-    for person, run_id in sorted(fold_runs(summary_run_id).items()):
+    for person in people:
         models = root / person
-        model_dir = write_run(run_id, models, version="0.0.0")
+        written = write_run(folds[person], root / "written" / person, version="0.0.0")
+        model_dir = models / "i2s_assignment" / "0.0.0"  # whatever the config's registered name was
+        model_dir.parent.mkdir(parents=True)
+        shutil.move(written, model_dir)
         manifest = read_manifest(model_dir / "manifest.json")
+        if manifest.task != "i2s_assignment":
+            raise SystemExit(f"fold run {folds[person]} is a {manifest.task} model, not an assignment one")
         manifest.confidence = confidence_spec(
-            per_person[person],
+            calibrations[person],
             fitted_on=f"held-out sessions of real-loso run {summary_run_id} without {person}",
             metrics={},
             command=f"python -m benchmarks.bench_answer_held_out --loso-run {summary_run_id}",
@@ -87,7 +96,7 @@ def fold_services(summary_run_id: str, held_out: list[HeldOut], root: Path) -> d
 
 def truncated(held_out: list[HeldOut], seconds: float) -> list[HeldOut]:
     """The recordings' predictions over their first ``seconds``: the windows a stream of that length produces."""
-    n = (int(seconds * MODEL_RATE_HZ) - WINDOW_SAMPLES) // HOP_SAMPLES + 1
+    n = max(0, (int(seconds * MODEL_RATE_HZ) - WINDOW_SAMPLES) // HOP_SAMPLES + 1)
     return [
         replace(h, sensors=[replace(s, log_probs=s.log_probs[:n], moving=s.moving[:n]) for s in h.sensors])
         for h in held_out
@@ -100,8 +109,13 @@ async def stream_people(bases: dict[str, str], recordings: list[RealRecording], 
     return await asyncio.gather(*runs)
 
 
+def _finite(value: float | None) -> float | None:
+    """A time in seconds, or None for never (the live column says None, the replay NaN)."""
+    return None if value is None or not np.isfinite(value) else float(value)
+
+
 def _summary(values: list[float | None]) -> dict[str, float | int]:
-    got = [v for v in values if v is not None and np.isfinite(v)]
+    got = [v for v in values if v is not None]
     return {
         "median_s": float(np.median(got)) if got else float("nan"),
         "worst_s": float(max(got)) if got else float("nan"),
@@ -118,14 +132,18 @@ def main() -> None:
     args = parser.parse_args()
     setup_tracking("i2s")
     data_dir = resolve_data_dir(None)
-    held_out = [h for h in fold_predictions(args.loso_run, data_dir) if h.activity.startswith(WALKING)]
-    replayed = time_to_answer(truncated(held_out, args.seconds), nested(sessions(held_out))[1])
+    predicted = fold_predictions(args.loso_run, data_dir)
+    # the calibration as ``calibrate`` fits it (sessions of every recording), one per person without that person;
+    # the replay judges by what the service is given (``servable``)
+    calibrations = {p: servable(m) for p, m in nested(sessions(predicted))[1].items()}
+    held_out = [h for h in predicted if h.activity.startswith(WALKING)]
+    replayed = time_to_answer(truncated(held_out, args.seconds), calibrations)
     names = {h.recording for h in held_out}
     walking = [r for r in read_all_real(data_dir) if r.name in names]
+    people = sorted({r.subject for r in walking})
     per: dict[str, dict] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        folders = fold_services(args.loso_run, held_out, Path(tmp))
-        people = sorted({r.subject for r in walking})
+        folders = fold_services(args.loso_run, people, calibrations, Path(tmp))
         for first in range(0, len(people), args.servers):
             group = people[first : first + args.servers]
             started = {p: start_service(folders[p], threads=1) for p in group}
@@ -134,19 +152,18 @@ def main() -> None:
                 bases = {p: base for p, (_, base) in started.items()}
                 lives = asyncio.run(stream_people(bases, chosen, args.seconds))
                 for recording, live in zip(chosen, lives, strict=True):
-                    replay = replayed.get(recording.name, {})
+                    replay = replayed.get(recording.name, {"no_moving_window": True})
                     per[recording.name] = {"person": recording.subject, "live": live, "replay": replay}
                     print(recording.name, json.dumps(live), flush=True)
             finally:
                 for proc, _ in started.values():
                     stop(proc)
-    ran = [v for v in per.values() if "right_s" in v["live"]]
-    nan = float("nan")
-    agreement = [
-        abs(v["live"]["right_s"] - v["replay"]["right_s"])
-        for v in ran
-        if v["live"]["right_s"] is not None and np.isfinite(v["replay"].get("right_s", nan))
-    ]
+    # both columns over the recordings streamed to the end with a moving window in both
+    both = [v for v in per.values() if "right_s" in v["live"] and "right_s" in v["replay"]]
+    live_right = [_finite(v["live"]["right_s"]) for v in both]
+    replay_right = [_finite(v["replay"]["right_s"]) for v in both]
+    pairs = list(zip(live_right, replay_right, strict=True))
+    differ = [abs(a - b) for a, b in pairs if a is not None and b is not None]
     result = {
         "command": f"python -m benchmarks.bench_answer_held_out --loso-run {args.loso_run} --seconds {args.seconds} "
         f"--servers {args.servers}",
@@ -158,13 +175,17 @@ def main() -> None:
         "alignment": served_alignment().name,
         "recordings": len(per),
         "refused": sum("refused" in v["live"] for v in per.values()),
+        "no_moving_window": sum("no_moving_window" in {*v["live"], *v["replay"]} for v in per.values()),
+        "compared": len(both),
         "seconds_streamed_per_recording": args.seconds,
-        "live_right_for_good": _summary([v["live"]["right_s"] for v in ran]),
-        "live_assigned": _summary([v["live"]["committed_s"] for v in ran]),
-        "live_assigned_wrong": sum(v["live"]["committed_right"] is False for v in ran),
-        "replay_right_for_good": _summary([v["replay"].get("right_s") for v in per.values()]),
-        "replay_assigned": _summary([v["replay"].get("committed_s") for v in per.values()]),
-        "live_vs_replay_right_for_good_abs_diff_s_max": max(agreement, default=nan),
+        "live_right_for_good": _summary(live_right),
+        "live_assigned": _summary([_finite(v["live"]["committed_s"]) for v in both]),
+        "live_assigned_wrong": sum(v["live"]["committed_right"] is False for v in both),
+        "replay_right_for_good": _summary(replay_right),
+        "replay_assigned": _summary([_finite(v["replay"]["committed_s"]) for v in both]),
+        "replay_assigned_wrong": sum(v["replay"]["committed_right"] == 0.0 for v in both),
+        "live_vs_replay_right_for_good_abs_diff_s_max": max(differ, default=0.0),
+        "live_vs_replay_one_never_right_for_good": sum((a is None) != (b is None) for a, b in pairs),
         "per_recording": per,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,14 @@ from service.core.segments import MIRROR
 from training.data.catalog import mocap_entries
 from training.i2s.config import load_config
 from training.i2s.data.mocap import build_kinematics
-from training.i2s.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, grid_batches
+from training.i2s.data.windows import (
+    Augmentation,
+    Batch,
+    RealWindowSampler,
+    WindowSampler,
+    grid_batches,
+    real_window_samplers,
+)
 from training.i2s.train import train
 
 REPO = Path(__file__).resolve().parents[3]
@@ -93,8 +100,18 @@ def test_mirrored_real_windows_swap_sides_and_flip_the_mirrored_axes(data_dir: P
     sign = np.array([1, -1, 1, -1, 1, -1], np.float32)
     np.testing.assert_array_equal(b.imu[flipped], a.imu[flipped] * sign)
     assert (b.segment[flipped] != a.segment[flipped]).mean() > 0.6  # only the pelvis keeps its label
-    again = RealWindowSampler([recording], mirror=0.0).sample(np.random.default_rng(0), 512)
-    np.testing.assert_array_equal(again.imu, a.imu)
+    # a share of 0 draws nothing more than the sampler without it: the generator is where it would be
+    rng_plain, rng_zero = np.random.default_rng(1), np.random.default_rng(1)
+    plain.sample(rng_plain, 64)
+    RealWindowSampler([recording], mirror=0.0).sample(rng_zero, 64)
+    assert rng_plain.bit_generator.state == rng_zero.bit_generator.state
+    # and the validation windows are read as recorded
+    cfg = load_config(
+        REPO / "training/configs/i2s_assignment_real.yaml",
+        ["data.real_mirror=0.5", "data.real_train_recordings=[capacitive_sub01/CSBaseline]"],
+    )
+    train_part, val_part = real_window_samplers(cfg, [recording])
+    assert (train_part.mirror, val_part.mirror) == (0.5, 0.0)
 
 
 def test_real_validation_windows_come_after_every_training_window(data_dir: Path) -> None:
