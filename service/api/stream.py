@@ -94,7 +94,11 @@ class Session:
         # A sensor that the declarations leave on one segment: its windows' alignments are given for that segment.
         allowed = allowed_segments(len(self.streams), len(SEGMENTS), self.worn, self.candidates)
         self.known = [int(row.argmax()) if row.sum() == 1 else None for row in allowed]
+        # Each sensor's evidence, as ``/v1/imu/assign`` weighs it (``session_assignment``): its moving windows, or all
+        # its windows while none of them has moved (a pelvis on a slow walker may not move for seconds).
         self.evidence = np.zeros((len(self.streams), len(SEGMENTS)))
+        self.still_evidence = np.zeros((len(self.streams), len(SEGMENTS)))
+        self.still_windows = np.zeros(len(self.streams), dtype=np.int64)
         self.votes = np.zeros((len(self.streams), len(SEGMENTS)), dtype=np.int64)  # moving windows ranking each first
         self.confidence = confidence
         # A one-sensor session without declarations: its moment is its window's own answer, already in the result.
@@ -286,22 +290,24 @@ class Session:
         return messages
 
     def assignment_message(self, dropped: int) -> dict:
+        evidence = np.where(self.windows[:, None] > 0, self.evidence, self.still_evidence)
         joint = joint_assignment(
-            [e[None] for e in self.evidence], self.allow_shared, worn=self.worn, candidates=self.candidates
+            [e[None] for e in evidence], self.allow_shared, worn=self.worn, candidates=self.candidates
         )
         calibrated = assignment_confidence(self.confidence, joint, self.votes, self.windows)
         p_correct = calibrated.p_correct
         sensors = []
+        seen = self.windows + self.still_windows
         for k, (s, g, n) in enumerate(zip(self.streams, joint.segment.tolist(), self.windows, strict=True)):
             mean = self.alignments[k].mean(g) if g >= 0 and n else None
             sensors.append(
                 {
                     "sensor_id": s.sensor_id,
-                    "segment": SEGMENTS[g] if g >= 0 and n else None,
-                    "confidence": float(joint.confidence[k]) if n else 0.0,
+                    "segment": SEGMENTS[g] if g >= 0 and seen[k] else None,
+                    "confidence": float(joint.confidence[k]) if seen[k] else 0.0,
                     "p_correct": None if p_correct is None else float(p_correct[k]),
                     "committed": None if calibrated.committed is None else bool(calibrated.committed[k]),
-                    "margin": finite_or_none(joint.margin[k]) if n else 0.0,
+                    "margin": finite_or_none(joint.margin[k]) if seen[k] else 0.0,
                     "windows": int(n),
                     "alignment": None if mean is None else alignment_answer(g, mean[0]),
                     "alignment_spread_deg": None if mean is None else mean[1],
@@ -438,7 +444,10 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
             message.update(results[row])
             if session.moments is not None:
                 session.moments.add(item.sensor, end_s, log_probs[row], bool(moving[row]))
-            if moving[row]:
+            if not moving[row]:
+                session.still_evidence[item.sensor] += log_probs[row]
+                session.still_windows[item.sensor] += 1
+            else:
                 session.evidence[item.sensor] += log_probs[row]
                 session.votes[item.sensor, int(log_probs[row].argmax())] += 1
                 session.windows[item.sensor] += 1

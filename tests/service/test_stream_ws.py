@@ -267,3 +267,34 @@ def test_a_sensor_whose_readings_do_not_fit_its_declared_units_gets_one_warning(
     a_results = [m for m in messages if m["type"] == "result" and m["sensor_id"] == "a"]
     assert len(a_results) == 9 and messages[-1]["code"] == 1000  # every window answered, the stream went on
     assert messages.index(warnings[0]) > messages.index(a_results[3])  # after the four windows it reads
+
+
+def test_a_sensor_that_has_not_moved_yet_is_answered_as_the_rest_route_answers_it(client: TestClient) -> None:
+    """A sensor whose windows are all still (a pelvis on a slow walker, the first seconds) is weighed by its still
+    windows, as ``/v1/imu/assign`` weighs it, not left out: the stream's running answer is the REST answer of the
+    same windows, segment for segment, also for the still sensor."""
+    still = np.zeros((160, 6))
+    still[:, 2] = 9.81
+    still[:, 3:] = np.random.default_rng(2).normal(scale=0.001, size=(160, 3))
+    moving = _signal(160, 3)
+    start = {"type": "start", "sensors": [{"sensor_id": "still"}, {"sensor_id": "moving"}]}
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps(start))
+        assert json.loads(ws.receive_text())["type"] == "started"
+        ws.send_bytes(encode_binary(0, 0, still.astype(np.float32)))
+        ws.send_bytes(encode_binary(1, 0, moving.astype(np.float32)))
+        ws.send_text(json.dumps({"type": "stop"}))
+        messages = _collect(ws)
+    results = [m for m in messages if m["type"] == "result"]
+    assert not any(r["moving"] for r in results if r["sensor_id"] == "still")
+    assert all(r["moving"] for r in results if r["sensor_id"] == "moving")
+    final = {s["sensor_id"]: s for s in [m for m in messages if m["type"] == "assignment"][-1]["sensors"]}
+    windows = {
+        name: [x[k : k + 128].tolist() for k in (0, 16, 32)] for name, x in (("still", still), ("moving", moving))
+    }
+    body = {"sensors": [{"sensor_id": n, "windows": [{"samples": w} for w in ws_]} for n, ws_ in windows.items()]}
+    rest = {s["sensor_id"]: s for s in client.post("/v1/imu/assign", json=body).json()["sensors"]}
+    assert final["still"]["segment"] is not None and final["still"]["windows"] == 0
+    for name in ("still", "moving"):
+        assert final[name]["segment"] == rest[name]["segment"]
+        assert final[name]["confidence"] == pytest.approx(rest[name]["confidence"], abs=1e-4)
