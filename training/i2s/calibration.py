@@ -607,7 +607,9 @@ def calibrate(
         at = samples.span_s == span
         if at.any():
             metrics[f"sensor_accuracy_all_{int(span)}s"] = float(samples.correct[at].mean())
-    timing = time_to_answer(held_out, per_person)
+    # replayed and checked as the service will judge (``servable``: a session rule that reached no threshold is not
+    # served, and the service then commits sensor by sensor)
+    timing = time_to_answer(held_out, {person: servable(m) for person, m in per_person.items()})
     walking = [t for name, t in timing.items() if _is_walk(held_out, name)]
     for key in ("right_s", "committed_s"):
         values = np.array([t[key] for t in walking])
@@ -626,7 +628,7 @@ def calibrate(
     metrics["sensors_committed_share"] = float(np.isfinite(alone).mean()) if len(alone) else float("nan")
     metrics["sensors_committed_wrong"] = float(sum(r == 0.0 for t in walking for r in t["sensor_committed_right"]))
     metrics["recordings_replayed"] = float(len(timing))
-    metrics |= non_gait_sessions(onnx_predictor(model_dir / "model.onnx"), final, data_dir, cache_dir)
+    metrics |= non_gait_sessions(onnx_predictor(model_dir / "model.onnx"), servable(final), data_dir, cache_dir)
     with mlflow.start_run(run_name="i2s_assignment_confidence") as run, tempfile.TemporaryDirectory() as tmp:
         mlflow.set_tags({"task": "assignment", "calibrated_from": summary_run_id})
         mlflow.log_params(
