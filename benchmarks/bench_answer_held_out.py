@@ -33,6 +33,7 @@ from service.core.assignment import ConfidenceModel
 from service.core.manifest import read_manifest, write_manifest
 from service.core.recordings import RealRecording, read_all_real
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
+from service.inference.registry import version_key
 from training.data.catalog import resolve_data_dir
 from training.i2s.calibration import (
     HeldOut,
@@ -61,8 +62,8 @@ def fold_runs(summary_run_id: str) -> dict[str, str]:
 
 def served_alignment() -> Path:
     """The newest shipped alignment (what the service loads by default)."""
-    versions = [p for p in (REPO / "onnx_models" / "i2s_alignment").iterdir() if p.name.replace(".", "").isdigit()]
-    return max(versions, key=lambda p: tuple(int(x) for x in p.name.split(".")))
+    versions = [p for p in (REPO / "onnx_models" / "i2s_alignment").iterdir() if (p / "manifest.json").is_file()]
+    return max(versions, key=lambda p: version_key(p.name))
 
 
 def fold_services(
