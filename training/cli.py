@@ -304,6 +304,42 @@ def real_table_command(
     typer.echo(real_table(loso_run, models, resolve_data_dir(data_dir)))
 
 
+@app.command("swing-fit")
+def swing_fit_command(
+    config: Path = typer.Option(Path("training/configs/i2s_assignment.yaml"), help="whose training clips to fit on"),
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = DEFAULT_CACHE,
+) -> None:
+    """Fit how sensors worn together swing together (``service.core.assignment.SWING``) on a config's simulated
+    training clips; prints the table to paste there."""
+    from training.i2s.config import load_config
+    from training.i2s.data.split import load_clips, split_clips
+    from training.i2s.swing import fit_swing
+
+    cfg = load_config(config)
+    clips = load_clips(cfg, resolve_data_dir(data_dir), cache_dir)
+    train, _, _ = split_clips(clips, cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed)
+    for name, (mean, std, n) in fit_swing([c for c in train if not c.variant]).items():
+        typer.echo(f'    "{name}": ({mean:.3f}, {std:.3f}),  # {n} windows')
+
+
+@app.command("swing-table")
+def swing_table_command(
+    loso_run: str = typer.Option(..., help="a real-loso summary run"),
+    weights: list[float] = typer.Option([], "--weight", help="another swing weight to compare (repeatable)"),
+    data_dir: Path | None = DataDir,
+) -> None:
+    """Markdown table: each held-out person's per-moment answers from a real-loso run without and with how the
+    sensors swing together."""
+    import mlflow
+
+    from training.i2s.swing import swing_table
+    from training.tracking import default_tracking_uri
+
+    mlflow.set_tracking_uri(default_tracking_uri())
+    typer.echo(swing_table(loso_run, resolve_data_dir(data_dir), weights))
+
+
 @app.command("evaluate-real")
 def evaluate_real_command(
     source: str = typer.Argument(..., help="a shipped model dir, or runs:/<run_id> of a tracked run"),

@@ -274,7 +274,8 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     worn = segment_indices(body.worn_segments)
     candidates = [segment_indices(s.candidate_segments) for s in body.sensors]
     joint, votes, n_moving = session_assignment(log_probs, moving, body.allow_shared, worn, candidates)
-    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates)  # each moment alone
+    gyro_norms = [np.linalg.norm(x[..., 3:6], axis=-1) for x in per_sensor]  # how the sensors swing together
+    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates, gyro_norms)
     calibrated = assignment_confidence(_confidence(request), joint, votes, n_moving)
     p_correct = calibrated.p_correct
     out = []

@@ -15,6 +15,7 @@ forbidding the other cells is enough.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -22,7 +23,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from service.core.manifest import ConfidenceSpec, SessionConfidenceSpec
-from service.core.segments import SEGMENTS
+from service.core.segments import BODY_PART, SEGMENTS
 
 # A window whose gyroscope norm stays under this mean carries no gait information (DESIGN.md §5).
 STILL_GYR_MEAN_RADS = 0.35
@@ -110,6 +111,130 @@ def _best(evidence: np.ndarray, allowed: np.ndarray, allow_shared: bool) -> np.n
     return segment
 
 
+# How two sensors' windows of one moment swing together: the Pearson correlation of their gyroscope norms over the
+# window, as Fisher z = atanh(r). The thigh, shank and foot of one leg swing together, the two legs take turns, and
+# the pelvis follows neither, so z tells the pairs apart by where both sensors are (``swing_pair_type``): per type
+# the mean and standard deviation of z on the moving windows of the simulated walking clips of
+# ``i2s_assignment.yaml``'s training subjects (``training.i2s.swing.fit_swing``, which
+# tests/training/i2s/test_swing.py checks these against). Our addition to Zimmermann et al. 2018.
+SWING_PAIR_TYPES: tuple[str, ...] = (
+    "pelvis-foot",
+    "pelvis-lower_leg",
+    "pelvis-upper_leg",
+    "same_leg-foot-lower_leg",
+    "same_leg-foot-upper_leg",
+    "same_leg-lower_leg-upper_leg",
+    "both_legs-foot-foot",
+    "both_legs-foot-lower_leg",
+    "both_legs-foot-upper_leg",
+    "both_legs-lower_leg-lower_leg",
+    "both_legs-lower_leg-upper_leg",
+    "both_legs-upper_leg-upper_leg",
+)
+SWING: dict[str, tuple[float, float]] = {  # pair type: mean and standard deviation of z (318–636 windows each)
+    "pelvis-foot": (0.186, 0.144),
+    "pelvis-lower_leg": (0.073, 0.175),
+    "pelvis-upper_leg": (0.110, 0.208),
+    "same_leg-foot-lower_leg": (0.869, 0.205),
+    "same_leg-foot-upper_leg": (0.313, 0.171),
+    "same_leg-lower_leg-upper_leg": (0.011, 0.251),
+    "both_legs-foot-foot": (-0.688, 0.157),
+    "both_legs-foot-lower_leg": (-0.506, 0.135),
+    "both_legs-foot-upper_leg": (-0.378, 0.148),
+    "both_legs-lower_leg-lower_leg": (-0.528, 0.174),
+    "both_legs-lower_leg-upper_leg": (-0.048, 0.153),
+    "both_legs-upper_leg-upper_leg": (-0.060, 0.207),
+}
+# The weight of the swing evidence per pair against the windows' own log-probabilities: the pairs of one moment are
+# not independent (a leg's three sensors make three pairs out of one stride), so their log-likelihoods are tempered.
+# Chosen among 1, 1/2, 1/4, 1/8, 1/16, 1/32 and 1/(S - 1) by the per-moment accuracy on the validation people of the
+# real recordings (docs/models.md, "Sensors that swing together").
+SWING_WEIGHT = 0.125
+_Z_CLIP = 3.0  # |r| ≤ 0.995
+
+
+def swing_pair_type(a: int, b: int) -> int:
+    """The ``SWING_PAIR_TYPES`` index of a sensor on class ``a`` worn with one on class ``b`` (a ≠ b)."""
+    parts = sorted((BODY_PART[a], BODY_PART[b]), key=("pelvis", "foot", "lower_leg", "upper_leg").index)
+    if parts[0] == "pelvis":
+        return SWING_PAIR_TYPES.index(f"pelvis-{parts[1]}")
+    relation = "same_leg" if (a < 3) == (b < 3) else "both_legs"
+    return SWING_PAIR_TYPES.index(f"{relation}-{parts[0]}-{parts[1]}")
+
+
+def swing_z(gyro_norms: np.ndarray) -> np.ndarray:
+    """``(S, T)`` gyroscope norms of S sensors' windows of one moment → ``(S, S)`` Fisher z of their Pearson
+    correlations, clipped to ±``_Z_CLIP`` (0 on the diagonal and for a window whose norm does not vary)."""
+    x = np.asarray(gyro_norms, dtype=np.float64)
+    x = x - x.mean(axis=1, keepdims=True)
+    scale = np.linalg.norm(x, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = (x @ x.T) / np.outer(scale, scale)
+    r = np.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0)
+    np.fill_diagonal(r, 0.0)
+    return np.clip(np.arctanh(np.clip(r, -0.999999, 0.999999)), -_Z_CLIP, _Z_CLIP)
+
+
+def _pair_type_table() -> np.ndarray:
+    table = np.zeros((len(SEGMENTS), len(SEGMENTS)), dtype=np.int64)
+    for a in range(len(SEGMENTS)):
+        for b in range(len(SEGMENTS)):
+            if a != b:
+                table[a, b] = swing_pair_type(a, b)
+    return table
+
+
+_PAIR_TYPE = _pair_type_table()
+
+
+def swing_log_likelihood(gyro_norms: np.ndarray) -> np.ndarray:
+    """``(S, T)`` → ``(S, S, len(SWING_PAIR_TYPES))``: per pair of sensors, the log-density of their ``swing_z``
+    under each pair type's normal distribution (``SWING``)."""
+    z = swing_z(gyro_norms)
+    mean, std = (np.array([SWING[name][k] for name in SWING_PAIR_TYPES]) for k in (0, 1))
+    return -0.5 * ((z[..., None] - mean) / std) ** 2 - np.log(std) - 0.5 * np.log(2 * np.pi)
+
+
+_FORBIDDEN = -1e9  # a forbidden cell's score in ``_best_with_swing`` (finite: it is summed by a matrix product)
+_MAPS: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
+def _maps_of(n_rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every one-to-one map of ``n_rows`` rows into the seven classes ``(P, n_rows)`` (P = 5,040 for seven rows),
+    the row pairs ``i < j``, and per map the one-hot selection ``(P, n_rows · 7 + pairs · types)`` of its cells
+    (row, class) and of its pairs' ``SWING_PAIR_TYPES``: a map's score is this times the scores of all cells and
+    pair types, one matrix product for all maps."""
+    if n_rows not in _MAPS:
+        n_classes, n_types = len(SEGMENTS), len(SWING_PAIR_TYPES)
+        maps = np.array(list(itertools.permutations(range(n_classes), n_rows)), dtype=np.int64)
+        rows_i, rows_j = np.triu_indices(n_rows, 1)
+        cells = np.arange(n_rows) * n_classes + maps
+        pairs = n_rows * n_classes + np.arange(len(rows_i)) * n_types + _PAIR_TYPE[maps[:, rows_i], maps[:, rows_j]]
+        select = np.zeros((len(maps), n_rows * n_classes + len(rows_i) * n_types), dtype=np.float32)
+        np.put_along_axis(select, np.concatenate([cells, pairs], axis=1), 1.0, axis=1)
+        _MAPS[n_rows] = (maps, rows_i, rows_j, select)
+    return _MAPS[n_rows]
+
+
+def _best_with_swing(
+    evidence: np.ndarray, allowed: np.ndarray, pair_ll: np.ndarray, weight: float = SWING_WEIGHT
+) -> np.ndarray:
+    """The one-to-one answer of one moment's rows that maximises their summed log-probabilities plus, per pair of
+    rows, ``weight`` × the log-likelihood of how they swing together given where the answer puts them
+    (``swing_log_likelihood``): the sensors of one leg are answered together, so a thigh whose own window leans to
+    the wrong side follows its shank and foot. Exact, over every one-to-one map (5,040 for seven sensors); with more
+    rows than classes, or no map that keeps every row on an allowed class, the answer without it (``_best``)."""
+    n_rows, n_classes = evidence.shape
+    if n_rows > n_classes or n_classes != len(SEGMENTS):
+        return _best(evidence, allowed, allow_shared=False)
+    maps, rows_i, rows_j, select = _maps_of(n_rows)
+    scores = np.concatenate([np.where(allowed, evidence, _FORBIDDEN).ravel(), weight * pair_ll[rows_i, rows_j].ravel()])
+    best = maps[int(np.argmax(select @ scores.astype(np.float32)))]
+    if not allowed[np.arange(n_rows), best].all():  # no map keeps every row on an allowed class
+        return _best(evidence, allowed, allow_shared=False)
+    return best
+
+
 def joint_assignment(
     log_probs: list[np.ndarray],
     allow_shared: bool = False,
@@ -164,6 +289,8 @@ def window_joint_assignment(
     allow_shared: bool = False,
     worn: Sequence[int] | None = None,
     candidates: Candidates | None = None,
+    gyro_norms: list[np.ndarray] | None = None,
+    swing_weight: float = SWING_WEIGHT,
 ) -> list[np.ndarray]:
     """One-to-one assignment per moment: window ``t`` of every sensor is assigned from those windows alone.
 
@@ -175,6 +302,11 @@ def window_joint_assignment(
     left/right switches that this leaves as future work (§5); the sensors of one body cannot sit on the same segment, so
     at one moment their windows constrain each other. ``allow_shared`` (as in ``joint_assignment``) gives each moving
     window its own best allowed class instead.
+
+    With ``gyro_norms`` (per sensor ``(N_s, T)``, each window's gyroscope norm) the answer also weighs how the
+    sensors swing together (``_best_with_swing``, by ``swing_weight``): the thigh, shank and foot of one leg do, the
+    two legs take turns. Our addition to the paper's per-window answer; each moment is still answered from its own
+    windows.
 
     Returns one ``(N_s,)`` int array per sensor.
     """
@@ -190,7 +322,12 @@ def window_joint_assignment(
         present = [s for s, lp in enumerate(log_probs) if t < len(lp) and moving[s][t]]
         if not present:
             continue
-        answer = _best(np.stack([log_probs[s][t] for s in present]), allowed[present], allow_shared=False)
+        evidence = np.stack([log_probs[s][t] for s in present])
+        if gyro_norms is not None and len(present) > 1:
+            pair_ll = swing_log_likelihood(np.stack([gyro_norms[s][t] for s in present]))
+            answer = _best_with_swing(evidence, allowed[present], pair_ll, swing_weight)
+        else:
+            answer = _best(evidence, allowed[present], allow_shared=False)
         for s, c in zip(present, answer.tolist(), strict=True):
             out[s][t] = c
     return out
@@ -221,12 +358,16 @@ class MomentAssembler:
         self.candidates = [None] * n_sensors if candidates is None else list(candidates)
         self.max_open = max_open
         self.latest = np.full(n_sensors, -np.inf)  # newest window end per sensor
-        self.open: dict[float, dict[int, tuple[np.ndarray, bool]]] = {}
+        self.open: dict[float, dict[int, tuple[np.ndarray, bool, np.ndarray | None]]] = {}
 
-    def add(self, sensor: int, end_s: float, log_probs: np.ndarray, moving: bool) -> None:
-        """One window of ``sensor``: its ``(K,)`` log-probabilities and whether it moves (``is_moving``)."""
+    def add(
+        self, sensor: int, end_s: float, log_probs: np.ndarray, moving: bool, gyro_norm: np.ndarray | None = None
+    ) -> None:
+        """One window of ``sensor``: its ``(K,)`` log-probabilities, whether it moves (``is_moving``) and its
+        gyroscope norm ``(T,)``, for how the sensors swing together (``window_joint_assignment``; a moment with a
+        window that has none is answered without)."""
         key = round(end_s, 6)
-        self.open.setdefault(key, {})[sensor] = (log_probs, moving)
+        self.open.setdefault(key, {})[sensor] = (log_probs, moving, gyro_norm)
         self.latest[sensor] = max(self.latest[sensor], key)
 
     def ready(self) -> list[tuple[float, dict[int, int]]]:
@@ -246,8 +387,9 @@ class MomentAssembler:
         sensors = list(windows)
         log_probs = [windows[s][0][None] for s in sensors]
         moving = [np.array([windows[s][1]]) for s in sensors]
+        norms = None if any(windows[s][2] is None for s in sensors) else [windows[s][2][None] for s in sensors]
         candidates = [self.candidates[s] for s in sensors]
-        answer = window_joint_assignment(log_probs, moving, self.allow_shared, self.worn, candidates)
+        answer = window_joint_assignment(log_probs, moving, self.allow_shared, self.worn, candidates, norms)
         return key, {s: int(a[0]) for s, a in zip(sensors, answer, strict=True)}
 
 

@@ -1,11 +1,18 @@
+import itertools
+
 import numpy as np
 import pytest
 
 from service.core.assignment import (
+    SWING,
+    SWING_PAIR_TYPES,
     MomentAssembler,
     allowed_segments,
     is_moving,
     joint_assignment,
+    swing_log_likelihood,
+    swing_pair_type,
+    swing_z,
     window_joint_assignment,
 )
 from service.core.resample import resample_uniform
@@ -157,3 +164,87 @@ def test_is_moving() -> None:
     spinning = still.copy()
     spinning[..., 3] = 2.0
     assert is_moving(np.concatenate([still, spinning])).tolist() == [False, True]
+
+
+def _walking_norms(rng: np.random.Generator) -> np.ndarray:
+    """Gyroscope norms of seven sensors (class order) over one window of a made-up walk: the left leg's three swing
+    together, the right leg's in the other half of the stride, the pelvis twice per stride."""
+    t = np.arange(128) / 60.0
+    phase = 2 * np.pi * t / 1.1
+    left, right, pelvis = 2 + np.sin(phase), 2 - np.sin(phase), 1 + 0.3 * np.sin(2 * phase)
+    norms = np.stack([left, left, left, pelvis, right, right, right])
+    return norms + 0.3 * rng.standard_normal(norms.shape)
+
+
+def test_swing_pair_types_cover_every_pair_once_and_symmetrically() -> None:
+    seen = {swing_pair_type(a, b) for a in range(7) for b in range(7) if a != b}
+    assert seen == set(range(len(SWING_PAIR_TYPES))) and set(SWING) == set(SWING_PAIR_TYPES)
+    assert all(swing_pair_type(a, b) == swing_pair_type(b, a) for a in range(7) for b in range(7) if a != b)
+    assert SWING_PAIR_TYPES[swing_pair_type(0, 2)] == "same_leg-foot-upper_leg"  # left foot, left thigh
+    assert SWING_PAIR_TYPES[swing_pair_type(0, 4)] == "both_legs-foot-upper_leg"  # left foot, right thigh
+    assert SWING_PAIR_TYPES[swing_pair_type(6, 5)] == "same_leg-foot-lower_leg"
+    assert SWING_PAIR_TYPES[swing_pair_type(3, 1)] == "pelvis-lower_leg"
+    z = swing_z(np.stack([np.sin(np.arange(128) / 9.0), -np.sin(np.arange(128) / 9.0), np.ones(128)]))
+    assert z[0, 1] == pytest.approx(-3.0) and z[0, 2] == 0.0 and z[2, 2] == 0.0  # clipped; a flat norm reads 0
+
+
+def test_sensors_that_swing_together_answer_a_leg_together() -> None:
+    """A thigh whose own window leans to the wrong side: the one-to-one answer of the windows alone swaps the
+    thighs; weighing how the sensors swing puts each thigh with its foot and shank."""
+    rng = np.random.default_rng(0)
+    probs = np.full((7, 7), 0.01)
+    np.fill_diagonal(probs, 0.9)
+    probs[2, [2, 4]] = [0.30, 0.60]  # the left thigh's window favours the right thigh
+    probs[4, [2, 4]] = [0.40, 0.50]
+    log_probs = [np.log(p / p.sum())[None] for p in probs]
+    moving = [np.array([True])] * 7
+    alone = window_joint_assignment(log_probs, moving)
+    assert [int(a[0]) for a in alone] == [0, 1, 4, 3, 2, 5, 6]
+    norms = [n[None] for n in _walking_norms(rng)]
+    together = window_joint_assignment(log_probs, moving, gyro_norms=norms)
+    assert [int(a[0]) for a in together] == list(range(7))
+    assert [int(a[0]) for a in window_joint_assignment(log_probs, moving, gyro_norms=norms, swing_weight=0.0)] == [
+        int(a[0]) for a in alone
+    ]
+    live = MomentAssembler(7)
+    for s in range(7):
+        live.add(s, 1.0, log_probs[s][0], True, norms[s][0])
+    assert live.ready() == [(1.0, dict(enumerate(range(7))))]
+    # Declarations still hold: with the left thigh declared the right one, the swing cannot move it back.
+    declared = window_joint_assignment(log_probs, moving, candidates=[None, None, [4]] + [None] * 4, gyro_norms=norms)
+    assert int(declared[2][0]) == 4
+
+
+@pytest.mark.parametrize("n_sensors", [2, 3, 5])
+def test_the_swing_answer_is_the_best_one_to_one_map(n_sensors: int) -> None:
+    rng = np.random.default_rng(n_sensors)
+    for _ in range(5):
+        log_probs = np.log(rng.dirichlet(np.ones(7), size=n_sensors))
+        norms = (
+            rng.standard_normal((n_sensors, 128))
+            + np.sin(np.arange(128) / 10.0) * rng.choice([-1, 1], n_sensors)[:, None]
+        )
+        allowed = rng.random((n_sensors, 7)) > 0.2
+        allowed[np.arange(n_sensors), rng.permutation(7)[:n_sensors]] = True  # some one-to-one map is allowed
+        pair_ll = swing_log_likelihood(norms)
+
+        def score(m: tuple[int, ...], log_probs=log_probs, pair_ll=pair_ll) -> float:
+            own = sum(log_probs[i, c] for i, c in enumerate(m))
+            pairs = sum(
+                pair_ll[i, j, swing_pair_type(m[i], m[j])] for i in range(n_sensors) for j in range(i + 1, n_sensors)
+            )
+            return own + 0.125 * pairs
+
+        feasible = [
+            m for m in itertools.permutations(range(7), n_sensors) if all(allowed[i, c] for i, c in enumerate(m))
+        ]
+        best = max(feasible, key=score)
+        candidates = [np.flatnonzero(a).tolist() for a in allowed]
+        got = window_joint_assignment(
+            [lp[None] for lp in log_probs],
+            [np.array([True])] * n_sensors,
+            candidates=candidates,
+            gyro_norms=[n[None] for n in norms],
+            swing_weight=0.125,
+        )
+        assert score(tuple(int(g[0]) for g in got)) == pytest.approx(score(best), abs=1e-4)

@@ -142,7 +142,8 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     recording the share of moving leg windows that turn about the vertical (``turns_about_vertical``).
     Two answers per moving window: the window's own (``real_accuracy``, Zimmermann et al. 2018's per-window figure) and
     the one-to-one answer of the windows the recording's sensors took at that moment (``real_window_joint_*``,
-    ``window_joint_assignment``), which is what ``/v1/imu/assign`` returns per window. A third,
+    ``window_joint_assignment``). ``real_window_joint_swing_*`` is that answer weighing also how the sensors swing
+    together, which is what ``/v1/imu/assign`` returns per window. A third,
     ``real_window_joint_worn_*``, is that answer when the user declares which segments carry the sensors (the service's
     ``worn_segments``) but not which sensor is where: it differs from the second only for recordings with sensors on
     fewer than seven segments (gaitmap's two feet). A fourth, ``real_window_joint_part_*``, is that answer when each
@@ -150,14 +151,15 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     thighs, or the pelvis): it scores how well the left/right question alone is answered. Returns metrics and the
     confusion matrix of moving windows (the windows' own answers).
     """
-    y_true, y_pred, y_joint, y_worn, y_part, metrics = [], [], [], [], [], {}
+    y_true, y_pred, y_joint, y_swing, y_worn, y_part, metrics = [], [], [], [], [], [], {}
     joint_correct = joint_total = still = 0
     for rec in recordings:
         sensors = [s for s in rec.sensors if s.segment is not None]
-        log_probs, moving, twisting = [], [], []
+        log_probs, moving, twisting, norms = [], [], [], []
         for s in sensors:
             windows = sliding_windows(s.imu.astype(np.float32))
             moving.append(is_moving(windows))
+            norms.append(np.linalg.norm(windows[..., 3:6], axis=-1))
             still += int((~moving[-1]).sum())
             if s.segment in LEG_SEGMENTS:
                 twisting.append(turns_about_vertical(windows[moving[-1]]))
@@ -169,6 +171,7 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
             if len(y_pred[-1]):
                 metrics[f"accuracy/{rec.name}/{SEGMENTS[s.segment]}"] = float(np.mean(y_pred[-1] == s.segment))
         y_joint += _moving_per_moment(log_probs, moving)
+        y_swing += _moving_per_moment(log_probs, moving, gyro_norms=norms)
         y_worn += _moving_per_moment(log_probs, moving, worn=sorted({s.segment for s in sensors}))
         y_part += _moving_per_moment(log_probs, moving, candidates=[SIDES_OF[s.segment] for s in sensors])
         if not all(m.any() for m in moving):
@@ -183,6 +186,9 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
         metrics[f"window_joint_accuracy/{rec.name}"] = float(
             np.mean(rec_true == np.concatenate(y_joint[-len(sensors) :]))
         )
+        metrics[f"window_joint_swing_accuracy/{rec.name}"] = float(
+            np.mean(rec_true == np.concatenate(y_swing[-len(sensors) :]))
+        )
         metrics[f"window_joint_worn_accuracy/{rec.name}"] = float(
             np.mean(rec_true == np.concatenate(y_worn[-len(sensors) :]))
         )
@@ -192,12 +198,14 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
         if twisting:
             metrics[f"leg_windows_turning_about_vertical/{rec.name}"] = float(np.mean(np.concatenate(twisting)))
         metrics[f"n_windows/{rec.name}"] = float(len(rec_true))
-    yt, yp, yj, yw, ys = (np.concatenate(y) for y in (y_true, y_pred, y_joint, y_worn, y_part))
+    yt, yp, yj, yg, yw, ys = (np.concatenate(y) for y in (y_true, y_pred, y_joint, y_swing, y_worn, y_part))
     overall = assignment_metrics(yt, yp)
     metrics.update({f"real_{k}": v for k, v in overall.items()})
     part = np.array(BODY_PART + ("unassigned",))  # index -1 (unassigned) reads as the last entry: never right
     metrics["real_window_joint_accuracy"] = float(np.mean(yt == yj))
     metrics["real_window_joint_accuracy_ignoring_side"] = float(np.mean(part[yt] == part[yj]))
+    metrics["real_window_joint_swing_accuracy"] = float(np.mean(yt == yg))
+    metrics["real_window_joint_swing_accuracy_ignoring_side"] = float(np.mean(part[yt] == part[yg]))
     metrics["real_window_joint_worn_accuracy"] = float(np.mean(yt == yw))
     metrics["real_window_joint_worn_accuracy_ignoring_side"] = float(np.mean(part[yt] == part[yw]))
     metrics["real_window_joint_part_accuracy"] = float(np.mean(yt == ys))
@@ -211,6 +219,7 @@ def _moving_per_moment(
     moving: list[np.ndarray],
     worn: list[int] | None = None,
     candidates: list[list[int]] | None = None,
+    gyro_norms: list[np.ndarray] | None = None,
 ) -> list[np.ndarray]:
     """Per sensor, the per-moment answers (``window_joint_assignment``) of its moving windows. The sensors go in a
     random order, so that tied windows are not resolved by the order the reader lists them in."""
@@ -220,6 +229,7 @@ def _moving_per_moment(
         [moving[k] for k in order],
         worn=worn,
         candidates=None if candidates is None else [candidates[k] for k in order],
+        gyro_norms=None if gyro_norms is None else [gyro_norms[k] for k in order],
     )
     return [answer[k][moving[s]] for s, k in enumerate(np.argsort(order))]
 

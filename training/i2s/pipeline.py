@@ -150,6 +150,8 @@ HELD_OUT_METRICS = (
     "real_accuracy_ignoring_side",
     "real_window_joint_accuracy",
     "real_window_joint_accuracy_ignoring_side",
+    "real_window_joint_swing_accuracy",
+    "real_window_joint_swing_accuracy_ignoring_side",
 )
 
 

@@ -314,7 +314,8 @@ def record_real_loso(model_dir: Path, summary_run_id: str, command: str) -> Mani
     metrics = {}
     for name, fold in folds.items():
         for key in (*HELD_OUT_METRICS, "n_windows"):
-            metrics[f"{key}/{name}"] = round(float(fold[key]), 5)
+            if key in fold:  # a run from before a metric was added has none of it
+                metrics[f"{key}/{name}"] = round(float(fold[key]), 5)
     manifest = read_manifest(model_dir / "manifest.json")
     evaluation = Evaluation(
         name=REAL_LOSO,

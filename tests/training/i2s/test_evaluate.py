@@ -69,6 +69,31 @@ def test_window_joint_answers_fix_a_shared_favourite_at_each_moment(recording) -
     assert cm[SEGMENT + 1, SEGMENT] > 0  # the confusion matrix keeps the windows' own answers
 
 
+def test_sensors_that_swing_together_find_the_feet_sides(data_dir: Path, kinematics_cache: Path) -> None:
+    """Both feet and the left shank of one simulated walk (cmu_07, held out of the swing fit). Each foot's windows
+    cannot tell left from right (equal probabilities), the shank is sure of itself: per moment alone the feet are
+    a coin toss; weighing how the sensors swing (``real_window_joint_swing_*``) puts the foot that swings with the
+    shank on its side."""
+    names = ("LeftFoot", "LeftLowerLeg", "RightFoot")
+    sensors = [_simulated_recording(data_dir, kinematics_cache, SEGMENTS.index(n))[0].sensors[0] for n in names]
+    feet = [SEGMENTS.index("LeftFoot"), SEGMENTS.index("RightFoot")]
+
+    kinds = iter(["foot", "shank", "foot"])  # evaluate_real predicts each sensor's moving windows in one call
+
+    def predict(windows: np.ndarray) -> np.ndarray:
+        probs = np.full((len(windows), len(SEGMENTS)), 0.01, dtype=np.float32)
+        if next(kinds) == "shank":
+            probs[:, SEGMENT] = 0.9
+        else:
+            probs[:, feet] = 0.45  # a foot, either side
+        return probs
+
+    m, _ = evaluate_real(predict, [RealRecording("sim/three", "sim", "cmu_07", "walk", sensors)])
+    assert m["window_joint_accuracy/sim/three"] < 0.9  # the feet by chance
+    assert m["real_window_joint_swing_accuracy"] > 0.97
+    assert m["window_joint_swing_accuracy/sim/three"] == m["real_window_joint_swing_accuracy"]
+
+
 def test_declared_worn_segments_keep_a_favourite_that_no_sensor_wears_out(recording) -> None:
     """Both sensors favour the thigh of the other leg, which neither wears. Per moment over seven segments one of
     them takes it; declared (the recording's own segments, ``real_window_joint_worn_*``) both are right."""

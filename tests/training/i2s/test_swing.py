@@ -1,0 +1,26 @@
+"""How sensors worn together swing together: the table the per-moment answer weighs is what its fit gives."""
+
+from __future__ import annotations
+
+import pytest
+
+from service.core.assignment import SWING, SWING_PAIR_TYPES
+
+
+def test_the_served_swing_table_is_the_fit_on_the_training_clips(data_dir, kinematics_cache) -> None:
+    from training.i2s.config import load_config
+    from training.i2s.data.split import load_clips, split_clips
+    from training.i2s.swing import fit_swing
+
+    cfg = load_config("training/configs/i2s_assignment.yaml")
+    train, _, _ = split_clips(
+        load_clips(cfg, data_dir, kinematics_cache), cfg.data.test_subjects, cfg.data.val_fraction, cfg.seed
+    )
+    fitted = fit_swing([c for c in train if not c.variant])
+    assert set(fitted) == set(SWING_PAIR_TYPES)
+    for name, (mean, std, n) in fitted.items():
+        assert n >= 300, name
+        assert SWING[name] == pytest.approx((mean, std), abs=6e-4), name
+    # What the table says: one leg's foot swings with its shank and thigh, the two legs' feet take turns.
+    assert SWING["same_leg-foot-lower_leg"][0] > 0.5 > -0.5 > SWING["both_legs-foot-foot"][0]
+    assert SWING["same_leg-foot-upper_leg"][0] - SWING["both_legs-foot-upper_leg"][0] > 0.5

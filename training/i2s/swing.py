@@ -1,0 +1,95 @@
+"""How the gyroscope norms of sensors worn together swing together, per pair of segments: the model that the
+per-moment answer weighs (``service.core.assignment.SWING``), fitted on simulated walking, and what it does to
+the held-out per-moment answers of a ``real-loso`` run.
+
+Per moving window of a clip and per pair of its seven segments, the Fisher z (atanh) of the Pearson correlation of
+their gyroscope norms over the window; per pair type (``service.core.assignment.swing_pair_type``: the two body
+parts, and whether they are on one leg, on both legs, or one is the pelvis) its mean and standard deviation. The
+norm of the angular velocity does not depend on how a sensor is mounted, so the segment's own is the sensor's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from service.core.assignment import (
+    STILL_GYR_MEAN_RADS,
+    SWING_PAIR_TYPES,
+    swing_pair_type,
+    swing_z,
+    window_joint_assignment,
+)
+from service.core.segments import BODY_PART
+from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES, sliding_windows
+from training.i2s.data.mocap import Clip
+
+
+def swing_samples(clips: list[Clip]) -> dict[str, np.ndarray]:
+    """Per pair type, the z of every window of ``clips`` in which both segments move."""
+    out: dict[str, list[float]] = {name: [] for name in SWING_PAIR_TYPES}
+    n_segments = len(BODY_PART)
+    pairs = [
+        (a, b, SWING_PAIR_TYPES[swing_pair_type(a, b)]) for a in range(n_segments) for b in range(a + 1, n_segments)
+    ]
+    for clip in clips:
+        norms = np.linalg.norm(clip.kin.gyr_rads, axis=-1)  # (T, 7)
+        for start in range(0, clip.n_samples - WINDOW_SAMPLES + 1, HOP_SAMPLES):
+            window = norms[start : start + WINDOW_SAMPLES].T
+            moving = window.mean(axis=1) > STILL_GYR_MEAN_RADS
+            z = swing_z(window)
+            for a, b, name in pairs:
+                if moving[a] and moving[b]:
+                    out[name].append(z[a, b])
+    return {name: np.asarray(v) for name, v in out.items()}
+
+
+def fit_swing(clips: list[Clip]) -> dict[str, tuple[float, float, int]]:
+    """Per pair type: (mean z, standard deviation of z, number of windows)."""
+    return {name: (float(z.mean()), float(z.std()), len(z)) for name, z in swing_samples(clips).items() if len(z)}
+
+
+def swing_table(summary_run_id: str, data_dir: Path, weights: Sequence[float] = ()) -> str:
+    """A markdown table: per held-out person, per source and pooled, the per-moment answers of a ``real-loso`` run's
+    folds (moving windows, as ``training.i2s.evaluate.evaluate_real`` scores them) without and with how the sensors
+    swing together, and for each of ``weights`` the same with that ``SWING_WEIGHT`` (a comparison of weights)."""
+    from service.core.assignment import SWING_WEIGHT
+    from service.core.recordings import read_all_real
+    from training.i2s.calibration import fold_predictions
+    from training.i2s.evaluate import EVAL_SEED
+
+    part = np.array(BODY_PART + ("unassigned",))
+    columns = [None, SWING_WEIGHT, *weights]
+    recordings = {r.name: r for r in read_all_real(data_dir)}
+    sums: dict[str, np.ndarray] = {}
+    for held in fold_predictions(summary_run_id, data_dir):
+        sensors = [s for s in recordings[held.recording].sensors if s.segment is not None]
+        norms = [np.linalg.norm(sliding_windows(s.imu.astype(np.float32))[..., 3:6], axis=-1) for s in sensors]
+        log_probs, moving = [p.log_probs for p in held.sensors], [p.moving for p in held.sensors]
+        truth = np.concatenate([np.full(int(m.sum()), p.segment) for p, m in zip(held.sensors, moving, strict=True)])
+        order = np.random.default_rng(EVAL_SEED).permutation(len(log_probs))  # as evaluate_real: ties by chance
+        row = [len(truth)]
+        for weight in columns:
+            answer = window_joint_assignment(
+                [log_probs[k] for k in order],
+                [moving[k] for k in order],
+                gyro_norms=None if weight is None else [norms[k] for k in order],
+                swing_weight=weight or 0.0,
+            )
+            got = np.concatenate([answer[k][moving[s]] for s, k in enumerate(np.argsort(order))])
+            row += [(got == truth).sum(), (part[got] == part[truth]).sum()]
+        for group in (held.person, f"pooled/{held.recording.split('/')[0]}", "pooled"):
+            sums[group] = sums.get(group, 0) + np.array(row, dtype=np.float64)
+    names = ["per moment", f"swinging together ({SWING_WEIGHT:g})"] + [f"weight {w:g}" for w in weights]
+    lines = ["| held out (moving windows) | " + " | ".join(f"{n}: right / ignoring side" for n in names) + " |"]
+    lines.append("|" + " --- |" * (1 + len(names)))
+    for group in sorted(sums, key=lambda g: (g.startswith("pooled"), g)):
+        total = sums[group]
+        cells = [
+            f"{100 * total[1 + 2 * c] / total[0]:.2f} / {100 * total[2 + 2 * c] / total[0]:.2f} %"
+            for c in range(len(names))
+        ]
+        lines.append(f"| {group} ({int(total[0])}) | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
