@@ -43,6 +43,7 @@ from training.i2s.calibration import (
     servable,
     sessions,
     time_to_answer,
+    with_swing,
 )
 from training.i2s.ship import write_run
 from training.snapshot import local_run_id
@@ -99,7 +100,11 @@ def truncated(held_out: list[HeldOut], seconds: float) -> list[HeldOut]:
     """The recordings' predictions over their first ``seconds``: the windows a stream of that length produces."""
     n = max(0, (int(seconds * MODEL_RATE_HZ) - WINDOW_SAMPLES) // HOP_SAMPLES + 1)
     return [
-        replace(h, sensors=[replace(s, log_probs=s.log_probs[:n], moving=s.moving[:n]) for s in h.sensors])
+        replace(
+            h,
+            sensors=[replace(s, log_probs=s.log_probs[:n], moving=s.moving[:n]) for s in h.sensors],
+            swing=None if h.swing is None else h.swing[:n],
+        )
         for h in held_out
     ]
 
@@ -133,7 +138,7 @@ def main() -> None:
     args = parser.parse_args()
     setup_tracking("i2s")
     data_dir = resolve_data_dir(None)
-    predicted = fold_predictions(args.loso_run, data_dir)
+    predicted = with_swing(fold_predictions(args.loso_run, data_dir), data_dir)  # as the service weighs it
     # the calibration as ``calibrate`` fits it (sessions of every recording), one per person without that person;
     # the replay judges by what the service is given (``servable``)
     calibrations = {p: servable(m) for p, m in nested(sessions(predicted))[1].items()}

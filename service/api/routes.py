@@ -42,6 +42,7 @@ from service.core.assignment import (
     assignment_confidence,
     is_moving,
     session_assignment,
+    session_swing_weight,
     turns_about_vertical,
     window_joint_assignment,
 )
@@ -273,8 +274,11 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     log_probs = [np.log(np.clip(probs[bounds[k] : bounds[k + 1]], 1e-12, 1.0)) for k in range(len(per_sensor))]
     worn = segment_indices(body.worn_segments)
     candidates = [segment_indices(s.candidate_segments) for s in body.sensors]
-    joint, votes, n_moving = session_assignment(log_probs, moving, body.allow_shared, worn, candidates)
     gyro_norms = [np.linalg.norm(x[..., 3:6], axis=-1) for x in per_sensor]  # how the sensors swing together
+    weight = session_swing_weight(_confidence(request))
+    joint, votes, n_moving = session_assignment(
+        log_probs, moving, body.allow_shared, worn, candidates, gyro_norms, swing_weight=weight
+    )
     at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates, gyro_norms)
     calibrated = assignment_confidence(_confidence(request), joint, votes, n_moving)
     p_correct = calibrated.p_correct

@@ -38,6 +38,7 @@ from service.core.assignment import (
     assignment_confidence,
     is_moving,
     joint_assignment,
+    session_swing_weight,
     turns_about_vertical,
 )
 from service.core.body import BODY_SEGMENTS
@@ -291,8 +292,14 @@ class Session:
 
     def assignment_message(self, dropped: int) -> dict:
         evidence = np.where(self.windows[:, None] > 0, self.evidence, self.still_evidence)
+        swing = None if self.moments is None else self.moments.swing  # as /v1/imu/assign weighs it
         joint = joint_assignment(
-            [e[None] for e in evidence], self.allow_shared, worn=self.worn, candidates=self.candidates
+            [e[None] for e in evidence],
+            self.allow_shared,
+            worn=self.worn,
+            candidates=self.candidates,
+            swing=swing,
+            swing_weight=session_swing_weight(self.confidence),
         )
         calibrated = assignment_confidence(self.confidence, joint, self.votes, self.windows)
         p_correct = calibrated.p_correct

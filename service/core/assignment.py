@@ -163,15 +163,14 @@ def swing_pair_type(a: int, b: int) -> int:
 
 
 def swing_z(gyro_norms: np.ndarray) -> np.ndarray:
-    """``(S, T)`` gyroscope norms of S sensors' windows of one moment → ``(S, S)`` Fisher z of their Pearson
-    correlations, clipped to ±``_Z_CLIP`` (0 on the diagonal and for a window whose norm does not vary)."""
+    """``(..., S, T)`` gyroscope norms of S sensors' windows of one moment → ``(..., S, S)`` Fisher z of their
+    Pearson correlations, clipped to ±``_Z_CLIP`` (0 on the diagonal and for a window whose norm does not vary)."""
     x = np.asarray(gyro_norms, dtype=np.float64)
-    x = x - x.mean(axis=1, keepdims=True)
-    scale = np.linalg.norm(x, axis=1)
+    x = x - x.mean(axis=-1, keepdims=True)
+    scale = np.linalg.norm(x, axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        r = (x @ x.T) / np.outer(scale, scale)
-    r = np.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0)
-    np.fill_diagonal(r, 0.0)
+        r = (x @ np.swapaxes(x, -1, -2)) / (scale[..., :, None] * scale[..., None, :])
+    r = np.where(np.eye(x.shape[-2], dtype=bool), 0.0, np.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0))
     return np.clip(np.arctanh(np.clip(r, -0.999999, 0.999999)), -_Z_CLIP, _Z_CLIP)
 
 
@@ -188,11 +187,29 @@ _PAIR_TYPE = _pair_type_table()
 
 
 def swing_log_likelihood(gyro_norms: np.ndarray) -> np.ndarray:
-    """``(S, T)`` → ``(S, S, len(SWING_PAIR_TYPES))``: per pair of sensors, the log-density of their ``swing_z``
-    under each pair type's normal distribution (``SWING``)."""
+    """``(..., S, T)`` → ``(..., S, S, len(SWING_PAIR_TYPES))``: per pair of sensors, the log-density of their
+    ``swing_z`` under each pair type's normal distribution (``SWING``)."""
     z = swing_z(gyro_norms)
     mean, std = (np.array([SWING[name][k] for name in SWING_PAIR_TYPES]) for k in (0, 1))
     return -0.5 * ((z[..., None] - mean) / std) ** 2 - np.log(std) - 0.5 * np.log(2 * np.pi)
+
+
+def swing_per_moment(gyro_norms: list[np.ndarray], moving: list[np.ndarray]) -> np.ndarray:
+    """Per sensor its windows' gyroscope norms ``(N_s, T)`` and moving mask ``(N_s,)`` → ``(n, S, S, types)``
+    float32: per moment (window index, the first n = min N_s) the ``swing_log_likelihood`` of every pair of sensors
+    whose windows both move there, 0 for the others and on the diagonal. Summed over a session's moments it is the
+    session's evidence of how its sensors swing together (``joint_assignment``'s ``swing``)."""
+    n_sensors = len(gyro_norms)
+    n = min((len(g) for g in gyro_norms), default=0)
+    out = np.zeros((n, n_sensors, n_sensors, len(SWING_PAIR_TYPES)), dtype=np.float32)
+    if n_sensors < 2 or n == 0:
+        return out
+    both = np.stack([m[:n] for m in moving], axis=1)  # (n, S)
+    both = both[:, :, None] & both[:, None, :] & ~np.eye(n_sensors, dtype=bool)
+    for lo in range(0, n, 512):  # (512, S, S, types) float64 at a time
+        chunk = swing_log_likelihood(np.stack([g[lo : lo + 512] for g in gyro_norms], axis=1))
+        out[lo : lo + 512] = np.where(both[lo : lo + 512, :, :, None], chunk, 0.0)
+    return out
 
 
 _FORBIDDEN = -1e9  # a forbidden cell's score in ``_best_with_swing`` (finite: it is summed by a matrix product)
@@ -224,15 +241,31 @@ def _best_with_swing(
     (``swing_log_likelihood``): the sensors of one leg are answered together, so a thigh whose own window leans to
     the wrong side follows its shank and foot. Exact, over every one-to-one map (5,040 for seven sensors); with more
     rows than classes, or no map that keeps every row on an allowed class, the answer without it (``_best``)."""
+    found = _swing_search(evidence, allowed, pair_ll, weight)
+    return _best(evidence, allowed, allow_shared=False) if found is None else found[0]
+
+
+def _swing_search(
+    evidence: np.ndarray, allowed: np.ndarray, pair_ll: np.ndarray, weight: float
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``_best_with_swing``'s answer and, per row, how much the best map that puts the row elsewhere scores less
+    (+inf where no allowed map does); None where it falls back to ``_best``."""
     n_rows, n_classes = evidence.shape
     if n_rows > n_classes or n_classes != len(SEGMENTS):
-        return _best(evidence, allowed, allow_shared=False)
+        return None
     maps, rows_i, rows_j, select = _maps_of(n_rows)
     scores = np.concatenate([np.where(allowed, evidence, _FORBIDDEN).ravel(), weight * pair_ll[rows_i, rows_j].ravel()])
-    best = maps[int(np.argmax(select @ scores.astype(np.float32)))]
-    if not allowed[np.arange(n_rows), best].all():  # no map keeps every row on an allowed class
-        return _best(evidence, allowed, allow_shared=False)
-    return best
+    totals = select @ scores.astype(np.float32)
+    best = int(np.argmax(totals))
+    if not allowed[np.arange(n_rows), maps[best]].all():  # no map keeps every row on an allowed class
+        return None
+    feasible = totals > _FORBIDDEN / 2
+    gap = np.full(n_rows, np.inf)
+    for row in range(n_rows):
+        elsewhere = feasible & (maps[:, row] != maps[best, row])
+        if elsewhere.any():
+            gap[row] = float(totals[best]) - float(totals[elsewhere].max())
+    return maps[best], gap
 
 
 def joint_assignment(
@@ -240,6 +273,8 @@ def joint_assignment(
     allow_shared: bool = False,
     worn: Sequence[int] | None = None,
     candidates: Candidates | None = None,
+    swing: np.ndarray | None = None,
+    swing_weight: float = SWING_WEIGHT,
 ) -> JointAssignment:
     """Assign S sensors (each ``(N_s, K)`` window log-probabilities) to K segments, or to the declared ones.
 
@@ -247,12 +282,19 @@ def joint_assignment(
     with fewer, segments stay empty. ``allow_shared`` lets sensors share a segment (per-sensor argmax).
     With ``worn`` / ``candidates`` (``allowed_segments``), a sensor's evidence for the segments it may not be on is
     -inf, and its confidence and margin are over those it may be on (margin +inf when it may be on one only).
+    With ``swing`` ``(S, S, types)``, the session's summed ``swing_per_moment``, the one-to-one answer also weighs
+    how the sensors swung together (``_best_with_swing``, by ``swing_weight``; 0: not weighed); the margin is then
+    how much more the answer scores, the swing included, than the best one-to-one answer that puts the sensor on
+    another segment (≥ 0; +inf where none may), and the confidence stays that of the sensor's own evidence.
     """
     evidence = np.stack([lp.sum(axis=0) for lp in log_probs])
     n_sensors, n_classes = evidence.shape
     allowed = allowed_segments(n_sensors, n_classes, worn, candidates)
     evidence[~allowed] = -np.inf
-    segment = _best(evidence, allowed, allow_shared)
+    found = None
+    if swing is not None and swing_weight > 0 and not allow_shared and n_sensors > 1:
+        found = _swing_search(evidence, allowed, swing, swing_weight)
+    segment = _best(evidence, allowed, allow_shared) if found is None else found[0]
     rows, chosen = np.arange(n_sensors), np.maximum(segment, 0)
     post = np.exp(evidence - evidence.max(axis=1, keepdims=True))
     post /= post.sum(axis=1, keepdims=True)
@@ -261,6 +303,8 @@ def joint_assignment(
     others[rows, chosen] = -np.inf
     with np.errstate(invalid="ignore"):  # -inf - -inf never reaches the answer: those rows have one segment
         margin = np.where(allowed.sum(axis=1) > 1, evidence[rows, chosen] - others.max(axis=1), np.inf)
+    if found is not None:  # the score the answer wins by, the swing included, over any that moves the sensor
+        margin = found[1]
     margin = np.where(segment >= 0, margin, 0.0)
     return JointAssignment(segment, evidence, confidence, margin)
 
@@ -271,13 +315,20 @@ def session_assignment(
     allow_shared: bool = False,
     worn: Sequence[int] | None = None,
     candidates: Candidates | None = None,
+    gyro_norms: list[np.ndarray] | None = None,
+    swing: np.ndarray | None = None,
+    swing_weight: float = SWING_WEIGHT,
 ) -> tuple[JointAssignment, np.ndarray, np.ndarray]:
     """The joint answer of sensors worn together, as ``/v1/imu/assign`` gives it: each sensor's evidence is its
-    moving windows (all its windows if none moves; ``log_probs[s]`` ``(N_s, K)``, ``moving[s]`` ``(N_s,)``).
+    moving windows (all its windows if none moves; ``log_probs[s]`` ``(N_s, K)``, ``moving[s]`` ``(N_s,)``), and
+    with ``gyro_norms`` (per sensor ``(N_s, T)``) how the sensors swung together at the moments they all recorded
+    (``swing_per_moment``; or ``swing``, their sum, where the caller has it).
     Returns the assignment, per sensor the votes of its moving windows (``vote_counts``) and their number: what
     ``confidence_features`` reads."""
     evidence = [lp[m] if m.any() else lp for lp, m in zip(log_probs, moving, strict=True)]
-    joint = joint_assignment(evidence, allow_shared, worn, candidates)
+    if swing is None and gyro_norms is not None and swing_weight > 0:
+        swing = swing_per_moment(gyro_norms, moving).sum(axis=0, dtype=np.float64)
+    joint = joint_assignment(evidence, allow_shared, worn, candidates, swing, swing_weight)
     n_classes = log_probs[0].shape[1]
     votes = np.stack([vote_counts(lp[m], n_classes) for lp, m in zip(log_probs, moving, strict=True)])
     return joint, votes, np.array([int(m.sum()) for m in moving])
@@ -341,7 +392,8 @@ class MomentAssembler:
     answered from the windows it holds; a sensor that stalls, or never sends, holds up at most ``max_open``
     moments, after which the oldest are answered without it. ``flush`` answers all that wait (end of stream).
     With ``allow_shared`` each moving window keeps its own answer; with ``worn`` / ``candidates`` the answers are
-    drawn from the declared segments only (``allowed_segments``).
+    drawn from the declared segments only (``allowed_segments``). ``swing`` sums how the sensors swung together
+    over the moments answered so far (``swing_per_moment``), for the session's joint answer.
     """
 
     def __init__(
@@ -358,6 +410,8 @@ class MomentAssembler:
         self.candidates = [None] * n_sensors if candidates is None else list(candidates)
         self.max_open = max_open
         self.latest = np.full(n_sensors, -np.inf)  # newest window end per sensor
+        # the answered moments' ``swing_per_moment``, summed: how the sensors swung together so far
+        self.swing = np.zeros((n_sensors, n_sensors, len(SWING_PAIR_TYPES)))
         self.open: dict[float, dict[int, tuple[np.ndarray, bool, np.ndarray | None]]] = {}
 
     def add(
@@ -388,6 +442,11 @@ class MomentAssembler:
         log_probs = [windows[s][0][None] for s in sensors]
         moving = [np.array([windows[s][1]]) for s in sensors]
         norms = None if any(windows[s][2] is None for s in sensors) else [windows[s][2][None] for s in sensors]
+        swinging = [s for s in sensors if windows[s][1]]
+        if norms is not None and len(swinging) > 1:
+            pair_ll = swing_log_likelihood(np.stack([windows[s][2] for s in swinging]))
+            pair_ll[np.arange(len(swinging)), np.arange(len(swinging))] = 0.0
+            self.swing[np.ix_(swinging, swinging)] += pair_ll
         candidates = [self.candidates[s] for s in sensors]
         answer = window_joint_assignment(log_probs, moving, self.allow_shared, self.worn, candidates, norms)
         return key, {s: int(a[0]) for s, a in zip(sensors, answer, strict=True)}
@@ -431,6 +490,7 @@ class ConfidenceModel:
     threshold: float
     min_moving_windows: int
     session: SessionConfidence | None = None
+    swing_weight: float = 0.0  # of how the sensors swing together, in the answers it was fitted on
 
     @classmethod
     def from_spec(cls, spec: ConfidenceSpec | None) -> ConfidenceModel | None:
@@ -445,7 +505,9 @@ class ConfidenceModel:
             if tuple(spec.session.features) != SESSION_FEATURES or len(spec.session.coef) != len(SESSION_FEATURES):
                 raise ValueError(f"session confidence features must be {SESSION_FEATURES}, got {spec.session.features}")
             session = SessionConfidence(tuple(spec.session.coef), spec.session.intercept, spec.session.threshold)
-        return cls(tuple(spec.coef), spec.intercept, spec.threshold, spec.min_moving_windows, session)
+        return cls(
+            tuple(spec.coef), spec.intercept, spec.threshold, spec.min_moving_windows, session, spec.swing_weight
+        )
 
     def session_spec(self) -> SessionConfidenceSpec | None:
         if self.session is None:
@@ -485,6 +547,13 @@ class ConfidenceModel:
         else:
             sure = bool(self.committed(p_correct, moving_windows, assigned)[assigned].all())
         return "assigned" if sure else "not_enough_walking"
+
+
+def session_swing_weight(model: ConfidenceModel | None) -> float:
+    """The weight of how the sensors swing together in a session's joint answer: the one the model's calibration was
+    fitted with (a version calibrated before it was weighed keeps answering as it did), ``SWING_WEIGHT`` for a
+    model without calibration."""
+    return SWING_WEIGHT if model is None else model.swing_weight
 
 
 def _logistic(z: np.ndarray) -> np.ndarray:

@@ -109,6 +109,10 @@ class ConfidenceSpec(BaseModel):
     threshold: float = Field(gt=0.0, lt=1.0)
     min_moving_windows: int = Field(ge=1)
     session: SessionConfidenceSpec | None = None
+    # The weight of how the sensors swing together in the joint answers it was fitted on
+    # (``service.core.assignment.SWING_WEIGHT``); 0: not weighed (calibrations before it). The service answers a
+    # session as the calibration saw it answered.
+    swing_weight: float = Field(0.0, ge=0.0)
     fitted_on: str
     metrics: dict[str, float] = Field(default_factory=dict)
     command: str = ""

@@ -10,8 +10,10 @@ from service.core.assignment import (
     allowed_segments,
     is_moving,
     joint_assignment,
+    session_assignment,
     swing_log_likelihood,
     swing_pair_type,
+    swing_per_moment,
     swing_z,
     window_joint_assignment,
 )
@@ -248,3 +250,55 @@ def test_the_swing_answer_is_the_best_one_to_one_map(n_sensors: int) -> None:
             swing_weight=0.125,
         )
         assert score(tuple(int(g[0]) for g in got)) == pytest.approx(score(best), abs=1e-4)
+
+
+def test_a_session_answer_weighs_how_its_sensors_swung_together() -> None:
+    """Over a session the left thigh's own windows lean to the right thigh; the summed swing of its moments puts it
+    with the foot and shank it swung with, and its margin is what that answer wins by, swing included. Weight 0
+    answers as without. The live sum (``MomentAssembler.swing``) is the REST one (``swing_per_moment``)."""
+    rng = np.random.default_rng(1)
+    n = 12
+    probs = np.full((7, 7), 0.01)
+    np.fill_diagonal(probs, 0.9)
+    probs[2, [2, 4]] = [0.30, 0.60]
+    probs[4, [2, 4]] = [0.40, 0.50]
+    log_probs = [np.repeat(np.log(p / p.sum())[None], n, axis=0) for p in probs]
+    norms_by_moment = np.stack([_walking_norms(rng) for _ in range(n)])  # (n, 7, T)
+    norms = [norms_by_moment[:, s] for s in range(7)]
+    moving = [np.ones(n, bool)] * 7
+    alone, _, _ = session_assignment(log_probs, moving)
+    assert alone.segment.tolist() == [0, 1, 4, 3, 2, 5, 6]
+    swung, _, _ = session_assignment(log_probs, moving, gyro_norms=norms)
+    assert swung.segment.tolist() == list(range(7))
+    assert (swung.margin > 0).all() and alone.margin[4] < 0  # alone, the constraint overrode a thigh
+    unweighed, _, _ = session_assignment(log_probs, moving, gyro_norms=norms, swing_weight=0.0)
+    assert unweighed.segment.tolist() == alone.segment.tolist()
+    np.testing.assert_allclose(unweighed.margin, alone.margin)
+    live = MomentAssembler(7)
+    for t in range(n):
+        for s in range(7):
+            live.add(s, float(t), log_probs[s][t], True, norms[s][t])
+    live.ready(), live.flush()
+    np.testing.assert_allclose(live.swing, swing_per_moment(norms, moving).sum(axis=0), rtol=1e-5, atol=1e-4)
+    # A still window's pairs are not weighed.
+    still = [np.ones(n, bool)] * 6 + [np.arange(n) >= 4]
+    per_moment = swing_per_moment(norms, still)
+    assert (per_moment[:4, 6] == 0).all() and (per_moment[:4, :, 6] == 0).all() and (per_moment[4:, 6, 5] != 0).all()
+
+
+def test_a_calibration_answers_sessions_as_it_was_fitted() -> None:
+    from service.core.assignment import SWING_WEIGHT, ConfidenceModel, session_swing_weight
+    from service.core.manifest import ConfidenceSpec
+
+    spec = ConfidenceSpec(
+        features=["vote_share", "margin_per_window", "log_moving_windows"],
+        coef=[1.0, 1.0, 1.0],
+        intercept=0.0,
+        threshold=0.9,
+        min_moving_windows=8,
+        fitted_on="test",
+    )
+    assert session_swing_weight(ConfidenceModel.from_spec(spec)) == 0.0  # fitted before the swing was weighed
+    spec.swing_weight = 0.125
+    assert session_swing_weight(ConfidenceModel.from_spec(spec)) == 0.125
+    assert session_swing_weight(None) == SWING_WEIGHT

@@ -47,12 +47,14 @@ from mlflow.tracking import MlflowClient
 from service.core.assignment import (
     CONFIDENCE_FEATURES,
     SESSION_FEATURES,
+    SWING_WEIGHT,
     ConfidenceModel,
     SessionConfidence,
     confidence_features,
     is_moving,
     session_assignment,
     session_features,
+    swing_per_moment,
 )
 from service.core.manifest import ConfidenceSpec
 from service.core.recordings import RealRecording, read_all_real
@@ -89,6 +91,17 @@ class HeldOut:
     recording: str
     activity: str
     sensors: list[SensorPrediction]
+    # per moment, how its sensors swung together (``service.core.assignment.swing_per_moment``); None: not weighed
+    swing: np.ndarray | None = None
+
+    def swing_over(self, window: slice, subset: list[int] | None = None) -> np.ndarray | None:
+        """The summed swing of ``window``'s moments, of ``subset``'s sensors (all if None)."""
+        if self.swing is None:
+            return None
+        swing = self.swing[window]
+        if subset is not None:
+            swing = swing[:, subset][:, :, subset]
+        return swing.sum(axis=0, dtype=np.float64)
 
 
 PREDICTIONS_ARTIFACT = "evaluation/held_out_predictions"  # .npz (arrays) and .json (what each array is)
@@ -113,6 +126,20 @@ def fold_predictions(summary_run_id: str, data_dir: Path) -> list[HeldOut]:
         _write_predictions(held_out, Path(tmp) / "out" / Path(PREDICTIONS_ARTIFACT).name)
         client.log_artifacts(summary, str(Path(tmp) / "out"), str(Path(PREDICTIONS_ARTIFACT).parent))
     return held_out
+
+
+def with_swing(held_out: list[HeldOut], data_dir: Path) -> list[HeldOut]:
+    """``held_out`` with, per recording, how its labelled sensors swung together at each moment (``HeldOut.swing``),
+    from the recordings' gyroscopes: the service's joint answer weighs it."""
+    recordings = {r.name: r for r in read_all_real(data_dir)}
+    out = []
+    for rec in held_out:
+        sensors = [s for s in recordings[rec.recording].sensors if s.segment is not None]
+        if [s.segment for s in sensors] != [s.segment for s in rec.sensors]:
+            raise ValueError(f"{rec.recording}: the recording's labelled sensors are not those predicted")
+        norms = [np.linalg.norm(sliding_windows(s.imu.astype(np.float32))[..., 3:6], axis=-1) for s in sensors]
+        out.append(replace(rec, swing=swing_per_moment(norms, [s.moving for s in rec.sensors])))
+    return out
 
 
 def _predict_folds(client: MlflowClient, summary_run_id: str, data_dir: Path) -> list[HeldOut]:
@@ -191,12 +218,18 @@ class Samples:
     person: np.ndarray  # (M,) str
     span_s: np.ndarray  # (M,)
     moving: np.ndarray  # (M,) moving windows of the sensor
+    swing_weight: float = 0.0  # of how the sensors swung together in the answers (0: not weighed)
 
 
-def answer(sensors: list[SensorPrediction], window: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The joint answer over ``window`` of each sensor's windows, as the service gives it: segments, features,
-    and each sensor's moving-window count."""
-    joint, votes, n = session_assignment([s.log_probs[window] for s in sensors], [s.moving[window] for s in sensors])
+def answer(
+    sensors: list[SensorPrediction], window: slice, swing: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The joint answer over ``window`` of each sensor's windows, as the service gives it (with ``swing``, the
+    sensors' summed swing over the window's moments, ``HeldOut.swing_over``): segments, features, and each sensor's
+    moving-window count."""
+    joint, votes, n = session_assignment(
+        [s.log_probs[window] for s in sensors], [s.moving[window] for s in sensors], swing=swing
+    )
     return joint.segment, confidence_features(joint.segment, joint.margin, votes, n), n
 
 
@@ -218,15 +251,23 @@ def sessions(held_out: list[HeldOut], seed: int = 0) -> Samples:
                     subsets.append(sorted(rng.choice(len(rec.sensors), size, replace=False).tolist()))
                 for subset in subsets:
                     chosen = [rec.sensors[i] for i in subset]
-                    segment, features, n = answer(chosen, slice(start, start + length))
+                    window = slice(start, start + length)
+                    segment, features, n = answer(chosen, window, rec.swing_over(window, subset))
                     for k, sensor in enumerate(chosen):
                         if segment[k] < 0:
                             continue
                         rows.append((features[k], segment[k] == sensor.segment, session, rec.person, span, n[k]))
                     session += 1
     features, correct, ids, person, span, moving = zip(*rows, strict=True)
+    weighed = all(rec.swing is not None for rec in held_out)  # ``answer`` weighs the swing where it is given
     return Samples(
-        np.array(features), np.array(correct), np.array(ids), np.array(person), np.array(span), np.array(moving)
+        np.array(features),
+        np.array(correct),
+        np.array(ids),
+        np.array(person),
+        np.array(span),
+        np.array(moving),
+        SWING_WEIGHT if weighed else 0.0,
     )
 
 
@@ -361,7 +402,7 @@ def calibrated_model(samples: Samples, mask: np.ndarray) -> ConfidenceModel:
     session_p = session_cross_fitted(table, within)
     session_threshold = choose_threshold(session_p[within], table.correct[within], table.moving[within])
     sensors = fit(samples, mask, sensor_threshold)
-    return replace(sensors, session=fit_session(table, within, session_threshold))
+    return replace(sensors, session=fit_session(table, within, session_threshold), swing_weight=samples.swing_weight)
 
 
 def nested(samples: Samples) -> tuple[np.ndarray, dict[str, ConfidenceModel]]:
@@ -481,8 +522,9 @@ def time_to_answer(held_out: list[HeldOut], models: dict[str, ConfidenceModel]) 
         sensor_committed = np.full(len(truth), -1)  # per sensor the first window it commits at (-1: never)
         sensor_right = np.zeros(len(truth), bool)  # and whether its segment was right then
         model = models[rec.person]
+        swung = None if rec.swing is None else np.cumsum(rec.swing[:n_windows], axis=0, dtype=np.float64)
         for t in range(first, n_windows):
-            segment, features, n = answer(rec.sensors, slice(0, t + 1))
+            segment, features, n = answer(rec.sensors, slice(0, t + 1), None if swung is None else swung[t])
             right[t] = (segment == truth).all()
             p = model.p_correct(features)
             status[t] = model.status(p, n, segment >= 0) == "assigned"
@@ -535,7 +577,7 @@ def non_gait_sessions(
     committed = wrong = 0
     by_activity: dict[str, list[int]] = {}
     for clip in clips:
-        sensors = []
+        sensors, norms = [], []
         for seg in range(len(SEGMENTS)):
             R = alignment(seg, rng.uniform(0, 2 * np.pi, 1), rng.uniform(0, 2 * np.pi, 1))
             k = clip.kin
@@ -551,8 +593,10 @@ def non_gait_sessions(
                 break
             probs = predict(windows)
             sensors.append(SensorPrediction(seg, np.log(np.clip(probs, 1e-12, 1.0)), is_moving(windows)))
+            norms.append(np.linalg.norm(windows[..., 3:6], axis=-1))
         else:
-            segment, features, n = answer(sensors, slice(0, None))
+            swing = swing_per_moment(norms, [s.moving for s in sensors]).sum(axis=0, dtype=np.float64)
+            segment, features, n = answer(sensors, slice(0, None), swing)
             done = model.status(model.p_correct(features), n, segment >= 0) == "assigned"
             bad = done and not (segment == np.arange(len(SEGMENTS))).all()
             committed, wrong = committed + done, wrong + bad
@@ -577,6 +621,7 @@ def confidence_spec(model: ConfidenceModel, fitted_on: str, metrics: dict[str, f
         threshold=model.threshold,
         min_moving_windows=model.min_moving_windows,
         session=model.session_spec(),
+        swing_weight=model.swing_weight,
         fitted_on=fitted_on,
         metrics={k: round(float(v), 5) for k, v in metrics.items() if np.isfinite(v)},
         command=command,
@@ -590,7 +635,7 @@ def calibrate(
     answer per recording), and the non-gait check of the model in ``model_dir`` with the final calibration
     (``non_gait_sessions``). Returns the calibration fitted on every person, its metrics (cross-fitted where they
     are on real people), and the time to answer per recording."""
-    held_out = fold_predictions(summary_run_id, data_dir)
+    held_out = with_swing(fold_predictions(summary_run_id, data_dir), data_dir)
     samples = sessions(held_out)
     p, per_person = nested(samples)
     thresholds = np.array([per_person[person].threshold for person in samples.person])

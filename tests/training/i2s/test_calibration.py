@@ -20,6 +20,7 @@ from service.core.assignment import (
     vote_counts,
 )
 from service.core.segments import SEGMENTS
+from service.core.windowing import sliding_windows
 from training.i2s.calibration import (
     HOP_S,
     HeldOut,
@@ -285,3 +286,30 @@ def test_a_session_calibration_that_never_reaches_the_target_is_not_served() -> 
     assert servable(never) == per_sensor and servable(reached) == reached and servable(per_sensor) == per_sensor
     p = np.linspace(0.5, 1.0, 1000)
     assert choose_threshold(p, np.zeros(len(p), bool), np.full(len(p), 20)) == 0.999  # UNREACHED
+
+
+def test_a_calibration_fitted_on_answers_that_weigh_the_swing_says_so(data_dir) -> None:
+    """Held-out predictions with how their sensors swung (``with_swing``, from the real recording): the sessions are
+    answered as the service answers them, with the swing, and the calibration records the weight it saw, which the
+    service then answers its sessions with (``session_swing_weight``)."""
+    from service.core.assignment import SWING_WEIGHT
+    from service.core.recordings import read_all_real
+    from training.i2s.calibration import confidence_spec, with_swing
+
+    recording = next(r for r in read_all_real(data_dir) if r.name == "movingreality/pp02/1Reg")
+    labelled = [s for s in recording.sensors if s.segment is not None]
+    rng = np.random.default_rng(7)
+    n = len(sliding_windows(labelled[0].imu))
+    held = [HeldOut("pp02", recording.name, "walk", [_sensor(s.segment, 0.5, n, rng) for s in labelled])]
+    assert sessions(held).swing_weight == 0.0  # without the recording's gyroscopes: not weighed
+    swung = with_swing(held, data_dir)
+    assert swung[0].swing.shape == (n, len(labelled), len(labelled), 12)
+    samples = sessions(swung)
+    assert samples.swing_weight == SWING_WEIGHT
+    model = calibrated_model(
+        replace(samples, person=np.where(samples.session % 2, "a", "b")), np.ones(len(samples.correct), bool)
+    )
+    assert model.swing_weight == SWING_WEIGHT
+    assert confidence_spec(model, "test", {}, "").swing_weight == SWING_WEIGHT
+    # The swing moves answers: the feet and shanks of this walk swing as legs do, so weighed they are right more often.
+    assert samples.correct.mean() > sessions(held).correct.mean()
