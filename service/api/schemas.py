@@ -249,7 +249,9 @@ class SensorAssignment(BaseModel):
     margin: float | None = Field(
         description="summed log-probability lead of the assigned segment over the sensor's best other segment "
         "(among those declared for it); negative when the one-to-one constraint overrode the sensor's own "
-        "preference; null when the declarations leave the sensor one segment only"
+        "preference; null when the declarations leave the sensor one segment only. With a model calibrated on "
+        "answers that weigh how the sensors swing together (`confidence.swing_weight` > 0): how much more the "
+        "whole answer scores, swing included, than the best one that puts this sensor elsewhere"
     )
     windows: int
     moving_windows: int
@@ -264,8 +266,9 @@ class SensorAssignment(BaseModel):
     )
     window_segments: list[SegmentName | None] = Field(
         description="per window, in order: the one-to-one answer of the windows that the request's sensors took at "
-        "that moment (window k of every sensor that has one); null for a still window or one left over when more "
-        "than seven windows move; with `allow_shared`, each moving window's own answer. `segment` above is the "
+        "that moment (window k of every sensor that has one), weighing also how those windows swing together (the "
+        "sensors of one leg swing together, the two legs take turns); null for a still window or one left over when "
+        "more than seven windows move; with `allow_shared`, each moving window's own answer. `segment` above is the "
         "answer from all windows together"
     )
 
