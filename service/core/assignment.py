@@ -3,7 +3,8 @@
 Evidence of a sensor is the sum of log-probabilities over its windows; the one-to-one assignment
 maximising the total is ``scipy.optimize.linear_sum_assignment`` (DESIGN.md §5: per-trial joint
 assignment is right more often than single windows). ``window_joint_assignment`` applies the same
-constraint to each moment on its own: the windows that sensors worn together recorded at the same time.
+constraint to each moment on its own: the windows that sensors worn together recorded at the same time. Both can
+weigh how the sensors swing together (``SWING``): the sensors of one leg swing together, the two legs take turns.
 
 Both take what a user declares about where the sensors are: ``worn``, the segments the sensors are on (say both
 feet, not saying which is which), and ``candidates``, per sensor the segments it may be on (say "a foot", not
@@ -57,7 +58,9 @@ class JointAssignment:
     segment: np.ndarray  # (S,) class index per sensor, -1 if unassigned (more sensors than segments)
     evidence: np.ndarray  # (S, K) summed log-probabilities
     confidence: np.ndarray  # (S,) softmax of the evidence at the chosen class
-    margin: np.ndarray  # (S,) evidence of the assigned class minus the best other class (< 0: constraint overrode it)
+    # (S,) evidence of the assigned class minus the best other class (< 0: constraint overrode it); with the swing
+    # weighed, what the whole answer wins by over the best that moves the sensor (``joint_assignment``)
+    margin: np.ndarray
 
 
 def worn_classes(worn: Sequence[int] | None, n_classes: int) -> np.ndarray:
@@ -241,15 +244,15 @@ def _best_with_swing(
     (``swing_log_likelihood``): the sensors of one leg are answered together, so a thigh whose own window leans to
     the wrong side follows its shank and foot. Exact, over every one-to-one map (5,040 for seven sensors); with more
     rows than classes, or no map that keeps every row on an allowed class, the answer without it (``_best``)."""
-    found = _swing_search(evidence, allowed, pair_ll, weight)
+    found = _swing_search(evidence, allowed, pair_ll, weight, margins=False)
     return _best(evidence, allowed, allow_shared=False) if found is None else found[0]
 
 
 def _swing_search(
-    evidence: np.ndarray, allowed: np.ndarray, pair_ll: np.ndarray, weight: float
+    evidence: np.ndarray, allowed: np.ndarray, pair_ll: np.ndarray, weight: float, margins: bool = True
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """``_best_with_swing``'s answer and, per row, how much the best map that puts the row elsewhere scores less
-    (+inf where no allowed map does); None where it falls back to ``_best``."""
+    """``_best_with_swing``'s answer and, with ``margins``, per row how much the best map that puts the row elsewhere
+    scores less (+inf where no allowed map does; without: all +inf); None where it falls back to ``_best``."""
     n_rows, n_classes = evidence.shape
     if n_rows > n_classes or n_classes != len(SEGMENTS):
         return None
@@ -261,7 +264,7 @@ def _swing_search(
         return None
     feasible = totals > _FORBIDDEN / 2
     gap = np.full(n_rows, np.inf)
-    for row in range(n_rows):
+    for row in range(n_rows if margins else 0):
         elsewhere = feasible & (maps[:, row] != maps[best, row])
         if elsewhere.any():
             gap[row] = float(totals[best]) - float(totals[elsewhere].max())

@@ -14,7 +14,13 @@ import onnxruntime as ort
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from service.core.assignment import is_moving, joint_assignment, turns_about_vertical, window_joint_assignment
+from service.core.assignment import (
+    is_moving,
+    joint_assignment,
+    swing_per_moment,
+    turns_about_vertical,
+    window_joint_assignment,
+)
 from service.core.recordings import RealRecording
 from service.core.segments import BODY_PART, SEGMENTS
 from service.core.windowing import sliding_windows
@@ -143,7 +149,8 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     Two answers per moving window: the window's own (``real_accuracy``, Zimmermann et al. 2018's per-window figure) and
     the one-to-one answer of the windows the recording's sensors took at that moment (``real_window_joint_*``,
     ``window_joint_assignment``). ``real_window_joint_swing_*`` is that answer weighing also how the sensors swing
-    together, which is what ``/v1/imu/assign`` returns per window. A third,
+    together, which is what ``/v1/imu/assign`` returns per window (and ``real_joint_assignment_swing_*`` the answer
+    over the whole recording that weighs it, as the session answer of a model calibrated with it). A third,
     ``real_window_joint_worn_*``, is that answer when the user declares which segments carry the sensors (the service's
     ``worn_segments``) but not which sensor is where: it differs from the second only for recordings with sensors on
     fewer than seven segments (gaitmap's two feet). A fourth, ``real_window_joint_part_*``, is that answer when each
@@ -152,7 +159,7 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     confusion matrix of moving windows (the windows' own answers).
     """
     y_true, y_pred, y_joint, y_swing, y_worn, y_part, metrics = [], [], [], [], [], [], {}
-    joint_correct = joint_total = still = 0
+    joint_correct = swing_correct = joint_total = still = 0
     for rec in recordings:
         sensors = [s for s in rec.sensors if s.segment is not None]
         log_probs, moving, twisting, norms = [], [], [], []
@@ -177,7 +184,12 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
         if not all(m.any() for m in moving):
             continue
         joint = joint_assignment([lp[m] for lp, m in zip(log_probs, moving, strict=True)])
+        swung = joint_assignment(
+            [lp[m] for lp, m in zip(log_probs, moving, strict=True)],
+            swing=swing_per_moment(norms, moving).sum(axis=0, dtype=np.float64),
+        )
         truth = np.array([s.segment for s in sensors])
+        swing_correct += int((swung.segment == truth).sum())
         joint_correct += int((joint.segment == truth).sum())
         joint_total += len(sensors)
         metrics[f"joint_correct_fraction/{rec.name}"] = float(np.mean(joint.segment == truth))
@@ -210,6 +222,7 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     metrics["real_window_joint_worn_accuracy_ignoring_side"] = float(np.mean(part[yt] == part[yw]))
     metrics["real_window_joint_part_accuracy"] = float(np.mean(yt == ys))
     metrics["real_joint_assignment_correct_fraction"] = joint_correct / max(joint_total, 1)
+    metrics["real_joint_assignment_swing_correct_fraction"] = swing_correct / max(joint_total, 1)
     metrics["real_still_windows_skipped"] = float(still)
     return metrics, confusion_matrix(yt, yp)
 

@@ -92,6 +92,8 @@ def test_sensors_that_swing_together_find_the_feet_sides(data_dir: Path, kinemat
     assert m["window_joint_accuracy/sim/three"] < 0.9  # the feet by chance
     assert m["real_window_joint_swing_accuracy"] > 0.97
     assert m["window_joint_swing_accuracy/sim/three"] == m["real_window_joint_swing_accuracy"]
+    # Over the whole recording the same: without the swing the feet's sides are a coin toss, with it both right.
+    assert m["real_joint_assignment_swing_correct_fraction"] == 1.0
 
 
 def test_declared_worn_segments_keep_a_favourite_that_no_sensor_wears_out(recording) -> None:
