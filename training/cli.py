@@ -782,12 +782,17 @@ def evaluate_csv(
     assign_dir, align_dir = model_dir("i2s_assignment", assignment), model_dir("i2s_alignment", alignment)
     metrics, _ = evaluate_real(onnx_predictor(assign_dir / "model.onnx"), [rec])
     typer.echo(f"assignment {assign_dir}: {int(metrics['real_n_windows'])} moving windows")
-    for key in ("real_accuracy", "real_window_joint_accuracy", "real_window_joint_worn_accuracy"):
+    keys = ("real_accuracy", "real_window_joint_accuracy", "real_window_joint_swing_accuracy")
+    for key in (*keys, "real_window_joint_worn_accuracy"):
         typer.echo(f"  {key}: {metrics[key]:.4f} (ignoring left/right {metrics[key + '_ignoring_side']:.4f})")
     typer.echo(
         f"  real_window_joint_part_accuracy (body parts declared): {metrics['real_window_joint_part_accuracy']:.4f}"
     )
     typer.echo(f"  joint assignment over the recording: {metrics['real_joint_assignment_correct_fraction']:.4f}")
+    typer.echo(
+        "  the same, weighing how the sensors swing together (as the service answers with a model calibrated so): "
+        f"{metrics['real_joint_assignment_swing_correct_fraction']:.4f}"
+    )
     for s in rec.sensors:
         typer.echo(f"  {s.sensor_id}: {metrics.get(f'accuracy/csv/{SEGMENTS[s.segment]}', float('nan')):.4f}")
     checks = evaluate_real_alignment(onnx_predictor(align_dir / "model.onnx"), [rec])
