@@ -210,8 +210,9 @@ def swing_per_moment(gyro_norms: list[np.ndarray], moving: list[np.ndarray]) -> 
     both = np.stack([m[:n] for m in moving], axis=1)  # (n, S)
     both = both[:, :, None] & both[:, None, :] & ~np.eye(n_sensors, dtype=bool)
     for lo in range(0, n, 512):  # (512, S, S, types) float64 at a time
-        chunk = swing_log_likelihood(np.stack([g[lo : lo + 512] for g in gyro_norms], axis=1))
-        out[lo : lo + 512] = np.where(both[lo : lo + 512, :, :, None], chunk, 0.0)
+        hi = min(lo + 512, n)
+        chunk = swing_log_likelihood(np.stack([g[lo:hi] for g in gyro_norms], axis=1))
+        out[lo:hi] = np.where(both[lo:hi, :, :, None], chunk, 0.0)
     return out
 
 

@@ -280,6 +280,13 @@ def test_a_session_answer_weighs_how_its_sensors_swung_together() -> None:
             live.add(s, float(t), log_probs[s][t], True, norms[s][t])
     live.ready(), live.flush()
     np.testing.assert_allclose(live.swing, swing_per_moment(norms, moving).sum(axis=0), rtol=1e-5, atol=1e-4)
+    # Sensors with fewer windows: the moments they all recorded.
+    assert swing_per_moment([norms[0][:5], norms[1], norms[2][:7]], [np.ones(5, bool), *moving[1:3]]).shape == (
+        5,
+        3,
+        3,
+        12,
+    )
     # A still window's pairs are not weighed.
     still = [np.ones(n, bool)] * 6 + [np.arange(n) >= 4]
     per_moment = swing_per_moment(norms, still)
