@@ -327,6 +327,7 @@ def swing_fit_command(
 def swing_table_command(
     loso_run: str = typer.Option(..., help="a real-loso summary run"),
     weights: list[float] = typer.Option([], "--weight", help="another swing weight to compare (repeatable)"),
+    model: Path | None = typer.Option(None, help="a shipped model of that recipe: record the figures in its manifest"),
     data_dir: Path | None = DataDir,
 ) -> None:
     """Markdown table: each held-out person's per-moment answers from a real-loso run without and with how the
@@ -337,7 +338,8 @@ def swing_table_command(
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
-    typer.echo(swing_table(loso_run, resolve_data_dir(data_dir), weights))
+    command = f"python -m training.cli swing-table --loso-run {loso_run}" + (f" --model {model}" if model else "")
+    typer.echo(swing_table(loso_run, resolve_data_dir(data_dir), weights, model, command))
 
 
 @app.command("evaluate-real")

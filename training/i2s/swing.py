@@ -51,10 +51,17 @@ def fit_swing(clips: list[Clip]) -> dict[str, tuple[float, float, int]]:
     return {name: (float(z.mean()), float(z.std()), len(z)) for name, z in swing_samples(clips).items() if len(z)}
 
 
-def swing_table(summary_run_id: str, data_dir: Path, weights: Sequence[float] = ()) -> str:
+SWING_LOSO = "real_leave_one_person_out_swing"
+
+
+def swing_table(
+    summary_run_id: str, data_dir: Path, weights: Sequence[float] = (), model_dir: Path | None = None, command: str = ""
+) -> str:
     """A markdown table: per held-out person, per source and pooled, the per-moment answers of a ``real-loso`` run's
     folds (moving windows, as ``training.i2s.evaluate.evaluate_real`` scores them) without and with how the sensors
-    swing together, and for each of ``weights`` the same with that ``SWING_WEIGHT`` (a comparison of weights)."""
+    swing together, and for each of ``weights`` the same with that ``SWING_WEIGHT`` (a comparison of weights). With
+    ``model_dir`` (a model of that recipe) its manifest gets the figures with ``SWING_WEIGHT`` as the evaluation
+    ``SWING_LOSO``."""
     from service.core.assignment import SWING_WEIGHT
     from service.core.recordings import read_all_real
     from training.i2s.calibration import fold_predictions
@@ -82,6 +89,8 @@ def swing_table(summary_run_id: str, data_dir: Path, weights: Sequence[float] = 
             row += [(got == truth).sum(), (part[got] == part[truth]).sum()]
         for group in (held.person, f"pooled/{held.recording.split('/')[0]}", "pooled"):
             sums[group] = sums.get(group, 0) + np.array(row, dtype=np.float64)
+    if model_dir is not None:
+        _record(model_dir, summary_run_id, sums, command)
     names = ["per moment", f"swinging together ({SWING_WEIGHT:g})"] + [f"weight {w:g}" for w in weights]
     lines = ["| held out (moving windows) | " + " | ".join(f"{n}: right / ignoring side" for n in names) + " |"]
     lines.append("|" + " --- |" * (1 + len(names)))
@@ -93,3 +102,24 @@ def swing_table(summary_run_id: str, data_dir: Path, weights: Sequence[float] = 
         ]
         lines.append(f"| {group} ({int(total[0])}) | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _record(model_dir: Path, summary_run_id: str, sums: dict[str, np.ndarray], command: str) -> None:
+    """Write the swing-weighted per-moment figures (columns 3 and 4 of ``sums``' rows) into a manifest."""
+    from service.core.manifest import Evaluation, read_manifest, write_manifest
+
+    metrics = {}
+    for group, total in sums.items():
+        metrics[f"real_window_joint_swing_accuracy/{group}"] = round(float(total[3] / total[0]), 5)
+        metrics[f"real_window_joint_swing_accuracy_ignoring_side/{group}"] = round(float(total[4] / total[0]), 5)
+        metrics[f"n_windows/{group}"] = float(total[0])
+    manifest = read_manifest(model_dir / "manifest.json")
+    evaluation = Evaluation(
+        name=SWING_LOSO,
+        command=command,
+        data=f"real recordings, leave one person out: the folds of real-loso summary run {summary_run_id}; moving "
+        "windows, one-to-one per moment weighing how the sensors swing together (service.core.assignment.SWING)",
+        metrics=metrics,
+    )
+    manifest.evaluations = [e for e in manifest.evaluations if e.name != SWING_LOSO] + [evaluation]
+    write_manifest(manifest, model_dir / "manifest.json")

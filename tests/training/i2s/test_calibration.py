@@ -313,3 +313,37 @@ def test_a_calibration_fitted_on_answers_that_weigh_the_swing_says_so(data_dir) 
     assert confidence_spec(model, "test", {}, "").swing_weight == SWING_WEIGHT
     # The swing moves answers: the feet and shanks of this walk swing as legs do, so weighed they are right more often.
     assert samples.correct.mean() > sessions(held).correct.mean()
+
+
+def test_the_swing_table_scores_a_runs_held_out_predictions_and_records_them(
+    mlflow_server: str, data_dir, tmp_path
+) -> None:
+    """``swing-table`` reads a real-loso run's stored held-out predictions with the recordings' gyroscopes, and
+    writes the swing-weighted per-moment figures into a model's manifest."""
+    import shutil
+
+    from service.core.manifest import read_manifest
+    from service.core.recordings import read_all_real
+    from training.i2s.swing import SWING_LOSO, swing_table
+
+    recording = next(r for r in read_all_real(data_dir) if r.name == "movingreality/pp02/1Reg")
+    labelled = [s for s in recording.sensors if s.segment is not None]
+    n = len(sliding_windows(labelled[0].imu))
+    rng = np.random.default_rng(8)
+    held = [HeldOut("movingreality_pp02", recording.name, "walk", [_sensor(s.segment, 0.5, n, rng) for s in labelled])]
+    client = MlflowClient()
+    experiment = mlflow.set_experiment("swing-table-test").experiment_id
+    summary = client.create_run(
+        experiment, tags={"real_loso": "summary", "fold_run.movingreality_pp02": "x"}
+    ).info.run_id
+    _write_predictions(held, tmp_path / "out" / "held_out_predictions")
+    client.log_artifacts(summary, str(tmp_path / "out"), "evaluation")
+    model_dir = tmp_path / "model"
+    shutil.copytree("onnx_models/i2s_assignment/1.10.2", model_dir, ignore=shutil.ignore_patterns("*.onnx", "*.npz"))
+    table = swing_table(summary, data_dir, weights=[0.5], model_dir=model_dir, command="test")
+    assert "| movingreality_pp02 (" in table and "weight 0.5" in table
+    recorded = next(e for e in read_manifest(model_dir / "manifest.json").evaluations if e.name == SWING_LOSO)
+    swung = recorded.metrics["real_window_joint_swing_accuracy/pooled"]
+    plain = float(table.split("| pooled (")[1].split("|")[1].split("/")[0])  # the first column, without the swing
+    assert swung * 100 > plain  # half the windows right alone: the legs' swing sets many of the others right
+    assert recorded.metrics["n_windows/pooled"] == sum(int(p.moving.sum()) for p in held[0].sensors)
