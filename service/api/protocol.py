@@ -105,11 +105,13 @@ class PoseStreamOptions(BaseModel):
     pelvis_back_axis: list[float] = Field(default_factory=lambda: [0.0, 0.0, 1.0], min_length=3, max_length=3)
     body_height_m: float | None = Field(None, ge=0.5, le=2.5)
     assignment_confidence: float = Field(0.9, gt=0.0, le=1.0, description="assignment: hand over at this confidence")
-    hand_over: Literal["confidence", "committed"] = Field(
-        "confidence",
-        description="assignment: hand over once each of the pose model's sensors reaches `assignment_confidence` "
-        "(the softmax: quick, but near 1 right or wrong), or once each is `committed` by the assignment model's "
-        "calibration (sure as its selective accuracy; may take long, or never come on gaits it is unsure of)",
+    hand_over: Literal["confidence", "committed"] | None = Field(
+        None,
+        description="assignment: hand over once each of the pose model's sensors is `committed` by the assignment "
+        "model's calibration (sure as its selective accuracy; may take long, or never come on gaits it is unsure "
+        "of), or once each reaches `assignment_confidence` (the softmax: quick, but near 1 right or wrong); default: "
+        "`committed` where the served assignment model has a calibration, else `confidence` (the `started` message "
+        "says which)",
     )
     output: Literal["json", "binary"] = Field(
         "json", description="pose messages as JSON, or as binary pose blocks (``encode_pose_block``)"

@@ -176,7 +176,8 @@ class Session:
         self.run_i2s = opts.calibration == "assignment"
         self.width = 10
         self.pose_threshold = opts.assignment_confidence
-        self.hand_over_when = opts.hand_over
+        # committed where the assignment model is calibrated: the softmax confidence nears 1 right or wrong
+        self.hand_over_when = opts.hand_over or ("confidence" if self.confidence is None else "committed")
         if self.run_i2s and opts.hand_over == "committed" and self.confidence is None:
             raise ProtocolError(
                 "pose: hand_over 'committed' needs an assignment model with a calibration (its manifest's "
@@ -641,6 +642,7 @@ def _pose_started(session: Session) -> dict | None:
         "segments": list(BODY_SEGMENTS),
         "look_ahead_frames": live.model.spec.look_ahead_frames,
         "calibration": live.method,
+        "hand_over": session.hand_over_when if live.method == "assignment" else None,
         "still_frames": live.still_frames if live.method == "still_pose" else 0,
         "output": session.pose_output,
         "body_height_m": round(live.body.height_m, 3),

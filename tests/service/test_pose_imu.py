@@ -465,7 +465,7 @@ def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str
         # the lab knows which segments carry sensors, not which sensor is where (without it the assignment puts
         # this person's left shank sensor on the thigh, a segment MovingReality has no sensor on)
         "worn_segments": list(MOVINGREALITY_SEGMENTS.values()),
-        "pose": {"calibration": "assignment", "assignment_confidence": 0.8},
+        "pose": {"calibration": "assignment", "hand_over": "confidence", "assignment_confidence": 0.8},
     }
     url = server.replace("http", "ws") + "/v1/stream"
     messages, code, reason = asyncio.run(_stream(url, start, packets))
@@ -484,8 +484,8 @@ def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str
     assert np.percentile(knee, 95) - np.percentile(knee, 5) > 10.0  # the knee bends in gait
 
     # Handed over only once the calibration commits each of the model's sensors: never before an assignment
-    # message in which all three are committed (with the segments declared worn, this person's pelvis stays below
-    # the threshold for the minute streamed here, so the pose may never start).
+    # message in which all three are committed (with 1.10.1's calibration this person's pelvis stayed below the
+    # threshold for the minute streamed here and the pose never started; with 1.10.2's it starts).
     start["pose"] = {"calibration": "assignment", "hand_over": "committed"}
     messages, code, reason = asyncio.run(_stream(url, start, packets))
     assert code == 1000, reason
@@ -581,10 +581,30 @@ def test_handing_over_on_committed_sensors_needs_a_calibrated_assignment_model(t
         "sensors": [{"sensor_id": k} for k in "abc"],
         "pose": {"calibration": "assignment", "hand_over": "committed"},
     }
-    with TestClient(create_app(Settings(models_dir=tmp_path))) as client, client.websocket_connect("/v1/stream") as ws:
+    with TestClient(create_app(Settings(models_dir=tmp_path))) as client:
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps(start))
+            error = json.loads(ws.receive_text())
+        assert error["type"] == "error" and "needs an assignment model with a calibration" in error["detail"], error
+        del start["pose"]["hand_over"]  # the default: on the softmax confidence, since nothing can commit
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps(start))
+            started = json.loads(ws.receive_text())
+        assert started["type"] == "started" and started["pose"]["hand_over"] == "confidence", started
+
+
+def test_a_stream_placed_by_a_calibrated_assignment_hands_over_on_committed_sensors_by_default(
+    client: TestClient,
+) -> None:
+    start = {"type": "start", "sensors": [{"sensor_id": k} for k in "abc"], "pose": {"calibration": "assignment"}}
+    with client.websocket_connect("/v1/stream") as ws:
         ws.send_text(json.dumps(start))
-        error = json.loads(ws.receive_text())
-    assert error["type"] == "error" and "needs an assignment model with a calibration" in error["detail"], error
+        started = json.loads(ws.receive_text())
+    assert started["pose"]["hand_over"] == "committed", started
+    start["pose"]["hand_over"] = "confidence"
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps(start))
+        assert json.loads(ws.receive_text())["pose"]["hand_over"] == "confidence"
 
 
 @pytest.mark.parametrize(
