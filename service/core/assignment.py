@@ -216,7 +216,7 @@ def swing_per_moment(gyro_norms: list[np.ndarray], moving: list[np.ndarray]) -> 
     return out
 
 
-_FORBIDDEN = -1e9  # a forbidden cell's score in ``_best_with_swing`` (finite: it is summed by a matrix product)
+_FORBIDDEN = -1e9  # a forbidden cell's score in ``_swing_search`` (finite: it is summed by a matrix product)
 _MAPS: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
 
 
@@ -237,23 +237,16 @@ def _maps_of(n_rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     return _MAPS[n_rows]
 
 
-def _best_with_swing(
-    evidence: np.ndarray, allowed: np.ndarray, pair_ll: np.ndarray, weight: float = SWING_WEIGHT
-) -> np.ndarray:
-    """The one-to-one answer of one moment's rows that maximises their summed log-probabilities plus, per pair of
-    rows, ``weight`` × the log-likelihood of how they swing together given where the answer puts them
-    (``swing_log_likelihood``): the sensors of one leg are answered together, so a thigh whose own window leans to
-    the wrong side follows its shank and foot. Exact, over every one-to-one map (5,040 for seven sensors); with more
-    rows than classes, or no map that keeps every row on an allowed class, the answer without it (``_best``)."""
-    found = _swing_search(evidence, allowed, pair_ll, weight, margins=False)
-    return _best(evidence, allowed, allow_shared=False) if found is None else found[0]
-
-
 def _swing_search(
-    evidence: np.ndarray, allowed: np.ndarray, pair_ll: np.ndarray, weight: float, margins: bool = True
+    evidence: np.ndarray, allowed: np.ndarray, pair_ll: np.ndarray, weight: float
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """``_best_with_swing``'s answer and, with ``margins``, per row how much the best map that puts the row elsewhere
-    scores less (+inf where no allowed map does; without: all +inf); None where it falls back to ``_best``."""
+    """The one-to-one answer of the rows of ``evidence`` ``(S, K)`` that maximises their summed log-probabilities
+    plus, per pair of rows, ``weight`` × the log-likelihood of how they swing together given where the answer puts
+    them (``pair_ll`` ``(S, S, types)``, ``swing_log_likelihood`` or its sum over moments): the sensors of one leg
+    are answered together, so a thigh whose own windows lean to the wrong side follows its shank and foot. Exact,
+    over every one-to-one map (5,040 for seven sensors); and per row how much the best map that puts the row
+    elsewhere scores less (+inf where no allowed map does). None with more rows than classes, or no map that keeps
+    every row on an allowed class (the caller then answers with ``_best``)."""
     n_rows, n_classes = evidence.shape
     if n_rows > n_classes or n_classes != len(SEGMENTS):
         return None
@@ -265,7 +258,7 @@ def _swing_search(
         return None
     feasible = totals > _FORBIDDEN / 2
     gap = np.full(n_rows, np.inf)
-    for row in range(n_rows if margins else 0):
+    for row in range(n_rows):
         elsewhere = feasible & (maps[:, row] != maps[best, row])
         if elsewhere.any():
             gap[row] = float(totals[best]) - float(totals[elsewhere].max())
@@ -287,7 +280,7 @@ def joint_assignment(
     With ``worn`` / ``candidates`` (``allowed_segments``), a sensor's evidence for the segments it may not be on is
     -inf, and its confidence and margin are over those it may be on (margin +inf when it may be on one only).
     With ``swing`` ``(S, S, types)``, the session's summed ``swing_per_moment``, the one-to-one answer also weighs
-    how the sensors swung together (``_best_with_swing``, by ``swing_weight``; 0: not weighed); the margin is then
+    how the sensors swung together (``_swing_search``, by ``swing_weight``; 0: not weighed); the margin is then
     how much more the answer scores, the swing included, than the best one-to-one answer that puts the sensor on
     another segment (≥ 0; +inf where none may), and the confidence stays that of the sensor's own evidence.
     """
@@ -359,7 +352,7 @@ def window_joint_assignment(
     window its own best allowed class instead.
 
     With ``gyro_norms`` (per sensor ``(N_s, T)``, each window's gyroscope norm) the answer also weighs how the
-    sensors swing together (``_best_with_swing``, by ``swing_weight``): the thigh, shank and foot of one leg do, the
+    sensors swing together (``_swing_search``, by ``swing_weight``): the thigh, shank and foot of one leg do, the
     two legs take turns. Our addition to the paper's per-window answer; each moment is still answered from its own
     windows.
 
@@ -373,19 +366,51 @@ def window_joint_assignment(
             for lp, m, a in zip(log_probs, moving, allowed, strict=True)
         ]
     out = [np.full(len(lp), -1, dtype=np.int64) for lp in log_probs]
+    moments: dict[tuple[int, ...], list[int]] = {}  # the sensors whose windows move → the moments they do
     for t in range(max((len(lp) for lp in log_probs), default=0)):
-        present = [s for s, lp in enumerate(log_probs) if t < len(lp) and moving[s][t]]
-        if not present:
+        present = tuple(s for s, lp in enumerate(log_probs) if t < len(lp) and moving[s][t])
+        if present:
+            moments.setdefault(present, []).append(t)
+    for present, times in moments.items():
+        rows = list(present)
+        if gyro_norms is not None and 1 < len(rows) <= len(SEGMENTS) == n_classes:
+            for lo in range(0, len(times), _MOMENTS_PER_CALL):
+                chunk = times[lo : lo + _MOMENTS_PER_CALL]
+                evidence = np.stack([[log_probs[s][t] for s in rows] for t in chunk])
+                pair_ll = swing_log_likelihood(np.stack([[gyro_norms[s][t] for s in rows] for t in chunk]))
+                answers = _best_with_swing_moments(evidence, allowed[rows], pair_ll, swing_weight)
+                for t, answer in zip(chunk, answers, strict=True):
+                    for s, c in zip(rows, answer.tolist(), strict=True):
+                        out[s][t] = c
             continue
-        evidence = np.stack([log_probs[s][t] for s in present])
-        if gyro_norms is not None and len(present) > 1:
-            pair_ll = swing_log_likelihood(np.stack([gyro_norms[s][t] for s in present]))
-            answer = _best_with_swing(evidence, allowed[present], pair_ll, swing_weight)
-        else:
-            answer = _best(evidence, allowed[present], allow_shared=False)
-        for s, c in zip(present, answer.tolist(), strict=True):
-            out[s][t] = c
+        for t in times:
+            answer = _best(np.stack([log_probs[s][t] for s in rows]), allowed[rows], allow_shared=False)
+            for s, c in zip(rows, answer.tolist(), strict=True):
+                out[s][t] = c
     return out
+
+
+_MOMENTS_PER_CALL = 256  # (256, 5,040) float32 scores at a time
+
+
+def _best_with_swing_moments(
+    evidence: np.ndarray, allowed: np.ndarray, pair_ll: np.ndarray, weight: float
+) -> np.ndarray:
+    """``_swing_search``'s answers for M moments of the same rows at once: ``evidence`` ``(M, S, K)``, ``pair_ll``
+    ``(M, S, S, types)`` → ``(M, S)``; one matrix product for all of them."""
+    n_moments, n_rows, _ = evidence.shape
+    maps, rows_i, rows_j, select = _maps_of(n_rows)
+    scores = np.concatenate(
+        [
+            np.where(allowed, evidence, _FORBIDDEN).reshape(n_moments, -1),
+            weight * pair_ll[:, rows_i, rows_j].reshape(n_moments, -1),
+        ],
+        axis=1,
+    )
+    best = maps[np.argmax(scores.astype(np.float32) @ select.T, axis=1)]
+    for m in np.flatnonzero(~allowed[np.arange(n_rows), best].all(axis=1)):  # no map keeps every row allowed
+        best[m] = _best(evidence[m], allowed, allow_shared=False)
+    return best
 
 
 class MomentAssembler:
