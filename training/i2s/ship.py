@@ -377,12 +377,15 @@ def real_table(summary_run_id: str, model_dirs: list[Path], data_dir: Path) -> s
                 acc[1] += n * real[f"accuracy/{rec}"]
                 acc[2] += n * real[f"window_joint_accuracy/{rec}"]
         columns.append((f"{manifest.name} {manifest.version}", sums))
-    head = "| held out (moving windows) | leave-one-person-out fold: per window / per moment |"
+    swing = all("real_window_joint_swing_accuracy" in fold for fold in folds.values())  # runs since 2026-12-04
+    head = "| held out (moving windows) | leave-one-person-out fold: per window / per moment"
+    head += " / per moment, swinging together |" if swing else " |"
     head += "".join(f" {name}: per window / per moment |" for name, _ in columns)
     lines = [head, "|" + " --- |" * (2 + len(columns))]
     for group, fold in folds.items():
         row = f"| {group} ({int(fold['n_windows'])}) | {100 * fold['real_accuracy']:.1f} / "
-        row += f"{100 * fold['real_window_joint_accuracy']:.1f} % |"
+        row += f"{100 * fold['real_window_joint_accuracy']:.1f}"
+        row += f" / {100 * fold['real_window_joint_swing_accuracy']:.1f} % |" if swing else " % |"
         for _, sums in columns:
             n, own, joint = sums.get(group, [0.0, 0.0, 0.0])
             row += f" {100 * own / n:.1f} / {100 * joint / n:.1f} % |" if n else " — |"

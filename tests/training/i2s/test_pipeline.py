@@ -308,6 +308,12 @@ def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
     row = next(line for line in table if line.startswith("| ximu3_unknown"))
     own, joint = shipped["accuracy/ximu3_lowerbody"], shipped["window_joint_accuracy/ximu3_lowerbody"]
     assert row.endswith(f" {100 * own:.1f} / {100 * joint:.1f} % |"), row
+    fold = folds["ximu3_unknown"]  # the fold's own figures, the per-moment answer weighing the swing the third
+    assert "swinging together" in table[0]
+    assert row.startswith(
+        f"| ximu3_unknown ({int(fold['n_windows'])}) | {100 * fold['real_accuracy']:.1f} / "
+        f"{100 * fold['real_window_joint_accuracy']:.1f} / {100 * fold['real_window_joint_swing_accuracy']:.1f} % |"
+    ), row
     # run again (a job that stopped, started again): the finished folds are reused, not trained again
     _, again = run_real_loso(cfg, data_dir, kinematics_cache, eval_max_windows=300, people=chosen[:1])
     assert again[chosen[0]]["run_id"] == folds[chosen[0]]["run_id"]
