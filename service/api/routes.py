@@ -40,6 +40,7 @@ from service.api.schemas import (
 from service.core.assignment import (
     ConfidenceModel,
     assignment_confidence,
+    gyro_norm,
     is_moving,
     session_assignment,
     session_swing_weight,
@@ -274,12 +275,12 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     log_probs = [np.log(np.clip(probs[bounds[k] : bounds[k + 1]], 1e-12, 1.0)) for k in range(len(per_sensor))]
     worn = segment_indices(body.worn_segments)
     candidates = [segment_indices(s.candidate_segments) for s in body.sensors]
-    gyro_norms = [np.linalg.norm(x[..., 3:6], axis=-1) for x in per_sensor]  # how the sensors swing together
+    norms = [gyro_norm(x) for x in per_sensor]  # how the sensors swing together
     weight = session_swing_weight(_confidence(request))
     joint, votes, n_moving = session_assignment(
-        log_probs, moving, body.allow_shared, worn, candidates, gyro_norms, swing_weight=weight
+        log_probs, moving, body.allow_shared, worn, candidates, norms, swing_weight=weight
     )
-    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates, gyro_norms)
+    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates, norms)
     calibrated = assignment_confidence(_confidence(request), joint, votes, n_moving)
     p_correct = calibrated.p_correct
     out = []

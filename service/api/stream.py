@@ -36,6 +36,7 @@ from service.core.assignment import (
     MomentAssembler,
     allowed_segments,
     assignment_confidence,
+    gyro_norm,
     is_moving,
     joint_assignment,
     session_swing_weight,
@@ -435,12 +436,12 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
     windows = [w for item in items for w in item.windows]
     results: list[dict] = []
     moving, log_probs, quats = np.zeros(0, dtype=bool), np.zeros((0, len(SEGMENTS))), None
-    gyro_norms = np.zeros((0, 0))
+    norms = np.zeros((0, 0))
     if windows:
         imu = np.stack(windows)
         probs, quats = await app.state.batcher.infer(imu, wait_ms)
         moving = is_moving(imu)
-        gyro_norms = np.linalg.norm(imu[..., 3:6], axis=-1)
+        norms = gyro_norm(imu)
         known = [session.known[item.sensor] for item in items for _ in item.windows]
         results = window_results(probs, quats, moving, turns_about_vertical(imu), known)
         log_probs = np.log(np.clip(probs, 1e-12, 1.0))
@@ -453,7 +454,7 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
             message = {"type": "result", "sensor_id": sensor_id, "window_end_s": round(end_s, 6)}
             message.update(results[row])
             if session.moments is not None:
-                session.moments.add(item.sensor, end_s, log_probs[row], bool(moving[row]), gyro_norms[row])
+                session.moments.add(item.sensor, end_s, log_probs[row], bool(moving[row]), norms[row])
             if not moving[row]:
                 session.still_evidence[item.sensor] += log_probs[row]
                 session.still_windows[item.sensor] += 1

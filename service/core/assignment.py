@@ -30,9 +30,15 @@ from service.core.segments import BODY_PART, SEGMENTS
 STILL_GYR_MEAN_RADS = 0.35
 
 
+def gyro_norm(windows: np.ndarray) -> np.ndarray:
+    """``(..., T, 6)`` windows → ``(..., T)``: the norm of each sample's angular velocity, which does not depend on
+    how the sensor is mounted (what ``is_moving`` and the swing of sensors worn together read)."""
+    return np.linalg.norm(windows[..., 3:6], axis=-1)
+
+
 def is_moving(windows: np.ndarray) -> np.ndarray:
     """``(N, T, 6)`` → ``(N,)`` bool: mean gyroscope norm above ``STILL_GYR_MEAN_RADS``."""
-    return np.linalg.norm(windows[..., 3:6], axis=-1).mean(axis=-1) > STILL_GYR_MEAN_RADS
+    return gyro_norm(windows).mean(axis=-1) > STILL_GYR_MEAN_RADS
 
 
 def turns_about_vertical(windows: np.ndarray, within_deg: float = 45.0) -> np.ndarray:

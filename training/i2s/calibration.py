@@ -51,6 +51,7 @@ from service.core.assignment import (
     ConfidenceModel,
     SessionConfidence,
     confidence_features,
+    gyro_norm,
     is_moving,
     session_assignment,
     session_features,
@@ -137,7 +138,7 @@ def with_swing(held_out: list[HeldOut], data_dir: Path) -> list[HeldOut]:
         sensors = [s for s in recordings[rec.recording].sensors if s.segment is not None]
         if [s.segment for s in sensors] != [s.segment for s in rec.sensors]:
             raise ValueError(f"{rec.recording}: the recording's labelled sensors are not those predicted")
-        norms = [np.linalg.norm(sliding_windows(s.imu.astype(np.float32))[..., 3:6], axis=-1) for s in sensors]
+        norms = [gyro_norm(sliding_windows(s.imu.astype(np.float32))) for s in sensors]
         out.append(replace(rec, swing=swing_per_moment(norms, [s.moving for s in rec.sensors])))
     return out
 
@@ -593,7 +594,7 @@ def non_gait_sessions(
                 break
             probs = predict(windows)
             sensors.append(SensorPrediction(seg, np.log(np.clip(probs, 1e-12, 1.0)), is_moving(windows)))
-            norms.append(np.linalg.norm(windows[..., 3:6], axis=-1))
+            norms.append(gyro_norm(windows))
         else:
             swing = swing_per_moment(norms, [s.moving for s in sensors]).sum(axis=0, dtype=np.float64)
             segment, features, n = answer(sensors, slice(0, None), swing)

@@ -15,6 +15,8 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from service.core.assignment import (
+    SWING_WEIGHT,
+    gyro_norm,
     is_moving,
     joint_assignment,
     swing_per_moment,
@@ -166,7 +168,7 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
         for s in sensors:
             windows = sliding_windows(s.imu.astype(np.float32))
             moving.append(is_moving(windows))
-            norms.append(np.linalg.norm(windows[..., 3:6], axis=-1))
+            norms.append(gyro_norm(windows))
             still += int((~moving[-1]).sum())
             if s.segment in LEG_SEGMENTS:
                 twisting.append(turns_about_vertical(windows[moving[-1]]))
@@ -177,10 +179,10 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
             y_pred.append(probs[moving[-1]].argmax(-1))
             if len(y_pred[-1]):
                 metrics[f"accuracy/{rec.name}/{SEGMENTS[s.segment]}"] = float(np.mean(y_pred[-1] == s.segment))
-        y_joint += _moving_per_moment(log_probs, moving)
-        y_swing += _moving_per_moment(log_probs, moving, gyro_norms=norms)
-        y_worn += _moving_per_moment(log_probs, moving, worn=sorted({s.segment for s in sensors}))
-        y_part += _moving_per_moment(log_probs, moving, candidates=[SIDES_OF[s.segment] for s in sensors])
+        y_joint += moving_per_moment(log_probs, moving)
+        y_swing += moving_per_moment(log_probs, moving, gyro_norms=norms)
+        y_worn += moving_per_moment(log_probs, moving, worn=sorted({s.segment for s in sensors}))
+        y_part += moving_per_moment(log_probs, moving, candidates=[SIDES_OF[s.segment] for s in sensors])
         if not all(m.any() for m in moving):
             continue
         joint = joint_assignment([lp[m] for lp, m in zip(log_probs, moving, strict=True)])
@@ -227,12 +229,13 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     return metrics, confusion_matrix(yt, yp)
 
 
-def _moving_per_moment(
+def moving_per_moment(
     log_probs: list[np.ndarray],
     moving: list[np.ndarray],
     worn: list[int] | None = None,
     candidates: list[list[int]] | None = None,
     gyro_norms: list[np.ndarray] | None = None,
+    swing_weight: float = SWING_WEIGHT,
 ) -> list[np.ndarray]:
     """Per sensor, the per-moment answers (``window_joint_assignment``) of its moving windows. The sensors go in a
     random order, so that tied windows are not resolved by the order the reader lists them in."""
@@ -243,6 +246,7 @@ def _moving_per_moment(
         worn=worn,
         candidates=None if candidates is None else [candidates[k] for k in order],
         gyro_norms=None if gyro_norms is None else [gyro_norms[k] for k in order],
+        swing_weight=swing_weight,
     )
     return [answer[k][moving[s]] for s, k in enumerate(np.argsort(order))]
 

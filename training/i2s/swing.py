@@ -18,9 +18,9 @@ import numpy as np
 from service.core.assignment import (
     STILL_GYR_MEAN_RADS,
     SWING_PAIR_TYPES,
+    gyro_norm,
     swing_pair_type,
     swing_z,
-    window_joint_assignment,
 )
 from service.core.segments import BODY_PART
 from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES, sliding_windows
@@ -65,7 +65,7 @@ def swing_table(
     from service.core.assignment import SWING_WEIGHT
     from service.core.recordings import read_all_real
     from training.i2s.calibration import fold_predictions
-    from training.i2s.evaluate import EVAL_SEED
+    from training.i2s.evaluate import moving_per_moment
 
     part = np.array(BODY_PART + ("unassigned",))
     columns = [None, SWING_WEIGHT, *weights]
@@ -73,19 +73,13 @@ def swing_table(
     sums: dict[str, np.ndarray] = {}
     for held in fold_predictions(summary_run_id, data_dir):
         sensors = [s for s in recordings[held.recording].sensors if s.segment is not None]
-        norms = [np.linalg.norm(sliding_windows(s.imu.astype(np.float32))[..., 3:6], axis=-1) for s in sensors]
+        norms = [gyro_norm(sliding_windows(s.imu.astype(np.float32))) for s in sensors]
         log_probs, moving = [p.log_probs for p in held.sensors], [p.moving for p in held.sensors]
         truth = np.concatenate([np.full(int(m.sum()), p.segment) for p, m in zip(held.sensors, moving, strict=True)])
-        order = np.random.default_rng(EVAL_SEED).permutation(len(log_probs))  # as evaluate_real: ties by chance
         row = [len(truth)]
-        for weight in columns:
-            answer = window_joint_assignment(
-                [log_probs[k] for k in order],
-                [moving[k] for k in order],
-                gyro_norms=None if weight is None else [norms[k] for k in order],
-                swing_weight=weight or 0.0,
-            )
-            got = np.concatenate([answer[k][moving[s]] for s, k in enumerate(np.argsort(order))])
+        for weight in columns:  # scored as evaluate_real scores them
+            swing = {} if weight is None else {"gyro_norms": norms, "swing_weight": weight}
+            got = np.concatenate(moving_per_moment(log_probs, moving, **swing))
             row += [(got == truth).sum(), (part[got] == part[truth]).sum()]
         for group in (held.person, f"pooled/{held.recording.split('/')[0]}", "pooled"):
             sums[group] = sums.get(group, 0) + np.array(row, dtype=np.float64)
