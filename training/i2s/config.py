@@ -72,6 +72,10 @@ class TrainConfig(_Strict):
     # (training.i2s.models.FunctionalAxes; not in the paper): the flexion axis (y) of the legs and feet, the
     # direction of travel (x) of the pelvis
     functional_axes: list[str] | None = None
+    # alignment: with Pelvis among the functional axes, turn the pelvis by 180° about z where the walk's forward
+    # acceleration lags its vertical one by at least this normalised contrast (training.i2s.models.FunctionalAxes:
+    # walking's inverted pendulum says which way is forward); None = off
+    pelvis_half_turn: float | None = Field(default=None, ge=0)
     # alignment: average the CNN features over runs of this many samples before the LSTM (not in the paper;
     # training.i2s.models.AlignmentNet): the LSTM takes 128 / rnn_stride steps; 1 = every sample, as the paper
     rnn_stride: int = Field(default=1, ge=1)
@@ -160,6 +164,8 @@ class TrainConfig(_Strict):
             unknown = sorted(set(self.functional_axes) - set(SEGMENTS))
             if unknown or not self.functional_axes:
                 raise ValueError(f"functional_axes must be some of {list(SEGMENTS)}; unknown names {unknown}")
+        if self.pelvis_half_turn is not None and "Pelvis" not in (self.functional_axes or []):
+            raise ValueError("pelvis_half_turn turns the pelvis of the functional axes: name Pelvis in functional_axes")
         return self
 
 

@@ -131,6 +131,7 @@ def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str,
         # the classes that take the average over turns about gravity; absent: all of them
         | ({"gravity_turn_segments": cfg.train.gravity_turn_segments} if cfg.train.gravity_turn_segments else {})
         | ({"functional_axes": cfg.train.functional_axes} if cfg.train.functional_axes else {})
+        | ({"pelvis_half_turn": cfg.train.pelvis_half_turn} if cfg.train.pelvis_half_turn is not None else {})
         | ({"rnn_stride": cfg.train.rnn_stride} if cfg.train.rnn_stride != 1 else {})
         | (_ensemble(cfg.train.ensemble_of) if cfg.train.ensemble_of else {}),
         parity_atol=PARITY_ATOL,

@@ -59,6 +59,7 @@ def build_model(cfg: ExperimentConfig) -> nn.Module:
         t.keep_prob,
         canonical=t.canonical_frame,
         functional_axes=t.functional_axes,
+        pelvis_half_turn=t.pelvis_half_turn,
         rnn_stride=t.rnn_stride,
     )
 

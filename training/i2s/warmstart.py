@@ -133,6 +133,7 @@ def shipped_graph(
             keep_prob,
             canonical=canonical,
             functional_axes=exporter.get("functional_axes"),
+            pelvis_half_turn=exporter.get("pelvis_half_turn"),
             rnn_stride=int(exporter.get("rnn_stride", 1)),
         )
     return AssignmentNet(hidden, channels, kernel, keep_prob, canonical=canonical, **averaging_options(exporter))
