@@ -159,7 +159,7 @@ class Manifest(BaseModel):
     training_data: dict[str, object] = Field(default_factory=dict)
     evaluations: list[Evaluation] = Field(default_factory=list)
     mlflow: dict[str, str] = Field(default_factory=dict)
-    exporter: dict[str, str | bool | int | list[str]] = Field(default_factory=dict)
+    exporter: dict[str, str | bool | int | float | list[str]] = Field(default_factory=dict)
     golden: str = "golden.npz"
     parity_atol: float = 1e-4
 

@@ -272,10 +272,15 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
       heading, which no other check sees). The nominal frame is the shoe's, not the functional foot frame, so
       they differ by the toe-out angle and the mount's tilt even for a perfect model: this catches gross errors
       (half and quarter turns), not degrees.
+    - Half turns: the share of a sensor's windows more than 90° from its mean rotation (the mean is the larger
+      mode's when a minority of windows sits a half turn away), per body part over the sensors worn there
+      (``real_half_turn_share/<part>``) and over all. A frame that flips between two answers a half turn apart
+      about its long axis (the pelvis: forwards or backwards) shows here.
     All are necessary, not sufficient (a constant output is perfectly stable); the simulated LOSO is the
     accuracy measure. Predictions are for the sensor's known segment.
     """
     spreads, tilts, feet, nominal, metrics = [], [], [], [], {}
+    half_turns: dict[str, list[np.ndarray]] = {}
     for rec in recordings:
         rec_spread = []
         for s in (s for s in rec.sensors if s.segment is not None):
@@ -285,6 +290,7 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
                 continue
             rot = Rotation.from_quat(predict(windows)[:, s.segment].astype(np.float64), scalar_first=True)
             rec_spread.append(np.degrees((rot.mean().inv() * rot).magnitude()))
+            half_turns.setdefault(BODY_PART[s.segment], []).append(rec_spread[-1] > 90.0)
             if s.segment in LEG_SEGMENTS:
                 up = rot.apply(windows[..., :3].mean(axis=1).astype(np.float64))
                 tilts.append(np.degrees(np.arccos(np.clip(up[:, 2] / np.linalg.norm(up, axis=1), -1.0, 1.0))))
@@ -307,6 +313,10 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
             "real_alignment_n_windows": float(sum(len(x) for x in spreads)),
         }
     )
+    for part, flags in sorted(half_turns.items()):
+        metrics[f"real_half_turn_share/{part}"] = float(np.concatenate(flags).mean())
+    if half_turns:
+        metrics["real_half_turn_share"] = float(np.concatenate([f for v in half_turns.values() for f in v]).mean())
     return metrics
 
 

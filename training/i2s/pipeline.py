@@ -29,7 +29,7 @@ from training.i2s.ship import build_manifest, run_version
 from training.i2s.train import TrainResult, build_model, load_fitted, train
 from training.i2s.warmstart import check_real_recordings_declared, ensemble_state, warm_start_from_shipped
 from training.plots import confusion_matrix_png, error_boxplot_png, held_out_bars_png, learning_curves_png
-from training.run_labels import label_run
+from training.run_labels import SHIPPED_TAG, label_run, label_version
 from training.snapshot import number_as_in_snapshot
 from training.tracking import log_onnx_model, maybe_promote, setup_tracking
 
@@ -348,6 +348,8 @@ def register_run(run_id: str, name: str, task: str) -> tuple[str, bool]:
     run = client.get_run(run_id)
     version = mlflow.register_model(run.data.tags.get("model_uri", f"runs:/{run_id}/model"), name).version
     number_as_in_snapshot(client, name, str(version))
+    # a run registered after it shipped: its version says which shipped files it is, as one registered before does
+    label_version(client, name, str(version), [v for v in run.data.tags.get(SHIPPED_TAG, "").split(", ") if v])
     metric, higher = PRIMARY_METRIC[task]
     value = run.data.metrics.get(f"test_{metric}")
     promoted = False

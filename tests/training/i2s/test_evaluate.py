@@ -163,6 +163,26 @@ def test_the_true_alignment_is_stable_and_upright(recording) -> None:
     assert m["real_leg_up_axis_angle_median_deg"] < 25.0, m  # the shank leans in gait: 19° here
 
 
+def test_a_sensor_whose_answers_flip_by_a_half_turn_reads_its_share_of_flipped_windows(recording) -> None:
+    """Every third window answered a half turn about the segment's z away: the larger mode is the mean, and a
+    third of the windows read as half turns, for the sensor's body part and over all."""
+    rec, R_true = recording
+    q = Rotation.from_matrix(R_true).as_quat(scalar_first=True)
+    q_turned = (Rotation.from_euler("z", 180, degrees=True) * Rotation.from_matrix(R_true)).as_quat(scalar_first=True)
+
+    def flipping(windows: np.ndarray) -> np.ndarray:
+        out = np.broadcast_to(q, (len(windows), len(SEGMENTS), 4)).copy()
+        out[::3] = q_turned
+        return out.astype(np.float32)
+
+    steady = evaluate_real_alignment(_constant(R_true), [rec])
+    assert steady["real_half_turn_share"] == 0.0 and steady["real_half_turn_share/lower_leg"] == 0.0
+    m = evaluate_real_alignment(flipping, [rec])
+    n = m["real_alignment_n_windows"]
+    assert m["real_half_turn_share/lower_leg"] == pytest.approx(np.ceil(n / 3) / n)
+    assert m["real_half_turn_share"] == m["real_half_turn_share/lower_leg"]
+
+
 def test_the_true_foot_alignment_is_flat_and_a_tilted_one_is_not(data_dir: Path, kinematics_cache: Path) -> None:
     """The functional foot frame's z is up while the foot is flat, so the true alignment of a simulated foot
     sensor maps the sensor's slowest-quarter specific force close to +z (3.3° here: the flat foot's roll is what is
