@@ -323,15 +323,34 @@ def swing_fit_command(
         typer.echo(f'    "{name}": ({mean:.3f}, {std:.3f}),  # {n} windows')
 
 
+@app.command("sway-fit")
+def sway_fit_command(data_dir: Path | None = DataDir) -> None:
+    """Fit how a leg sensor's swing follows the pelvis' sway (``service.core.assignment.SWAY``) on the real
+    recordings that carry a pelvis sensor, every person, the pelvis' frame from the served alignment model; prints
+    the table to paste there."""
+    from service.core.recordings import read_all_real
+    from service.core.segments import SEGMENTS
+    from service.inference.registry import load_models
+    from training.i2s.swing import fit_sway, recording_laterals, sway_samples
+
+    align = load_models(Path("onnx_models"), 2)["i2s_alignment"]
+    recordings = read_all_real(resolve_data_dir(data_dir))
+    samples = [sway_samples(rec, recording_laterals(rec, align.run)) for rec in recordings]
+    typer.echo(f"# alignment {align.manifest.version}")
+    for name, (mean, std, n) in sorted(fit_sway(samples).items(), key=lambda kv: SEGMENTS.index(kv[0])):
+        typer.echo(f'    "{name}": ({mean:.3f}, {std:.3f}),  # {n} windows')
+
+
 @app.command("swing-table")
 def swing_table_command(
     loso_run: str = typer.Option(..., help="a real-loso summary run"),
     weights: list[float] = typer.Option([], "--weight", help="another swing weight to compare (repeatable)"),
+    sway_weights: list[float] = typer.Option([], "--sway-weight", help="another sway weight to compare (repeatable)"),
     model: Path | None = typer.Option(None, help="a shipped model of that recipe: record the figures in its manifest"),
     data_dir: Path | None = DataDir,
 ) -> None:
     """Markdown table: each held-out person's per-moment answers from a real-loso run without and with how the
-    sensors swing together."""
+    sensors swing together, and with the pelvis' sway (its table fitted without the held-out person)."""
     import mlflow
 
     from training.i2s.swing import swing_table
@@ -339,7 +358,7 @@ def swing_table_command(
 
     mlflow.set_tracking_uri(default_tracking_uri())
     command = f"python -m training.cli swing-table --loso-run {loso_run}" + (f" --model {model}" if model else "")
-    typer.echo(swing_table(loso_run, resolve_data_dir(data_dir), weights, model, command))
+    typer.echo(swing_table(loso_run, resolve_data_dir(data_dir), weights, model, command, sway_weights))
 
 
 @app.command("evaluate-real")

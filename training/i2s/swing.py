@@ -1,6 +1,7 @@
 """How the gyroscope norms of sensors worn together swing together, per pair of segments: the model that the
 per-moment answer weighs (``service.core.assignment.SWING``), fitted on simulated walking, and what it does to
-the held-out per-moment answers of a ``real-loso`` run.
+the held-out per-moment answers of a ``real-loso`` run; and the side evidence of the pelvis' sway
+(``service.core.assignment.SWAY``), fitted on the real recordings that carry a pelvis sensor.
 
 Per moving window of a clip and per pair of its seven segments, the Fisher z (atanh) of the Pearson correlation of
 their gyroscope norms over the window; per pair type (``service.core.assignment.swing_pair_type``: the two body
@@ -10,7 +11,7 @@ norm of the angular velocity does not depend on how a sensor is mounted, so the 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -19,11 +20,16 @@ from service.core.assignment import (
     STILL_GYR_MEAN_RADS,
     SWING_PAIR_TYPES,
     gyro_norm,
+    is_moving,
+    pelvis_lateral,
+    sway_z,
     swing_pair_type,
     swing_z,
 )
-from service.core.segments import BODY_PART
+from service.core.recordings import RealRecording
+from service.core.segments import BODY_PART, SEGMENTS
 from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES, sliding_windows
+from service.inference.predict import mean_alignment
 from training.i2s.data.mocap import Clip
 
 
@@ -51,41 +57,107 @@ def fit_swing(clips: list[Clip]) -> dict[str, tuple[float, float, int]]:
     return {name: (float(z.mean()), float(z.std()), len(z)) for name, z in swing_samples(clips).items() if len(z)}
 
 
+def recording_laterals(rec: RealRecording, align: Callable[[np.ndarray], np.ndarray]) -> list[np.ndarray]:
+    """Per labelled sensor of ``rec``, its windows' ``pelvis_lateral`` ``(N, T)``, the pelvis hypothesis being the
+    sensor's settled alignment as the service takes it (``mean_alignment`` of the alignment model's pelvis row over
+    the sensor's moving windows); ``align``: windows ``(B, T, 6)`` → q_segment_imu ``(B, 7, 4)``."""
+    out = []
+    for sensor in (s for s in rec.sensors if s.segment is not None):
+        windows = sliding_windows(sensor.imu.astype(np.float32))
+        q = np.concatenate([align(windows[i : i + 512]) for i in range(0, len(windows), 512)])[
+            :, SEGMENTS.index("Pelvis")
+        ]
+        moving = is_moving(windows)
+        out.append(pelvis_lateral(windows, mean_alignment(q[moving] if moving.any() else q)[0]))
+    return out
+
+
+def sway_samples(rec: RealRecording, laterals: list[np.ndarray]) -> dict[str, np.ndarray]:
+    """Per leg class of ``rec``'s labelled sensors, the ``sway_z`` of its windows against the pelvis sensor's, at
+    the moments both move; empty without a labelled pelvis sensor."""
+    sensors = [s for s in rec.sensors if s.segment is not None]
+    segments = [s.segment for s in sensors]
+    if SEGMENTS.index("Pelvis") not in segments:
+        return {}
+    p = segments.index(SEGMENTS.index("Pelvis"))
+    windows = [sliding_windows(s.imu.astype(np.float32)) for s in sensors]
+    n = min(len(w) for w in windows)
+    out = {}
+    for k, w in enumerate(windows):
+        if k == p:
+            continue
+        both = is_moving(w[:n]) & is_moving(windows[p][:n])
+        out[SEGMENTS[segments[k]]] = sway_z(laterals[p][:n][both], gyro_norm(w[:n][both])[:, None])[:, 0]
+    return out
+
+
+def fit_sway(samples: Sequence[dict[str, np.ndarray]]) -> dict[str, tuple[float, float, int]]:
+    """Per leg class: (mean z, standard deviation of z, number of windows) over ``samples`` (``sway_samples``)."""
+    pooled: dict[str, list[np.ndarray]] = {}
+    for sample in samples:
+        for name, z in sample.items():
+            pooled.setdefault(name, []).append(z)
+    return {
+        name: (float(np.concatenate(zs).mean()), float(np.concatenate(zs).std()), sum(len(z) for z in zs))
+        for name, zs in pooled.items()
+    }
+
+
 SWING_LOSO = "real_leave_one_person_out_swing"
 
 
 def swing_table(
-    summary_run_id: str, data_dir: Path, weights: Sequence[float] = (), model_dir: Path | None = None, command: str = ""
+    summary_run_id: str,
+    data_dir: Path,
+    weights: Sequence[float] = (),
+    model_dir: Path | None = None,
+    command: str = "",
+    sway_weights: Sequence[float] = (),
 ) -> str:
     """A markdown table: per held-out person, per source and pooled, the per-moment answers of a ``real-loso`` run's
     folds (moving windows, as ``training.i2s.evaluate.evaluate_real`` scores them) without and with how the sensors
-    swing together, and for each of ``weights`` the same with that ``SWING_WEIGHT`` (a comparison of weights). With
-    ``model_dir`` (a model of that recipe) its manifest gets the figures with ``SWING_WEIGHT`` as the evaluation
+    swing together, and for each of ``weights`` the same with that ``SWING_WEIGHT`` (a comparison of weights); then
+    with the pelvis' sway too (``SWAY_WEIGHT``, and each of ``sway_weights``), its table fitted on every person but
+    the held-out one (``fit_sway``), the pelvis' frame from the served alignment model. With ``model_dir`` (a model of
+    that recipe) its manifest gets the figures with ``SWING_WEIGHT``, and with ``SWAY_WEIGHT``, as the evaluation
     ``SWING_LOSO``."""
-    from service.core.assignment import SWING_WEIGHT
+    from service.core.assignment import SWAY_WEIGHT, SWING_WEIGHT, sway_table
     from service.core.recordings import read_all_real
+    from service.inference.registry import load_models
     from training.i2s.calibration import fold_predictions
     from training.i2s.evaluate import moving_per_moment
 
     part = np.array(BODY_PART + ("unassigned",))
     columns = [None, SWING_WEIGHT, *weights]
+    sway_columns = [SWAY_WEIGHT, *sway_weights]
     recordings = {r.name: r for r in read_all_real(data_dir)}
+    held_out = fold_predictions(summary_run_id, data_dir)
+    align = load_models(Path("onnx_models"), 2)["i2s_alignment"].run
+    laterals = {h.recording: recording_laterals(recordings[h.recording], align) for h in held_out}
+    samples = {h.recording: (h.person, sway_samples(recordings[h.recording], laterals[h.recording])) for h in held_out}
     sums: dict[str, np.ndarray] = {}
-    for held in fold_predictions(summary_run_id, data_dir):
+    for held in held_out:
         sensors = [s for s in recordings[held.recording].sensors if s.segment is not None]
         norms = [gyro_norm(sliding_windows(s.imu.astype(np.float32))) for s in sensors]
         log_probs, moving = [p.log_probs for p in held.sensors], [p.moving for p in held.sensors]
         truth = np.concatenate([np.full(int(m.sum()), p.segment) for p, m in zip(held.sensors, moving, strict=True)])
+        others = fit_sway([z for person, z in samples.values() if person != held.person])
+        table = sway_table({name: (mean, std) for name, (mean, std, _) in others.items()})
         row = [len(truth)]
         for weight in columns:  # scored as evaluate_real scores them
             swing = {} if weight is None else {"gyro_norms": norms, "swing_weight": weight}
             got = np.concatenate(moving_per_moment(log_probs, moving, **swing))
             row += [(got == truth).sum(), (part[got] == part[truth]).sum()]
+        for weight in sway_columns:
+            sway = {"laterals": laterals[held.recording], "sway_weight": weight, "sway": table}
+            got = np.concatenate(moving_per_moment(log_probs, moving, gyro_norms=norms, **sway))
+            row += [(got == truth).sum(), (part[got] == part[truth]).sum()]
         for group in (held.person, f"pooled/{held.recording.split('/')[0]}", "pooled"):
             sums[group] = sums.get(group, 0) + np.array(row, dtype=np.float64)
     if model_dir is not None:
-        _record(model_dir, summary_run_id, sums, command)
+        _record(model_dir, summary_run_id, sums, command, sway_column=len(columns))
     names = ["per moment", f"swinging together ({SWING_WEIGHT:g})"] + [f"weight {w:g}" for w in weights]
+    names += [f"and the pelvis' sway ({SWAY_WEIGHT:g})"] + [f"sway weight {w:g}" for w in sway_weights]
     lines = ["| held out (moving windows) | " + " | ".join(f"{n}: right / ignoring side" for n in names) + " |"]
     lines.append("|" + " --- |" * (1 + len(names)))
     for group in sorted(sums, key=lambda g: (g.startswith("pooled"), g)):
@@ -98,21 +170,28 @@ def swing_table(
     return "\n".join(lines)
 
 
-def _record(model_dir: Path, summary_run_id: str, sums: dict[str, np.ndarray], command: str) -> None:
-    """Write the swing-weighted per-moment figures (columns 3 and 4 of ``sums``' rows) into a manifest."""
+def _record(model_dir: Path, summary_run_id: str, sums: dict[str, np.ndarray], command: str, sway_column: int) -> None:
+    """Write the swing-weighted per-moment figures (columns 3 and 4 of ``sums``' rows), and those that weigh the
+    pelvis' sway too (column ``sway_column`` of the table), into a manifest."""
     from service.core.manifest import Evaluation, read_manifest, write_manifest
 
     metrics = {}
+    right, ignoring_side = 1 + 2 * sway_column, 2 + 2 * sway_column
     for group, total in sums.items():
         metrics[f"real_window_joint_swing_accuracy/{group}"] = round(float(total[3] / total[0]), 5)
         metrics[f"real_window_joint_swing_accuracy_ignoring_side/{group}"] = round(float(total[4] / total[0]), 5)
+        metrics[f"real_window_joint_sway_accuracy/{group}"] = round(float(total[right] / total[0]), 5)
+        metrics[f"real_window_joint_sway_accuracy_ignoring_side/{group}"] = round(
+            float(total[ignoring_side] / total[0]), 5
+        )
         metrics[f"n_windows/{group}"] = float(total[0])
     manifest = read_manifest(model_dir / "manifest.json")
     evaluation = Evaluation(
         name=SWING_LOSO,
         command=command,
         data=f"real recordings, leave one person out: the folds of real-loso summary run {summary_run_id}; moving "
-        "windows, one-to-one per moment weighing how the sensors swing together (service.core.assignment.SWING)",
+        "windows, one-to-one per moment weighing how the sensors swing together (service.core.assignment.SWING), "
+        "and the pelvis' sway (SWAY, fitted on every person but the held-out one)",
         metrics=metrics,
     )
     manifest.evaluations = [e for e in manifest.evaluations if e.name != SWING_LOSO] + [evaluation]

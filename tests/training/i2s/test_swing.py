@@ -24,3 +24,23 @@ def test_the_served_swing_table_is_the_fit_on_the_training_clips(data_dir, kinem
     # What the table says: one leg's foot swings with its shank and thigh, the two legs' feet take turns.
     assert SWING["same_leg-foot-lower_leg"][0] > 0.5 > -0.5 > SWING["both_legs-foot-foot"][0]
     assert SWING["same_leg-foot-upper_leg"][0] - SWING["both_legs-foot-upper_leg"][0] > 0.5
+
+
+def test_the_served_sway_table_is_the_fit_on_the_real_recordings(data_dir) -> None:
+    """``SWAY`` is ``sway-fit``'s table: every real recording with a pelvis sensor, the pelvis' frame its settled
+    alignment by the served alignment model; the left leg's sensors follow the pelvis' sway, the right leg's the
+    other way."""
+    from pathlib import Path
+
+    from service.core.assignment import SWAY
+    from service.core.recordings import read_all_real
+    from service.inference.registry import load_models
+    from training.i2s.swing import fit_sway, recording_laterals, sway_samples
+
+    align = load_models(Path("onnx_models"), 1)["i2s_alignment"]
+    samples = [sway_samples(rec, recording_laterals(rec, align.run)) for rec in read_all_real(data_dir)]
+    fitted = fit_sway(samples)
+    assert set(fitted) == set(SWAY)
+    for name, (mean, std, n) in fitted.items():
+        assert n >= 800, name
+        assert SWAY[name] == pytest.approx((mean, std), abs=6e-4), name
