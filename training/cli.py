@@ -324,10 +324,13 @@ def swing_fit_command(
 
 
 @app.command("sway-fit")
-def sway_fit_command(data_dir: Path | None = DataDir) -> None:
-    """Fit how a leg sensor's swing follows the pelvis' sway (``service.core.assignment.SWAY``) on the real
+def sway_fit_command(
+    whole_recording: bool = typer.Option(False, help="the pelvis' frame over the whole recording, not as live"),
+    data_dir: Path | None = DataDir,
+) -> None:
+    """Fit how a leg sensor's swing follows the pelvis' sway (``service.core.assignment.sway_table``) on the real
     recordings that carry a pelvis sensor, every person, the pelvis' frame from the served alignment model; prints
-    the table to paste there."""
+    the table."""
     from service.core.recordings import read_all_real
     from service.core.segments import SEGMENTS
     from service.inference.registry import load_models
@@ -335,7 +338,7 @@ def sway_fit_command(data_dir: Path | None = DataDir) -> None:
 
     align = load_models(Path("onnx_models"), 2)["i2s_alignment"]
     recordings = read_all_real(resolve_data_dir(data_dir))
-    samples = [sway_samples(rec, recording_laterals(rec, align.run)) for rec in recordings]
+    samples = [sway_samples(rec, recording_laterals(rec, align.run, not whole_recording)) for rec in recordings]
     typer.echo(f"# alignment {align.manifest.version}")
     for name, (mean, std, n) in sorted(fit_sway(samples).items(), key=lambda kv: SEGMENTS.index(kv[0])):
         typer.echo(f'    "{name}": ({mean:.3f}, {std:.3f}),  # {n} windows')
@@ -345,7 +348,10 @@ def sway_fit_command(data_dir: Path | None = DataDir) -> None:
 def swing_table_command(
     loso_run: str = typer.Option(..., help="a real-loso summary run"),
     weights: list[float] = typer.Option([], "--weight", help="another swing weight to compare (repeatable)"),
-    sway_weights: list[float] = typer.Option([], "--sway-weight", help="another sway weight to compare (repeatable)"),
+    sway_weights: list[float] = typer.Option(
+        [], "--sway-weight", help="a weight of the pelvis' sway to compare (repeatable; default 1/16 … 1)"
+    ),
+    whole_recording: bool = typer.Option(False, help="the pelvis' frame over the whole recording, not as live"),
     model: Path | None = typer.Option(None, help="a shipped model of that recipe: record the figures in its manifest"),
     data_dir: Path | None = DataDir,
 ) -> None:
@@ -358,7 +364,10 @@ def swing_table_command(
 
     mlflow.set_tracking_uri(default_tracking_uri())
     command = f"python -m training.cli swing-table --loso-run {loso_run}" + (f" --model {model}" if model else "")
-    typer.echo(swing_table(loso_run, resolve_data_dir(data_dir), weights, model, command, sway_weights))
+    from training.i2s.swing import SWAY_WEIGHTS
+
+    sway = tuple(sway_weights) or SWAY_WEIGHTS
+    typer.echo(swing_table(loso_run, resolve_data_dir(data_dir), weights, model, command, sway, not whole_recording))
 
 
 @app.command("evaluate-real")

@@ -42,7 +42,6 @@ from service.core.assignment import (
     assignment_confidence,
     gyro_norm,
     is_moving,
-    pelvis_lateral,
     session_assignment,
     session_swing_weight,
     turns_about_vertical,
@@ -281,16 +280,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
     joint, votes, n_moving = session_assignment(
         log_probs, moving, body.allow_shared, worn, candidates, norms, swing_weight=weight
     )
-    laterals = None  # each sensor's windows as the pelvis would sway them, for the per-moment answers' sides
-    if quats is not None:
-        pelvis = [quats[bounds[k] : bounds[k + 1], SEGMENTS.index("Pelvis")] for k in range(len(per_sensor))]
-        laterals = [
-            pelvis_lateral(x, mean_alignment(q[m] if m.any() else q)[0])
-            for x, q, m in zip(per_sensor, pelvis, moving, strict=True)
-        ]
-    at_moment = window_joint_assignment(
-        log_probs, moving, body.allow_shared, worn, candidates, norms, laterals=laterals
-    )
+    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates, norms)
     calibrated = assignment_confidence(_confidence(request), joint, votes, n_moving)
     p_correct = calibrated.p_correct
     out = []

@@ -39,7 +39,6 @@ from service.core.assignment import (
     gyro_norm,
     is_moving,
     joint_assignment,
-    pelvis_lateral,
     session_swing_weight,
     turns_about_vertical,
 )
@@ -57,7 +56,6 @@ log = logging.getLogger(__name__)
 # A sensor's units are checked over its first windows (about 3 s of readings), as the REST routes check a request's.
 UNIT_CHECK_WINDOWS = 4
 UNIT_CHECK_SECONDS = 2.0  # a pose session's, as long as an I2S window
-PELVIS = SEGMENTS.index("Pelvis")
 
 router = APIRouter()
 
@@ -246,12 +244,6 @@ class Session:
     def raise_failure(self) -> None:
         if self.failure is not None:
             raise ProtocolError(f"inference failed on the server: {self.failure}", 1011)
-
-    def pelvis_lateral(self, sensor: int, window: np.ndarray) -> np.ndarray | None:
-        """The window ``(T, 6)`` of ``sensor`` as the pelvis would sway it (``pelvis_lateral``), in the sensor's
-        settled pelvis alignment so far; None before the sensor has moved."""
-        settled = self.alignments[sensor].mean(PELVIS)
-        return None if settled is None else pelvis_lateral(window[None], settled[0])[0]
 
     def moment_messages(self, final: bool = False) -> list[dict]:
         """The per-moment one-to-one answers that are ready (all of them at the end of the stream)."""
@@ -444,7 +436,7 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
     windows = [w for item in items for w in item.windows]
     results: list[dict] = []
     moving, log_probs, quats = np.zeros(0, dtype=bool), np.zeros((0, len(SEGMENTS))), None
-    norms, imu = np.zeros((0, 0)), np.zeros((0, 0, 6))
+    norms = np.zeros((0, 0))
     if windows:
         imu = np.stack(windows)
         probs, quats = await app.state.batcher.infer(imu, wait_ms)
@@ -461,6 +453,8 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
         for end_s in item.window_end_s:
             message = {"type": "result", "sensor_id": sensor_id, "window_end_s": round(end_s, 6)}
             message.update(results[row])
+            if session.moments is not None:
+                session.moments.add(item.sensor, end_s, log_probs[row], bool(moving[row]), norms[row])
             if not moving[row]:
                 session.still_evidence[item.sensor] += log_probs[row]
                 session.still_windows[item.sensor] += 1
@@ -470,9 +464,6 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
                 session.windows[item.sensor] += 1
                 if quats is not None:
                     session.alignments[item.sensor].add(quats[row])
-            if session.moments is not None:
-                lateral = session.pelvis_lateral(item.sensor, imu[row]) if quats is not None else None
-                session.moments.add(item.sensor, end_s, log_probs[row], bool(moving[row]), norms[row], lateral)
             if outbox.put(message):
                 app.state.metrics.dropped.inc()
             row += 1

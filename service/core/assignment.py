@@ -5,7 +5,7 @@ maximising the total is ``scipy.optimize.linear_sum_assignment`` (DESIGN.md §5:
 assignment is right more often than single windows). ``window_joint_assignment`` applies the same
 constraint to each moment on its own: the windows that sensors worn together recorded at the same time. Both can
 weigh how the sensors swing together (``SWING``): the sensors of one leg swing together, the two legs take turns.
-The per-moment answers also weigh which side each leg sensor is on by how the pelvis sways (``SWAY``).
+The per-moment answers can also weigh which side each leg sensor is on by how the pelvis sways (``sway_table``).
 
 Both take what a user declares about where the sensors are: ``worn``, the segments the sensors are on (say both
 feet, not saying which is which), and ``candidates``, per sensor the segments it may be on (say "a foot", not
@@ -224,31 +224,18 @@ def swing_per_moment(gyro_norms: list[np.ndarray], moving: list[np.ndarray]) -> 
     return out
 
 
-# Which side a leg sensor is on, read off how the pelvis sways (our addition). In walking the body leans over the
-# leg it stands on, so the pelvis' sideways specific force (along its y, left, with the gravity its roll tilts in)
-# follows which leg swings: the Fisher z of its correlation with a leg sensor's gyroscope norm over a window is
-# positive for a left leg sensor and negative for a right one on real people (the sensors need no alignment; the
-# pelvis' frame is its sensor's settled alignment, ``pelvis_lateral``). Per leg class, the mean and standard
-# deviation of that z over the moving windows of the real recordings that carry a pelvis sensor, every person
-# (``python -m training.cli sway-fit``; simulated CMU walking reads the shanks' sign the other way, so the table is
-# fitted on real people: docs/models.md, "The pelvis' sway").
-SWAY: dict[str, tuple[float, float]] = {  # leg class: mean and standard deviation of z (alignment 3.11.0)
-    "LeftFoot": (0.259, 0.264),  # 8,445 windows
-    "LeftLowerLeg": (0.204, 0.287),  # 8,445 windows
-    "LeftUpperLeg": (0.206, 0.151),  # 866 windows
-    "RightUpperLeg": (-0.216, 0.114),  # 866 windows
-    "RightLowerLeg": (-0.251, 0.226),  # 8,445 windows
-    "RightFoot": (-0.300, 0.251),  # 8,442 windows
-}
-# The weight of a moment's sway evidence against its windows' log-probabilities, chosen among 1/16, 1/8, 1/4, 1/2
-# and 1 by the per-moment accuracy of the validation people, held out one at a time (docs/models.md).
-SWAY_WEIGHT = 0.25
+# Which side a leg sensor is on, read off how the pelvis sways (our addition; weighed by the evaluation of
+# ``training.i2s.swing``, not yet by the service's answers: docs/models.md, "The pelvis' sway"). In walking the body
+# leans over the leg it stands on, so the pelvis' sideways specific force (along its y, left, with the gravity its
+# roll tilts in) follows which leg swings: the Fisher z of its correlation with a leg sensor's gyroscope norm over a
+# window is positive for a left leg sensor and negative for a right one on real people. Per leg class a normal of
+# that z (``sway_table``), fitted on real people (``training.i2s.swing.fit_sway``).
 _PELVIS = SEGMENTS.index("Pelvis")
 
 
-def sway_table(table: dict[str, tuple[float, float]] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``SWAY`` (or ``table``) as per-class means and standard deviations ``(K,)``, ``(K,)`` (the pelvis: 0, 1)."""
-    table = SWAY if table is None else table
+def sway_table(table: dict[str, tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """Per leg class name (mean, standard deviation) of ``sway_z`` → per-class arrays ``(K,)``, ``(K,)`` (the
+    pelvis and any class not named: 0, 1)."""
     mean = np.array([table.get(name, (0.0, 1.0))[0] for name in SEGMENTS])
     std = np.array([table.get(name, (0.0, 1.0))[1] for name in SEGMENTS])
     return mean, std
@@ -271,10 +258,10 @@ def sway_z(lateral: np.ndarray, gyro_norms: np.ndarray) -> np.ndarray:
     return np.clip(np.arctanh(np.clip(r, -0.999999, 0.999999)), -_Z_CLIP, _Z_CLIP)
 
 
-def sway_log_likelihood(z: np.ndarray, table: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """``(...,)`` ``sway_z`` → ``(..., K)``: its log-density under each leg class's normal (``SWAY``), 0 for the
+def sway_log_likelihood(z: np.ndarray, table: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """``(...,)`` ``sway_z`` → ``(..., K)``: its log-density under each leg class's normal (``sway_table``), 0 for the
     pelvis class."""
-    mean, std = sway_table() if table is None else table
+    mean, std = table
     ll = -0.5 * ((np.asarray(z)[..., None] - mean) / std) ** 2 - np.log(std) - 0.5 * np.log(2 * np.pi)
     ll[..., _PELVIS] = 0.0
     return ll
@@ -289,16 +276,19 @@ def _with_sway(
     laterals: np.ndarray,
     norms: np.ndarray,
     weight: float,
-    table: tuple[np.ndarray, np.ndarray] | None,
+    table: tuple[np.ndarray, np.ndarray],
 ) -> np.ndarray:
     """``_best_with_swing_moments``' answers ``first`` ``(M, S)`` answered again where they put a sensor on the
     pelvis: every other sensor's evidence gains ``weight`` × the log-likelihood of how that sensor's swing follows
-    the pelvis' sway (``laterals`` ``(M, S, T)``, each sensor's ``pelvis_lateral``; ``norms`` ``(M, S, T)``)."""
+    the pelvis' sway (``laterals`` ``(M, S, T)``, each sensor's ``pelvis_lateral``, NaN where the sensor's pelvis
+    frame is not known yet: that moment is left as it was; ``norms`` ``(M, S, T)``)."""
     has = first == _PELVIS
     moments = np.flatnonzero(has.any(axis=1))
+    pelvis = has[moments].argmax(axis=1)
+    settled = np.isfinite(laterals[moments, pelvis]).all(axis=-1)  # the pelvis sensor's frame is known there
+    moments, pelvis = moments[settled], pelvis[settled]
     if not len(moments):
         return first
-    pelvis = has[moments].argmax(axis=1)
     ll = sway_log_likelihood(sway_z(laterals[moments, pelvis], norms[moments]), table)  # (M', S, K)
     ll[np.arange(len(moments)), pelvis] = 0.0
     out = first.copy()
@@ -430,8 +420,8 @@ def window_joint_assignment(
     gyro_norms: list[np.ndarray] | None = None,
     swing_weight: float = SWING_WEIGHT,
     laterals: list[np.ndarray] | None = None,
-    sway_weight: float = SWAY_WEIGHT,
     sway: tuple[np.ndarray, np.ndarray] | None = None,
+    sway_weight: float = 0.0,
 ) -> list[np.ndarray]:
     """One-to-one assignment per moment: window ``t`` of every sensor is assigned from those windows alone.
 
@@ -447,9 +437,9 @@ def window_joint_assignment(
     With ``gyro_norms`` (per sensor ``(N_s, T)``, each window's gyroscope norm) the answer also weighs how the
     sensors swing together (``_swing_search``, by ``swing_weight``): the thigh, shank and foot of one leg do, the
     two legs take turns. Our addition to the paper's per-window answer; each moment is still answered from its own
-    windows. With ``laterals`` too (per sensor ``(N_s, T)``, its windows' ``pelvis_lateral``), a moment whose answer
-    puts a sensor on the pelvis is answered again with the side evidence of how the others follow its sway (``SWAY``,
-    by ``sway_weight``; ``sway``: another ``sway_table``).
+    windows. With ``laterals`` too (per sensor ``(N_s, T)``, its windows' ``pelvis_lateral``) and a ``sway`` table
+    (``sway_table``), a moment whose answer puts a sensor on the pelvis is answered again with the side evidence of
+    how the others follow its sway, by ``sway_weight``.
 
     Returns one ``(N_s,)`` int array per sensor.
     """
@@ -475,7 +465,7 @@ def window_joint_assignment(
                 norms = np.stack([[gyro_norms[s][t] for s in rows] for t in chunk])
                 pair_ll = swing_log_likelihood(norms)
                 answers = _best_with_swing_moments(evidence, allowed[rows], pair_ll, swing_weight)
-                if laterals is not None and sway_weight > 0:
+                if laterals is not None and sway is not None and sway_weight > 0:
                     lateral = np.stack([[laterals[s][t] for s in rows] for t in chunk])
                     answers = _with_sway(
                         answers, evidence, allowed[rows], pair_ll, swing_weight, lateral, norms, sway_weight, sway
@@ -523,8 +513,7 @@ class MomentAssembler:
     moments, after which the oldest are answered without it. ``flush`` answers all that wait (end of stream).
     With ``allow_shared`` each moving window keeps its own answer; with ``worn`` / ``candidates`` the answers are
     drawn from the declared segments only (``allowed_segments``). ``swing`` sums how the sensors swung together
-    over the moments answered so far (``swing_per_moment``), for the session's joint answer. A moment whose windows
-    all carry their ``pelvis_lateral`` also weighs the pelvis' sway (``window_joint_assignment``).
+    over the moments answered so far (``swing_per_moment``), for the session's joint answer.
     """
 
     def __init__(
@@ -543,22 +532,16 @@ class MomentAssembler:
         self.latest = np.full(n_sensors, -np.inf)  # newest window end per sensor
         # the answered moments' ``swing_per_moment``, summed: how the sensors swung together so far
         self.swing = np.zeros((n_sensors, n_sensors, len(SWING_PAIR_TYPES)))
-        self.open: dict[float, dict[int, tuple[np.ndarray, bool, np.ndarray | None, np.ndarray | None]]] = {}
+        self.open: dict[float, dict[int, tuple[np.ndarray, bool, np.ndarray | None]]] = {}
 
     def add(
-        self,
-        sensor: int,
-        end_s: float,
-        log_probs: np.ndarray,
-        moving: bool,
-        gyro_norm: np.ndarray | None = None,
-        lateral: np.ndarray | None = None,
+        self, sensor: int, end_s: float, log_probs: np.ndarray, moving: bool, gyro_norm: np.ndarray | None = None
     ) -> None:
-        """One window of ``sensor``: its ``(K,)`` log-probabilities, whether it moves (``is_moving``), its
-        gyroscope norm ``(T,)``, for how the sensors swing together, and its ``pelvis_lateral`` ``(T,)``, for the
-        pelvis' sway (``window_joint_assignment``; a moment with a window that has none is answered without)."""
+        """One window of ``sensor``: its ``(K,)`` log-probabilities, whether it moves (``is_moving``) and its
+        gyroscope norm ``(T,)``, for how the sensors swing together (``window_joint_assignment``; a moment with a
+        window that has none is answered without)."""
         key = round(end_s, 6)
-        self.open.setdefault(key, {})[sensor] = (log_probs, moving, gyro_norm, lateral)
+        self.open.setdefault(key, {})[sensor] = (log_probs, moving, gyro_norm)
         self.latest[sensor] = max(self.latest[sensor], key)
 
     def ready(self) -> list[tuple[float, dict[int, int]]]:
@@ -579,16 +562,13 @@ class MomentAssembler:
         log_probs = [windows[s][0][None] for s in sensors]
         moving = [np.array([windows[s][1]]) for s in sensors]
         norms = None if any(windows[s][2] is None for s in sensors) else [windows[s][2][None] for s in sensors]
-        laterals = None if any(windows[s][3] is None for s in sensors) else [windows[s][3][None] for s in sensors]
         swinging = [s for s in sensors if windows[s][1]]
         if norms is not None and len(swinging) > 1:
             pair_ll = swing_log_likelihood(np.stack([windows[s][2] for s in swinging]))
             pair_ll[np.arange(len(swinging)), np.arange(len(swinging))] = 0.0
             self.swing[np.ix_(swinging, swinging)] += pair_ll
         candidates = [self.candidates[s] for s in sensors]
-        answer = window_joint_assignment(
-            log_probs, moving, self.allow_shared, self.worn, candidates, norms, laterals=laterals
-        )
+        answer = window_joint_assignment(log_probs, moving, self.allow_shared, self.worn, candidates, norms)
         return key, {s: int(a[0]) for s, a in zip(sensors, answer, strict=True)}
 
 

@@ -167,7 +167,7 @@ class RunningAlignment:
     def __init__(self, capacity: int) -> None:
         self.rows = np.zeros((capacity, len(SEGMENTS), 4), dtype=np.float32)
         self.count = 0  # moving windows ever added
-        self._cached: dict[int, tuple[int, np.ndarray, float]] = {}  # segment → (count, mean, spread)
+        self._cached: tuple[int, int, np.ndarray, float] | None = None
 
     def add(self, q_segments: np.ndarray) -> None:
         """One window's ``(7, 4)`` quaternions."""
@@ -178,8 +178,7 @@ class RunningAlignment:
         """(canonical quaternion, spread in degrees), or None before the first moving window."""
         if not self.count:
             return None
-        cached = self._cached.get(segment)
-        if cached is None or cached[0] != self.count:
+        if self._cached is None or self._cached[:2] != (self.count, segment):
             q, spread = mean_alignment(self.rows[: min(self.count, len(self.rows)), segment].astype(np.float64))
-            cached = self._cached[segment] = (self.count, q, spread)
-        return cached[1], cached[2]
+            self._cached = (self.count, segment, q, spread)
+        return self._cached[2], self._cached[3]

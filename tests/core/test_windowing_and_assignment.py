@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from service.core.assignment import (
-    SWAY,
     SWING,
     SWING_PAIR_TYPES,
     MomentAssembler,
@@ -14,6 +13,7 @@ from service.core.assignment import (
     pelvis_lateral,
     session_assignment,
     sway_log_likelihood,
+    sway_table,
     sway_z,
     swing_log_likelihood,
     swing_pair_type,
@@ -225,8 +225,8 @@ def test_the_pelvis_sway_puts_each_leg_sensor_on_its_side() -> None:
     """A pelvis sensor and one foot sensor per leg. The feet swing in turn; the pelvis sways left while the left
     foot swings. Both feet's windows lean to the wrong side, the left one more: the windows alone and how the sensors
     swing together swap them; the pelvis' sway (in its sensor's frame, here turned by a half turn about z from the
-    pelvis frame, as the alignment would give it) puts each on its side. Weight 0, or no pelvis among the
-    sensors, answers as before; a moment assembled live answers the same."""
+    pelvis frame, as the alignment would give it) puts each on its side. Weight 0, no table, or no pelvis among the
+    sensors answers as before."""
     rng = np.random.default_rng(3)
     t = np.arange(128) / 60.0
     phase = 2 * np.pi * t / 1.1
@@ -240,7 +240,14 @@ def test_the_pelvis_sway_puts_each_leg_sensor_on_its_side() -> None:
     lateral = pelvis_lateral(window[None], q_pelvis_imu)[0]
     z = sway_z(lateral, feet)
     assert z[0] > 0.5 and z[1] < -0.5
-    ll = sway_log_likelihood(z)
+    table = sway_table(
+        {
+            f"{side}{part}": (sign * 0.2, 0.3)
+            for side, sign in (("Left", 1), ("Right", -1))
+            for part in ("Foot", "LowerLeg", "UpperLeg")
+        }
+    )
+    ll = sway_log_likelihood(z, table)
     assert ll[0, 0] > ll[0, 6] and ll[1, 6] > ll[1, 0] and (ll[:, 3] == 0).all()
     probs = np.full((3, 7), 0.01)
     probs[0, [0, 6]] = [0.40, 0.55]  # the left foot's window leans right
@@ -252,20 +259,22 @@ def test_the_pelvis_sway_puts_each_leg_sensor_on_its_side() -> None:
     laterals = [np.zeros((1, 128)), np.zeros((1, 128)), lateral[None]]  # the feet's would not sway this way
     without = [int(a[0]) for a in window_joint_assignment(log_probs, moving, gyro_norms=norms)]
     assert without == [6, 0, 3]
-    swayed = window_joint_assignment(log_probs, moving, gyro_norms=norms, laterals=laterals)
+    sway = {"laterals": laterals, "sway": table, "sway_weight": 0.25}
+    swayed = window_joint_assignment(log_probs, moving, gyro_norms=norms, **sway)
     assert [int(a[0]) for a in swayed] == [0, 6, 3]
-    zero = window_joint_assignment(log_probs, moving, gyro_norms=norms, laterals=laterals, sway_weight=0.0)
+    zero = window_joint_assignment(log_probs, moving, gyro_norms=norms, **(sway | {"sway_weight": 0.0}))
     assert [int(a[0]) for a in zero] == without
-    no_pelvis = window_joint_assignment(log_probs[:2], moving[:2], gyro_norms=norms[:2], laterals=laterals[:2])
-    assert [int(a[0]) for a in no_pelvis] == without[:2]
-    live = MomentAssembler(3)
-    for s in range(3):
-        live.add(s, 1.0, log_probs[s][0], True, norms[s][0], laterals[s][0])
-    assert live.ready() == [(1.0, {0: 0, 1: 6, 2: 3})]
-    assert set(SWAY) == {"LeftFoot", "LeftLowerLeg", "LeftUpperLeg", "RightUpperLeg", "RightLowerLeg", "RightFoot"}
-    assert all(SWAY[n][0] > 0 for n in SWAY if n.startswith("Left")) and all(
-        SWAY[n][0] < 0 for n in SWAY if n.startswith("Right")
+    untabled = window_joint_assignment(log_probs, moving, gyro_norms=norms, laterals=laterals, sway_weight=0.25)
+    assert [int(a[0]) for a in untabled] == without
+    no_pelvis = window_joint_assignment(
+        log_probs[:2], moving[:2], gyro_norms=norms[:2], laterals=laterals[:2], sway=table, sway_weight=0.25
     )
+    assert [int(a[0]) for a in no_pelvis] == without[:2]
+    unsettled = [laterals[0], laterals[1], np.full((1, 128), np.nan)]  # the pelvis sensor's frame not known yet
+    assert [
+        int(a[0])
+        for a in window_joint_assignment(log_probs, moving, gyro_norms=norms, **(sway | {"laterals": unsettled}))
+    ] == without
 
 
 @pytest.mark.parametrize("n_sensors", [2, 3, 5])

@@ -15,7 +15,6 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from service.core.assignment import (
-    SWAY_WEIGHT,
     SWING_WEIGHT,
     gyro_norm,
     is_moving,
@@ -238,8 +237,8 @@ def moving_per_moment(
     gyro_norms: list[np.ndarray] | None = None,
     swing_weight: float = SWING_WEIGHT,
     laterals: list[np.ndarray] | None = None,
-    sway_weight: float = SWAY_WEIGHT,
     sway: tuple[np.ndarray, np.ndarray] | None = None,
+    sway_weight: float = 0.0,
 ) -> list[np.ndarray]:
     """Per sensor, the per-moment answers (``window_joint_assignment``) of its moving windows. The sensors go in a
     random order, so that tied windows are not resolved by the order the reader lists them in."""
@@ -252,8 +251,8 @@ def moving_per_moment(
         gyro_norms=None if gyro_norms is None else [gyro_norms[k] for k in order],
         swing_weight=swing_weight,
         laterals=None if laterals is None else [laterals[k] for k in order],
-        sway_weight=sway_weight,
         sway=sway,
+        sway_weight=sway_weight,
     )
     return [answer[k][moving[s]] for s, k in enumerate(np.argsort(order))]
 

@@ -11,6 +11,7 @@ norm of the angular velocity does not depend on how a sensor is mounted, so the 
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from service.core.recordings import RealRecording
 from service.core.segments import BODY_PART, SEGMENTS
 from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES, sliding_windows
 from service.inference.predict import mean_alignment
+from service.settings import Settings
 from training.i2s.data.mocap import Clip
 
 
@@ -57,18 +59,31 @@ def fit_swing(clips: list[Clip]) -> dict[str, tuple[float, float, int]]:
     return {name: (float(z.mean()), float(z.std()), len(z)) for name, z in swing_samples(clips).items() if len(z)}
 
 
-def recording_laterals(rec: RealRecording, align: Callable[[np.ndarray], np.ndarray]) -> list[np.ndarray]:
+def recording_laterals(
+    rec: RealRecording, align: Callable[[np.ndarray], np.ndarray], live: bool = True
+) -> list[np.ndarray]:
     """Per labelled sensor of ``rec``, its windows' ``pelvis_lateral`` ``(N, T)``, the pelvis hypothesis being the
-    sensor's settled alignment as the service takes it (``mean_alignment`` of the alignment model's pelvis row over
-    the sensor's moving windows); ``align``: windows ``(B, T, 6)`` → q_segment_imu ``(B, 7, 4)``."""
+    sensor's settled alignment (``mean_alignment`` of the alignment model's pelvis row over its moving windows, at
+    most the service's ``stream_alignment_windows`` of them): with ``live``, as a stream knows it after each window
+    (NaN before the sensor has moved); else over the whole recording. ``align``: windows ``(B, T, 6)`` →
+    q_segment_imu ``(B, 7, 4)``."""
+    capacity = Settings().stream_alignment_windows
     out = []
     for sensor in (s for s in rec.sensors if s.segment is not None):
         windows = sliding_windows(sensor.imu.astype(np.float32))
-        q = np.concatenate([align(windows[i : i + 512]) for i in range(0, len(windows), 512)])[
-            :, SEGMENTS.index("Pelvis")
-        ]
-        moving = is_moving(windows)
-        out.append(pelvis_lateral(windows, mean_alignment(q[moving] if moving.any() else q)[0]))
+        quats = np.concatenate([align(windows[i : i + 512]) for i in range(0, len(windows), 512)])
+        pelvis, moving = quats[:, SEGMENTS.index("Pelvis")], is_moving(windows)
+        if not live:
+            out.append(pelvis_lateral(windows, mean_alignment(pelvis[moving] if moving.any() else pelvis)[0]))
+            continue
+        lateral = np.full(windows.shape[:2], np.nan)
+        kept: deque[np.ndarray] = deque(maxlen=capacity)
+        for i in range(len(windows)):
+            if moving[i]:
+                kept.append(pelvis[i])
+            if kept:
+                lateral[i] = pelvis_lateral(windows[i : i + 1], mean_alignment(np.array(kept, np.float64))[0])[0]
+        out.append(lateral)
     return out
 
 
@@ -106,22 +121,26 @@ def fit_sway(samples: Sequence[dict[str, np.ndarray]]) -> dict[str, tuple[float,
 SWING_LOSO = "real_leave_one_person_out_swing"
 
 
+SWAY_WEIGHTS = (0.0625, 0.125, 0.25, 0.5, 1.0)  # the weights the table compares by default
+
+
 def swing_table(
     summary_run_id: str,
     data_dir: Path,
     weights: Sequence[float] = (),
     model_dir: Path | None = None,
     command: str = "",
-    sway_weights: Sequence[float] = (),
+    sway_weights: Sequence[float] = SWAY_WEIGHTS,
+    live: bool = True,
 ) -> str:
     """A markdown table: per held-out person, per source and pooled, the per-moment answers of a ``real-loso`` run's
     folds (moving windows, as ``training.i2s.evaluate.evaluate_real`` scores them) without and with how the sensors
-    swing together, and for each of ``weights`` the same with that ``SWING_WEIGHT`` (a comparison of weights); then
-    with the pelvis' sway too (``SWAY_WEIGHT``, and each of ``sway_weights``), its table fitted on every person but
-    the held-out one (``fit_sway``), the pelvis' frame from the served alignment model. With ``model_dir`` (a model of
-    that recipe) its manifest gets the figures with ``SWING_WEIGHT``, and with ``SWAY_WEIGHT``, as the evaluation
-    ``SWING_LOSO``."""
-    from service.core.assignment import SWAY_WEIGHT, SWING_WEIGHT, sway_table
+    swing together, and for each of ``weights`` the same with that ``SWING_WEIGHT`` (a comparison of weights); then,
+    for each of ``sway_weights``, with the pelvis' sway too (``service.core.assignment.sway_table``, fitted on every
+    person but the held-out one; the pelvis' frame from the served alignment model as a stream knows it, or with
+    ``live`` false over the whole recording). With ``model_dir`` (a model of that recipe) its manifest gets the
+    figures with ``SWING_WEIGHT`` as the evaluation ``SWING_LOSO``."""
+    from service.core.assignment import SWING_WEIGHT, sway_table
     from service.core.recordings import read_all_real
     from service.inference.registry import load_models
     from training.i2s.calibration import fold_predictions
@@ -129,11 +148,10 @@ def swing_table(
 
     part = np.array(BODY_PART + ("unassigned",))
     columns = [None, SWING_WEIGHT, *weights]
-    sway_columns = [SWAY_WEIGHT, *sway_weights]
     recordings = {r.name: r for r in read_all_real(data_dir)}
     held_out = fold_predictions(summary_run_id, data_dir)
     align = load_models(Path("onnx_models"), 2)["i2s_alignment"].run
-    laterals = {h.recording: recording_laterals(recordings[h.recording], align) for h in held_out}
+    laterals = {h.recording: recording_laterals(recordings[h.recording], align, live) for h in held_out}
     samples = {h.recording: (h.person, sway_samples(recordings[h.recording], laterals[h.recording])) for h in held_out}
     sums: dict[str, np.ndarray] = {}
     for held in held_out:
@@ -148,16 +166,17 @@ def swing_table(
             swing = {} if weight is None else {"gyro_norms": norms, "swing_weight": weight}
             got = np.concatenate(moving_per_moment(log_probs, moving, **swing))
             row += [(got == truth).sum(), (part[got] == part[truth]).sum()]
-        for weight in sway_columns:
-            sway = {"laterals": laterals[held.recording], "sway_weight": weight, "sway": table}
+        for weight in sway_weights:
+            sway = {"laterals": laterals[held.recording], "sway": table, "sway_weight": weight}
             got = np.concatenate(moving_per_moment(log_probs, moving, gyro_norms=norms, **sway))
             row += [(got == truth).sum(), (part[got] == part[truth]).sum()]
         for group in (held.person, f"pooled/{held.recording.split('/')[0]}", "pooled"):
             sums[group] = sums.get(group, 0) + np.array(row, dtype=np.float64)
     if model_dir is not None:
-        _record(model_dir, summary_run_id, sums, command, sway_column=len(columns))
+        _record(model_dir, summary_run_id, sums, command)
     names = ["per moment", f"swinging together ({SWING_WEIGHT:g})"] + [f"weight {w:g}" for w in weights]
-    names += [f"and the pelvis' sway ({SWAY_WEIGHT:g})"] + [f"sway weight {w:g}" for w in sway_weights]
+    frame = "live" if live else "whole recording"
+    names += [f"and the pelvis' sway ({frame}) {w:g}" for w in sway_weights]
     lines = ["| held out (moving windows) | " + " | ".join(f"{n}: right / ignoring side" for n in names) + " |"]
     lines.append("|" + " --- |" * (1 + len(names)))
     for group in sorted(sums, key=lambda g: (g.startswith("pooled"), g)):
@@ -170,28 +189,21 @@ def swing_table(
     return "\n".join(lines)
 
 
-def _record(model_dir: Path, summary_run_id: str, sums: dict[str, np.ndarray], command: str, sway_column: int) -> None:
-    """Write the swing-weighted per-moment figures (columns 3 and 4 of ``sums``' rows), and those that weigh the
-    pelvis' sway too (column ``sway_column`` of the table), into a manifest."""
+def _record(model_dir: Path, summary_run_id: str, sums: dict[str, np.ndarray], command: str) -> None:
+    """Write the swing-weighted per-moment figures (columns 3 and 4 of ``sums``' rows) into a manifest."""
     from service.core.manifest import Evaluation, read_manifest, write_manifest
 
     metrics = {}
-    right, ignoring_side = 1 + 2 * sway_column, 2 + 2 * sway_column
     for group, total in sums.items():
         metrics[f"real_window_joint_swing_accuracy/{group}"] = round(float(total[3] / total[0]), 5)
         metrics[f"real_window_joint_swing_accuracy_ignoring_side/{group}"] = round(float(total[4] / total[0]), 5)
-        metrics[f"real_window_joint_sway_accuracy/{group}"] = round(float(total[right] / total[0]), 5)
-        metrics[f"real_window_joint_sway_accuracy_ignoring_side/{group}"] = round(
-            float(total[ignoring_side] / total[0]), 5
-        )
         metrics[f"n_windows/{group}"] = float(total[0])
     manifest = read_manifest(model_dir / "manifest.json")
     evaluation = Evaluation(
         name=SWING_LOSO,
         command=command,
         data=f"real recordings, leave one person out: the folds of real-loso summary run {summary_run_id}; moving "
-        "windows, one-to-one per moment weighing how the sensors swing together (service.core.assignment.SWING), "
-        "and the pelvis' sway (SWAY, fitted on every person but the held-out one)",
+        "windows, one-to-one per moment weighing how the sensors swing together (service.core.assignment.SWING)",
         metrics=metrics,
     )
     manifest.evaluations = [e for e in manifest.evaluations if e.name != SWING_LOSO] + [evaluation]

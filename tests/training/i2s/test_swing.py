@@ -26,21 +26,18 @@ def test_the_served_swing_table_is_the_fit_on_the_training_clips(data_dir, kinem
     assert SWING["same_leg-foot-upper_leg"][0] - SWING["both_legs-foot-upper_leg"][0] > 0.5
 
 
-def test_the_served_sway_table_is_the_fit_on_the_real_recordings(data_dir) -> None:
-    """``SWAY`` is ``sway-fit``'s table: every real recording with a pelvis sensor, the pelvis' frame its settled
-    alignment by the served alignment model; the left leg's sensors follow the pelvis' sway, the right leg's the
-    other way."""
+def test_on_real_people_a_left_leg_sensor_follows_the_pelvis_sway_and_a_right_one_the_other_way(data_dir) -> None:
+    """``sway-fit``'s table over every real recording with a pelvis sensor (its frame as a stream knows it): every
+    left leg class reads a positive mean z, every right one a negative one, each over at least 800 windows."""
     from pathlib import Path
 
-    from service.core.assignment import SWAY
     from service.core.recordings import read_all_real
     from service.inference.registry import load_models
     from training.i2s.swing import fit_sway, recording_laterals, sway_samples
 
     align = load_models(Path("onnx_models"), 1)["i2s_alignment"]
-    samples = [sway_samples(rec, recording_laterals(rec, align.run)) for rec in read_all_real(data_dir)]
-    fitted = fit_sway(samples)
-    assert set(fitted) == set(SWAY)
+    fitted = fit_sway([sway_samples(rec, recording_laterals(rec, align.run)) for rec in read_all_real(data_dir)])
+    assert set(fitted) == {f"{side}{part}" for side in ("Left", "Right") for part in ("Foot", "LowerLeg", "UpperLeg")}
     for name, (mean, std, n) in fitted.items():
-        assert n >= 800, name
-        assert SWAY[name] == pytest.approx((mean, std), abs=6e-4), name
+        assert n >= 800 and std > 0, name
+        assert (mean > 0.1) if name.startswith("Left") else (mean < -0.1), (name, mean)
