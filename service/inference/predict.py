@@ -125,13 +125,20 @@ def window_results(
     ]
 
 
+MODE_DEG = 45.0  # windows within this of a window count towards its mode (``mean_alignment``)
+MODE_CANDIDATES = 64  # windows tried as the start of the robust mean
+
+
 def mean_alignment(q_rows: np.ndarray) -> tuple[np.ndarray, float]:
     """Robust rotation mean of window quaternions ``(N, 4)`` → (canonical ``(4,)``, spread in degrees).
 
-    The chordal mean (the top eigenvector of Σ q qᵀ, sign-free; what ``scipy``'s ``Rotation.mean`` computes) is
-    re-taken three times over the windows no farther from it than the median, so a minority of windows that
-    disagree (e.g. a 180° turn about the long axis) cannot pull it. The spread is the median angle of all windows
-    from the result. Plain numpy: streams recompute it as windows arrive.
+    It starts from the window with the most windows within ``MODE_DEG`` of it (of at most ``MODE_CANDIDATES``
+    windows spread over the rows), then takes the chordal mean (the top eigenvector of Σ q qᵀ, sign-free; what
+    ``scipy``'s ``Rotation.mean`` computes) three times over the windows no farther from the current mean than the
+    median, so a minority of windows that disagree (e.g. a 180° turn about the long axis) cannot pull it. Started
+    from the chordal mean of all windows instead, two modes a half turn apart in near-equal shares (a real pelvis
+    whose walk does not say which way it faces) drew it to a quarter turn between them, neither answer. The spread
+    is the median angle of all windows from the result. Plain numpy: streams recompute it as windows arrive.
     """
     q = q_rows / np.linalg.norm(q_rows, axis=1, keepdims=True)
 
@@ -141,7 +148,9 @@ def mean_alignment(q_rows: np.ndarray) -> tuple[np.ndarray, float]:
     def angles(mean: np.ndarray) -> np.ndarray:
         return 2.0 * np.arccos(np.clip(np.abs(q @ mean), 0.0, 1.0))
 
-    mean = chordal_mean(q)
+    candidates = q[np.linspace(0, len(q) - 1, min(len(q), MODE_CANDIDATES)).astype(int)]
+    near = np.abs(candidates @ q.T) >= np.cos(np.radians(MODE_DEG) / 2)  # rotation angle ≤ MODE_DEG
+    mean = candidates[int(np.argmax(near.sum(axis=1)))]
     for _ in range(3):
         dist = angles(mean)
         mean = chordal_mean(q[dist <= np.median(dist)])

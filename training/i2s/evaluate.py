@@ -26,6 +26,8 @@ from service.core.assignment import (
 from service.core.recordings import RealRecording
 from service.core.segments import BODY_PART, SEGMENTS
 from service.core.windowing import sliding_windows
+from service.inference.predict import mean_alignment
+from service.settings import Settings
 from training.i2s.data.imu_sim import LEG_CHAIN
 from training.i2s.data.mocap import Clip, as_recorded, braced_side
 from training.i2s.data.windows import Augmentation, Batch, grid_batches
@@ -281,12 +283,17 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
     - Half turns: the share of a sensor's windows more than 90° from its mean rotation (the mean is the larger
       mode's when a minority of windows sits a half turn away), per body part over the sensors worn there
       (``real_half_turn_share/<part>``) and over all. A frame that flips between two answers a half turn apart
-      about its long axis (the pelvis: forwards or backwards) shows here.
+      about its long axis (the pelvis: forwards or backwards) shows here. And live: the share of a sensor's moving
+      windows after which its settled alignment as a stream keeps it (``mean_alignment`` of its moving windows so
+      far, at most ``stream_alignment_windows``) is more than 90° from the recording's (``real_live_half_turn_share``
+      and per part): how often a stream's answer for the sensor faces the other way before it settles.
     All are necessary, not sufficient (a constant output is perfectly stable); the simulated LOSO is the
     accuracy measure. Predictions are for the sensor's known segment.
     """
     spreads, tilts, feet, nominal, metrics = [], [], [], [], {}
     half_turns: dict[str, list[np.ndarray]] = {}
+    live_turns: dict[str, list[np.ndarray]] = {}
+    capacity = Settings().stream_alignment_windows
     for rec in recordings:
         rec_spread = []
         for s in (s for s in rec.sensors if s.segment is not None):
@@ -297,6 +304,7 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
             rot = Rotation.from_quat(predict(windows)[:, s.segment].astype(np.float64), scalar_first=True)
             rec_spread.append(np.degrees((rot.mean().inv() * rot).magnitude()))
             half_turns.setdefault(BODY_PART[s.segment], []).append(rec_spread[-1] > 90.0)
+            live_turns.setdefault(BODY_PART[s.segment], []).append(_live_half_turns(rot, capacity))
             if s.segment in LEG_SEGMENTS:
                 up = rot.apply(windows[..., :3].mean(axis=1).astype(np.float64))
                 tilts.append(np.degrees(np.arccos(np.clip(up[:, 2] / np.linalg.norm(up, axis=1), -1.0, 1.0))))
@@ -323,7 +331,20 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
         metrics[f"real_half_turn_share/{part}"] = float(np.concatenate(flags).mean())
     if half_turns:
         metrics["real_half_turn_share"] = float(np.concatenate([f for v in half_turns.values() for f in v]).mean())
+    for part, flags in sorted(live_turns.items()):
+        metrics[f"real_live_half_turn_share/{part}"] = float(np.concatenate(flags).mean())
+    if live_turns:
+        metrics["real_live_half_turn_share"] = float(np.concatenate([f for v in live_turns.values() for f in v]).mean())
     return metrics
+
+
+def _live_half_turns(rot: Rotation, capacity: int) -> np.ndarray:
+    """Per moving window (``rot``, in order), whether the settled alignment a stream holds after it (the robust
+    mean of the last ``capacity`` windows so far, ``mean_alignment``) is more than 90° from the whole recording's."""
+    q = rot.as_quat(scalar_first=True)
+    final = Rotation.from_quat(mean_alignment(q)[0], scalar_first=True)
+    settled = [mean_alignment(q[max(0, i + 1 - capacity) : i + 1])[0] for i in range(len(q))]
+    return np.degrees((final.inv() * Rotation.from_quat(np.array(settled), scalar_first=True)).magnitude()) > 90.0
 
 
 def foot_flat_up(imu: np.ndarray) -> np.ndarray:
