@@ -1,7 +1,8 @@
 """How the gyroscope norms of sensors worn together swing together, per pair of segments: the model that the
 per-moment answer weighs (``service.core.assignment.SWING``), fitted on simulated walking, and what it does to
 the held-out per-moment answers of a ``real-loso`` run; and the side evidence of the pelvis' sway
-(``service.core.assignment.SWAY``), fitted on the real recordings that carry a pelvis sensor.
+(``service.core.assignment.sway_table``), fitted on the real recordings that carry a pelvis sensor and evaluated
+with each person held out (not weighed by the service: docs/models.md).
 
 Per moving window of a clip and per pair of its seven segments, the Fisher z (atanh) of the Pearson correlation of
 their gyroscope norms over the window; per pair type (``service.core.assignment.swing_pair_type``: the two body
