@@ -359,13 +359,11 @@ def swing_table_command(
     sensors swing together, and with the pelvis' sway (its table fitted without the held-out person)."""
     import mlflow
 
-    from training.i2s.swing import swing_table
+    from training.i2s.swing import SWAY_WEIGHTS, swing_table
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
     command = f"python -m training.cli swing-table --loso-run {loso_run}" + (f" --model {model}" if model else "")
-    from training.i2s.swing import SWAY_WEIGHTS
-
     sway = tuple(sway_weights) or SWAY_WEIGHTS
     typer.echo(swing_table(loso_run, resolve_data_dir(data_dir), weights, model, command, sway, not whole_recording))
 

@@ -338,13 +338,21 @@ def evaluate_real_alignment(predict: Predict, recordings: list[RealRecording]) -
     return metrics
 
 
+def settled_alignments(q_rows: np.ndarray, capacity: int) -> np.ndarray:
+    """A sensor's moving windows' quaternions ``(N, 4)``, in order → ``(N, 4)``: after each, the settled alignment
+    a stream holds (``service.inference.predict.RunningAlignment``: the robust mean, ``mean_alignment``, of the
+    last ``capacity`` of them so far)."""
+    q = np.asarray(q_rows, dtype=np.float64)
+    return np.array([mean_alignment(q[max(0, i + 1 - capacity) : i + 1])[0] for i in range(len(q))])
+
+
 def _live_half_turns(rot: Rotation, capacity: int) -> np.ndarray:
-    """Per moving window (``rot``, in order), whether the settled alignment a stream holds after it (the robust
-    mean of the last ``capacity`` windows so far, ``mean_alignment``) is more than 90° from the whole recording's."""
+    """Per moving window (``rot``, in order), whether the settled alignment a stream holds after it
+    (``settled_alignments``) is more than 90° from the whole recording's."""
     q = rot.as_quat(scalar_first=True)
     final = Rotation.from_quat(mean_alignment(q)[0], scalar_first=True)
-    settled = [mean_alignment(q[max(0, i + 1 - capacity) : i + 1])[0] for i in range(len(q))]
-    return np.degrees((final.inv() * Rotation.from_quat(np.array(settled), scalar_first=True)).magnitude()) > 90.0
+    settled = Rotation.from_quat(settled_alignments(q, capacity), scalar_first=True)
+    return np.degrees((final.inv() * settled).magnitude()) > 90.0
 
 
 def foot_flat_up(imu: np.ndarray) -> np.ndarray:

@@ -12,7 +12,6 @@ norm of the angular velocity does not depend on how a sensor is mounted, so the 
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -34,6 +33,7 @@ from service.core.windowing import HOP_SAMPLES, WINDOW_SAMPLES, sliding_windows
 from service.inference.predict import mean_alignment
 from service.settings import Settings
 from training.i2s.data.mocap import Clip
+from training.i2s.evaluate import moving_per_moment, settled_alignments
 
 
 def swing_samples(clips: list[Clip]) -> dict[str, np.ndarray]:
@@ -77,13 +77,11 @@ def recording_laterals(
         if not live:
             out.append(pelvis_lateral(windows, mean_alignment(pelvis[moving] if moving.any() else pelvis)[0]))
             continue
+        settled = settled_alignments(pelvis[moving], capacity)  # after each moving window
+        latest = np.cumsum(moving) - 1  # the latest moving window at or before each window (-1: none yet)
         lateral = np.full(windows.shape[:2], np.nan)
-        kept: deque[np.ndarray] = deque(maxlen=capacity)
-        for i in range(len(windows)):
-            if moving[i]:
-                kept.append(pelvis[i])
-            if kept:
-                lateral[i] = pelvis_lateral(windows[i : i + 1], mean_alignment(np.array(kept, np.float64))[0])[0]
+        for i in np.flatnonzero(latest >= 0):
+            lateral[i] = pelvis_lateral(windows[i : i + 1], settled[latest[i]])[0]
         out.append(lateral)
     return out
 
@@ -145,7 +143,6 @@ def swing_table(
     from service.core.recordings import read_all_real
     from service.inference.registry import load_models
     from training.i2s.calibration import fold_predictions
-    from training.i2s.evaluate import moving_per_moment
 
     part = np.array(BODY_PART + ("unassigned",))
     columns = [None, SWING_WEIGHT, *weights]
