@@ -734,9 +734,8 @@ def capacitive_train(
 
 @app.command("evaluate-capacitive")
 def evaluate_capacitive_command(
-    model: Path = typer.Option(
-        Path("onnx_models/flex_capacitive_knee/1.0.0"),
-        help="a shipped capacitive model (1.0.0 held the stiff-knee trial out; 1.1.0 trained on it)",
+    model: Path | None = typer.Option(
+        None, help="a shipped capacitive model (default: the newest under onnx_models/flex_capacitive_knee)"
     ),
     data_dir: Path | None = DataDir,
     test_trial: str = typer.Option("CSStiffKnee", help="the trial scored"),
@@ -751,9 +750,11 @@ def evaluate_capacitive_command(
     model trained on that trial (then it is no held-out figure)."""
     import json
 
-    from service.inference.registry import load_model
+    from service.inference.registry import load_model, version_key
     from training.flex.capacitive import evaluate_capacitive
 
+    if model is None:
+        model = max(Path("onnx_models/flex_capacitive_knee").iterdir(), key=lambda p: version_key(p.name))
     loaded = load_model(model, 2)
     out = evaluate_capacitive(loaded, resolve_data_dir(data_dir), test_trial, train_trial, source)
     typer.echo(json.dumps(out, indent=1))

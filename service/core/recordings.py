@@ -13,6 +13,7 @@ import numpy as np
 
 from service.core.flex import ReadoutCheck
 from service.core.resample import resample_timestamps, resample_uniform
+from service.core.rotations import matrix_from_quat
 from service.core.segments import segment_index
 from service.core.units import to_contract_units
 from service.core.windowing import MODEL_RATE_HZ
@@ -399,6 +400,16 @@ CAPACITIVE_FAILURE = 0.5  # a read-out failure: a channel off its median of the 
 CAPACITIVE_REFERENCE_S = 10.0
 
 
+def _read_sleeve_file(data_dir: Path, trial: str, side: str, source: str) -> tuple[list[str], np.ndarray]:
+    """One leg's sleeve file (``*_LCS.mot`` / ``*_RCS.mot``): its column names and numeric rows."""
+    folder = data_dir / "imu_real" / source / trial
+    (path,) = folder.glob(f"OpenSim_*_{trial}_{side[0]}CS.mot")
+    lines = path.read_text().splitlines()
+    head = next(k for k, line in enumerate(lines) if line.startswith("endheader"))
+    names = lines[head + 1].split("\t")
+    return names, np.array([[float(v) for v in line.split("\t")] for line in lines[head + 2 :] if line.strip()])
+
+
 def read_capacitive_sleeve(
     data_dir: Path, trial: str, side: str, source: str = "capacitive_sub01", until_failure: bool = True
 ) -> tuple[np.ndarray, float]:
@@ -406,13 +417,9 @@ def read_capacitive_sleeve(
     readings in ``CAPACITIVE_CHANNELS`` order and the rate (Hz, from the time column). The recording stops at its
     first read-out failure (a channel not finite, or off its median over the first 10 s by more than
     ``CAPACITIVE_FAILURE`` of it): Sub01's right sleeve fails from 39.7 s of the baseline trial on (readings
-    climbing to 1e6-1e8) and never recovers. ``until_failure=False`` keeps every row, failed or not."""
-    folder = data_dir / "imu_real" / source / trial
-    (path,) = folder.glob(f"OpenSim_*_{trial}_{side[0]}CS.mot")
-    lines = path.read_text().splitlines()
-    head = next(k for k, line in enumerate(lines) if line.startswith("endheader"))
-    names = lines[head + 1].split("\t")
-    x = np.array([[float(v) for v in line.split("\t")] for line in lines[head + 2 :] if line.strip()])
+    climbing to 1e6-1e8) and never recovers. ``until_failure=False`` keeps every row, failed or not. The rows are
+    as the file gives them, not synchronised with the Xsens sensors (``capacitive_sleeve_sync``)."""
+    names, x = _read_sleeve_file(data_dir, trial, side, source)
     cols = [names.index(c) for c in CAPACITIVE_CHANNELS]
     cs = x[:, cols]
     rate = 1.0 / float(np.median(np.diff(x[:, 0])))
@@ -422,3 +429,84 @@ def read_capacitive_sleeve(
     if failure is not None:
         cs = cs[: failure.row]
     return cs, rate
+
+
+# Synchronising a sleeve with the Xsens sensors. The sleeve's read-out board carries its own IMU (the file's
+# ``BNOx``, ``BNOy``, ``BNOZ`` columns: Euler angles in degrees of an unstated convention) and sits on the shank.
+# Over a stride one of its angles follows how one of the Xsens shank sensor's axes tilts against the vertical (Sub01:
+# correlation 0.96-0.99 at the best lag, 0.91-0.94 for a second pair). The lag that matches them best is the
+# sleeve's delay: Sub01's baseline trial reads its left sleeve 0.25 s and its right sleeve 0.40 s behind the
+# Xsens rows, the same in both halves of the trial; the stiff-knee trial's sleeves are in step (0.00 / 0.01 s).
+SLEEVE_BOARD_COLUMNS = ("BNOx", "BNOy", "BNOZ")
+SYNC_MAX_S = 2.0  # lags searched either way (a stride is about 1.1 s: the true lag must be well within one)
+SYNC_HIGH_PASS_S = 1.1  # about a stride: what is left is each angle's swing within the stride
+SYNC_MIN_CORRELATION = 0.9  # weaker than this, the board and the shank do not match: no lag is applied
+
+
+@dataclass(frozen=True)
+class SleeveSync:
+    lag_rows: int  # the sleeve's row t + lag_rows was read at the Xsens row t (positive: the sleeve is behind)
+    rate_hz: float
+    correlation: float  # |correlation| of the best-matching board angle and shank axis at that lag
+    board_angle: str  # the board column that matched
+    shank_axis: int  # the Xsens shank sensor's axis (0 x, 1 y, 2 z) whose vertical component matched
+
+    @property
+    def lag_s(self) -> float:
+        return self.lag_rows / self.rate_hz
+
+    @property
+    def applied_rows(self) -> int:
+        """The lag to apply: 0 where the match is too weak to trust."""
+        return self.lag_rows if self.correlation >= SYNC_MIN_CORRELATION else 0
+
+
+def _high_pass(x: np.ndarray, rows: int) -> np.ndarray:
+    """``x`` minus its centred moving mean over ``rows`` (edges: the mean of what the window holds)."""
+    c = np.concatenate([np.zeros((1, *x.shape[1:])), np.cumsum(x, axis=0)])
+    k = np.arange(len(x))
+    lo, hi = np.clip(k - rows // 2, 0, len(x)), np.clip(k + rows - rows // 2, 0, len(x))
+    return x - (c[hi] - c[lo]) / (hi - lo).reshape(-1, *[1] * (x.ndim - 1))
+
+
+def _lagged_correlation(reference: np.ndarray, signal: np.ndarray, lags: np.ndarray) -> np.ndarray:
+    """Correlation of ``reference[t]`` with ``signal[t + lag]`` for each lag (overlapping rows only)."""
+    n = min(len(reference), len(signal))
+    out = np.empty(len(lags))
+    for k, lag in enumerate(lags):
+        a = reference[max(0, -lag) : n - max(0, lag)]
+        b = signal[max(0, lag) : n + min(0, lag)]
+        a, b = a - a.mean(), b - b.mean()
+        out[k] = float(a @ b / np.sqrt((a @ a) * (b @ b) + 1e-30))
+    return out
+
+
+def capacitive_sleeve_sync(
+    data_dir: Path, trial: str, side: str, source: str = "capacitive_sub01", rows: int | None = None
+) -> SleeveSync:
+    """How far one leg's sleeve rows lag the trial's Xsens rows, from the sleeve board's own IMU against the Xsens
+    shank sensor (see ``SLEEVE_BOARD_COLUMNS``). ``rows``: only the first rows count (a sleeve that fails later:
+    ``read_capacitive_sleeve``'s length)."""
+    names, x = _read_sleeve_file(data_dir, trial, side, source)
+    rate = 1.0 / float(np.median(np.diff(x[:, 0])))
+    if not set(SLEEVE_BOARD_COLUMNS) <= set(names):  # a read-out without the board's IMU: nothing to match
+        return SleeveSync(0, rate, 0.0, "", 0)
+    shank = read_capacitive_oriented(data_dir, trial, source)[f"{side}LowerLeg"]
+    if abs(shank.rate_hz - rate) > 0.01 * rate:
+        raise ValueError(f"{trial} {side}: sleeve at {rate:.1f} Hz, Xsens at {shank.rate_hz:.1f} Hz")
+    n = min(len(x), len(shank.q_world_sensor), rows or len(x))
+    board = _high_pass(
+        np.unwrap(np.deg2rad(x[:n, [names.index(c) for c in SLEEVE_BOARD_COLUMNS]]), axis=0),
+        round(SYNC_HIGH_PASS_S * rate),
+    )
+    # the vertical component of each shank sensor axis: row 2 of R_world_sensor
+    tilt = _high_pass(matrix_from_quat(shank.q_world_sensor[:n])[:, 2, :], round(SYNC_HIGH_PASS_S * rate))
+    lags = np.arange(-round(SYNC_MAX_S * rate), round(SYNC_MAX_S * rate) + 1)
+    best = SleeveSync(0, rate, 0.0, "", 0)
+    for j, column in enumerate(SLEEVE_BOARD_COLUMNS):
+        for axis in range(3):
+            c = np.abs(_lagged_correlation(tilt[:, axis], board[:, j], lags))
+            k = int(c.argmax())
+            if c[k] > best.correlation:
+                best = SleeveSync(int(lags[k]), rate, float(c[k]), column, axis)
+    return best

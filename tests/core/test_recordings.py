@@ -181,3 +181,46 @@ def test_recordings_added_beside_the_published_ones_are_found_and_read(data_dir:
     (tmp_path / "index.csv").write_text(index)
     with pytest.raises(ValueError, match="my_walk.csv: index.csv gives no sample rate"):
         read_recording(tmp_path, "gaitmap_foot/my_walk")
+
+
+def test_capacitive_sleeves_are_put_in_step_with_the_xsens_sensors_by_their_board_imu(
+    data_dir: Path, tmp_path: Path
+) -> None:
+    """Sub01's sleeves lag the Xsens rows by 0.25 s (left) and 0.39-0.40 s (right) in the baseline trial and not
+    in the stiff-knee trial; a sleeve file delayed by 30 more rows reads 30 rows more, and a board that does not
+    move with the shank is not trusted (no lag applied)."""
+    from service.core.recordings import SYNC_MIN_CORRELATION, capacitive_sleeve_sync, read_capacitive_sleeve
+
+    lags = {
+        (trial, side): capacitive_sleeve_sync(
+            data_dir, trial, side, rows=len(read_capacitive_sleeve(data_dir, trial, side)[0])
+        )
+        for trial in ("CSBaseline", "CSStiffKnee")
+        for side in ("Left", "Right")
+    }
+    assert all(s.correlation > 0.95 for s in lags.values())
+    assert lags["CSBaseline", "Left"].lag_rows == 25 and 38 <= lags["CSBaseline", "Right"].lag_rows <= 41
+    assert abs(lags["CSStiffKnee", "Left"].lag_rows) <= 1 and abs(lags["CSStiffKnee", "Right"].lag_rows) <= 1
+
+    real = data_dir / "imu_real" / "capacitive_sub01" / "CSStiffKnee"
+    trial = tmp_path / "imu_real" / "capacitive_sub01" / "CSStiffKnee"
+    trial.mkdir(parents=True)
+    for kind in ("Accel.trc", "Gyro.trc", "Orientations.sto"):
+        (trial / f"OpenSim_Sub01_CSStiffKnee_{kind}").symlink_to(real / f"OpenSim_Sub01_CSStiffKnee_{kind}")
+    lines = (real / "OpenSim_Sub01_CSStiffKnee_LCS.mot").read_text().splitlines()
+    head = next(k for k, line in enumerate(lines) if line.startswith("endheader")) + 2
+    rows = [line.split("\t") for line in lines[head:] if line.strip()]
+    delayed = [[rows[k][0], *rows[max(k - 30, 0)][1:]] for k in range(len(rows))]  # row t + 30 holds row t
+    (trial / "OpenSim_Sub01_CSStiffKnee_LCS.mot").write_text(
+        "\n".join(lines[:head] + ["\t".join(r) for r in delayed]) + "\n"
+    )
+    shifted = capacitive_sleeve_sync(tmp_path, "CSStiffKnee", "Left")
+    assert shifted.lag_rows == lags["CSStiffKnee", "Left"].lag_rows + 30
+    assert shifted.applied_rows == shifted.lag_rows and abs(shifted.lag_s - shifted.lag_rows / 100) < 1e-9
+
+    still = [[r[0], *r[1:8], "10", "20", "30"] for r in rows]  # a board that never moves
+    (trial / "OpenSim_Sub01_CSStiffKnee_LCS.mot").write_text(
+        "\n".join(lines[:head] + ["\t".join(r) for r in still]) + "\n"
+    )
+    unmatched = capacitive_sleeve_sync(tmp_path, "CSStiffKnee", "Left")
+    assert unmatched.correlation < SYNC_MIN_CORRELATION and unmatched.applied_rows == 0

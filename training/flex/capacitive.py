@@ -11,8 +11,10 @@ The model shipped for other people's sleeves trains on every trial (``also_train
 its own, so its manifest carries the held-out figures of runs of the same recipe that held one out
 (``held_out_evaluation``), as an I2S model trained on every person carries its recipe's leave-one-person-out ones.
 
-The sleeves and the Xsens sensors are only roughly synchronised (the dataset's ReadMe): rows are paired by
-index at 100 Hz as the files give them.
+The sleeves and the Xsens sensors are only roughly synchronised (the dataset's ReadMe): Sub01's baseline trial
+reads its sleeves 0.25 s (left) and 0.40 s (right) behind the Xsens rows. Each leg's sleeve is put in step with
+the Xsens sensors by its read-out board's own IMU against the Xsens shank sensor
+(``service.core.recordings.capacitive_sleeve_sync``; ``sync: false`` pairs rows as the files give them).
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ from service.core.recordings import (
     CAPACITIVE_CHANNELS,
     CAPACITIVE_FAILURE,
     CAPACITIVE_REFERENCE_S,
+    SYNC_MIN_CORRELATION,
+    capacitive_sleeve_sync,
     read_capacitive_oriented,
     read_capacitive_sleeve,
 )
@@ -70,6 +74,7 @@ class LegRecording:
     side: str
     readings: np.ndarray  # (T, 7) at the model rate
     flexion_deg: np.ndarray  # (T,)
+    sleeve_lag_s: float = 0.0  # how far the file's sleeve rows lagged the Xsens rows (undone here)
 
 
 def read_trials(cfg: CapacitiveConfig, data_dir: Path) -> dict[str, list[LegRecording]]:
@@ -84,12 +89,31 @@ def read_trials(cfg: CapacitiveConfig, data_dir: Path) -> dict[str, list[LegReco
         for trial, sensors in oriented.items():
             cs, rate = read_capacitive_sleeve(data_dir, trial, side, cfg.source)
             angle = hinge_angle_deg(sensors[thigh].q_world_sensor, sensors[shank].q_world_sensor, hinge)
-            n = min(len(cs), len(angle))
-            x = resample_uniform(cs[:n], rate, cfg.rate_hz)
-            y = resample_uniform(angle[:n, None], sensors[thigh].rate_hz, cfg.rate_hz)[:, 0]
+            sync = capacitive_sleeve_sync(data_dir, trial, side, cfg.source, rows=len(cs)) if cfg.sync else None
+            if sync is not None and sync.applied_rows != sync.lag_rows:
+                log.warning(
+                    "%s %s: the sleeve board matches the shank only at %.2f (at least %.2f): rows kept as the file "
+                    "pairs them",
+                    trial,
+                    side,
+                    sync.correlation,
+                    SYNC_MIN_CORRELATION,
+                )
+            cs, angle = synchronised(cs, angle, sync.applied_rows if sync else 0)
+            x = resample_uniform(cs, rate, cfg.rate_hz)
+            y = resample_uniform(angle[:, None], sensors[thigh].rate_hz, cfg.rate_hz)[:, 0]
             m = min(len(x), len(y))
-            out[trial].append(LegRecording(trial, side, x[:m].astype(np.float32), y[:m].astype(np.float32)))
+            lag_s = sync.applied_rows / sync.rate_hz if sync else 0.0
+            out[trial].append(LegRecording(trial, side, x[:m].astype(np.float32), y[:m].astype(np.float32), lag_s))
     return out
+
+
+def synchronised(sleeve: np.ndarray, reference: np.ndarray, lag_rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of both that were read at the same moment, given that the sleeve's row t + ``lag_rows`` was read
+    at the reference's row t (``service.core.recordings.SleeveSync``)."""
+    first = max(0, -lag_rows)
+    last = min(len(reference), len(sleeve) - lag_rows)
+    return sleeve[first + lag_rows : last + lag_rows], reference[first:last]
 
 
 def _clip(rec: LegRecording, window: int, part: str) -> FlexClip:
@@ -160,6 +184,8 @@ def run_capacitive_experiment(
             }
         )
         mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
+        lags = {f"{r.trial}/{r.side}": round(r.sleeve_lag_s, 3) for recs in trials.values() for r in recs}
+        mlflow.log_params({f"sleeve_lag_s.{k}": v for k, v in lags.items()})
         log_datasets(sleeve_tables(cfg, sets), str(data_dir), "flex-capacitive")
         result = train_flex(
             cfg,
@@ -245,6 +271,7 @@ def run_capacitive_experiment(
                 "test_trial": cfg.test_trial,
                 "held_out_leg": cfg.held_out_leg,
                 "subjects": ["Sub01"],
+                "sleeve_lag_s": lags if cfg.sync else None,  # undone before training (capacitive_sleeve_sync)
                 "licence": "capacitive sensing dataset of Pearl et al. 2022 (see the data's LICENSE)",
                 "train_wall_time_s": round(result.wall_s, 1),
                 "best_epoch": result.best_epoch,
@@ -284,9 +311,11 @@ def held_out_evaluation(run_id: str, cfg: CapacitiveConfig) -> Evaluation:
     ``cfg``, for the manifest of a model trained on every trial."""
     run = mlflow.get_run(local_run_id(run_id))  # the id a manifest names may be restored
     params, metrics = run.data.params, run.data.metrics
-    recipe = {k: str(v) for k, v in flatten(cfg.model_dump()).items() if k.startswith("model.")}
-    # parameters added since a run was logged (absent there) had their default then
-    differs = {k: (params[k], v) for k, v in recipe.items() if k in params and params[k] != v}
+    recipe = {k: str(v) for k, v in flatten(cfg.model_dump()).items() if k.startswith("model.") or k == "sync"}
+    # parameters added since a run was logged (absent there) had their default then; the sleeves were not
+    # synchronised before ``sync`` was
+    logged = {"sync": "False"} | dict(params)
+    differs = {k: (logged[k], v) for k, v in recipe.items() if k in logged and logged[k] != v}
     if "model.kind" not in params or differs:
         raise ValueError(f"run {run_id} is not this recipe: (its, ours) {differs}")
     if "test_mae_deg" not in metrics:

@@ -126,6 +126,8 @@ class CapacitiveConfig(_FlexRun):
     held_out_leg: Literal["Left", "Right"] | None = None
     rate_hz: float = 50.0  # the sleeves record at 100 Hz; window 100 at 50 Hz holds about two strides
     val_share: float = Field(0.2, gt=0.0, lt=0.5)  # the training trial's last part, per leg: early stopping
+    # each sleeve put in step with the Xsens sensors by its board's IMU (service.core.recordings.capacitive_sleeve_sync)
+    sync: bool = True
 
     @property
     def training_trials(self) -> list[str]:

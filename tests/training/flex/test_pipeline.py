@@ -137,6 +137,8 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
     assert {"val_csbaseline_left_mae_deg", "val_csstiffknee_right_mae_deg"} <= set(final["metrics"])
     manifest = read_manifest(tmp_path / "tiny_capacitive_all" / "0.0.2" / "manifest.json")
     assert manifest.training_data["train_trials"] == ["CSBaseline", "CSStiffKnee"]
+    lags = manifest.training_data["sleeve_lag_s"]  # the sleeves put in step with the Xsens sensors before training
+    assert lags["CSBaseline/Left"] == pytest.approx(0.25) and abs(lags["CSStiffKnee/Left"]) <= 0.01
     [recipe] = manifest.evaluations
     assert recipe.name == "recipe held out on CSStiffKnee" and out["run_id"] in recipe.command
     assert recipe.metrics["test_mae_deg"] == pytest.approx(m["test_mae_deg"], abs=1e-3)
@@ -178,6 +180,27 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
     plain = run_capacitive_experiment(other, data_dir)
     with pytest.raises(ValueError, match="not this recipe"):
         run_capacitive_experiment(every, data_dir, None, None, [plain["run_id"]])
+    # so is one whose sleeves were paired with the Xsens rows as the files give them
+    unsynced = run_capacitive_experiment(
+        cfg.model_copy(update={"name": "tiny_capacitive_unsynced", "sync": False}), data_dir
+    )
+    with pytest.raises(ValueError, match="sync"):
+        run_capacitive_experiment(every, data_dir, None, None, [unsynced["run_id"]])
+
+
+def test_synchronised_pairs_the_rows_read_at_the_same_moment() -> None:
+    from training.flex.capacitive import synchronised
+
+    # values are the moment each row was read at
+    a, b = synchronised(np.arange(10.0) - 3, np.arange(10.0), 3)  # the sleeve's row t + 3 read at row t
+    np.testing.assert_array_equal(a, b)
+    assert list(b) == list(range(7))
+    a, b = synchronised(np.arange(10.0) + 2, np.arange(8.0), -2)  # the sleeve ahead: its row t - 2 read at row t
+    np.testing.assert_array_equal(a, b)
+    assert list(b) == list(range(2, 8))
+    a, b = synchronised(np.arange(5.0), np.arange(6.0), 0)
+    np.testing.assert_array_equal(a, b)
+    assert len(a) == 5
 
 
 def test_bandai_share_sets_bandai_namco_s_part_of_the_draws_and_leaves_the_rest_by_frames() -> None:
