@@ -64,6 +64,10 @@ class FlexTrainConfig(Strict):
     # which epoch's weights the run keeps: the best on validation (ours), or the last (Chen et al. 2024 §3.4.1
     # trains until the error stops falling and says nothing of going back to an earlier epoch)
     keep: Literal["best", "last"] = "best"
+    # each training window's channels swing about their window mean by a factor drawn per window and channel,
+    # log-uniform in [1 / (1 + channel_gain), 1 + channel_gain] (ours, for sleeves whose channels modulate by
+    # different amounts on another leg or person); 0: off
+    channel_gain: float = Field(0.0, ge=0.0)
 
 
 class _FlexRun(Strict):

@@ -52,6 +52,14 @@ def build_net(cfg: FlexConfig, train: WindowSet) -> FlexNet:
     )
 
 
+def swing_about_mean(x: np.ndarray, gain: float, rng: np.random.Generator) -> np.ndarray:
+    """Windows ``(B, W, C)`` whose channels swing about their window mean by a factor per window and channel,
+    log-uniform in [1 / (1 + gain), 1 + gain] (``FlexTrainConfig.channel_gain``)."""
+    factor = np.exp(rng.uniform(-1.0, 1.0, size=(x.shape[0], 1, x.shape[2])) * np.log1p(gain))
+    mean = x.mean(axis=1, keepdims=True)
+    return (mean + factor * (x - mean)).astype(x.dtype)
+
+
 def validation_mae(net: FlexNet, val: WindowSet, hop: int = 2) -> float:
     pred, truth = predict_windows(torch_predictor(net), val, 0, net.latency_samples, hop)
     return float(np.abs(pred - truth).mean())
@@ -87,6 +95,8 @@ def train_flex(
         bar = tqdm(range(0, len(ends), bs), desc=f"{cfg.name} epoch {epoch}", unit="batch", leave=False)
         for i in bar:
             x, y = train.batch(suits[i : i + bs], ends[i : i + bs], steps)
+            if cfg.train.channel_gain > 0:
+                x = swing_about_mean(x, cfg.train.channel_gain, rng)
             x, y = torch.from_numpy(x), torch.from_numpy(y)
             target = (y - net.target_mean) / net.target_std
             loss = torch.mean((net.steps_standardised(x) - target) ** 2)  # eq. 3

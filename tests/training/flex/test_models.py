@@ -120,3 +120,16 @@ def test_training_keeps_the_best_validation_epoch_or_the_last(keep: str) -> None
     kept = int(np.argmin(scores)) if keep == "best" else 3
     assert result.best_epoch == kept
     assert validation_mae(result.net, ws) == pytest.approx(scores[kept], rel=1e-5)
+
+
+def test_channel_gain_swings_each_channel_about_its_window_mean_within_the_range() -> None:
+    from training.flex.train import swing_about_mean
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(1000.0, 20.0, size=(256, 100, 7)).astype(np.float32)
+    y = swing_about_mean(x, 1.0, rng)
+    np.testing.assert_allclose(y.mean(axis=1), x.mean(axis=1), rtol=1e-5)
+    factor = (y - y.mean(axis=1, keepdims=True)).std(axis=1) / (x - x.mean(axis=1, keepdims=True)).std(axis=1)
+    assert factor.min() >= 0.5 - 1e-3 and factor.max() <= 2.0 + 1e-3  # log-uniform in [1/2, 2]
+    assert factor.min() < 0.6 and factor.max() > 1.8 and abs(np.log(factor).mean()) < 0.05
+    assert not np.allclose(factor[:, 0], factor[:, 1])  # drawn per channel
