@@ -16,6 +16,7 @@ import asyncio
 import json
 import platform
 import time
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -84,6 +85,7 @@ async def _one_stream(
                     lat.append((time.perf_counter() - sent[seq]) * 1e3)
                     frames.append(m["frames"])
 
+        task: asyncio.Task | None = None
         try:
             await ws.send(json.dumps({"type": "start", "model": "flex_bilstm_cm", "channels": _channels()}))
             json.loads(await ws.recv())
@@ -96,6 +98,9 @@ async def _one_stream(
             await ws.send(json.dumps({"type": "stop"}))
             await task
         except websockets.exceptions.ConnectionClosedError as e:
+            if task is not None:  # its receive loop ended on the same close: collect it
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
             if e.rcvd is None or e.rcvd.code != 1013:
                 raise
             refusals.append(
@@ -138,6 +143,7 @@ def main() -> None:
     ap.add_argument("--streams", type=int, nargs="+", default=[1, 10, 50])
     ap.add_argument("--seconds", type=float, default=15.0)
     ap.add_argument("--packet", type=int, default=2, help="samples per packet (2 at 20 Hz: every 100 ms)")
+    ap.add_argument("--out", type=Path, default=RESULTS / "flex.json", help="where the results go")
     args = ap.parse_args()
     server, base = start_service(REPO / "onnx_models")
     try:
@@ -147,8 +153,8 @@ def main() -> None:
         result["streams"] = [asyncio.run(streams(base, n, args.seconds, args.packet)) for n in args.streams]
     finally:
         stop(server)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "flex.json").write_text(json.dumps(result, indent=1))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1))
     print(json.dumps(result, indent=1))
 
 
