@@ -1,6 +1,6 @@
 """``wearmocap-train``: thin typer commands over the training library (I2S: simulate, train, register, export,
-evaluate; pose: pose-train, evaluate-pose, pose-placement; flex: flex-train, evaluate-flex, capacitive-train,
-evaluate-capacitive; snapshot-export / snapshot-restore, ui).
+evaluate; pose: pose-train, evaluate-pose, pose-placement, pose-rig-hinges; flex: flex-train, evaluate-flex,
+capacitive-train, evaluate-capacitive; snapshot-export / snapshot-restore, ui).
 Run ``python -m training.cli --help``.
 """
 
@@ -446,6 +446,20 @@ def pose_placement(
     typer.echo(f"run_id={out['run_id']}")
     for k, (name, value, gain) in enumerate(zip(out["order"], out["phi"], out["gain"], strict=True), start=1):
         typer.echo(f"{k:2d}  {name:15s} Φ {value:+.4f}" + ("" if gain is None else f"  eq. 19 {gain:+.4f}"))
+
+
+@app.command("pose-rig-hinges")
+def pose_rig_hinges(
+    per_source: int = typer.Option(12, help="walking clips drawn per source"),
+    seed: int = typer.Option(0),
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+) -> None:
+    """Whether the rigs agree on the limbs' turn about their long axes: per source, the elbow's and the knee's
+    hinge axis in the upper arm's and thigh's frame over walking clips (on y where the frames are anatomical)."""
+    from training.pose.rig_check import rig_hinge_table
+
+    typer.echo(rig_hinge_table(resolve_data_dir(data_dir), cache_dir, per_source, seed))
 
 
 @app.command("pose-free-batch")
