@@ -454,12 +454,13 @@ def pose_rig_hinges(
     seed: int = typer.Option(0),
     data_dir: Path | None = DataDir,
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+    limb_twist: str = typer.Option("rig", help="the frames' limb rule: rig (as trained) or hinge"),
 ) -> None:
     """Whether the rigs agree on the limbs' turn about their long axes: per source, the elbow's and the knee's
     hinge axis in the upper arm's and thigh's frame over walking clips (on y where the frames are anatomical)."""
     from training.pose.rig_check import rig_hinge_table
 
-    typer.echo(rig_hinge_table(resolve_data_dir(data_dir), cache_dir, per_source, seed))
+    typer.echo(rig_hinge_table(resolve_data_dir(data_dir), cache_dir, per_source, seed, limb_twist=limb_twist))
 
 
 @app.command("pose-free-batch")
@@ -560,11 +561,12 @@ def evaluate_pose(
         raise typer.BadParameter("--validation and --record score the data directory's subjects: give no paths")
     if validation and record:
         raise typer.BadParameter("--record writes held-out figures; it does not go with --validation")
+    manifest = read_manifest(model / "manifest.json")
+    td = manifest.training_data
+    limb_twist = td.get("limb_twist", "rig")  # scored in the segment frames the model answers in
     if paths:
-        clips = user_clips(list(paths), mapping)
+        clips = user_clips(list(paths), mapping, limb_twist)
     else:
-        manifest = read_manifest(model / "manifest.json")
-        td = manifest.training_data
         cfg = PoseConfig(
             name=manifest.name,
             sensors=manifest.pose.sensors,
@@ -573,6 +575,7 @@ def evaluate_pose(
                 "test_subjects": td["test_subjects"],
                 "val_subjects": td["validation_subjects"],
                 "test_activities_of_unlabelled": td["test_unlabelled_clips"],
+                "limb_twist": limb_twist,
             },
         )
         data = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir)

@@ -93,7 +93,13 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
     # their files do not ship (a real-data fine-tune, the flex comparison networks): left out
     assert "i2s_assignment_finetune v1" in report.versions_without_model
     comparisons = (
-        {"i2s_assignment_finetune", "flex_bilstm_cm_seed1", "pose_lower3_seed1"}
+        {
+            "i2s_assignment_finetune",
+            "flex_bilstm_cm_seed1",
+            "pose_lower3_seed1",
+            "pose_full6_hinge",
+            "flex_bilstm_cm_hinge",
+        }
         | {f"flex_{v}" for v in ("bilstm", "bilstm_c", "bilstm_m", "transformer", "fcn", "tcn", "bilstm_half_cmu")}
         | {f"flex_{v}_last" for v in ("bilstm", "bilstm_cm", "bilstm_cm_baseline")}
         | {f"flex_capacitive_knee_{v}" for v in ("plain", "m", "cm", "minmax", "reverse", "leg_left", "leg_right")}

@@ -27,6 +27,9 @@ class FlexDataConfig(Strict):
     bandai_share: float | None = Field(None, ge=0.0, le=1.0)
     # also train on every training clip performed by the mirror-image body (``training.pose.data.mirrored``)
     mirror: bool = False
+    # the limbs' turn about their long axes: each rig's ("rig") or from the elbow's and knee's hinge axes ("hinge",
+    # as PoseDataConfig.limb_twist)
+    limb_twist: Literal["rig", "hinge"] = "rig"
 
 
 class FlexModelConfig(Strict):

@@ -54,7 +54,8 @@ class FlexData:
 
 
 def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> FlexData:
-    clips = build_motions(data_dir, mocap_entries(data_dir, sources=cfg.data.sources), cache_dir, workers)
+    entries = mocap_entries(data_dir, sources=cfg.data.sources)
+    clips = build_motions(data_dir, entries, cache_dir, workers, limb_twist=cfg.data.limb_twist)
     d = cfg.data
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     if d.mirror:

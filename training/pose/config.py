@@ -43,6 +43,10 @@ class PoseDataConfig(Strict):
     # actors; the CMU training clips are many people, which is what held-out people need.
     bandai_share: float | None = Field(None, ge=0.0, le=1.0)
     selection: PoseSelectionConfig | None = None  # None: every training clip
+    # How each limb segment is turned about its long axis: as its rig's frames put it ("rig"), or so that the
+    # elbow's and knee's hinge axes lie along y ("hinge": training.pose.data.hinge_twisted; the same rule for
+    # every rig, where the rigs' own frames differ by up to 42°)
+    limb_twist: Literal["rig", "hinge"] = "rig"
 
 
 class PoseModelConfig(Strict):

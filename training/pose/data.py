@@ -15,14 +15,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from service.core.body import (
     BODY_SEGMENTS,
     BodyMotion,
     SkeletonMapping,
+    azimuth_elevation_deg,
+    body_motion,
+    hinge_in_proximal,
     read_body_motion,
     read_clip_offsets,
+    read_rig,
     resample_motion,
     rig_offsets,
 )
@@ -95,10 +100,13 @@ def _clip_offsets_job(args: tuple[Path, CatalogEntry, Path]) -> np.ndarray | Non
     return off
 
 
-def build_rig_offsets(data_dir: Path, entries: list[CatalogEntry], cache_dir: Path, workers: int = 2) -> dict:
+def build_rig_offsets(
+    data_dir: Path, entries: list[CatalogEntry], cache_dir: Path, workers: int = 2, limb_twist: str = "rig"
+) -> dict:
     """Per rig (``rig_key``), the segment offsets of ``rig_offsets`` over the rig's walking clips in the catalogue
     (all its clips where it has fewer than three walks; never only ``entries``: the rig's frames must not depend on
-    which clips a run selects)."""
+    which clips a run selects). ``limb_twist`` "hinge": each arm and leg segment then turned about its long axis so
+    that the elbow's (knee's) hinge lies along its y (``hinge_twisted``)."""
     everything = mocap_entries(data_dir)
     wanted = {rig_key(e) for e in entries}
     rig_entries = [e for e in everything if rig_key(e) in wanted]
@@ -116,7 +124,49 @@ def build_rig_offsets(data_dir: Path, entries: list[CatalogEntry], cache_dir: Pa
                 walks.setdefault(rig_key(e), []).append(off)
     # Neutral stance defines the frames (DESIGN.md §2); walking is the nearest to it that every rig has: a rig's
     # dances and raised arms would turn its arms' frames (iClone forearms by about 60° about their long axis).
-    return {rig: rig_offsets(walks[rig] if len(walks.get(rig, [])) >= 3 else v) for rig, v in per_rig.items()}
+    out = {rig: rig_offsets(walks[rig] if len(walks.get(rig, [])) >= 3 else v) for rig, v in per_rig.items()}
+    if limb_twist == "hinge":
+        walking = {}
+        for e in rig_entries:
+            if e.activity == "walk":
+                walking.setdefault(rig_key(e), []).append(e)
+        for rig in out:
+            clips = walking.get(rig) or [e for e in rig_entries if rig_key(e) == rig]
+            spread = clips[:: max(1, len(clips) // HINGE_CLIPS)][:HINGE_CLIPS]  # across the rig's styles and people
+            out[rig] = hinge_twisted(out[rig], [data_dir / e.path for e in spread], clips[0].source)
+    return out
+
+
+HINGE_CLIPS = 24  # walking clips per rig that place its hinges
+HINGE_LIMBS = {  # hinge (proximal, distal) → the segments turned with each side of it
+    ("UpperArm", "ForeArm"): (("UpperArm",), ("ForeArm", "Hand")),
+    ("UpperLeg", "LowerLeg"): (("UpperLeg",), ("LowerLeg",)),
+}
+
+
+def hinge_twisted(
+    offsets: np.ndarray, paths: list[Path], source: str, mapping: SkeletonMapping | None = None
+) -> np.ndarray:
+    """A rig's offsets ``(S, 3, 3)`` with each limb segment turned about its own z (long axis) so that the hinge of
+    the joint it forms lies along its y: the upper arm and forearm (and the hand with it) by the elbow's, the thigh
+    and shank by the knee's, each the median azimuth over the rig's walking ``paths``
+    (``training.pose.rig_check``). The rigs' own frames differ about these axes by up to 42° (docs/pose.md)."""
+    azimuths: dict[str, list[float]] = {}
+    for path in paths:
+        poses, rig_mapping, ends = read_rig(path, mapping, source)
+        R = body_motion(poses, rig_mapping, ends, offsets).R_world_segment
+        for side in ("Left", "Right"):
+            for (proximal, distal), (near, far) in HINGE_LIMBS.items():
+                p, d = BODY_SEGMENTS.index(side + proximal), BODY_SEGMENTS.index(side + distal)
+                for segments, a, b in ((near, p, d), (far, d, p)):  # the axis in each side's own frame
+                    axis, _ = hinge_in_proximal(R[:, a], R[:, b])
+                    for segment in segments:
+                        azimuths.setdefault(side + segment, []).append(azimuth_elevation_deg(axis)[0])
+    out = offsets.copy()
+    for segment, values in azimuths.items():
+        k = BODY_SEGMENTS.index(segment)
+        out[k] = offsets[k] @ Rotation.from_euler("z", float(np.median(values)), degrees=True).as_matrix()
+    return out
 
 
 def _save(path: Path, m: BodyMotion) -> None:
@@ -156,11 +206,16 @@ def _load_or_compute(args: tuple[Path, CatalogEntry, Path, np.ndarray | None]) -
 
 
 def build_motions(
-    data_dir: Path, entries: list[CatalogEntry], cache_dir: Path, workers: int = 2, min_frames: int = 32
+    data_dir: Path,
+    entries: list[CatalogEntry],
+    cache_dir: Path,
+    workers: int = 2,
+    min_frames: int = 32,
+    limb_twist: str = "rig",
 ) -> list[MotionClip]:
     """Every entry on the canonical body, from the cache where possible, with a progress bar; each rig's clips
     share one set of segment frames (``build_rig_offsets``)."""
-    rigs = build_rig_offsets(data_dir, entries, cache_dir, workers)
+    rigs = build_rig_offsets(data_dir, entries, cache_dir, workers, limb_twist)
     jobs = [(data_dir, e, cache_dir, rigs.get(rig_key(e))) for e in entries]
     with ProcessPoolExecutor(max_workers=workers) as pool:
         clips = list(tqdm(pool.map(_load_or_compute, jobs, chunksize=8), total=len(jobs), desc="mocap", unit="clip"))

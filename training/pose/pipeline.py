@@ -75,7 +75,8 @@ class PoseData:
 
 
 def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> PoseData:
-    clips = build_motions(data_dir, mocap_entries(data_dir, sources=cfg.data.sources), cache_dir, workers)
+    entries = mocap_entries(data_dir, sources=cfg.data.sources)
+    clips = build_motions(data_dir, entries, cache_dir, workers, limb_twist=cfg.data.limb_twist)
     d = cfg.data
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     log.info("pose split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
@@ -276,6 +277,7 @@ def run_pose_experiment(
             "validation_subjects": cfg.data.val_subjects,
             "test_subjects": cfg.data.test_subjects,
             "test_unlabelled_clips": cfg.data.test_activities_of_unlabelled,
+            "limb_twist": cfg.data.limb_twist,  # the segment frames it answers in (evaluate-pose scores in the same)
             "bandai_namco": trains_on_bandai(data.train),
             "train_wall_time_s": round(result.wall_s, 1),
             "best_epoch": result.best_epoch,
@@ -403,10 +405,11 @@ def results_table(results: list[ClipResult]) -> str:
     return "\n".join(lines)
 
 
-def user_clips(paths: list[Path], mapping_file: Path | None) -> list[MotionClip]:
+def user_clips(paths: list[Path], mapping_file: Path | None, limb_twist: str = "rig") -> list[MotionClip]:
     """BVH files (plain or .gz), or folders of them, on the canonical body at 60 Hz; the activity is the folder's
     name. Without a mapping file the skeleton must be one of the known families. All files are taken to share one
-    rig (their segment frames come from all of them together)."""
+    rig (their segment frames come from all of them together; with ``limb_twist`` "hinge" the limbs turned so
+    that the elbows' and knees' hinges lie along y, placed on the same files: ``training.pose.data.hinge_twisted``)."""
     import hashlib
 
     from service.core.body import NoStanceError, load_mapping, read_clip_offsets, rig_offsets
@@ -429,6 +432,10 @@ def user_clips(paths: list[Path], mapping_file: Path | None) -> list[MotionClip]
     if not per_clip:
         raise no_stance[0]
     offsets = rig_offsets(per_clip)
+    if limb_twist == "hinge":
+        from training.pose.data import HINGE_CLIPS, hinge_twisted
+
+        offsets = hinge_twisted(offsets, files[:: max(1, len(files) // HINGE_CLIPS)][:HINGE_CLIPS], "", mapping)
     clips = []
     for f in files:
         digest = hashlib.sha256(f.read_bytes()).hexdigest()[:20]

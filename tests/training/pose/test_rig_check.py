@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from training.pose.rig_check import azimuth_elevation_deg, hinge_in_proximal
+from service.core.body import azimuth_elevation_deg, hinge_in_proximal
 
 
 @pytest.mark.parametrize("turn_deg", [-25.0, 0.0, 11.0])
@@ -23,3 +23,58 @@ def test_the_hinge_axis_is_found_in_the_proximal_frame_whatever_the_upper_arm_do
     azimuth, elevation = azimuth_elevation_deg(found)
     assert azimuth == pytest.approx(turn_deg, abs=1.0) and abs(elevation) < 1.0
     assert motion == pytest.approx(50.0, abs=3.0)
+
+
+def test_hinge_twisted_frames_put_the_elbows_and_knees_hinges_on_y(data_dir) -> None:
+    """li2018's own frames turn the right upper arm 18° off its elbow's hinge; turned by ``hinge_twisted`` (on the
+    same walks) every limb's hinge lies on y, in the proximal and in the distal segment's frame."""
+    from service.core.body import BODY_SEGMENTS, body_motion, read_clip_offsets, read_rig, rig_offsets
+    from training.data.catalog import mocap_entries
+    from training.pose.data import HINGE_LIMBS, hinge_twisted
+
+    walks = [data_dir / e.path for e in mocap_entries(data_dir, ["walk"], ["cmu_li2018"])][:4]
+    offsets = rig_offsets([read_clip_offsets(p, None, "cmu_li2018") for p in walks])
+    twisted = hinge_twisted(offsets, walks, "cmu_li2018")
+
+    def azimuths(offs) -> dict[str, float]:
+        out: dict[str, list[float]] = {}
+        for path in walks:
+            R = body_motion(*read_rig(path, None, "cmu_li2018"), offs).R_world_segment
+            for side in ("Left", "Right"):
+                for proximal, distal in HINGE_LIMBS:
+                    p, d = BODY_SEGMENTS.index(side + proximal), BODY_SEGMENTS.index(side + distal)
+                    for name, a, b in ((proximal, p, d), (distal, d, p)):
+                        out.setdefault(side + name, []).append(
+                            azimuth_elevation_deg(hinge_in_proximal(R[:, a], R[:, b])[0])[0]
+                        )
+        return {k: float(np.median(v)) for k, v in out.items()}
+
+    before, after = azimuths(offsets), azimuths(twisted)
+    assert abs(before["RightUpperArm"]) > 10.0
+    assert all(abs(v) < 1.0 for v in after.values()), after
+    hand = BODY_SEGMENTS.index("LeftHand")  # turned with its forearm; the feet and the trunk are not turned
+    forearm = BODY_SEGMENTS.index("LeftForeArm")
+    np.testing.assert_allclose(offsets[hand].T @ twisted[hand], offsets[forearm].T @ twisted[forearm], atol=1e-9)
+    for segment in ("LeftFoot", "Pelvis", "T8", "Head"):
+        np.testing.assert_allclose(twisted[BODY_SEGMENTS.index(segment)], offsets[BODY_SEGMENTS.index(segment)])
+
+
+def test_evaluate_pose_s_clips_take_the_frames_of_the_model_s_limb_rule(data_dir, tmp_path) -> None:
+    """A user's BVH folder read for a model trained in hinge frames has its elbows' hinges on the upper arms' y,
+    as the model's training clips did; read for a model in its rig's frames it keeps the rig's turn."""
+    from service.core.body import BODY_SEGMENTS
+    from training.data.catalog import mocap_entries
+    from training.pose.pipeline import user_clips
+
+    for e in mocap_entries(data_dir, ["walk"], ["cmu_li2018"])[:4]:
+        (tmp_path / (data_dir / e.path).name).symlink_to(data_dir / e.path)
+    arm, fore = BODY_SEGMENTS.index("RightUpperArm"), BODY_SEGMENTS.index("RightForeArm")
+
+    def azimuth(clips) -> float:
+        found = [
+            hinge_in_proximal(c.motion.R_world_segment[:, arm], c.motion.R_world_segment[:, fore])[0] for c in clips
+        ]
+        return float(np.median([azimuth_elevation_deg(a)[0] for a in found]))
+
+    assert abs(azimuth(user_clips([tmp_path], None, "rig"))) > 10.0
+    assert abs(azimuth(user_clips([tmp_path], None, "hinge"))) < 1.0
