@@ -435,8 +435,8 @@ def read_capacitive_sleeve(
 # ``BNOx``, ``BNOy``, ``BNOZ`` columns: Euler angles in degrees of an unstated convention) and sits on the shank.
 # Over a stride one of its angles follows how one of the Xsens shank sensor's axes tilts against the vertical (Sub01:
 # correlation 0.96-0.99 at the best lag, 0.91-0.94 for a second pair). The lag that matches them best is the
-# sleeve's delay: Sub01's baseline trial reads its left sleeve 0.25 s and its right sleeve 0.40 s behind the
-# Xsens rows, the same in both halves of the trial; the stiff-knee trial's sleeves are in step (0.00 / 0.01 s).
+# sleeve's delay: Sub01's baseline trial reads its left sleeve 0.25 s and its right sleeve 0.39 s behind the
+# Xsens rows, the same in both halves of the trial; the stiff-knee trial's sleeves are in step (0.00 / -0.01 s).
 SLEEVE_BOARD_COLUMNS = ("BNOx", "BNOy", "BNOZ")
 SYNC_MAX_S = 2.0  # lags searched either way (a stride is about 1.1 s: the true lag must be well within one)
 SYNC_HIGH_PASS_S = 1.1  # about a stride: what is left is each angle's swing within the stride

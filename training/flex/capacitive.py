@@ -12,7 +12,7 @@ its own, so its manifest carries the held-out figures of runs of the same recipe
 (``held_out_evaluation``), as an I2S model trained on every person carries its recipe's leave-one-person-out ones.
 
 The sleeves and the Xsens sensors are only roughly synchronised (the dataset's ReadMe): Sub01's baseline trial
-reads its sleeves 0.25 s (left) and 0.40 s (right) behind the Xsens rows. Each leg's sleeve is put in step with
+reads its sleeves 0.25 s (left) and 0.39 s (right) behind the Xsens rows. Each leg's sleeve is put in step with
 the Xsens sensors by its read-out board's own IMU against the Xsens shank sensor
 (``service.core.recordings.capacitive_sleeve_sync``; ``sync: false`` pairs rows as the files give them).
 """

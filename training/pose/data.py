@@ -150,7 +150,8 @@ def hinge_twisted(
     """A rig's offsets ``(S, 3, 3)`` with each limb segment turned about its own z (long axis) so that the hinge of
     the joint it forms lies along its y: the upper arm and forearm (and the hand with it) by the elbow's, the thigh
     and shank by the knee's, each the median azimuth over the rig's walking ``paths``
-    (``training.pose.rig_check``). The rigs' own frames differ about these axes by up to 42° (docs/pose.md)."""
+    (``service.core.body.hinge_in_proximal``). The rigs' own frames differ about these axes by up to 42°
+    (docs/pose.md)."""
     azimuths: dict[str, list[float]] = {}
     for path in paths:
         poses, rig_mapping, ends = read_rig(path, mapping, source)

@@ -17,9 +17,7 @@ import numpy as np
 
 from service.core.body import BODY_SEGMENTS, azimuth_elevation_deg, hinge_in_proximal
 from training.data.catalog import mocap_entries
-from training.pose.data import build_motions
-
-HINGES = (("UpperArm", "ForeArm"), ("UpperLeg", "LowerLeg"))  # (proximal, distal): elbow, knee
+from training.pose.data import HINGE_LIMBS, build_motions
 
 
 def rig_hinge_table(
@@ -41,7 +39,7 @@ def rig_hinge_table(
     for clip in build_motions(data_dir, chosen, cache_dir, workers, limb_twist=limb_twist):
         R = clip.motion.R_world_segment
         for side in ("Left", "Right"):
-            for proximal, distal in HINGES:
+            for proximal, distal in HINGE_LIMBS:  # the elbow, the knee
                 p, d = BODY_SEGMENTS.index(side + proximal), BODY_SEGMENTS.index(side + distal)
                 axis, motion = hinge_in_proximal(R[:, p], R[:, d])
                 rows[clip.source, side + proximal].append((*azimuth_elevation_deg(axis), motion))
