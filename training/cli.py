@@ -686,7 +686,10 @@ def evaluate_flex(
     from training.flex.pipeline import evaluate_served, load_flex_data
 
     loaded = load_model(model, 2)
-    cfg = FlexConfig(name=loaded.manifest.name)
+    # scored in the segment frames its angles are in ("rig" where the manifest does not say)
+    cfg = FlexConfig(
+        name=loaded.manifest.name, data={"limb_twist": loaded.manifest.training_data.get("limb_twist", "rig")}
+    )
     out = evaluate_served(loaded, load_flex_data(cfg, resolve_data_dir(data_dir), cache_dir))
     if as_json:
         typer.echo(json.dumps(out, indent=1))

@@ -278,6 +278,7 @@ def run_flex_experiment(
             "validation_subjects": cfg.data.val_subjects,
             "test_subjects": cfg.data.test_subjects,
             "test_unlabelled_clips": cfg.data.test_activities_of_unlabelled,
+            "limb_twist": cfg.data.limb_twist,  # the segment frames its angles are in (evaluate-flex scores in them)
             "bandai_namco": data.bandai,
             "train_wall_time_s": round(result.wall_s, 1),
             "best_epoch": result.best_epoch,
