@@ -181,8 +181,18 @@ def swing_z(gyro_norms: np.ndarray) -> np.ndarray:
     scale = np.linalg.norm(x, axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         r = (x @ np.swapaxes(x, -1, -2)) / (scale[..., :, None] * scale[..., None, :])
-    r = np.where(np.eye(x.shape[-2], dtype=bool), 0.0, np.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0))
+    return _fisher_z(np.where(np.eye(x.shape[-2], dtype=bool), 0.0, r))
+
+
+def _fisher_z(r: np.ndarray) -> np.ndarray:
+    """Pearson correlations → their Fisher z, clipped to ±``_Z_CLIP`` (0 where a correlation is not finite: a window
+    that does not vary)."""
+    r = np.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0)
     return np.clip(np.arctanh(np.clip(r, -0.999999, 0.999999)), -_Z_CLIP, _Z_CLIP)
+
+
+def _normal_log_density(z: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    return -0.5 * ((z - mean) / std) ** 2 - np.log(std) - 0.5 * np.log(2 * np.pi)
 
 
 def _pair_type_table() -> np.ndarray:
@@ -202,7 +212,7 @@ def swing_log_likelihood(gyro_norms: np.ndarray) -> np.ndarray:
     ``swing_z`` under each pair type's normal distribution (``SWING``)."""
     z = swing_z(gyro_norms)
     mean, std = (np.array([SWING[name][k] for name in SWING_PAIR_TYPES]) for k in (0, 1))
-    return -0.5 * ((z[..., None] - mean) / std) ** 2 - np.log(std) - 0.5 * np.log(2 * np.pi)
+    return _normal_log_density(z[..., None], mean, std)
 
 
 def swing_per_moment(gyro_norms: list[np.ndarray], moving: list[np.ndarray]) -> np.ndarray:
@@ -254,15 +264,14 @@ def sway_z(lateral: np.ndarray, gyro_norms: np.ndarray) -> np.ndarray:
     b = gyro_norms - gyro_norms.mean(axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         r = (b @ a[..., :, None])[..., 0] / (np.linalg.norm(b, axis=-1) * np.linalg.norm(a, axis=-1)[..., None])
-    r = np.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0)
-    return np.clip(np.arctanh(np.clip(r, -0.999999, 0.999999)), -_Z_CLIP, _Z_CLIP)
+    return _fisher_z(r)
 
 
 def sway_log_likelihood(z: np.ndarray, table: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """``(...,)`` ``sway_z`` → ``(..., K)``: its log-density under each leg class's normal (``sway_table``), 0 for the
     pelvis class."""
     mean, std = table
-    ll = -0.5 * ((np.asarray(z)[..., None] - mean) / std) ** 2 - np.log(std) - 0.5 * np.log(2 * np.pi)
+    ll = _normal_log_density(np.asarray(z)[..., None], mean, std)
     ll[..., _PELVIS] = 0.0
     return ll
 

@@ -448,27 +448,6 @@ def _segment_points(
     return np.stack(origin, axis=1), np.stack(mid, axis=1)
 
 
-def hinge_in_proximal(R_proximal: np.ndarray, R_distal: np.ndarray) -> tuple[np.ndarray, float]:
-    """The hinge axis of a joint, in the proximal segment's frame, from both segments' world orientations ``(T, 3,
-    3)``: the first principal axis of the relative rotation's rotation vectors about its mean (as
-    ``service.core.flex.fit_hinge``, here composed on the left so that the axis is the proximal frame's), signed so
-    that the larger excursion is positive (flexion); and that excursion's range (degrees, 1st to 99th percentile)."""
-    rel = Rotation.from_matrix(np.einsum("tji,tjk->tik", R_proximal, R_distal))
-    v = (rel * rel.mean().inv()).as_rotvec()
-    axis = np.linalg.svd(v - v.mean(axis=0), full_matrices=False)[2][0]
-    angle = v @ axis
-    if np.percentile(angle, 99) - np.median(angle) < np.median(angle) - np.percentile(angle, 1):
-        axis, angle = -axis, -angle
-    return axis, float(np.degrees(np.percentile(angle, 99) - np.percentile(angle, 1)))
-
-
-def azimuth_elevation_deg(axis: np.ndarray) -> tuple[float, float]:
-    """How far a hinge axis lies from the frame's y: its turn about z from ±y (positive anticlockwise seen from
-    above, the sign of y taken so that the axis points left) and its elevation out of the x-y plane."""
-    a = axis if axis[1] >= 0 else -axis
-    return float(np.degrees(np.arctan2(-a[0], a[1]))), float(np.degrees(np.arcsin(np.clip(a[2], -1.0, 1.0))))
-
-
 def rig_offsets(per_clip: list[np.ndarray]) -> np.ndarray:
     """One R_bone_segment per segment for all clips of a rig ``(S, 3, 3)``: the rotation mean of the clips'
     own offsets, re-taken over the clips no farther from it than the median (a clip of raised arms cannot pull it).

@@ -119,14 +119,36 @@ def fit_hinge(q_proximal: np.ndarray, q_distal: np.ndarray, extension_percentile
     """
     rel = _relative_sensor(q_proximal, q_distal)
     R_ref = rel.mean()
-    v = (R_ref.inv() * rel).as_rotvec()
-    v0 = v - v.mean(axis=0)
-    axis = np.linalg.svd(v0, full_matrices=False)[2][0]
+    axis, angle = _principal_hinge((R_ref.inv() * rel).as_rotvec())
+    return HingeCalibration(R_ref.as_matrix(), axis, float(np.degrees(np.percentile(angle, extension_percentile))))
+
+
+def _principal_hinge(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation vectors ``(T, 3)`` of a hinge's relative rotation against a reference → its axis (the first
+    principal axis of the vectors about their mean, signed so that the larger excursion is positive: flexion) and
+    each vector's angle along it (radians)."""
+    axis = np.linalg.svd(v - v.mean(axis=0), full_matrices=False)[2][0]
     angle = v @ axis
     med = np.median(angle)
     if np.percentile(angle, 99) - med < med - np.percentile(angle, 1):
         axis, angle = -axis, -angle
-    return HingeCalibration(R_ref.as_matrix(), axis, float(np.degrees(np.percentile(angle, extension_percentile))))
+    return axis, angle
+
+
+def hinge_in_proximal(R_proximal: np.ndarray, R_distal: np.ndarray) -> tuple[np.ndarray, float]:
+    """The hinge axis of a joint in the proximal segment's frame, from both segments' world orientations ``(T, 3,
+    3)``, as ``fit_hinge`` finds it (the relative rotation composed on the left of its mean, so that the axis is the
+    proximal frame's); and its range of motion (degrees, 1st to 99th percentile)."""
+    rel = Rotation.from_matrix(np.einsum("tji,tjk->tik", R_proximal, R_distal))
+    axis, angle = _principal_hinge((rel * rel.mean().inv()).as_rotvec())
+    return axis, float(np.degrees(np.percentile(angle, 99) - np.percentile(angle, 1)))
+
+
+def azimuth_elevation_deg(axis: np.ndarray) -> tuple[float, float]:
+    """How far a hinge axis lies from the frame's y: its turn about z from ±y (positive anticlockwise seen from
+    above, the sign of y taken so that the axis points left) and its elevation out of the x-y plane."""
+    a = axis if axis[1] >= 0 else -axis
+    return float(np.degrees(np.arctan2(-a[0], a[1]))), float(np.degrees(np.arcsin(np.clip(a[2], -1.0, 1.0))))
 
 
 def hinge_angle_deg(q_proximal: np.ndarray, q_distal: np.ndarray, cal: HingeCalibration) -> np.ndarray:

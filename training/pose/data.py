@@ -22,15 +22,14 @@ from service.core.body import (
     BODY_SEGMENTS,
     BodyMotion,
     SkeletonMapping,
-    azimuth_elevation_deg,
     body_motion,
-    hinge_in_proximal,
     read_body_motion,
     read_clip_offsets,
     read_rig,
     resample_motion,
     rig_offsets,
 )
+from service.core.flex import azimuth_elevation_deg, hinge_in_proximal
 from service.core.rotations import matrix_from_quat, quat_from_matrix
 from training.data.catalog import CatalogEntry, is_bandai_namco, mocap_entries
 
@@ -150,7 +149,7 @@ def hinge_twisted(
     """A rig's offsets ``(S, 3, 3)`` with each limb segment turned about its own z (long axis) so that the hinge of
     the joint it forms lies along its y: the upper arm and forearm (and the hand with it) by the elbow's, the thigh
     and shank by the knee's, each the median azimuth over the rig's walking ``paths``
-    (``service.core.body.hinge_in_proximal``). The rigs' own frames differ about these axes by up to 42°
+    (``service.core.flex.hinge_in_proximal``). The rigs' own frames differ about these axes by up to 42°
     (docs/pose.md)."""
     azimuths: dict[str, list[float]] = {}
     for path in paths:

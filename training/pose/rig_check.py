@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.core.body import BODY_SEGMENTS, azimuth_elevation_deg, hinge_in_proximal
+from service.core.body import BODY_SEGMENTS
+from service.core.flex import azimuth_elevation_deg, hinge_in_proximal
 from training.data.catalog import mocap_entries
 from training.pose.data import HINGE_LIMBS, build_motions
 

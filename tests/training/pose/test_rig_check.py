@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core.body import azimuth_elevation_deg, hinge_in_proximal
+from service.core.flex import azimuth_elevation_deg, hinge_in_proximal
 
 
 @pytest.mark.parametrize("turn_deg", [-25.0, 0.0, 11.0])
