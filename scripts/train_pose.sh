@@ -6,14 +6,15 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
 : "${WEARMOCAP_DATA_DIR:?set WEARMOCAP_DATA_DIR to the data folder (the one with index.csv)}"
-# the served versions, each the recipe that won on validation (docs/pose.md, Comparisons): pose_lower3 2.1.0 by frames
-# and half its draws from the mirror-image body, pose_full6_stream 2.1.0 at a constant rate, pose_lower3_stream 2.2.0
-# with the cosine decay, pose_full6 2.3.0 with it and half its draws mirrored,
-# and the walking models, trained on data selected for walking (Zheng et al. 2021 §5), each shipped by its rule; then
-# six sensors where Zheng et al. 2021 §6 places them (the placement search first: it is what the config lists)
+# the served versions, each its config's recipe (docs/pose.md, Shipped models and Comparisons): pose_lower3 by frames
+# and half its draws from the mirror-image body, pose_full6_stream at a constant rate, pose_lower3_stream with the
+# cosine decay, pose_full6 with it and half its draws mirrored, and the walking models, trained on data selected for
+# walking (Zheng et al. 2021 §5); then six sensors where Zheng et al. 2021 §6 places them (the placement search first:
+# it is what the config lists)
 python -m training.cli pose-placement training/configs/pose_full6.yaml --sensors 10
-for served in pose_full6:2.3.0 pose_full6_stream:2.1.0 pose_lower3:2.1.0 pose_lower3_stream:2.2.0 \
-  pose_full6_walk:1.0.0 pose_lower3_walk:1.0.0 pose_lower3_walk_stream:1.0.0 pose_mrmr6:1.0.0; do
+# All in frames that take each limb's turn from its hinge (data.limb_twist: hinge, since these major versions).
+for served in pose_full6:3.0.0 pose_lower3:3.0.0 pose_full6_stream:3.0.0 pose_lower3_stream:3.0.0 \
+  pose_full6_walk:2.0.0 pose_lower3_walk:2.0.0 pose_lower3_walk_stream:2.0.0 pose_mrmr6:2.0.0; do
   python -m training.cli pose-train "training/configs/${served%%:*}.yaml" --ship --version "${served##*:}"
 done
 # Comparisons (not shipped), each for at most the epochs its reference ran (13 for pose_lower3 1.0.0, 18 for
@@ -22,6 +23,8 @@ done
 # unidirectional LSTM is pose_full6_stream, which sees 5 frames ahead). The figures in docs/pose.md are of the 1.x
 # recipe (feet as Zimmermann et al. 2018, Bandai-Namco by frames). pose_full6_by_frames is the share comparison
 # behind 2.1.0 (at 2.1.0's constant rate and 18 epochs).
+# These comparisons' figures in docs/pose.md were trained in the rigs' frames (before 3.0.0): add
+# -s data.limb_twist=rig to any of them to reproduce its figure; as written they train in the hinge frames.
 python -m training.cli pose-train training/configs/pose_lower3.yaml -s name=pose_lower3_axisangle -s train.mirror=0 \
   -s model.representation=axis_angle -s train.max_epochs=13 -s train.time_budget_s=1e9
 python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_ffn -s model.kind=ffn \

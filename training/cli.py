@@ -495,9 +495,23 @@ def pose_acc_check(
     typer.echo(json.dumps(acceleration_check(build_motions(root, entries, cache_dir)), indent=1))
 
 
+def newest_shipped(model: Path | None, name: str, models_dir: Path = Path("onnx_models")) -> Path:
+    """``model`` if given, else the newest version shipped of ``name`` under ``models_dir``."""
+    if model is not None:
+        return model
+    from service.inference.registry import version_key
+
+    versions = [p for p in (models_dir / name).glob("*") if (p / "manifest.json").is_file()]
+    if not versions:
+        raise typer.BadParameter(f"no shipped version of {name} under {models_dir}; pass --model")
+    return max(versions, key=lambda p: version_key(p.name))
+
+
 @app.command("pose-real-check")
 def pose_real_check(
-    model: Path = typer.Option(Path("onnx_models/pose_lower3/2.1.0"), help="a shipped lower-body pose model"),
+    model: Path | None = typer.Option(
+        None, help="a shipped lower-body pose model (default: the newest under onnx_models/pose_lower3)"
+    ),
     data_dir: Path | None = DataDir,
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
@@ -510,6 +524,7 @@ def pose_real_check(
     from training.pose.real_check import pooled, real_pose_check
 
     alignment = load_models(Path("onnx_models"), 2)["i2s_alignment"]
+    model = newest_shipped(model, "pose_lower3")
     results = real_pose_check(resolve_data_dir(data_dir), PoseModel(load_model(model, 2)), alignment)
     summary = {
         "alignment_model": alignment.manifest.version,
@@ -528,7 +543,7 @@ def pose_real_check(
 @app.command("evaluate-pose")
 def evaluate_pose(
     paths: list[Path] = typer.Argument(None, help="BVH files or folders (default: the held-out subjects)"),
-    model: Path = typer.Option(..., help="a shipped pose model, e.g. onnx_models/pose_full6/2.3.0"),
+    model: Path = typer.Option(..., help="a shipped pose model, e.g. onnx_models/pose_full6/3.0.0"),
     mapping: Path | None = typer.Option(None, help="JSON/YAML mapping of an unknown skeleton onto the body"),
     data_dir: Path | None = DataDir,
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
@@ -671,7 +686,9 @@ def flex_train(
 
 @app.command("evaluate-flex")
 def evaluate_flex(
-    model: Path = typer.Option(Path("onnx_models/flex_bilstm_cm/1.1.0"), help="a shipped flex model folder"),
+    model: Path | None = typer.Option(
+        None, help="a shipped flex model folder (default: the newest under onnx_models/flex_bilstm_cm)"
+    ),
     data_dir: Path | None = DataDir,
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
     as_json: bool = typer.Option(False, "--json"),
@@ -685,7 +702,7 @@ def evaluate_flex(
     from training.flex.config import FlexConfig
     from training.flex.pipeline import evaluate_served, load_flex_data
 
-    loaded = load_model(model, 2)
+    loaded = load_model(newest_shipped(model, "flex_bilstm_cm"), 2)
     # scored in the segment frames its angles are in ("rig" where the manifest does not say)
     cfg = FlexConfig(
         name=loaded.manifest.name, data={"limb_twist": loaded.manifest.training_data.get("limb_twist", "rig")}
@@ -770,12 +787,10 @@ def evaluate_capacitive_command(
     model trained on that trial (then it is no held-out figure)."""
     import json
 
-    from service.inference.registry import load_model, version_key
+    from service.inference.registry import load_model
     from training.flex.capacitive import evaluate_capacitive
 
-    if model is None:
-        model = max(Path("onnx_models/flex_capacitive_knee").iterdir(), key=lambda p: version_key(p.name))
-    loaded = load_model(model, 2)
+    loaded = load_model(newest_shipped(model, "flex_capacitive_knee"), 2)
     out = evaluate_capacitive(loaded, resolve_data_dir(data_dir), test_trial, train_trial, source)
     typer.echo(json.dumps(out, indent=1))
 
