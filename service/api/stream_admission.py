@@ -3,14 +3,15 @@
 A stream's demand is counted in windows per second of the I2S models (a 60 Hz sensor: one window per 16-sample
 hop, 3.75 windows/s, whatever rate it is sent at, since it is resampled to 60 Hz). Pose and flex sessions run
 other models; their demand is converted to the same unit through their models' measured seconds per frame and
-the I2S seconds per window. Live pose and live flex sessions run in batches (``service.inference.session_batcher``),
-whose cost is a fixed part per batch plus a part per frame: the part per frame is what one more session adds,
-measured at start-up with batches of one and of many sessions (``SessionBatcher.probe``), as the I2S capacity is,
-on an idle machine. A pose model's is not updated from the batches under load: their times in the worker thread grow
-with the event loop's share of the interpreter (three to four times on two cores), while the I2S seconds per window
-they are compared with do not. A flex model's is refined under load (an EWMA of its batches' seconds beyond their
-fixed part, over their frames): with the probe's figure alone a burst of 50 suits all got in, at p99 96-187 ms
-(flex.md, Speed).
+the I2S streams' seconds per window (``MicroBatcher.stream_seconds_per_window``: CPU seconds in chunks of 2 windows,
+the unit the stream capacity is counted in). Live pose and live flex sessions run in batches
+(``service.inference.session_batcher``), whose cost is a fixed part per batch plus a part per frame: the part per
+frame is what one more session adds, measured at start-up with batches of one and of many sessions
+(``SessionBatcher.probe``), as the I2S capacity is, on an idle machine. A pose model's is not updated from the
+batches under load: their times in the worker thread grow with the event loop's share of the interpreter (three to
+four times on two cores), while the I2S CPU seconds per window they are compared with do not. A flex model's is
+refined under load (an EWMA of its batches' seconds beyond their fixed part, over their frames): with the probe's
+figure alone a burst of 50 suits all got in, at p99 96-187 ms (flex.md, Speed).
 
 A new stream is refused (close code 1013, "try again later") while the event loop is behind: when a timer that
 should fire every ``LAG_TICK_S`` fired more than ``latency_target_ms`` × ``LAG_SHARE`` late at the 90th percentile
@@ -97,7 +98,7 @@ class StreamAdmission:
 
     def model_demand(self, batcher: MicroBatcher, model: str, frames_per_s: float) -> float:
         """Windows/s equivalent of running ``model`` on ``frames_per_s`` (0 until the model has been measured)."""
-        spw = batcher.seconds_per_window
+        spw = batcher.stream_seconds_per_window
         cost = self.seconds_per_frame.get(model)
         return 0.0 if not spw or cost is None else frames_per_s * cost / spw
 

@@ -32,8 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# One chunk → (probabilities, alignments or None, worker-seconds it took in the workers' threads).
-RunChunk = Callable[[np.ndarray], Awaitable[tuple[np.ndarray, np.ndarray | None, float]]]
+# One chunk → (probabilities, alignments or None, worker-seconds it took in the workers' threads (wall), the CPU
+# seconds of those threads).
+RunChunk = Callable[[np.ndarray], Awaitable[tuple[np.ndarray, np.ndarray | None, float, float]]]
 EWMA_WEIGHT = 0.2  # of the newest chunk in the seconds-per-window estimates
 SMALL_CHUNK = 2  # windows: the chunk size that stands for live streams' (a few windows at a time)
 
@@ -101,6 +102,11 @@ class MicroBatcher:
         self.task: asyncio.Task | None = None
         self.seconds_per_window: float | None = None  # worker-seconds per window in full chunks (in their threads)
         self.seconds_per_small_window: float | None = None  # the same in chunks of SMALL_CHUNK windows
+        # CPU seconds per window in chunks of SMALL_CHUNK: what the stream admission reads. A burst of REST requests
+        # (their parsing holds the interpreter; their clients share the cores) stretches the chunks' wall time, not
+        # their CPU time; an estimate in wall time kept the streams that came after a burst at a fraction of what
+        # the workers hold (119 of 200 sensors admitted with the workers 31 % busy).
+        self.cpu_seconds_per_small_window: float | None = None
         self.capacity_fixed = False  # set by the operator (``set_capacity``): never refined by measurement
         self.reserved = 0  # windows of admitted requests whose bodies are still being read or parsed
         self.reserved_requests = 0
@@ -125,6 +131,7 @@ class MicroBatcher:
     def set_capacity(self, windows_per_s: float) -> None:
         """Fix the capacity: the chunks run from now on do not change it."""
         self.seconds_per_window = self.seconds_per_small_window = self.workers / windows_per_s
+        self.cpu_seconds_per_small_window = self.seconds_per_small_window
         self.capacity_fixed = True
 
     async def probe(self, make_chunk: Callable[[int], np.ndarray]) -> float:
@@ -135,19 +142,28 @@ class MicroBatcher:
             x = make_chunk(size)
             await asyncio.gather(*(self.run_chunk(x) for _ in range(self.workers)))
             runs = await asyncio.gather(*(self.run_chunk(x) for _ in range(2 * self.workers)))
-            per_window = max(sum(seconds for _, _, seconds in runs) / (2 * self.workers * size), 1e-7)
+            per_window = max(sum(run[2] for run in runs) / (2 * self.workers * size), 1e-7)
             if size == self.chunk:
                 self.seconds_per_window = per_window
             else:
                 self.seconds_per_small_window = per_window
+                self.cpu_seconds_per_small_window = max(sum(run[3] for run in runs) / (2 * self.workers * size), 1e-7)
         return self.workers / self.seconds_per_window
 
     @property
     def stream_capacity_windows_per_s(self) -> float | None:
         """Capacity for live streams: their windows come a few at a time, in small chunks, which cost more per
-        window than full ones (on the 2-core machine 9.9 against 8.4 ms for the served assignment model)."""
-        spw = max(self.seconds_per_small_window or 0.0, self.seconds_per_window or 0.0)
+        window than full ones (on the 2-core machine 9.9 against 8.4 ms for the served assignment model); in CPU
+        seconds, so that another load's contention does not count (the admission's ``fraction`` leaves room for it,
+        and its latency checks refuse when the admitted streams' answers slow down)."""
+        spw = self.cpu_seconds_per_small_window
         return None if not spw else self.workers / spw
+
+    @property
+    def stream_seconds_per_window(self) -> float | None:
+        """The cost of one stream window in the unit of ``stream_capacity_windows_per_s`` (CPU seconds): what a live
+        pose or flex session's seconds per frame are converted to windows by."""
+        return self.cpu_seconds_per_small_window
 
     def estimated_wait_s(self, extra_windows: int = 0, requests: int = 0, parsed: bool = False) -> float:
         """Seconds before a caller queued now (after ``extra_windows`` more) gets its first turn: the windows ahead of
@@ -253,7 +269,7 @@ class MicroBatcher:
     async def _run(self, parts: list[tuple[_Job, int, int]], size: int) -> None:
         imu = np.concatenate([job.imu[lo:hi] for job, lo, hi in parts])
         try:
-            probs, quats, seconds = await self.run_chunk(imu)
+            probs, quats, seconds, cpu_seconds = await self.run_chunk(imu)
         except Exception as exc:  # a model failure reaches every caller in the chunk
             for job, _, _ in parts:
                 if not job.future.done():
@@ -263,7 +279,7 @@ class MicroBatcher:
             self.in_flight_windows.remove(size)
             self.wake.set()
         if not self.capacity_fixed:
-            self._refine(size, seconds)
+            self._refine(size, seconds, cpu_seconds)
         if self.on_batch:
             self.on_batch(size, seconds)
         row = 0
@@ -272,12 +288,14 @@ class MicroBatcher:
                 job.store(lo, hi, probs[row : row + hi - lo], None if quats is None else quats[row : row + hi - lo])
             row += hi - lo
 
-    def _refine(self, size: int, seconds: float) -> None:
-        """Refine the measured cost per window from a chunk of ``size`` windows that took ``seconds``."""
+    def _refine(self, size: int, seconds: float, cpu_seconds: float) -> None:
+        """Refine the measured cost per window from a chunk of ``size`` windows that took ``seconds`` (wall) and
+        ``cpu_seconds`` in the workers' threads."""
         if size == self.chunk:
             self.seconds_per_window = _ewma(self.seconds_per_window, seconds / size)
         elif size == SMALL_CHUNK:
             self.seconds_per_small_window = _ewma(self.seconds_per_small_window, seconds / size)
+            self.cpu_seconds_per_small_window = _ewma(self.cpu_seconds_per_small_window, cpu_seconds / size)
             # A full chunk costs no more per window than a small one. Full chunks run only under heavy load, whose
             # contention inflates their wall time in the threads, and after it none may come to correct that: a
             # small chunk that costs less per window than the full-chunk estimate proves it stale. Without this, a

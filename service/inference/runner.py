@@ -42,15 +42,17 @@ class ModelRunner:
     async def run_chunk_async(self, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, float]:
         """One chunk through every I2S model, each model a task of the pool (a lone window runs its two models side
         by side), off the event loop: the scheduler's unit of work. Also the worker-seconds the models took in
-        their threads (not their wait for a thread)."""
+        their threads (not their wait for a thread) and those threads' CPU seconds (onnxruntime runs each model in
+        the calling thread: one intra-op thread)."""
         futures = {
             task: self.pool.submit(_timed, self.models[task].run, imu)
             for task in (ASSIGNMENT, ALIGNMENT)
             if task in self.models
         }
         out = {task: await asyncio.wrap_future(f) for task, f in futures.items()}
-        seconds = sum(t for _, t in out.values())
-        return out[ASSIGNMENT][0], out[ALIGNMENT][0] if ALIGNMENT in out else None, seconds
+        seconds = sum(t for _, t, _ in out.values())
+        cpu_seconds = sum(c for _, _, c in out.values())
+        return out[ASSIGNMENT][0], out[ALIGNMENT][0] if ALIGNMENT in out else None, seconds, cpu_seconds
 
     async def run_model(self, task: str, x: np.ndarray) -> np.ndarray:
         """One model (e.g. a pose model) on its input, in the same worker threads, without batching."""
@@ -62,14 +64,15 @@ class ModelRunner:
 
     async def run_call_timed(self, fn, *args):
         """``run_call`` and the seconds the call itself took in its worker thread (not its wait for one)."""
-        return await asyncio.wrap_future(self.pool.submit(_timed, fn, *args))
+        result, seconds, _ = await asyncio.wrap_future(self.pool.submit(_timed, fn, *args))
+        return result, seconds
 
     def close(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _timed(fn, *args):  # type: ignore[no-untyped-def]
-    """``fn(*args)`` and the seconds it took, measured in the thread that runs it."""
-    start = time.perf_counter()
+    """``fn(*args)``, the seconds it took and the CPU seconds of the thread that runs it meanwhile."""
+    start, cpu = time.perf_counter(), time.thread_time()
     result = fn(*args)
-    return result, time.perf_counter() - start
+    return result, time.perf_counter() - start, time.thread_time() - cpu

@@ -14,14 +14,15 @@ from service.inference.batcher import MicroBatcher, Overloaded
 class _Recorder:
     """A stand-in for one worker's chunk run that records the chunks it gets (as the callers' ids)."""
 
-    def __init__(self, seconds: float = 0.0) -> None:
+    def __init__(self, seconds: float = 0.0, cpu_seconds: float | None = None) -> None:
         self.chunks: list[list[int]] = []
         self.seconds = seconds
+        self.cpu_seconds = seconds if cpu_seconds is None else cpu_seconds
 
-    async def __call__(self, imu: np.ndarray) -> tuple[np.ndarray, None, float]:
+    async def __call__(self, imu: np.ndarray) -> tuple[np.ndarray, None, float, float]:
         self.chunks.append(imu[:, 0, 0].astype(int).tolist())
         await asyncio.sleep(self.seconds)
-        return imu[:, 0, :1].copy(), None, self.seconds
+        return imu[:, 0, :1].copy(), None, self.seconds, self.cpu_seconds
 
 
 def _windows(k: int, n: int = 1) -> np.ndarray:
@@ -142,12 +143,12 @@ def test_small_chunks_bring_down_a_full_chunk_cost_measured_under_contention() -
         rec = _Recorder(0.004)  # 2 ms per window in chunks of 2
         batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0, spare=0)
         batcher.seconds_per_window = batcher.seconds_per_small_window = 0.004  # what the burst left: 4 ms per window
-        before = batcher.stream_capacity_windows_per_s
+        before = batcher.capacity_windows_per_s
         batcher.start()
         for k in range(30):
             await batcher.infer(_windows(k, 2), 0.0)
         await batcher.stop()
-        return before, batcher.stream_capacity_windows_per_s
+        return before, batcher.capacity_windows_per_s
 
     before, after = asyncio.run(main())
     assert before == pytest.approx(250.0)
@@ -167,3 +168,22 @@ def test_a_capacity_set_by_the_operator_is_kept_whatever_the_chunks_cost() -> No
         return batcher.capacity_windows_per_s, batcher.stream_capacity_windows_per_s
 
     assert asyncio.run(main()) == (pytest.approx(100.0), pytest.approx(100.0))
+
+
+def test_the_stream_capacity_counts_the_workers_cpu_not_the_wall_time_a_burst_stretched() -> None:
+    """Under another load's contention a chunk's wall time grows while its CPU time does not: the REST estimate
+    (wall) sees the contention, the stream admission's capacity (CPU seconds of small chunks) does not keep it."""
+
+    async def main() -> tuple[float | None, float | None]:
+        rec = _Recorder(0.004, cpu_seconds=0.001)  # chunks of 2: 2 ms per window by the clock, 0.5 ms of CPU
+        batcher = MicroBatcher(rec, workers=1, chunk=8, max_wait_ms=0.0, spare=0)
+        await batcher.probe(lambda n: _windows(0, n))
+        batcher.start()
+        for k in range(10):
+            await batcher.infer(_windows(k, 2), 0.0)
+        await batcher.stop()
+        return batcher.workers / batcher.seconds_per_small_window, batcher.stream_capacity_windows_per_s
+
+    by_the_clock, streams = asyncio.run(main())
+    assert by_the_clock == pytest.approx(500.0, rel=0.01)  # what a wall-time estimate would admit: 1 worker / 2 ms
+    assert streams == pytest.approx(2000.0, rel=0.01)  # 1 worker / 0.5 ms of CPU
