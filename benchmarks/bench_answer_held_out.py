@@ -33,7 +33,7 @@ from service.core.assignment import ConfidenceModel
 from service.core.manifest import read_manifest, write_manifest
 from service.core.recordings import RealRecording, read_all_real
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
-from service.inference.registry import version_key
+from service.inference.registry import newest_version_dir
 from training.data.catalog import resolve_data_dir
 from training.i2s.calibration import (
     HeldOut,
@@ -63,8 +63,10 @@ def fold_runs(summary_run_id: str) -> dict[str, str]:
 
 def served_alignment() -> Path:
     """The newest shipped alignment (what the service loads by default)."""
-    versions = [p for p in (REPO / "onnx_models" / "i2s_alignment").iterdir() if (p / "manifest.json").is_file()]
-    return max(versions, key=lambda p: version_key(p.name))
+    newest = newest_version_dir(REPO / "onnx_models", "i2s_alignment")
+    if newest is None:
+        raise SystemExit("no shipped i2s_alignment under onnx_models/")
+    return newest
 
 
 def fold_services(

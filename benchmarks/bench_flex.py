@@ -25,14 +25,17 @@ import websockets
 from benchmarks.servers import REPO, start_service, stop
 from service.api.protocol import encode_binary
 from service.core.manifest import read_manifest
-from service.inference.registry import version_key
+from service.inference.registry import newest_version_dir
 
 RESULTS = REPO / "benchmarks" / "results"
 
 
 def _served(name: str) -> str:
     """The version the service serves by default: the newest under onnx_models/<name>."""
-    return max((REPO / "onnx_models" / name).iterdir(), key=lambda d: version_key(d.name)).name
+    newest = newest_version_dir(REPO / "onnx_models", name)
+    if newest is None:
+        raise SystemExit(f"no shipped {name} under onnx_models/")
+    return newest.name
 
 
 MODELS = {name: _served(name) for name in ("flex_bilstm_cm", "flex_capacitive_knee")}

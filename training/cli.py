@@ -499,12 +499,12 @@ def newest_shipped(model: Path | None, name: str, models_dir: Path = Path("onnx_
     """``model`` if given, else the newest version shipped of ``name`` under ``models_dir``."""
     if model is not None:
         return model
-    from service.inference.registry import version_key
+    from service.inference.registry import newest_version_dir
 
-    versions = [p for p in (models_dir / name).glob("*") if (p / "manifest.json").is_file()]
-    if not versions:
+    newest = newest_version_dir(models_dir, name)
+    if newest is None:
         raise typer.BadParameter(f"no shipped version of {name} under {models_dir}; pass --model")
-    return max(versions, key=lambda p: version_key(p.name))
+    return newest
 
 
 @app.command("pose-real-check")

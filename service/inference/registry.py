@@ -73,6 +73,12 @@ def version_key(version: str) -> tuple[int, ...]:
     return tuple(int(part) for part in re.findall(r"\d+", version))
 
 
+def newest_version_dir(root: Path, name: str) -> Path | None:
+    """The newest ``root/<name>/<version>/`` holding a manifest (what ``load_models`` serves unpinned), or None."""
+    versions = [p.parent for p in (root / name).glob("*/manifest.json")]
+    return max(versions, key=lambda p: version_key(p.name)) if versions else None
+
+
 @dataclass(frozen=True)
 class Refusal:
     """A model version under the models directory that is not served, and why."""

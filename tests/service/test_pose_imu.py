@@ -26,7 +26,7 @@ from service.core.recordings import MOVINGREALITY_SEGMENTS, read_movingreality_t
 from service.core.resample import resample_pose_rows
 from service.core.rotations import matrix_from_quat, quat_from_matrix
 from service.inference.pose import PoseModel
-from service.inference.registry import load_models, version_key
+from service.inference.registry import load_models, newest_version_dir
 from service.settings import Settings
 from training.pose.config import SIX_SENSORS
 from training.pose.data import load_motion
@@ -155,8 +155,7 @@ def test_sensors_at_the_placement_search_s_six_positions_are_posed_by_its_model(
     """`pose_mrmr6` (Zheng et al. 2021 §6's placement) answers a request whose six sensors sit where it wants them,
     and only such a request: the default six still get `pose_full6`."""
     motion = walk[0]
-    served = max((MODELS / "pose_mrmr6").glob("*/manifest.json"), key=lambda p: version_key(p.parent.name))
-    sensors = list(read_manifest(served).pose.sensors)
+    sensors = list(read_manifest(newest_version_dir(MODELS, "pose_mrmr6") / "manifest.json").pose.sensors)
     assert sensors != SIX_SENSORS and sensors[0] == "Pelvis"
     raw = simulate_sensors(motion, sensors, np.random.default_rng(8))
     body = {
