@@ -47,12 +47,11 @@ from service.api.protocol import encode_binary
 from service.client_display import LiveView, PlainNotices, log_summary
 from service.core.csv_columns import PRESETS, ColumnError, CsvLayout, parse_columns, read_mapped_csv
 from service.core.recordings import read_csv_imu, read_recording
-from service.core.units import ACC_UNITS, GYR_UNITS, to_contract_units, unit_warnings
+from service.core.units import ACC_UNITS, GYR_UNITS, to_contract_units, unit_warnings_over
 
 log = logging.getLogger(__name__)
 
 DEFAULT_RATE_HZ, DEFAULT_ACC_UNIT, DEFAULT_GYR_UNIT = 60.0, "m/s^2", "rad/s"
-UNIT_CHECK_S = 2.0  # the readings' units are checked over windows this long (service.core.units.unit_warnings)
 
 
 @dataclass(frozen=True)
@@ -219,13 +218,10 @@ def read_csv_sensor(
 
 
 def check_units(sensor: ClientSensor) -> list[str]:
-    """``unit_warnings`` over the sensor's readings cut into 2 s windows: what a mistaken unit or column
-    mapping looks like (gravity far from 9.81 m/s², a gyroscope faster than a human segment turns)."""
-    n = int(UNIT_CHECK_S * sensor.sample_rate_hz)
-    if n < 1 or len(sensor.samples) < n:
-        return []
-    windows = sensor.samples[: len(sensor.samples) // n * n].reshape(-1, n, 6)
-    return unit_warnings(to_contract_units(windows, sensor.acc_unit, sensor.gyr_unit), sensor.acc_unit, sensor.gyr_unit)
+    """``unit_warnings_over`` the sensor's readings: what a mistaken unit or column mapping looks like (gravity far
+    from 9.81 m/s², a gyroscope faster than a human segment turns)."""
+    readings = to_contract_units(sensor.samples, sensor.acc_unit, sensor.gyr_unit)
+    return unit_warnings_over(readings, sensor.sample_rate_hz, sensor.acc_unit, sensor.gyr_unit)
 
 
 def _with_candidates(

@@ -19,7 +19,7 @@ from service.core.calibration import (
 )
 from service.core.resample import resample_quats, resample_uniform
 from service.core.rotations import canonical_quat
-from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS
+from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS, unit_warnings_over
 from service.inference.pose import (
     MAX_POSE_FRAMES,
     MAX_POSE_IMU_RATE_HZ,
@@ -187,7 +187,20 @@ def calibrate(body: PoseImuRequest, model: PoseModel, r: Readings) -> np.ndarray
         raise InputError(f"calibration: {exc}") from None
 
 
-def pose_response(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None) -> PoseImuResponse:
+def unit_check(body: PoseImuRequest, r: Readings) -> list[str]:
+    """Each sensor's readings against its declared units (``service.core.units.unit_warnings_over``), as the I2S
+    routes and the streams check theirs; the acceleration is what the sensor measured, in its own frame."""
+    out = []
+    for k, sensor_id in enumerate(r.sensor_ids):
+        gyr = np.zeros_like(r.acc_mps2[:, k]) if r.gyr_rads is None else r.gyr_rads[:, k]
+        readings = np.concatenate([r.acc_mps2[:, k], gyr], axis=-1)
+        out += [f"{sensor_id}: {text}" for text in unit_warnings_over(readings, 60.0, body.acc_unit, body.gyr_unit)]
+    return out
+
+
+def pose_response(
+    model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None, warnings: list[str]
+) -> PoseImuResponse:
     R_w_seg, a_w = segment_readings(r.q_world_sensor, r.acc_mps2, q_seg_sensor)
     R_out = model.predict(pose_features(R_w_seg, a_w))
     R_world = whole_body(R_w_seg, R_out, model.sensor_index, model.output_index)
@@ -212,6 +225,7 @@ def pose_response(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, heigh
             )
             for k, s in enumerate(BODY_SEGMENTS)
         },
+        warnings=warnings,
     )
 
 
@@ -243,5 +257,8 @@ async def pose_from_imu(body: PoseImuRequest, request: Request, settings: Settin
     model = choose_model(pose_models(request), [s.segment for s in body.sensors], body.model, streaming=False)
     readings = read_sensors(body, model)
     q_seg_sensor = calibrate(body, model, readings)
-    answer = await request.app.state.runner.run_call(pose_response, model, readings, q_seg_sensor, body.body_height_m)
+    warnings = unit_check(body, readings)
+    answer = await request.app.state.runner.run_call(
+        pose_response, model, readings, q_seg_sensor, body.body_height_m, warnings
+    )
     return Response(answer.model_dump_json(), media_type="application/json")

@@ -520,6 +520,11 @@ class PoseImuResponse(BaseModel):
     body_height_m: float
     q_segment_sensor: dict[str, list[float]] = Field(description="the calibration used, per sensor_id")
     segments: dict[str, SegmentTrack]
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="a sensor whose readings look implausible for the declared units (over 2 s windows: gravity far "
+        "from 9.81 m/s², a gyroscope faster than a human segment turns): the pose is given, but check the units",
+    )
 
 
 class FieldError(BaseModel):

@@ -47,7 +47,7 @@ from service.core.pose_stream import AlignResult, FrameAligner, StreamLagError
 from service.core.rotations import canonical_quat
 from service.core.segments import SEGMENTS, segment_indices, segment_names
 from service.core.stream import SensorStream
-from service.core.units import ACC_UNITS, GYR_UNITS, unit_warnings
+from service.core.units import ACC_UNITS, GYR_UNITS, UNIT_CHECK_SECONDS, unit_warnings
 from service.inference.pose import LivePose, PoseModel, general_first
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
 
@@ -55,7 +55,6 @@ log = logging.getLogger(__name__)
 
 # A sensor's units are checked over its first windows (about 3 s of readings), as the REST routes check a request's.
 UNIT_CHECK_WINDOWS = 4
-UNIT_CHECK_SECONDS = 2.0  # a pose session's, as long as an I2S window
 
 router = APIRouter()
 

@@ -27,6 +27,7 @@ def to_contract_units(imu: np.ndarray, acc_unit: str, gyr_unit: str) -> np.ndarr
 # Plausibility of readings already converted to contract units (DESIGN.md §2): what a mistaken unit looks like.
 GRAVITY_PLAUSIBLE_MPS2 = (6.0, 14.0)  # |mean specific force| over a 2 s window of human motion: gravity
 MAX_HUMAN_GYR_RADS = 35.0  # 2000 deg/s, the full scale of common IMUs; human segments stay below it
+UNIT_CHECK_SECONDS = 2.0  # readings are judged over windows this long: long enough for the mean to read gravity
 
 
 def unit_warnings(imu: np.ndarray, acc_unit: str, gyr_unit: str) -> list[str]:
@@ -53,3 +54,12 @@ def unit_warnings(imu: np.ndarray, acc_unit: str, gyr_unit: str) -> list[str]:
             f"human segment turns (about {MAX_HUMAN_GYR_RADS:g} rad/s): are the values in 'deg/s'?"
         )
     return warnings
+
+
+def unit_warnings_over(readings: np.ndarray, sample_rate_hz: float, acc_unit: str, gyr_unit: str) -> list[str]:
+    """``unit_warnings`` over one sensor's readings ``(T, 6)`` in contract units, cut into ``UNIT_CHECK_SECONDS``
+    windows; none for fewer readings than one window (too short for the mean to read gravity)."""
+    n = int(UNIT_CHECK_SECONDS * sample_rate_hz)
+    if n < 1 or len(readings) < n:
+        return []
+    return unit_warnings(readings[: len(readings) // n * n].reshape(-1, n, readings.shape[-1]), acc_unit, gyr_unit)

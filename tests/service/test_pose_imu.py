@@ -432,6 +432,28 @@ def test_a_pose_sensor_whose_readings_do_not_fit_its_declared_units_gets_one_war
     assert sum(p["frames"] for p in before) >= 120 - 5 - 8  # checked on the first 2 s, not before
 
 
+def test_rest_pose_warns_of_a_sensor_whose_readings_do_not_fit_its_declared_units(client: TestClient, walk) -> None:
+    """As the stream: the left forearm's accelerometer in g declared as m/s², the right shank's gyroscope in deg/s
+    declared as rad/s; each named once in `warnings`, the others not, and the pose is still answered. A request
+    shorter than one 2 s window is not judged."""
+    motion, raw = walk
+    assert motion.n_frames >= 120  # one 2 s window at least
+    body = _body(raw, SIX_SENSORS, frames=slice(0, 240))
+    assert client.post("/v1/pose/imu", json=body).json()["warnings"] == []
+    arm, shank = SIX_SENSORS.index("LeftForeArm"), SIX_SENSORS.index("RightLowerLeg")
+    body["sensors"][arm]["acc"] = (np.array(body["sensors"][arm]["acc"]) / 9.80665).tolist()
+    body["sensors"][shank]["gyr"] = np.degrees(body["sensors"][shank]["gyr"]).tolist()
+    r = client.post("/v1/pose/imu", json=body)
+    assert r.status_code == 200, r.text
+    warnings = r.json()["warnings"]
+    assert len(warnings) == 2 and r.json()["frames"] == min(240, motion.n_frames)
+    assert warnings[0].startswith("leftforearm: acc_unit:") and "'g'" in warnings[0]
+    assert warnings[1].startswith("rightlowerleg: gyr_unit:") and "'deg/s'" in warnings[1]
+    short = _body(raw, SIX_SENSORS, frames=slice(0, 100))
+    short["sensors"][arm]["acc"] = (np.array(short["sensors"][arm]["acc"]) / 9.80665).tolist()
+    assert client.post("/v1/pose/imu", json=short).json()["warnings"] == []
+
+
 def test_a_bad_frame_packet_closes_naming_its_sensor_after_the_earlier_answers(server: str, walk) -> None:
     motion, raw = walk
     rows = np.stack([_rows(raw, k)[:64] for k in range(len(SIX_SENSORS))], axis=1)
