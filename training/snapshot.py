@@ -100,7 +100,7 @@ def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
             "versions": [
                 {
                     "version": original[str(v.version)],
-                    "run_id": origin.get(v.run_id, v.run_id),
+                    "run_id": origin.get(v.run_id) or _original_run_id(client, v.run_id),
                     "tags": {k: t for k, t in v.tags.items() if k not in DERIVED_VERSION_TAGS},
                 }
                 for v in versions
@@ -114,13 +114,28 @@ def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
     return len(records)
 
 
+def _original_run_id(client: MlflowClient, run_id: str) -> str:
+    """The snapshot's id of a run that this export does not write (another experiment's)."""
+    try:
+        return client.get_run(run_id).data.tags.get(RESTORED_TAG, run_id)
+    except MlflowException:  # a version whose run was deleted
+        return run_id
+
+
 def _keep_unrestored_versions(previous: dict, registry: dict, run_ids: set[str]) -> None:
     """Carry over the versions of the snapshot being replaced that a restore leaves out (their model file does not
     ship, ``RestoreReport.versions_without_model``) while their runs are still exported, with their aliases: so
     exporting a restored store does not drop them from the snapshot."""
     for name, old in previous.items():
         new = registry.setdefault(name, {"aliases": {}, "versions": []})
-        present = {v["version"] for v in new["versions"]}
+        present = {v["version"]: v["run_id"] for v in new["versions"]}
+        for v in old["versions"]:
+            if present.get(v["version"], v["run_id"]) != v["run_id"]:
+                raise ValueError(
+                    f"{name} v{v['version']}: the snapshot gives this number to run {v['run_id']}, the store to run "
+                    f"{present[v['version']]}; tag the store's version with the snapshot's next number "
+                    "(training.tracking.number_as_in_snapshot) and export again"
+                )
         kept = [v for v in old["versions"] if v["version"] not in present and v["run_id"] in run_ids]
         new["versions"] = sorted(new["versions"] + kept, key=lambda v: int(v["version"]))
         kept_versions = {v["version"] for v in kept}
@@ -305,21 +320,6 @@ def _restore_registered_model(
     for alias, original in entry["aliases"].items():
         if original in new_version:
             client.set_registered_model_alias(name, alias, new_version[original])
-
-
-def number_as_in_snapshot(client: MlflowClient, name: str, version: str) -> None:
-    """Give a version just registered in a restored store the snapshot's next number (``original_version``).
-
-    A restore leaves out the versions whose model file does not ship, so the store numbers its versions 1, 2, …
-    while the snapshot keeps the original numbers (1, 3, 4, …). Without the tag a new store version 5 would be
-    exported as version 5, which the snapshot may already hold, and a later restore would point aliases at the
-    wrong model.
-    """
-    versions = client.search_model_versions(f"name='{name}'")
-    if not any("original_version" in v.tags for v in versions):
-        return  # not a restored store: its numbers are the snapshot's
-    taken = [int(v.tags.get("original_version", v.version)) for v in versions if str(v.version) != str(version)]
-    client.set_model_version_tag(name, version, "original_version", str(max(taken) + 1))
 
 
 def log_restore(report: RestoreReport) -> None:

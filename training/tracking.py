@@ -116,3 +116,26 @@ def _score_tag(value: float) -> str:
     """A score as tagged on a version. A tie must stay a tie: 0.99995536 is not a win over a champion tagged
     0.999955 with the same score."""
     return f"{value:.6f}"
+
+
+def register_model(model_uri: str, name: str):
+    """``mlflow.register_model``, numbered as the tracking snapshot numbers (``number_as_in_snapshot``): every task
+    registers through this."""
+    version = mlflow.register_model(model_uri, name)
+    number_as_in_snapshot(MlflowClient(), name, str(version.version))
+    return version
+
+
+def number_as_in_snapshot(client: MlflowClient, name: str, version: str) -> None:
+    """Give a version just registered in a restored store the snapshot's next number (``original_version``).
+
+    A restore leaves out the versions whose model file does not ship, so the store numbers its versions 1, 2, …
+    while the snapshot keeps the original numbers (1, 3, 4, …). Without the tag a new store version 5 would be
+    exported as version 5, which the snapshot may already hold, and a later restore would point aliases at the
+    wrong model.
+    """
+    versions = client.search_model_versions(f"name='{name}'")
+    if not any("original_version" in v.tags for v in versions):
+        return  # not a restored store: its numbers are the snapshot's
+    taken = [int(v.tags.get("original_version", v.version)) for v in versions if str(v.version) != str(version)]
+    client.set_model_version_tag(name, version, "original_version", str(max(taken) + 1))

@@ -56,7 +56,7 @@ from training.plots import flex_learning_curve_png, traces_png
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.snapshot import local_run_id
-from training.tracking import log_onnx_model, maybe_promote, setup_tracking
+from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
 
 log = logging.getLogger(__name__)
 
@@ -291,7 +291,7 @@ def run_capacitive_experiment(
         )
         proto = onnx.load(str(onnx_path))
         info = log_onnx_model(proto, golden, manifest, input_key="counts")
-        registered = mlflow.register_model(info.model_uri, cfg.registered_model)
+        registered = register_model(info.model_uri, cfg.registered_model)
         digest = f"{cfg.source}|{'+'.join(cfg.training_trials)}|val{cfg.val_share}|{cfg.rate_hz}"
         maybe_promote(cfg.registered_model, registered.version, "val_mae_deg", val["mae_deg"], False, digest)
         manifest = with_registry(manifest, info, registered)

@@ -33,7 +33,7 @@ from training.plots import bars_png, curves_png, flex_learning_curve_png, traces
 from training.pose.data import build_motions, dataset_digest, held_out_split, mirrored
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
-from training.tracking import log_onnx_model, maybe_promote, setup_tracking
+from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
 
 log = logging.getLogger(__name__)
 
@@ -310,7 +310,7 @@ def run_flex_experiment(
         proto = onnx.load(str(onnx_path))
         info = log_onnx_model(proto, golden, manifest, input_key="counts")
         mlflow.set_tag("model_uri", info.model_uri)
-        registered = mlflow.register_model(info.model_uri, cfg.registered_model)
+        registered = register_model(info.model_uri, cfg.registered_model)
         promoted = maybe_promote(
             cfg.registered_model, registered.version, SELECTION_METRIC, val["mae_deg"], False, data.digest_val
         )

@@ -30,8 +30,7 @@ from training.i2s.train import TrainResult, build_model, load_fitted, train
 from training.i2s.warmstart import check_real_recordings_declared, ensemble_state, warm_start_from_shipped
 from training.plots import confusion_matrix_png, error_boxplot_png, held_out_bars_png, learning_curves_png
 from training.run_labels import SHIPPED_TAG, label_run, label_version
-from training.snapshot import number_as_in_snapshot
-from training.tracking import log_onnx_model, maybe_promote, setup_tracking
+from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
 
 log = logging.getLogger(__name__)
 
@@ -346,8 +345,7 @@ def register_run(run_id: str, name: str, task: str) -> tuple[str, bool]:
     """Register a run's model; move ``champion`` if it beats the champion on the same evaluation."""
     client = MlflowClient()
     run = client.get_run(run_id)
-    version = mlflow.register_model(run.data.tags.get("model_uri", f"runs:/{run_id}/model"), name).version
-    number_as_in_snapshot(client, name, str(version))
+    version = register_model(run.data.tags.get("model_uri", f"runs:/{run_id}/model"), name).version
     # a run registered after it shipped: its version says which shipped files it is, as one registered before does
     label_version(client, name, str(version), [v for v in run.data.tags.get(SHIPPED_TAG, "").split(", ") if v])
     metric, higher = PRIMARY_METRIC[task]

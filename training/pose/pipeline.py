@@ -57,7 +57,7 @@ from training.pose.simulate import Session
 from training.pose.train import PoseTrainResult, fixed_sessions, torch_predictor, train_pose
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
-from training.tracking import log_onnx_model, maybe_promote, setup_tracking
+from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
 
 log = logging.getLogger(__name__)
 
@@ -313,7 +313,7 @@ def run_pose_experiment(
         proto = onnx.load(str(onnx_path))
         info = log_onnx_model(proto, golden, manifest, input_key="features")
         mlflow.set_tag("model_uri", info.model_uri)
-        registered = mlflow.register_model(info.model_uri, cfg.registered_model)
+        registered = register_model(info.model_uri, cfg.registered_model)
         val_value = flat_metrics(val_summary, "val")["val_angle_unsensed_deg"]
         promoted = maybe_promote(
             cfg.registered_model, registered.version, SELECTION_METRIC, val_value, False, dataset_digest(data.val)
