@@ -144,15 +144,94 @@ def test_hadolint_passes_every_dockerfile() -> None:
     assert done.returncode == 0 and not done.stdout.strip(), done.stdout + done.stderr
 
 
-def test_nginx_accepts_the_proxy_config(tmp_path: Path) -> None:
+def _nginx() -> str:
     nginx = shutil.which("nginx") or next((p for p in ("/usr/sbin/nginx",) if Path(p).exists()), None)
     if nginx is None:
         pytest.skip("nginx is not installed")
-    # `service` resolves only inside the compose network; a loopback address stands in for it (and for
-    # `resolve`, which nginx older than 1.27.3 does not know).
-    conf = (DOCKER / "nginx.conf").read_text().replace("server service:8000 resolve;", "server 127.0.0.1:8000;")
-    (tmp_path / "nginx.conf").write_text(conf)
+    return nginx
+
+
+def _proxy_conf(service: str = "127.0.0.1:8000") -> str:
+    """docker/nginx.conf with ``service`` for the replicas: `service` resolves only inside the compose network
+    (and `resolve` is unknown to nginx older than 1.27.3)."""
+    return (DOCKER / "nginx.conf").read_text().replace("server service:8000 resolve;", f"server {service};")
+
+
+def test_nginx_accepts_the_proxy_config(tmp_path: Path) -> None:
+    nginx = _nginx()
+    (tmp_path / "nginx.conf").write_text(_proxy_conf())
     pid = tmp_path / "nginx.pid"
     cmd = [nginx, "-t", "-e", "stderr", "-p", str(tmp_path), "-c", str(tmp_path / "nginx.conf"), "-g", f"pid {pid};"]
     done = subprocess.run(cmd, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
+
+
+@pytest.fixture(scope="module")
+def proxied(tmp_path_factory):
+    """A real nginx with the shipped proxy configuration in front of a real service (one replica)."""
+    from benchmarks.servers import free_port, start_process, start_service, stop
+
+    nginx = _nginx()
+    service, base = start_service(REPO / "onnx_models", threads=1)
+    tmp = tmp_path_factory.mktemp("proxy")
+    port = free_port()
+    conf = _proxy_conf(base.removeprefix("http://")).replace("listen 8080;", f"listen 127.0.0.1:{port};")
+    (tmp / "nginx.conf").write_text(conf.replace("http {", "http {\n    access_log off;", 1))
+    try:
+        proxy, url = start_process(
+            [nginx, "-p", str(tmp), "-c", str(tmp / "nginx.conf"), "-g", f"daemon off; pid {tmp / 'nginx.pid'};"],
+            "/ready",
+            port,
+            timeout_s=20,
+        )
+    except Exception:
+        stop(service)
+        raise
+    yield url
+    stop(proxy)
+    stop(service)
+
+
+def test_the_proxy_refuses_a_client_beyond_its_request_rate_before_the_service(proxied: str) -> None:
+    """300 REST requests at once from one address: the burst of 100 (and what the rate adds meanwhile) reaches the
+    service, the rest gets 429 with the service's error format and a Retry-After; the pages and health are not
+    limited, and a second later the client is served again."""
+    import asyncio
+    import time
+
+    import httpx
+
+    async def burst() -> list[httpx.Response]:
+        async with httpx.AsyncClient(base_url=proxied, limits=httpx.Limits(max_connections=300)) as client:
+            return await asyncio.gather(*(client.get("/v1/models") for _ in range(300)))
+
+    answers = asyncio.run(burst())
+    codes = [r.status_code for r in answers]
+    print(f"of 300 at once: {codes.count(200)} served, {codes.count(429)} refused")
+    assert set(codes) == {200, 429} and 100 <= codes.count(200) < 200, codes
+    refused = next(r for r in answers if r.status_code == 429)
+    assert refused.headers["retry-after"] == "1" and "at most 20 per second" in refused.json()["detail"]
+    assert httpx.get(f"{proxied}/ready").status_code == 200  # health is not limited
+    time.sleep(1.0)
+    assert httpx.get(f"{proxied}/v1/models").status_code == 200
+
+
+def test_the_proxy_refuses_a_client_s_33rd_open_stream(proxied: str) -> None:
+    """32 WebSockets open at once from one address reach the service; the 33rd is refused at the upgrade with 429."""
+    import asyncio
+
+    import websockets
+
+    async def streams() -> str:
+        url = proxied.replace("http", "ws") + "/v1/stream"
+        opened = [await websockets.connect(url) for _ in range(32)]
+        try:
+            with pytest.raises(websockets.InvalidStatus) as refused:
+                await websockets.connect(url)
+            return f"{refused.value.response.status_code} {refused.value.response.body.decode()}"
+        finally:
+            for ws in opened:
+                await ws.close()
+
+    answer = asyncio.run(streams())
+    assert answer.startswith("429 ") and "at most 32 open at once" in answer
