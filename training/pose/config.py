@@ -112,3 +112,15 @@ class PoseConfig(Strict):
 
 def load_pose_config(path: str | Path, overrides: list[str] | None = None) -> PoseConfig:
     return PoseConfig.model_validate(read_yaml(path, overrides))
+
+
+def is_streaming(cfg: PoseConfig) -> bool:
+    """Served as a live stream (the unidirectional LSTM with its look-ahead); every other kind is served offline,
+    in chunks (``served_chunks``)."""
+    return cfg.model.kind == "lstm"
+
+
+def served_chunks(cfg: PoseConfig) -> tuple[int, int] | None:
+    """(window, context) frames of the chunks an offline model is served in (its manifest's ``window_frames`` and
+    ``context_frames``; ``service.inference.pose.run_chunked``); None for a streaming model."""
+    return None if is_streaming(cfg) else (cfg.train.sequence_frames, cfg.train.context_frames)

@@ -15,17 +15,13 @@ from service.core.body import Body
 from service.core.calibration import ACC_SCALE_MPS2, FEATURE_VERSION, features_per_frame
 from service.core.manifest import Evaluation, Manifest, PoseSpec, TensorSpec, read_manifest, sha256_file, write_manifest
 from training.data.catalog import BANDAI_LICENCE
-from training.pose.config import PoseConfig
+from training.pose.config import PoseConfig, is_streaming
 from training.pose.data import MODEL_RATE_HZ
 from training.pose.models import PoseNet, StreamingExport
 
 OPSET = 17
 PARITY_ATOL = 1e-4
 TASK = "imu_pose"
-
-
-def is_streaming(cfg: PoseConfig) -> bool:
-    return cfg.model.kind == "lstm"
 
 
 def export_pose_onnx(net: PoseNet, cfg: PoseConfig, path: Path) -> Path:

@@ -33,7 +33,7 @@ from training.plots import (
     pose_segment_errors_png,
     skeleton_snapshots_png,
 )
-from training.pose.config import PoseConfig
+from training.pose.config import PoseConfig, is_streaming, served_chunks
 from training.pose.data import (
     MODEL_RATE_HZ,
     MotionClip,
@@ -50,7 +50,7 @@ from training.pose.evaluate import (
     per_segment_mean,
     summarise,
 )
-from training.pose.export import build_pose_manifest, export_pose_onnx, golden_pair, is_streaming, onnx_parity
+from training.pose.export import build_pose_manifest, export_pose_onnx, golden_pair, onnx_parity
 from training.pose.placement import CANDIDATES, search_placement
 from training.pose.selection import Selection, select, selected_clips
 from training.pose.simulate import Session
@@ -229,7 +229,7 @@ def run_pose_experiment(
         mlflow.log_artifact(str(tmp / "model_state.pt"), "checkpoint")
         mlflow.log_artifact(str(pose_learning_curve_png(result.history, tmp / "learning_curve.png", cfg.name)), "plots")
 
-        predict = torch_predictor(net)
+        predict = torch_predictor(net, served_chunks(cfg))  # as the service runs it
         val_summary = summarise(evaluate_clips(predict, data.val, val_sessions, cfg.sensors, cfg.outputs))
         mlflow.log_metrics(flat_metrics(val_summary, "val"))
         test_results = evaluate_clips(predict, data.test, test_sessions, cfg.sensors, cfg.outputs)

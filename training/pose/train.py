@@ -21,8 +21,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from service.inference.pose import run_chunked
 from training.data.catalog import is_bandai_namco
-from training.pose.config import PoseConfig
+from training.pose.config import PoseConfig, served_chunks
 from training.pose.data import MotionClip, mirrored
 from training.pose.models import PoseNet
 from training.pose.simulate import SensorNoise, Session, simulate_session
@@ -93,8 +94,10 @@ def geodesic_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
 
 
-def torch_predictor(net: PoseNet) -> Callable[[np.ndarray], np.ndarray]:
-    """features (T, F) → R_root_segment (T, S, 3, 3), the pose of each frame (look-ahead undone as in serving)."""
+def torch_predictor(net: PoseNet, chunks: tuple[int, int] | None = None) -> Callable[[np.ndarray], np.ndarray]:
+    """features (T, F) → R_root_segment (T, S, 3, 3), the pose of each frame (look-ahead undone as in serving);
+    ``chunks`` (window, context): an offline model run chunk by chunk as the service runs it
+    (``training.pose.config.served_chunks``), so that the figures of a run are the served model's."""
 
     def predict(features: np.ndarray) -> np.ndarray:
         L = net.look_ahead
@@ -102,12 +105,14 @@ def torch_predictor(net: PoseNet) -> Callable[[np.ndarray], np.ndarray]:
         with torch.no_grad():
             return net(torch.from_numpy(x[None].astype(np.float32)))[0, L:].numpy()
 
-    return predict
+    if chunks is None:
+        return predict
+    return lambda features: run_chunked(predict, features, *chunks)
 
 
-def validation_angle(net: PoseNet, sessions: list[Session]) -> float:
+def validation_angle(net: PoseNet, sessions: list[Session], chunks: tuple[int, int] | None = None) -> float:
     net.eval()
-    predict = torch_predictor(net)
+    predict = torch_predictor(net, chunks)
     errs, n = 0.0, 0
     for s in sessions:
         e = geodesic_deg(predict(s.features), s.targets)
@@ -184,7 +189,7 @@ def train_pose(
         lr = opt.param_groups[0]["lr"]
         if sched:
             sched.step()
-        val = validation_angle(net, val_sessions)
+        val = validation_angle(net, val_sessions, served_chunks(cfg))
         row = {
             "epoch": epoch,
             "train_loss": float(np.mean(losses)),

@@ -176,6 +176,8 @@ def test_evaluate_pose_scores_the_validation_subjects_on_the_sessions_training_j
     report = json.loads(done.stdout[done.stdout.index("{") :])
     assert set(report["subject"]) == {"cmu_03"}  # the validation subject, not the held-out cmu_07
     val = MlflowClient().get_run(result["run_id"]).data.metrics["val_angle_unsensed_deg"]
-    assert report["overall"]["all"]["angle_unsensed_deg"] == pytest.approx(val, abs=0.05)  # the run's own sessions
+    # the run's own sessions, and its figures are the served file's: the run evaluates in the chunks the service runs
+    # (120 frames here; the validation clips are longer)
+    assert report["overall"]["all"]["angle_unsensed_deg"] == pytest.approx(val, abs=1e-3)
     refused = subprocess.run([*base, *where, "--validation", "--record"], capture_output=True, text=True, cwd=REPO)
     assert refused.returncode != 0 and "--record" in " ".join((refused.stdout + refused.stderr).split())

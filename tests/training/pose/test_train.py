@@ -27,3 +27,33 @@ def test_clips_are_drawn_by_frames_with_capped_activities_and_an_optional_bandai
     assert np.isclose(shared[:2].sum(), 0.5) and np.isclose(shared[2:].sum(), 0.5)
     np.testing.assert_allclose(shared[:2] / shared[:2].sum(), w[:2] / w[:2].sum())  # within a side, as before
     assert np.isclose(clip_weights(clips[2:], cap_frames=30_000, bandai_share=0.5).sum(), 1.0)  # one side only
+
+
+def test_a_run_evaluates_an_offline_model_in_the_chunks_the_service_runs_it_in() -> None:
+    """The figures a run logs are the served model's: the network sees the served chunks (window 120, context 30
+    here), never the whole clip, and every frame's answer comes from the chunk the service takes it from."""
+    import torch
+
+    from service.inference.pose import chunk_plan
+    from training.pose.config import PoseConfig, served_chunks
+    from training.pose.train import torch_predictor
+
+    seen = []
+
+    class Net(torch.nn.Module):
+        look_ahead = 0
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            seen.append(x.shape[1])
+            return x[..., :1].repeat(1, 1, 9).reshape(1, x.shape[1], 1, 3, 3) + len(seen)  # marks its call
+
+    cfg = PoseConfig.model_validate({"name": "t", "train": {"sequence_frames": 120, "context_frames": 30}})
+    assert served_chunks(cfg) == (120, 30)
+    features = np.zeros((400, 4), dtype=np.float32)
+    out = torch_predictor(Net(), served_chunks(cfg))(features)
+    plan = chunk_plan(400, 120, 30)
+    assert seen == [stop - start for start, stop, _, _ in plan] and max(seen) == 120
+    for call, (_, _, keep_from, keep_to) in enumerate(plan, start=1):
+        assert np.all(out[keep_from:keep_to] == call)
+    streaming = PoseConfig.model_validate({"name": "s", "model": {"kind": "lstm", "look_ahead": 5}})
+    assert served_chunks(streaming) is None  # a live model runs over the whole recording, as the service runs it
