@@ -555,6 +555,13 @@ def evaluate_pose(
         help="score the validation subjects on the sessions training judged its epochs and recipes by, not the "
         "held-out ones (to compare two files on the same sessions before a choice)",
     ),
+    tag: bool = typer.Option(
+        False,
+        "--tag",
+        help="with --validation: write the figure into the model's registry versions, as a run tags a new one, so "
+        "that the registry compares later runs with the file as served (versions tagged by runs before served-chunk "
+        "evaluation were scored on whole clips)",
+    ),
 ) -> None:
     """Score a shipped pose model on mocap: simulate its sensors on the clips and report per clip and overall
     segment-angle error, SIP error, joint-position error and jitter (per activity and subject too)."""
@@ -576,6 +583,8 @@ def evaluate_pose(
         raise typer.BadParameter("--validation and --record score the data directory's subjects: give no paths")
     if validation and record:
         raise typer.BadParameter("--record writes held-out figures; it does not go with --validation")
+    if tag and not validation:
+        raise typer.BadParameter("--tag writes the validation figure the registry compares by: give --validation")
     manifest = read_manifest(model / "manifest.json")
     td = manifest.training_data
     limb_twist = td.get("limb_twist", "rig")  # scored in the segment frames the model answers in
@@ -596,6 +605,17 @@ def evaluate_pose(
         data = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir)
         clips = data.val if validation else data.test
     results, summary = evaluate_shipped_pose(model, clips, VAL_SEED if validation else TEST_SEED)
+    if tag:
+        from training.pose.data import pose_evaluation_digest
+        from training.pose.pipeline import SELECTION_METRIC
+        from training.snapshot import local_run_id
+        from training.tracking import record_evaluation, setup_tracking
+
+        setup_tracking("pose")
+        value = summary["overall"]["all"][SELECTION_METRIC.removeprefix("val_")]
+        run_id = local_run_id(manifest.mlflow["run_id"])
+        tagged = record_evaluation(manifest.name, run_id, SELECTION_METRIC, value, pose_evaluation_digest(clips))
+        typer.echo(f"{manifest.name} versions {tagged}: {SELECTION_METRIC} {value:.4f} (served chunks)", err=True)
     if record:
         from training.pose.pipeline import HELD_OUT, evaluation_record
 

@@ -280,5 +280,16 @@ def dataset_digest(clips: list[MotionClip]) -> str:
     return hashlib.sha256("|".join(sorted(c.digest for c in clips)).encode()).hexdigest()[:20]
 
 
+# How a pose run's validation figure is computed, part of the registry's evaluation digest: "served chunks" since
+# runs evaluate an offline model as the service runs it (training.pose.config.served_chunks); versions tagged before
+# were scored on whole clips, and ``evaluate-pose --validation --tag`` scores a shipped one again this way.
+POSE_EVALUATION = "served-chunks"
+
+
+def pose_evaluation_digest(val_clips: list[MotionClip]) -> str:
+    """The registry's ``eval_digest`` of a pose validation figure: the clips and how they were scored."""
+    return f"{dataset_digest(val_clips)}|{POSE_EVALUATION}"
+
+
 def trains_on_bandai(clips: list[MotionClip]) -> bool:
     return any(is_bandai_namco(c.source) for c in clips)

@@ -40,6 +40,7 @@ from training.pose.data import (
     build_motions,
     dataset_digest,
     held_out_split,
+    pose_evaluation_digest,
     trains_on_bandai,
 )
 from training.pose.evaluate import (
@@ -315,9 +316,8 @@ def run_pose_experiment(
         mlflow.set_tag("model_uri", info.model_uri)
         registered = register_model(info.model_uri, cfg.registered_model)
         val_value = flat_metrics(val_summary, "val")["val_angle_unsensed_deg"]
-        promoted = maybe_promote(
-            cfg.registered_model, registered.version, SELECTION_METRIC, val_value, False, dataset_digest(data.val)
-        )
+        digest = pose_evaluation_digest(data.val)
+        promoted = maybe_promote(cfg.registered_model, registered.version, SELECTION_METRIC, val_value, False, digest)
         mlflow.set_tag("promoted_to_champion", str(promoted))
         manifest = with_registry(manifest, info, registered)
         shipped = None

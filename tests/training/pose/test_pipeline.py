@@ -181,3 +181,11 @@ def test_evaluate_pose_scores_the_validation_subjects_on_the_sessions_training_j
     assert report["overall"]["all"]["angle_unsensed_deg"] == pytest.approx(val, abs=1e-3)
     refused = subprocess.run([*base, *where, "--validation", "--record"], capture_output=True, text=True, cwd=REPO)
     assert refused.returncode != 0 and "--record" in " ".join((refused.stdout + refused.stderr).split())
+    # --tag writes the served file's figure into its registry version, under the digest that names the protocol
+    tagged = subprocess.run([*base, *where, "--validation", "--tag"], capture_output=True, text=True, cwd=REPO)
+    assert tagged.returncode == 0, tagged.stderr[-2000:]
+    [version] = MlflowClient().search_model_versions(f"name='tiny_full6' and run_id='{result['run_id']}'")
+    assert version.tags["eval_digest"].endswith("|served-chunks")
+    assert float(version.tags["eval_val_angle_unsensed_deg"]) == pytest.approx(val, abs=1e-3)
+    refused = subprocess.run([*base, *where, "--tag"], capture_output=True, text=True, cwd=REPO)
+    assert refused.returncode != 0 and "--validation" in " ".join((refused.stdout + refused.stderr).split())
