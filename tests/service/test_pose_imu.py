@@ -98,6 +98,21 @@ def test_without_a_name_a_general_model_answers_before_one_trained_for_a_scenari
     assert choose_model({"walk": walking}, SIX_SENSORS, None, streaming=False) is walking  # the only match
 
 
+def test_an_offline_model_answers_stacked_chunks_as_it_answers_them_one_by_one(pose_models) -> None:
+    """Chunks of a long recording run in one call per CHUNKS_PER_CALL of them: the same answers as one call per
+    chunk, for a recording of one chunk, of a few, and of more than one call's worth."""
+    from service.inference.pose import CHUNKS_PER_CALL, chunk_plan, run_chunked
+
+    model = pose_models["pose_lower3"]
+    window, context = model.spec.window_frames, model.spec.context_frames
+    rng = np.random.default_rng(3)
+    for n in (window - 20, 3 * window, (CHUNKS_PER_CALL + 3) * (window - 2 * context)):
+        features = rng.normal(size=(n, model.loaded.manifest.inputs[0].shape[-1])).astype(np.float32)
+        one_by_one = run_chunked(model._run, features, window, context)
+        np.testing.assert_allclose(model.predict(features), one_by_one, atol=1e-5)
+    assert len(chunk_plan(n, window, context)) > CHUNKS_PER_CALL  # the last one took more than one call
+
+
 def test_service_and_training_compute_the_same_features(walk, pose_models: dict[str, PoseModel]) -> None:
     """The request path (rows → readings → declared calibration → features) is the simulator's path exactly."""
     motion, _ = walk
