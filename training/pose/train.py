@@ -105,9 +105,13 @@ def torch_predictor(net: PoseNet, chunks: tuple[int, int] | None = None) -> Call
         with torch.no_grad():
             return net(torch.from_numpy(x[None].astype(np.float32)))[0, L:].numpy()
 
+    def predict_many(x: np.ndarray) -> np.ndarray:  # an offline model over stacked chunks, as the service runs them
+        with torch.no_grad():
+            return net(torch.from_numpy(x.astype(np.float32))).numpy()
+
     if chunks is None:
         return predict
-    return lambda features: run_chunked(predict, features, *chunks)
+    return lambda features: run_chunked(predict, features, *chunks, predict_many=predict_many)
 
 
 def validation_angle(net: PoseNet, sessions: list[Session], chunks: tuple[int, int] | None = None) -> float:

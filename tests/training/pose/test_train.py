@@ -31,7 +31,8 @@ def test_clips_are_drawn_by_frames_with_capped_activities_and_an_optional_bandai
 
 def test_a_run_evaluates_an_offline_model_in_the_chunks_the_service_runs_it_in() -> None:
     """The figures a run logs are the served model's: the network sees the served chunks (window 120, context 30
-    here), never the whole clip, and every frame's answer comes from the chunk the service takes it from."""
+    here), stacked as the service stacks them, never the whole clip, and every frame's answer comes from the chunk
+    the service takes it from."""
     import torch
 
     from service.inference.pose import chunk_plan
@@ -44,16 +45,19 @@ def test_a_run_evaluates_an_offline_model_in_the_chunks_the_service_runs_it_in()
         look_ahead = 0
 
         def forward(self, x: torch.Tensor) -> torch.Tensor:
-            seen.append(x.shape[1])
-            return x[..., :1].repeat(1, 1, 9).reshape(1, x.shape[1], 1, 3, 3) + len(seen)  # marks its call
+            seen.append(tuple(x.shape[:2]))
+            chunk = torch.arange(x.shape[0], dtype=torch.float32).reshape(-1, 1, 1, 1, 1)
+            return chunk.expand(x.shape[0], x.shape[1], 1, 3, 3)  # each chunk answers its index in the stack
 
     cfg = PoseConfig.model_validate({"name": "t", "train": {"sequence_frames": 120, "context_frames": 30}})
     assert served_chunks(cfg) == (120, 30)
-    features = np.zeros((400, 4), dtype=np.float32)
-    out = torch_predictor(Net(), served_chunks(cfg))(features)
+    out = torch_predictor(Net(), served_chunks(cfg))(np.zeros((400, 4), dtype=np.float32))
     plan = chunk_plan(400, 120, 30)
-    assert seen == [stop - start for start, stop, _, _ in plan] and max(seen) == 120
-    for call, (_, _, keep_from, keep_to) in enumerate(plan, start=1):
-        assert np.all(out[keep_from:keep_to] == call)
+    assert seen == [(len(plan), 120)]  # one call, every chunk the window long
+    for k, (_, _, keep_from, keep_to) in enumerate(plan):
+        assert np.all(out[keep_from:keep_to] == k)
+    seen.clear()
+    torch_predictor(Net(), served_chunks(cfg))(np.zeros((100, 4), dtype=np.float32))
+    assert seen == [(1, 100)]  # a clip shorter than the window in one piece
     streaming = PoseConfig.model_validate({"name": "s", "model": {"kind": "lstm", "look_ahead": 5}})
     assert served_chunks(streaming) is None  # a live model runs over the whole recording, as the service runs it
