@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -14,6 +15,8 @@ from mlflow.tracking import MlflowClient
 
 from service.core.manifest import MLMODEL_METADATA_KEY, Manifest
 from training.run_labels import describe_experiment
+
+log = logging.getLogger(__name__)
 
 CHAMPION = "champion"
 
@@ -75,6 +78,17 @@ def maybe_promote(
         champion = None
     if champion is not None:
         if champion.tags.get("eval_digest") != evaluation_digest:
+            log.warning(
+                "%s version %s: not compared with champion version %s, which was evaluated on other data or another "
+                "way (eval_digest %s, this one %s); the alias stays",
+                name,
+                version,
+                champion.version,
+                champion.tags.get("eval_digest"),
+                evaluation_digest,
+            )
+            reason = f"champion v{champion.version} has another eval_digest"
+            client.set_model_version_tag(name, version, "not_compared", reason)
             return False
         best = float(champion.tags[f"eval_{metric}"])
         if (value <= best) if higher_is_better else (value >= best):

@@ -39,6 +39,8 @@ def test_a_tie_does_not_move_champion_even_when_the_tag_rounds_down(registry: Ml
     assert _champion(registry) == "1"
     assert not maybe_promote(NAME, "3", "accuracy", 1.0, True, "another evaluation")  # not comparable
     assert _champion(registry) == "1"
+    # and the version says so, rather than looking like a loss
+    assert registry.get_model_version(NAME, "3").tags["not_compared"] == "champion v1 has another eval_digest"
     assert maybe_promote(NAME, "4", "accuracy", 1.0, True, DIGEST)
     assert _champion(registry) == "4"
 

@@ -61,3 +61,21 @@ def test_a_run_evaluates_an_offline_model_in_the_chunks_the_service_runs_it_in()
     assert seen == [(1, 100)]  # a clip shorter than the window in one piece
     streaming = PoseConfig.model_validate({"name": "s", "model": {"kind": "lstm", "look_ahead": 5}})
     assert served_chunks(streaming) is None  # a live model runs over the whole recording, as the service runs it
+
+
+def test_a_clip_s_digest_does_not_change_with_the_offsets_noise() -> None:
+    """The digest names a clip in the motion cache and the registry's evaluation digest: noise-level entries of its
+    rig's offsets (a negative zero, 1e-9) must not change it; a turn of 0.01° must."""
+    from pathlib import Path
+
+    from scipy.spatial.transform import Rotation
+
+    from training.pose.data import _digest
+
+    path = Path(__file__)
+    offsets = np.stack([np.eye(3)] * 21)
+    noisy = offsets.copy()
+    noisy[:, 0, 2], noisy[:, 1, 2] = -1e-17, 3e-9
+    assert _digest(path, offsets) == _digest(path, noisy)
+    turned = offsets @ Rotation.from_euler("z", 0.01, degrees=True).as_matrix()
+    assert _digest(path, offsets) != _digest(path, turned)
