@@ -28,12 +28,11 @@ import numpy as np
 from mlflow.tracking import MlflowClient
 
 from benchmarks.bench_service import RESULTS, answer_session
-from benchmarks.servers import REPO, start_service, stop
+from benchmarks.servers import served_dir, start_service, stop
 from service.core.assignment import ConfidenceModel
 from service.core.manifest import read_manifest, write_manifest
 from service.core.recordings import RealRecording, read_all_real
 from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES
-from service.inference.registry import newest_version_dir
 from training.data.catalog import resolve_data_dir
 from training.i2s.calibration import (
     HeldOut,
@@ -63,10 +62,7 @@ def fold_runs(summary_run_id: str) -> dict[str, str]:
 
 def served_alignment() -> Path:
     """The newest shipped alignment (what the service loads by default)."""
-    newest = newest_version_dir(REPO / "onnx_models", "i2s_alignment")
-    if newest is None:
-        raise SystemExit("no shipped i2s_alignment under onnx_models/")
-    return newest
+    return served_dir("i2s_alignment")
 
 
 def fold_services(

@@ -22,23 +22,14 @@ import httpx
 import numpy as np
 import websockets
 
-from benchmarks.servers import REPO, start_service, stop
+from benchmarks.servers import REPO, served_dir, start_service, stop
 from service.api.protocol import encode_binary
 from service.core.manifest import read_manifest
-from service.inference.registry import newest_version_dir
 
 RESULTS = REPO / "benchmarks" / "results"
 
 
-def _served(name: str) -> str:
-    """The version the service serves by default: the newest under onnx_models/<name>."""
-    newest = newest_version_dir(REPO / "onnx_models", name)
-    if newest is None:
-        raise SystemExit(f"no shipped {name} under onnx_models/")
-    return newest.name
-
-
-MODELS = {name: _served(name) for name in ("flex_bilstm_cm", "flex_capacitive_knee")}
+MODELS = {name: served_dir(name).name for name in ("flex_bilstm_cm", "flex_capacitive_knee")}
 
 
 def _readings(name: str, n: int, seed: int = 0) -> np.ndarray:

@@ -12,8 +12,18 @@ from pathlib import Path
 
 import httpx
 
+from service.inference.registry import newest_version_dir
+
 REPO = Path(__file__).resolve().parents[1]
 LOGS = REPO / "artifacts" / "logs"
+
+
+def served_dir(name: str) -> Path:
+    """The version of ``name`` the service serves by default: the newest under onnx_models/."""
+    newest = newest_version_dir(REPO / "onnx_models", name)
+    if newest is None:
+        raise SystemExit(f"no shipped {name} under onnx_models/")
+    return newest
 
 
 def free_port() -> int:

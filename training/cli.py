@@ -607,12 +607,13 @@ def evaluate_pose(
     results, summary = evaluate_shipped_pose(model, clips, VAL_SEED if validation else TEST_SEED)
     if tag:
         from training.pose.data import pose_evaluation_digest
+        from training.pose.evaluate import flat_metrics
         from training.pose.pipeline import SELECTION_METRIC
         from training.snapshot import local_run_id
         from training.tracking import record_evaluation, setup_tracking
 
         setup_tracking("pose")
-        value = summary["overall"]["all"][SELECTION_METRIC.removeprefix("val_")]
+        value = flat_metrics(summary, "val")[SELECTION_METRIC]  # as the run logs it
         run_id = local_run_id(manifest.mlflow["run_id"])
         tagged = record_evaluation(manifest.name, run_id, SELECTION_METRIC, value, pose_evaluation_digest(clips))
         typer.echo(f"{manifest.name} versions {tagged}: {SELECTION_METRIC} {value:.4f} (served chunks)", err=True)
