@@ -713,6 +713,17 @@ def evaluate_flex(
     data_dir: Path | None = DataDir,
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
     as_json: bool = typer.Option(False, "--json"),
+    validation: bool = typer.Option(
+        False,
+        "--validation",
+        help="score the validation subjects' suits, which its run chose its epoch by, not the held-out ones",
+    ),
+    tag: bool = typer.Option(
+        False,
+        "--tag",
+        help="with --validation: write the figure into the model's registry versions under the evaluation digest "
+        "of this installation, so that the registry compares later runs with it",
+    ),
 ) -> None:
     """A shipped flex model (its ONNX file through onnxruntime) on the held-out subjects' simulated suits: error
     overall, per motion type and joint, jitter, and under ageing beyond the training range and a replaced sensor."""
@@ -721,14 +732,37 @@ def evaluate_flex(
     from service.core.flex import JOINT_COMPONENTS
     from service.inference.registry import load_model
     from training.flex.config import FlexConfig
-    from training.flex.pipeline import evaluate_served, load_flex_data
+    from training.flex.pipeline import SELECTION_METRIC, evaluate_served, load_flex_data
 
+    if tag and not validation:
+        raise typer.BadParameter("--tag writes the validation figure the registry compares by: give --validation")
     loaded = load_model(newest_shipped(model, "flex_bilstm_cm"), 2)
-    # scored in the segment frames its angles are in ("rig" where the manifest does not say)
+    td = loaded.manifest.training_data
+    # scored on the split its run had, in the segment frames its angles are in ("rig" where the manifest does not say)
     cfg = FlexConfig(
-        name=loaded.manifest.name, data={"limb_twist": loaded.manifest.training_data.get("limb_twist", "rig")}
+        name=loaded.manifest.name,
+        data={
+            "limb_twist": td.get("limb_twist", "rig"),
+            "sources": td.get("sources"),
+            "test_subjects": td["test_subjects"],
+            "val_subjects": td["validation_subjects"],
+            "test_activities_of_unlabelled": td["test_unlabelled_clips"],
+        },
     )
-    out = evaluate_served(loaded, load_flex_data(cfg, resolve_data_dir(data_dir), cache_dir))
+    data = load_flex_data(cfg, resolve_data_dir(data_dir), cache_dir)
+    out = evaluate_served(loaded, data, validation)
+    if validation:
+        val = out["val"]
+        if tag:
+            from training.snapshot import local_run_id
+            from training.tracking import record_evaluation, setup_tracking
+
+            setup_tracking(cfg.tracking.experiment)
+            run_id = local_run_id(loaded.manifest.mlflow["run_id"])
+            tagged = record_evaluation(loaded.manifest.name, run_id, SELECTION_METRIC, val["mae_deg"], data.digest_val)
+            typer.echo(f"{loaded.manifest.name} versions {tagged}: {SELECTION_METRIC} {val['mae_deg']:.4f}", err=True)
+        typer.echo(json.dumps(val, indent=1) if as_json else f"validation: {val['mae_deg']:.2f}°")
+        return
     if as_json:
         typer.echo(json.dumps(out, indent=1))
         return

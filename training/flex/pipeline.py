@@ -327,12 +327,16 @@ def run_flex_experiment(
         return summary
 
 
-def evaluate_served(loaded, data: FlexData) -> dict:
-    """A loaded ONNX flex model on the test sets ``build_sets`` makes (same seeds as its training run)."""
+def evaluate_served(loaded, data: FlexData, validation: bool = False) -> dict:
+    """A loaded ONNX flex model on the test sets ``build_sets`` makes (same seeds as its training run), or with
+    ``validation`` on the validation suits its run chose its epoch and the registry its champion by."""
     m = loaded.manifest
     cfg = FlexConfig(name=m.name, joints=m.joints, sensors=[c.removesuffix("_flex") for c in m.channels])
-    sets = build_sets(cfg, data, train=False)
     lat = m.flex.latency_samples
+    if validation:
+        val = window_set(data.val, 1, VAL_SEED, cfg.model.window)
+        return {"model": f"{m.name} {m.version}", "val": clip_metrics(loaded.run, val, 0, lat, cfg.joints, cfg.sensors)}
+    sets = build_sets(cfg, data, train=False)
     score = lambda key: clip_metrics(loaded.run, sets[key], 0, lat, cfg.joints, cfg.sensors)  # noqa: E731
     ageing = {b: score(f"ageing_{b}") for b in AGEING_BEYOND}
     return {

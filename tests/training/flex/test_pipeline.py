@@ -3,6 +3,9 @@ and the real capacitive sleeves, with tiny training budgets; the shipped ONNX fi
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +25,7 @@ TINY = {
     "train": {"windows_per_epoch": 128, "max_epochs": 2, "patience": 5},
     "tracking": {"experiment": "test-flex"},
 }
+REPO = Path(__file__).resolve().parents[3]
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +41,13 @@ def flex_runs(
     data = load_flex_data(cfgs[0], data_dir, cache)
     sets = build_sets(cfgs[0], data)
     results = [run_flex_experiment(cfgs[0], data, sets, models, "0.0.1"), run_flex_experiment(cfgs[1], data, sets)]
-    return {"results": results, "summary": log_summary_run(results, "test-flex"), "data": data, "models": models}
+    return {
+        "results": results,
+        "summary": log_summary_run(results, "test-flex"),
+        "data": data,
+        "models": models,
+        "cache": cache,
+    }
 
 
 def test_each_network_is_a_run_with_its_metrics_plots_and_registered_model(flex_runs: dict) -> None:
@@ -96,6 +106,31 @@ def test_the_shipped_flex_model_is_served_and_scores_as_in_its_run(flex_runs: di
         parts, bias = test["per_component"][joint], test["bias"][joint]
         assert np.mean(list(parts.values())) == pytest.approx(error, abs=1e-3)
         assert all(abs(bias[c]) <= parts[c] + 1e-3 for c in parts)
+
+
+def test_evaluate_flex_rescores_the_validation_suits_and_tags_the_registry_version(
+    flex_runs: dict, data_dir: Path
+) -> None:
+    """A shipped file is scored on the validation suits its run chose by, and ``--tag`` writes that figure and the
+    evaluation digest of this installation into its registry version, which ``maybe_promote`` compares by."""
+    run_id = flex_runs["results"][0]["run_id"]
+    client = MlflowClient()
+    [version] = client.search_model_versions(f"name='tiny_flex_cm' and run_id='{run_id}'")
+    client.set_model_version_tag("tiny_flex_cm", version.version, "eval_digest", "an older installation's")
+    base = [sys.executable, "-m", "training.cli", "evaluate-flex", "--model"]
+    base += [str(flex_runs["models"] / "tiny_flex_cm" / "0.0.1"), "--data-dir", str(data_dir)]
+    base += ["--cache-dir", str(flex_runs["cache"])]
+    done = subprocess.run([*base, "--validation", "--json"], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    val = client.get_run(run_id).data.metrics["val_mae_deg"]
+    assert json.loads(done.stdout[done.stdout.index("{") :])["mae_deg"] == pytest.approx(val, abs=0.02)
+    refused = subprocess.run([*base, "--tag"], capture_output=True, text=True, cwd=REPO)
+    assert refused.returncode != 0 and "--validation" in " ".join((refused.stdout + refused.stderr).split())
+    tagged = subprocess.run([*base, "--validation", "--tag"], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert tagged.returncode == 0, tagged.stderr[-2000:]
+    tags = client.get_model_version("tiny_flex_cm", version.version).tags
+    assert tags["eval_digest"] == flex_runs["data"].digest_val
+    assert float(tags["eval_val_mae_deg"]) == pytest.approx(val, abs=0.02)
 
 
 def test_sleeve_channels_are_read_by_name_and_a_failed_read_out_ends_the_recording(data_dir: Path) -> None:
