@@ -1,4 +1,5 @@
-"""Pose benchmark of the served pose models on this machine, one run, written to benchmarks/results/pose.json:
+"""Pose benchmark of the served pose models on this machine, one run, written to ``--out``
+(default benchmarks/results/pose.json):
 
 (a) ``POST /v1/pose/imu`` latency for six sensors (pose_full6, offline Bi-LSTM): 2 s and 30 s of readings;
 (b) N concurrent six-sensor pose streams at 60 Hz on ``/v1/stream`` (pose_full6_stream, declared calibration,
@@ -23,6 +24,7 @@ import contextlib
 import json
 import platform
 import time
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -225,11 +227,15 @@ def main() -> None:
         default=sorted(MODES),
         help="; ".join(f"{k}: {v}" for k, v in MODES.items()),
     )
+    ap.add_argument("--out", type=Path, default=RESULTS / "pose.json", help="where the results go")
     args = ap.parse_args()
     proc, base = start_service(REPO / "onnx_models")
     try:
         served = {k: v["version"] for k, v in httpx.get(base + "/v1/models").json().items()}
         out = {
+            "command": "python -m benchmarks.bench_pose "
+            f"--streams {' '.join(map(str, args.streams))} --seconds {args.seconds} --packet {args.packet} "
+            f"--repeats {args.repeats} --ramp {args.ramp} --modes {' '.join(args.modes)}",
             "machine": platform.processor() or platform.machine(),
             "served": served,
             **bench_rest(base, args.repeats),
@@ -241,8 +247,8 @@ def main() -> None:
         ]
     finally:
         stop(proc)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "pose.json").write_text(json.dumps(out, indent=1) + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=1) + "\n")
     print(json.dumps(out, indent=1))
 
 
