@@ -589,7 +589,11 @@ def evaluate_pose(
     td = manifest.training_data
     limb_twist = td.get("limb_twist", "rig")  # scored in the segment frames the model answers in
     if paths:
-        clips = user_clips(list(paths), mapping, limb_twist)
+        try:  # the data directory's rigs give a user's clips of the same skeleton their training frames
+            known = resolve_data_dir(data_dir)
+        except RuntimeError:
+            known = None
+        clips = user_clips(list(paths), mapping, limb_twist, known, cache_dir)
     else:
         cfg = PoseConfig(
             name=manifest.name,

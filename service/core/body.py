@@ -391,6 +391,17 @@ def _flat_stance(ankle: np.ndarray, toe: np.ndarray, sample_rate_hz: float) -> n
     return still & low if (still & low).sum() >= MIN_STANCE_FRAMES else still
 
 
+def _slowest_frames(ankle: np.ndarray, toe: np.ndarray, sample_rate_hz: float) -> np.ndarray:
+    """Frames ``(T,)`` bool where ankle and toe together move slowest (5 % of the clip, at least
+    ``MIN_STANCE_FRAMES``): the foot's contact in a clip where it never stands flat long enough (a sprint)."""
+    if len(ankle) < 2:
+        return np.ones(len(ankle), dtype=bool)
+    speed = sum(np.linalg.norm(np.gradient(p, 1.0 / sample_rate_hz, axis=0), axis=-1) for p in (ankle, toe))
+    keep = np.zeros(len(ankle), dtype=bool)
+    keep[np.argsort(speed)[: max(MIN_STANCE_FRAMES, len(ankle) // 20)]] = True
+    return keep
+
+
 def _foot_frame(ankle: np.ndarray, toe: np.ndarray) -> np.ndarray:
     """Level foot frames: x the horizontal ankle → toe heading, z up (meaningful where the foot stands flat)."""
     up = np.broadcast_to([0.0, 0.0, 1.0], ankle.shape)
@@ -464,8 +475,12 @@ def rig_offsets(per_clip: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def clip_offsets(poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict[str, np.ndarray]) -> np.ndarray:
-    """Each segment's R_bone_segment ``(S, 3, 3)`` fitted on one clip: the rotation mean of R_bone⁻¹ · target."""
+def clip_offsets(
+    poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict[str, np.ndarray], feet_at_slowest: bool = False
+) -> np.ndarray:
+    """Each segment's R_bone_segment ``(S, 3, 3)`` fitted on one clip: the rotation mean of R_bone⁻¹ · target.
+    A foot that never stands flat raises ``NoStanceError``, or with ``feet_at_slowest`` is taken level where it
+    moves slowest (its contact: an approximation for rigs of which no clip stands flat)."""
     mapping.check(poses.names)
     P, R = poses.positions_m, poses.R_world_joint
 
@@ -510,7 +525,9 @@ def clip_offsets(poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict
             targets[s] = _frame_y_x(axis, heading)
         else:  # foot: level while it stands flat
             flat = _flat_stance(p, d, poses.sample_rate_hz)
-            if flat.sum() < MIN_STANCE_FRAMES:
+            if flat.sum() < MIN_STANCE_FRAMES and feet_at_slowest:
+                flat = _slowest_frames(p, d, poses.sample_rate_hz)
+            elif flat.sum() < MIN_STANCE_FRAMES:
                 raise NoStanceError(
                     f"mapping {mapping.name!r}: segment {s} stands flat in {flat.sum()} frames of {len(P)} "
                     f"(at least {MIN_STANCE_FRAMES} define its frame); fit the frames on clips with standing or walking"
@@ -630,7 +647,9 @@ def read_body_motion(
     return body_motion(poses, mapping, ends, offsets)
 
 
-def read_clip_offsets(path: str | Path, mapping: SkeletonMapping | None = None, source: str = "") -> np.ndarray:
-    """The clip's own R_bone_segment per segment, the input of ``rig_offsets``."""
+def read_clip_offsets(
+    path: str | Path, mapping: SkeletonMapping | None = None, source: str = "", feet_at_slowest: bool = False
+) -> np.ndarray:
+    """The clip's own R_bone_segment per segment, the input of ``rig_offsets`` (``clip_offsets``)."""
     poses, mapping, ends = read_rig(path, mapping, source)
-    return clip_offsets(poses, mapping, ends)
+    return clip_offsets(poses, mapping, ends, feet_at_slowest)

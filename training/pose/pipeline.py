@@ -405,14 +405,22 @@ def results_table(results: list[ClipResult]) -> str:
     return "\n".join(lines)
 
 
-def user_clips(paths: list[Path], mapping_file: Path | None, limb_twist: str = "rig") -> list[MotionClip]:
+def user_clips(
+    paths: list[Path],
+    mapping_file: Path | None,
+    limb_twist: str = "rig",
+    data_dir: Path | None = None,
+    cache_dir: Path | None = None,
+) -> list[MotionClip]:
     """BVH files (plain or .gz), or folders of them, on the canonical body at 60 Hz; the activity is the folder's
     name. Without a mapping file the skeleton must be one of the known families. All files are taken to share one
-    rig (their segment frames come from all of them together; with ``limb_twist`` "hinge" the limbs turned so
-    that the elbows' and knees' hinges lie along y, placed on the same files: ``training.pose.data.hinge_twisted``)."""
+    rig, and its segment frames are the training clips' where it is a rig of the data directory (``data_dir``: the
+    same skeleton, ``catalogue_rig``), else fitted on these files as the catalogue fits a rig's (``fitted_rig``);
+    with ``limb_twist`` "hinge" the limbs turned so that the elbows' and knees' hinges lie along y
+    (``training.pose.data.hinge_twisted``)."""
     import hashlib
 
-    from service.core.body import NoStanceError, load_mapping, read_clip_offsets, rig_offsets
+    from service.core.body import load_mapping
     from training.pose.data import load_motion
 
     mapping = load_mapping(mapping_file) if mapping_file else None
@@ -421,27 +429,88 @@ def user_clips(paths: list[Path], mapping_file: Path | None, limb_twist: str = "
         files += sorted(q for q in p.rglob("*") if q.name.endswith((".bvh", ".bvh.gz"))) if p.is_dir() else [p]
     if not files:
         raise ValueError(f"no .bvh or .bvh.gz files in {[str(p) for p in paths]}")
-    # the clips of one call share a rig: one set of segment frames for all of them (service.core.body.rig_offsets)
-    # (fitted on the clips whose feet stand flat somewhere: the foot frames are level there)
-    per_clip, no_stance = [], []
-    for f in files:
-        try:
-            per_clip.append(read_clip_offsets(f, mapping))
-        except NoStanceError as exc:
-            no_stance.append(exc)
-    if not per_clip:
-        raise no_stance[0]
-    offsets = rig_offsets(per_clip)
-    if limb_twist == "hinge":
-        from training.pose.data import HINGE_CLIPS, hinge_twisted
-
-        offsets = hinge_twisted(offsets, files[:: max(1, len(files) // HINGE_CLIPS)][:HINGE_CLIPS], "", mapping)
+    offsets = None
+    if mapping is None and data_dir is not None:
+        offsets = catalogue_rig(files, data_dir, cache_dir or Path(".cache/pose_motion"), limb_twist)
+    if offsets is None:
+        offsets = fitted_rig(files, mapping, limb_twist)
     clips = []
     for f in files:
         digest = hashlib.sha256(f.read_bytes()).hexdigest()[:20]
         motion = load_motion(f, "", 0, mapping, offsets)
         clips.append(MotionClip(str(f), "user", f.parent.name, f.parent.name, motion, digest))
     return clips
+
+
+def _skeleton(path: Path) -> str:
+    """A BVH file's skeleton: joint names, parents, channels and bone offsets (to 1e-3 of its unit)."""
+    import hashlib
+
+    from service.core.bvh import read_bvh
+
+    bvh = read_bvh(path)
+    h = hashlib.sha256()
+    for j in bvh.joints:
+        h.update(f"{j.name}|{j.parent}|{','.join(j.channels)}|".encode())
+        h.update((np.round(j.offset, 3) + 0.0).tobytes())
+    return h.hexdigest()
+
+
+def catalogue_rig(files: list[Path], data_dir: Path, cache_dir: Path, limb_twist: str) -> np.ndarray | None:
+    """The segment offsets the training clips of the same rig got (``build_rig_offsets``: fitted on the rig's
+    walks), where every file has the skeleton of one whole-source rig of the data directory; else None. A
+    user's clips of a rig the models trained on are then scored in exactly the frames they learned, whatever
+    the clips do (fitted on a folder of sprints, the pelvis's and trunk's frames would take the sprint's lean)."""
+    from training.pose.data import build_rig_offsets, rig_key
+
+    wanted = {_skeleton(f) for f in files}
+    if len(wanted) != 1:
+        return None
+    by_rig: dict[str, list] = {}
+    for e in mocap_entries(data_dir):
+        if rig_key(e) == e.source:  # whole-source rigs (each cmu_raw file is its own person's skeleton)
+            by_rig.setdefault(e.source, []).append(e)
+    for rig, entries in by_rig.items():
+        if _skeleton(data_dir / entries[0].path) in wanted:
+            log.info("segment frames: the %s rig's, as its training clips had them", rig)
+            return build_rig_offsets(data_dir, entries, cache_dir, limb_twist=limb_twist)[rig]
+    return None
+
+
+def fitted_rig(files: list[Path], mapping, limb_twist: str) -> np.ndarray:
+    """A rig's segment offsets fitted on ``files`` as ``build_rig_offsets`` fits a catalogue rig's: on the walks
+    (files under a folder or with a name that says "walk") where there are any, the clips whose feet stand flat
+    somewhere (the foot frames are level there); where none does, the feet taken level where they move slowest."""
+    from service.core.body import NoStanceError, read_clip_offsets, rig_offsets
+
+    walks = [f for f in files if "walk" in f"{f.parent.name}/{f.name}".lower()]
+    chosen = walks or files
+    if not walks:
+        log.warning(
+            "no clip is a walk (no folder or file name says so): the segment frames are fitted on all %d clips, so "
+            "the pelvis's and trunk's frames take their mean lean; add walks of the same rig for neutral frames",
+            len(files),
+        )
+    per_clip, no_stance = [], []
+    for f in chosen:
+        try:
+            per_clip.append(read_clip_offsets(f, mapping))
+        except NoStanceError as exc:
+            no_stance.append(exc)
+    if not per_clip:  # no clip stands flat long enough (sprints, jumps): the feet level where they move slowest
+        log.warning(
+            "%s; so in none of these %d clips: each foot's frame is taken level where it moves slowest (its "
+            "contact), an approximation: add a clip with walking or standing of the same rig for level feet",
+            no_stance[0],
+            len(chosen),
+        )
+        per_clip = [read_clip_offsets(f, mapping, feet_at_slowest=True) for f in chosen]
+    offsets = rig_offsets(per_clip)
+    if limb_twist == "hinge":
+        from training.pose.data import HINGE_CLIPS, hinge_twisted
+
+        offsets = hinge_twisted(offsets, chosen[:: max(1, len(chosen) // HINGE_CLIPS)][:HINGE_CLIPS], "", mapping)
+    return offsets
 
 
 def evaluate_shipped_pose(

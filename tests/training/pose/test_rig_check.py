@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -78,3 +80,47 @@ def test_evaluate_pose_s_clips_take_the_frames_of_the_model_s_limb_rule(data_dir
 
     assert abs(azimuth(user_clips([tmp_path], None, "rig"))) > 10.0
     assert abs(azimuth(user_clips([tmp_path], None, "hinge"))) < 1.0
+
+
+def test_a_user_s_clips_of_a_training_rig_are_scored_in_its_training_frames(data_dir, tmp_path) -> None:
+    """Sprints of a rig the models trained on get that rig's frames (fitted on its walks), not frames fitted on
+    the sprints; a skeleton the data directory does not have gets None (its frames are fitted on the clips)."""
+    from training.data.catalog import mocap_entries
+    from training.pose.data import build_rig_offsets
+    from training.pose.pipeline import catalogue_rig
+
+    runs = [data_dir / e.path for e in mocap_entries(data_dir, ["run"], ["cmu_li2018"])][:2]
+    entries = mocap_entries(data_dir, sources=["cmu_li2018"])
+    for twist in ("rig", "hinge"):
+        trained = build_rig_offsets(data_dir, entries, tmp_path / "cache", limb_twist=twist)["cmu_li2018"]
+        np.testing.assert_allclose(catalogue_rig(runs, data_dir, tmp_path / "cache", twist), trained, atol=1e-12)
+    renamed = tmp_path / "07_01.bvh"
+    renamed.write_text((data_dir / "mocap/cmu_iclone/07_01.bvh").read_text().replace("CC_Base_", "Lab_"))
+    assert catalogue_rig([renamed], data_dir, tmp_path / "cache", "rig") is None
+    assert catalogue_rig([runs[0], data_dir / "mocap/cmu_iclone/07_01.bvh"], data_dir, tmp_path, "rig") is None
+
+
+def test_a_folder_whose_feet_never_stand_flat_is_scored_with_the_feet_level_at_their_contact(
+    data_dir, tmp_path
+) -> None:
+    """li2018's sprints never stand flat for the 10 frames a level foot frame needs: fitted on them alone (no data
+    directory to take the rig's frames from), each foot is taken level where it moves slowest, within a few
+    degrees of the frames the rig's walks give; before, such a folder could not be scored at all."""
+    from service.core.body import BODY_SEGMENTS, NoStanceError, read_clip_offsets
+    from training.data.catalog import mocap_entries
+    from training.pose.data import build_rig_offsets, load_motion
+    from training.pose.pipeline import user_clips
+
+    sprints = tmp_path / "sprints"
+    sprints.mkdir()
+    for e in mocap_entries(data_dir, ["run"], ["cmu_li2018"])[:2]:
+        (sprints / (data_dir / e.path).name).symlink_to(data_dir / e.path)
+        with pytest.raises(NoStanceError):
+            read_clip_offsets(data_dir / e.path)
+    [clip, _] = user_clips([sprints], None, "rig")
+    walks = build_rig_offsets(data_dir, mocap_entries(data_dir, sources=["cmu_li2018"]), tmp_path / "c")["cmu_li2018"]
+    motion = load_motion(Path(clip.path), "", 0, None, walks)  # the same clip in the frames of the rig's walks
+    for side in ("Left", "Right"):
+        k = BODY_SEGMENTS.index(f"{side}Foot")
+        rel = np.einsum("tji,tjk->tik", motion.R_world_segment[:, k], clip.motion.R_world_segment[:, k])
+        assert np.degrees(Rotation.from_matrix(rel).magnitude()).max() < 10.0, side
