@@ -75,6 +75,10 @@ class PoseTrainConfig(Strict):
     acc_method: Literal["finite_difference", "butterworth"] = "finite_difference"
     # Share of the drawn training sequences performed by the mirror-image body (``data.mirrored``; our addition)
     mirror: float = Field(0.0, ge=0.0, le=1.0)
+    # Weight (1/m²) of a joint-position term beside the rotation loss: the mean squared distance of the segment
+    # origins after forward kinematics with each sequence's own bones, root-relative (TransPose and PIP supervise
+    # joint positions; ours is one term on the same network). 0: rotations only (Zheng et al. 2021).
+    position_loss: float = Field(0.0, ge=0.0)
 
 
 class PoseConfig(Strict):

@@ -3,9 +3,10 @@
 Each epoch draws ``sequences_per_epoch`` clips (by frames, activities above ``activity_cap_frames`` drawn less
 often), simulates a fresh session of each (new mounting, noise, world heading: ``simulate.simulate_session``) and
 cuts a random ``sequence_frames`` stretch. Loss: mean squared error of the rotation matrices over the real frames
-of each sequence (batches of similar length, no padding: ``_length_buckets``). The validation figure that
-selects the epoch is the mean geodesic angle of the output
-segments on fixed sessions of the validation subjects.
+of each sequence (batches of similar length, no padding: ``_length_buckets``), with ``train.position_loss`` also
+that of the joint positions the rotations put through each sequence's own skeleton (``_position_loss``). The
+validation figure that selects the epoch is the mean geodesic angle of the output segments on fixed sessions of the
+validation subjects.
 """
 
 from __future__ import annotations
@@ -21,12 +22,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from service.core.body import BODY_SEGMENTS, PARENT_INDEX, clip_body
 from service.inference.pose import run_chunked
 from training.data.catalog import is_bandai_namco
 from training.pose.config import PoseConfig, served_chunks
 from training.pose.data import MotionClip, mirrored
 from training.pose.models import PoseNet
-from training.pose.simulate import SensorNoise, Session, simulate_session
+from training.pose.simulate import SensorNoise, Session, root_relative_targets, simulate_session
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +88,44 @@ def _loss(pred: torch.Tensor, target: torch.Tensor, lengths: torch.Tensor, look_
     mask = ((t < lengths[:, None]) & (t >= look_ahead)).float()
     err = ((pred - target) ** 2).sum(dim=(-1, -2)).mean(-1)  # (B, T)
     return (err * mask).sum() / mask.sum().clamp(min=1.0)
+
+
+def _shifted(arrays: list[np.ndarray], T: int, look_ahead: int) -> torch.Tensor:
+    """Per-frame arrays (n_i, ...) as one (B, T, ...) tensor, shifted by the look-ahead as ``_batch`` shifts."""
+    out = np.zeros((len(arrays), T, *arrays[0].shape[1:]), np.float32)
+    for i, a in enumerate(arrays):
+        out[i, look_ahead : len(a)] = a[: len(a) - look_ahead] if look_ahead else a
+    return torch.from_numpy(out)
+
+
+def forward_kinematics(R_root: torch.Tensor, offsets_m: torch.Tensor) -> torch.Tensor:
+    """Segment origins (B, T, S, 3) in the root's frame from root-relative orientations (B, T, S, 3, 3) of every
+    body segment and each sequence's bones (B, S, 3): ``service.core.body.segment_origins`` in torch."""
+    p = [torch.zeros(R_root.shape[:2] + (3,))]
+    for k in range(1, len(BODY_SEGMENTS)):
+        parent = PARENT_INDEX[k]
+        p.append(p[parent] + torch.einsum("btij,bj->bti", R_root[:, :, parent], offsets_m[:, k]))
+    return torch.stack(p, dim=2)
+
+
+def _position_loss(
+    pred: torch.Tensor,
+    full: torch.Tensor,
+    offsets_m: torch.Tensor,
+    output_index: list[int],
+    lengths: torch.Tensor,
+    look_ahead: int,
+) -> torch.Tensor:
+    """Mean squared distance (m²) of the non-root segment origins, the true body's against the same body with the
+    model's answers in place of the true output segments (the sensed segments as they are, so only the answers
+    are judged): each answer weighted by how far it moves the joints below it."""
+    answered = full.clone()
+    answered[:, :, output_index] = pred
+    d = ((forward_kinematics(answered, offsets_m) - forward_kinematics(full, offsets_m)) ** 2).sum(-1)[..., 1:]
+    T = pred.shape[1]
+    t = torch.arange(T)[None, :]
+    mask = ((t < lengths[:, None]) & (t >= look_ahead)).float()
+    return (d.mean(-1) * mask).sum() / mask.sum().clamp(min=1.0)
 
 
 def geodesic_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
@@ -164,6 +204,7 @@ def train_pose(
         else None
     )
     weights = clip_weights(train_clips, cfg.data.activity_cap_frames, cfg.data.bandai_share)
+    output_index = [BODY_SEGMENTS.index(s) for s in cfg.outputs]
     result = PoseTrainResult(net)
     best_state, bad = copy.deepcopy(net.state_dict()), 0
     L, W = cfg.model.look_ahead, cfg.train.sequence_frames
@@ -175,15 +216,21 @@ def train_pose(
         bar = tqdm(batches, desc=f"{cfg.name} epoch {epoch}", unit="batch", leave=False, mininterval=5.0)
         for batch in bar:
             n = min(W, min(train_clips[i].motion.n_frames for i in batch))
-            sessions = []
+            sessions, bodies = [], []
             for i in batch:
                 start = int(rng.integers(0, train_clips[i].motion.n_frames - n + 1))
                 clip = _crop(train_clips[i], start, start + n)
                 if cfg.train.mirror and rng.random() < cfg.train.mirror:  # no draw without it: older runs replay
                     clip = mirrored(clip)
                 sessions.append(session_of(clip, cfg, rng))
+                bodies.append(clip.motion)
             x, y, lengths = _batch(sessions, L)
-            loss = _loss(net(x), y, lengths, L)
+            pred = net(x)
+            loss = _loss(pred, y, lengths, L)
+            if cfg.train.position_loss:
+                full = _shifted([root_relative_targets(m, BODY_SEGMENTS) for m in bodies], x.shape[1], L)
+                offsets = torch.from_numpy(np.stack([clip_body(m).offsets_m for m in bodies]).astype(np.float32))
+                loss = loss + cfg.train.position_loss * _position_loss(pred, full, offsets, output_index, lengths, L)
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)

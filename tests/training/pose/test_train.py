@@ -79,3 +79,36 @@ def test_a_clip_s_digest_does_not_change_with_the_offsets_noise() -> None:
     assert _digest(path, offsets) == _digest(path, noisy)
     turned = offsets @ Rotation.from_euler("z", 0.01, degrees=True).as_matrix()
     assert _digest(path, offsets) != _digest(path, turned)
+
+
+def test_the_position_term_is_the_forward_kinematics_of_the_answers_and_weighs_proximal_errors_more() -> None:
+    """``forward_kinematics`` is ``segment_origins`` in torch; the term is 0 for the true answers, and the same
+    10° error costs more on the thigh (it moves knee, ankle and toes) than on the foot (it moves the toe)."""
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from service.core.body import BODY_SEGMENTS, segment_origins
+    from training.pose.train import _position_loss, forward_kinematics
+
+    rng = np.random.default_rng(0)
+    S, T = len(BODY_SEGMENTS), 5
+    R = Rotation.random(T * S, random_state=1).as_matrix().reshape(T, S, 3, 3)
+    offsets = rng.normal(0.0, 0.2, (S, 3))
+    got = forward_kinematics(torch.from_numpy(R[None]), torch.from_numpy(offsets[None]))[0].numpy()
+    np.testing.assert_allclose(got, segment_origins(R, offsets), atol=1e-9)
+
+    out = [k for k, s in enumerate(BODY_SEGMENTS) if s not in ("Pelvis", "Head", "LeftForeArm", "RightForeArm")]
+    full = torch.from_numpy(R[None]).float()
+    off, lengths = torch.from_numpy(offsets[None]).float(), torch.tensor([T])
+    truth = full[:, :, out].clone()
+    assert _position_loss(truth, full, off, out, lengths, 0).item() < 1e-10
+    turn = torch.from_numpy(Rotation.from_euler("x", 10, degrees=True).as_matrix()).float()
+
+    def cost(segment: str) -> float:
+        pred = truth.clone()
+        j = out.index(BODY_SEGMENTS.index(segment))
+        pred[:, :, j] = pred[:, :, j] @ turn
+        return _position_loss(pred, full, off, out, lengths, 0).item()
+
+    assert cost("LeftUpperLeg") > cost("LeftFoot") > 0.0
+    assert cost("LeftToe") == 0.0  # a leaf moves no joint: its rotation is the rotation loss's alone
