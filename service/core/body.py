@@ -108,6 +108,8 @@ _AXIS_RULE.pop("Pelvis")
 STANCE_SPEED_M_S = 0.2
 STANCE_HEIGHT_M = 0.03
 MIN_STANCE_FRAMES = 10
+# The head rises at least this far above the feet in a clip's upright frames (``_check_upright``)
+UPRIGHT_RISE_M = 0.5
 
 
 class MappingError(ValueError):
@@ -124,13 +126,15 @@ class SkeletonMapping:
 
     segments: segment → (driving joint, distal joint or None); the driving joint's position is the segment origin
     and its rotation moves the segment. hips: left and right hip joints (the pelvis's lateral axis).
-    metres_per_unit: the length unit of the BVH files.
+    metres_per_unit: the length unit of the BVH files. up_axis: the BVH world's vertical, "y" as the format has it
+    or "z" as some exporters write it.
     """
 
     name: str
     segments: dict[str, tuple[str, str | None]]
     hips: tuple[str, str]
     metres_per_unit: float
+    up_axis: str = "y"
 
     def check(self, joint_names: tuple[str, ...]) -> None:
         missing = [s for s in BODY_SEGMENTS if s not in self.segments]
@@ -332,17 +336,21 @@ def load_mapping(path: str | Path) -> SkeletonMapping:
         raw = json.loads(text)
     try:
         segments = {s: (v["joint"], v.get("distal")) for s, v in raw["segments"].items()}
-        return SkeletonMapping(
+        mapping = SkeletonMapping(
             str(raw.get("name", Path(path).stem)),
             segments,
             (raw["hips"][0], raw["hips"][1]),
             float(raw["metres_per_unit"]),
+            str(raw.get("up_axis", "y")).lower(),
         )
     except (KeyError, TypeError, IndexError) as exc:
         raise MappingError(
             f"{path}: a mapping needs 'metres_per_unit', 'hips' [left, right] and 'segments' "
             f"{{segment: {{'joint': ..., 'distal': ...}}}}; missing or malformed: {exc}"
         ) from None
+    if mapping.up_axis not in ("y", "z"):
+        raise MappingError(f'{path}: \'up_axis\' is the BVH world\'s vertical, "y" or "z"; got {raw["up_axis"]!r}')
+    return mapping
 
 
 @dataclass(frozen=True)
@@ -633,9 +641,27 @@ def read_rig(path: str | Path, mapping: SkeletonMapping | None = None, source: s
     names = tuple(j.name for j in bvh.joints)
     mapping = mapping or (mapping_for_source(source, names) if source else detect_mapping(names))
     mapping.check(names)
-    poses = forward_kinematics(bvh, mapping.metres_per_unit)
+    poses = forward_kinematics(bvh, mapping.metres_per_unit, mapping.up_axis)
+    _check_upright(poses, mapping, path)
     ends = {bvh.joints[j].name: off * mapping.metres_per_unit for j, off in bvh.end_sites.items()}
     return poses, mapping, ends
+
+
+def _check_upright(poses: GlobalPoses, mapping: SkeletonMapping, path: str | Path) -> None:
+    """The head well above the feet somewhere in the clip (in 5 % of its frames), else the clip's world has another
+    vertical than the mapping says: a Z-up export read as Y-up would simulate gravity sideways and score nonsense
+    without a word. (A clip lying down throughout cannot show its vertical and is refused too.)"""
+    head = poses.positions_m[:, poses.index(mapping.segments["Head"][0])]
+    feet = [poses.positions_m[:, poses.index(mapping.segments[f"{side}Foot"][0])] for side in ("Left", "Right")]
+    rise = head[:, 2] - (feet[0][:, 2] + feet[1][:, 2]) / 2.0
+    if np.percentile(rise, 95) < UPRIGHT_RISE_M:
+        other = "z" if mapping.up_axis == "y" else "y"
+        raise MappingError(
+            f"{path}: read with {mapping.up_axis.upper()} up, the head is at most {np.percentile(rise, 95):+.2f} m "
+            f"above the feet in 95 % of the frames; expected about 1.4 m where the person stands. If the file's "
+            f'world is {other.upper()}-up, give a mapping file with "up_axis": "{other}" '
+            "(service.core.body.load_mapping)"
+        )
 
 
 def read_body_motion(

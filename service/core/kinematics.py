@@ -15,6 +15,9 @@ from service.core.bvh import Bvh
 
 # Columns are the BVH axes expressed in the project frame: project = C @ bvh.
 C_PROJECT_BVH = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+# Some exporters write Z-up worlds (``SkeletonMapping.up_axis`` "z"): their axes are the project's already (the
+# heading does not matter to any model: each session draws its world's heading)
+C_PROJECT_BVH_Z_UP = np.eye(3)
 
 
 @dataclass(frozen=True)
@@ -64,8 +67,10 @@ def _local_translation(bvh: Bvh, joint_index: int) -> np.ndarray:
     return t
 
 
-def forward_kinematics(bvh: Bvh, metres_per_unit: float) -> GlobalPoses:
-    """Global positions and orientations of every joint, in the project world frame."""
+def forward_kinematics(bvh: Bvh, metres_per_unit: float, up_axis: str = "y") -> GlobalPoses:
+    """Global positions and orientations of every joint, in the project world frame (the BVH world's up axis
+    ``up_axis``: "y", as the format has it, or "z")."""
+    C = {"y": C_PROJECT_BVH, "z": C_PROJECT_BVH_Z_UP}[up_axis]
     n_frames, n_joints = bvh.motion.shape[0], len(bvh.joints)
     R = np.empty((n_frames, n_joints, 3, 3))
     p = np.empty((n_frames, n_joints, 3))
@@ -78,8 +83,8 @@ def forward_kinematics(bvh: Bvh, metres_per_unit: float) -> GlobalPoses:
         else:
             R[:, j] = R[:, joint.parent] @ R_local
             p[:, j] = p[:, joint.parent] + np.einsum("tij,tj->ti", R[:, joint.parent], t_local)
-    positions_m = np.einsum("ij,tkj->tki", C_PROJECT_BVH, p) * metres_per_unit
-    R_world_joint = np.einsum("ij,tkjl->tkil", C_PROJECT_BVH, R)
+    positions_m = np.einsum("ij,tkj->tki", C, p) * metres_per_unit
+    R_world_joint = np.einsum("ij,tkjl->tkil", C, R)
     names = tuple(joint.name for joint in bvh.joints)
     return GlobalPoses(names, positions_m, R_world_joint, bvh.sample_rate_hz)
 

@@ -149,3 +149,44 @@ def test_feet_are_level_when_they_stand_flat_on_every_rig(data_dir: Path) -> Non
         motion = read_body_motion(data_dir / paths[3], source=source, offsets=rig)
         for side in ("Left", "Right"):
             assert abs(_flat_foot_pitch_deg(motion, side)) < 6.0, (source, side)
+
+
+def test_a_z_up_file_reads_upright_through_its_mapping_and_is_refused_read_as_y_up(
+    data_dir: Path, tmp_path: Path
+) -> None:
+    """An iClone walk turned into a Z-up world (as some exporters write BVH): read with ``up_axis`` "z" its heights
+    are the Y-up file's; read as Y-up it is refused with the fix in the message, not scored sideways."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    from service.core.body import _check_upright
+    from service.core.kinematics import forward_kinematics
+
+    bvh = read_bvh(data_dir / "mocap/cmu_iclone/07_01.bvh")
+    M = Rotation.from_euler("x", 90, degrees=True).as_matrix()  # the Y-up world's y becomes z
+    root = bvh.joints[0]
+    assert [c for c in root.channels if c.endswith("position")] == ["Xposition", "Yposition", "Zposition"]
+    motion = bvh.motion.copy()
+    pos = [root.channel_start + k for k, c in enumerate(root.channels) if c.endswith("position")]
+    rot = [root.channel_start + k for k, c in enumerate(root.channels) if c.endswith("rotation")]
+    order = "".join(c[0].upper() for c in root.channels if c.endswith("rotation"))
+    motion[:, pos] = motion[:, pos] @ M.T
+    R = Rotation.from_euler(order, motion[:, rot], degrees=True).as_matrix()
+    motion[:, rot] = Rotation.from_matrix(M @ R).as_euler(order, degrees=True)
+    z_up = replace(bvh, joints=(replace(root, offset=M @ root.offset), *bvh.joints[1:]), motion=motion)
+
+    mapping = SKELETON_MAPPINGS["cmu_iclone"]
+    as_made = forward_kinematics(bvh, mapping.metres_per_unit)
+    read = forward_kinematics(z_up, mapping.metres_per_unit, "z")
+    np.testing.assert_allclose(read.positions_m[..., 2], as_made.positions_m[..., 2], atol=1e-6)
+    _check_upright(read, replace(mapping, up_axis="z"), "z_up.bvh")
+    with pytest.raises(MappingError, match='"up_axis": "z"'):
+        _check_upright(forward_kinematics(z_up, mapping.metres_per_unit), mapping, "z_up.bvh")
+
+    raw = {"metres_per_unit": 0.01, "hips": ["a", "b"], "segments": {}, "up_axis": "Z"}
+    (tmp_path / "z.json").write_text(json.dumps(raw))
+    assert load_mapping(tmp_path / "z.json").up_axis == "z"
+    (tmp_path / "x.json").write_text(json.dumps(raw | {"up_axis": "x"}))
+    with pytest.raises(MappingError, match="'x'"):
+        load_mapping(tmp_path / "x.json")
