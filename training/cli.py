@@ -741,10 +741,20 @@ def evaluate_flex(
     if tag and not validation:
         raise typer.BadParameter("--tag writes the validation figure the registry compares by: give --validation")
     loaded = load_model(newest_shipped(model, "flex_bilstm_cm"), 2)
-    td = loaded.manifest.training_data
-    # scored on the split its run had, in the segment frames its angles are in ("rig" where the manifest does not say)
+    m = loaded.manifest
+    td = m.training_data
+    if "test_subjects" not in td:
+        raise typer.BadParameter(
+            f"{m.name} {m.version} is not a simulated-suit model (its manifest names no held-out subjects); "
+            "a capacitive sleeve model is scored by evaluate-capacitive"
+        )
+    # its clips built as its run built them (joints, strips, window), on the split its run had, in the segment frames
+    # its angles are in ("rig" where the manifest does not say)
     cfg = FlexConfig(
-        name=loaded.manifest.name,
+        name=m.name,
+        joints=m.joints,
+        sensors=[c.removesuffix("_flex") for c in m.channels],
+        model={"window": m.window_samples},
         data={
             "limb_twist": td.get("limb_twist", "rig"),
             "sources": td.get("sources"),
@@ -762,9 +772,14 @@ def evaluate_flex(
             from training.tracking import record_evaluation, setup_tracking
 
             setup_tracking(cfg.tracking.experiment)
-            run_id = local_run_id(loaded.manifest.mlflow["run_id"])
-            tagged = record_evaluation(loaded.manifest.name, run_id, SELECTION_METRIC, val["mae_deg"], data.digest_val)
-            typer.echo(f"{loaded.manifest.name} versions {tagged}: {SELECTION_METRIC} {val['mae_deg']:.4f}", err=True)
+            run_id = local_run_id(m.mlflow["run_id"])
+            tagged = record_evaluation(m.name, run_id, SELECTION_METRIC, val["mae_deg"], data.digest_val)
+            if not tagged:
+                raise typer.BadParameter(
+                    f"no registered version of {m.name} comes from run {run_id} in this tracking store: nothing tagged "
+                    "(restore the store with snapshot-restore, or set MLFLOW_TRACKING_URI to the one it was trained in)"
+                )
+            typer.echo(f"{m.name} versions {tagged}: {SELECTION_METRIC} {val['mae_deg']:.4f}", err=True)
         typer.echo(json.dumps(val, indent=1) if as_json else f"validation: {val['mae_deg']:.2f}°")
         return
     if as_json:

@@ -179,7 +179,9 @@ def test_a_z_up_file_reads_upright_through_its_mapping_and_is_refused_read_as_y_
     mapping = SKELETON_MAPPINGS["cmu_iclone"]
     as_made = forward_kinematics(bvh, mapping.metres_per_unit)
     read = forward_kinematics(z_up, mapping.metres_per_unit, "z")
-    np.testing.assert_allclose(read.positions_m[..., 2], as_made.positions_m[..., 2], atol=1e-6)
+    # the same world turned a quarter about the vertical (a proper rotation: left stays left)
+    Rz = Rotation.from_euler("z", -90, degrees=True).as_matrix()
+    np.testing.assert_allclose(read.positions_m, as_made.positions_m @ Rz.T, atol=1e-6)
     _check_upright(read, replace(mapping, up_axis="z"), "z_up.bvh")
     with pytest.raises(MappingError, match='"up_axis": "z"'):
         _check_upright(forward_kinematics(z_up, mapping.metres_per_unit), mapping, "z_up.bvh")

@@ -424,16 +424,19 @@ def user_clips(
     from training.pose.data import load_motion
 
     mapping = load_mapping(mapping_file) if mapping_file else None
-    files = []
+    files, walks = [], []
     for p in paths:
-        files += sorted(q for q in p.rglob("*") if q.name.endswith((".bvh", ".bvh.gz"))) if p.is_dir() else [p]
+        found = sorted(q for q in p.rglob("*") if q.name.endswith((".bvh", ".bvh.gz"))) if p.is_dir() else [p]
+        files += found
+        # a walk: a folder (below the one given) or file name that says so
+        walks += [q for q in found if "walk" in (str(q.relative_to(p)) if p.is_dir() else q.name).lower()]
     if not files:
         raise ValueError(f"no .bvh or .bvh.gz files in {[str(p) for p in paths]}")
     offsets = None
     if mapping is None and data_dir is not None:
         offsets = catalogue_rig(files, data_dir, cache_dir or Path(".cache/pose_motion"), limb_twist)
     if offsets is None:
-        offsets = fitted_rig(files, mapping, limb_twist)
+        offsets = fitted_rig(files, walks, mapping, limb_twist)
     clips = []
     for f in files:
         digest = hashlib.sha256(f.read_bytes()).hexdigest()[:20]
@@ -443,24 +446,37 @@ def user_clips(
 
 
 def _skeleton(path: Path) -> str:
-    """A BVH file's skeleton: joint names, parents, channels and bone offsets (to 1e-3 of its unit)."""
+    """A BVH file's skeleton from its header: joint names, parents, channels and the bone offsets (to 1e-3 of its
+    unit) of the joints without position channels (the root's OFFSET is where a take starts, and Bandai-Namco's
+    position channels replace its joints' offsets)."""
+    import gzip
     import hashlib
 
-    from service.core.bvh import read_bvh
+    from service.core.bvh import _parse
 
-    bvh = read_bvh(path)
+    opener = gzip.open if path.suffix == ".gz" else open
+    header = []
+    with opener(path, "rt") as f:
+        for line in f:
+            if line.strip().startswith("MOTION"):
+                break
+            header.append(line)
+    bvh = _parse("".join(header).split() + ["MOTION", "Frames:", "0", "Frame", "Time:", "1"], str(path))
     h = hashlib.sha256()
     for j in bvh.joints:
         h.update(f"{j.name}|{j.parent}|{','.join(j.channels)}|".encode())
-        h.update((np.round(j.offset, 3) + 0.0).tobytes())
+        if not any(c.endswith("position") for c in j.channels):
+            h.update((np.round(j.offset, 3) + 0.0).tobytes())
+    for j, end in sorted(bvh.end_sites.items()):
+        h.update(f"end {j}|".encode() + (np.round(end, 3) + 0.0).tobytes())
     return h.hexdigest()
 
 
 def catalogue_rig(files: list[Path], data_dir: Path, cache_dir: Path, limb_twist: str) -> np.ndarray | None:
     """The segment offsets the training clips of the same rig got (``build_rig_offsets``: fitted on the rig's
-    walks), where every file has the skeleton of one whole-source rig of the data directory; else None. A
-    user's clips of a rig the models trained on are then scored in exactly the frames they learned, whatever
-    the clips do (fitted on a folder of sprints, the pelvis's and trunk's frames would take the sprint's lean)."""
+    walks), where every file has a skeleton of exactly one whole-source rig of the data directory; else None. A
+    user's clips of a rig the models trained on are then scored in exactly the frames they learned, whatever the
+    clips do (fitted on a folder of sprints, the pelvis's and trunk's frames would take the sprint's lean)."""
     from training.pose.data import build_rig_offsets, rig_key
 
     wanted = {_skeleton(f) for f in files}
@@ -470,20 +486,24 @@ def catalogue_rig(files: list[Path], data_dir: Path, cache_dir: Path, limb_twist
     for e in mocap_entries(data_dir):
         if rig_key(e) == e.source:  # whole-source rigs (each cmu_raw file is its own person's skeleton)
             by_rig.setdefault(e.source, []).append(e)
-    for rig, entries in by_rig.items():
-        if _skeleton(data_dir / entries[0].path) in wanted:
-            log.info("segment frames: the %s rig's, as its training clips had them", rig)
-            return build_rig_offsets(data_dir, entries, cache_dir, limb_twist=limb_twist)[rig]
-    return None
+    matches = [rig for rig, entries in by_rig.items() if wanted <= {_skeleton(data_dir / e.path) for e in entries}]
+    if len(matches) != 1:
+        if matches:
+            log.info("the skeleton is that of %s alike: frames fitted on the clips", " and ".join(matches))
+        return None
+    [rig] = matches
+    log.info("segment frames: the %s rig's, as its training clips had them", rig)
+    return build_rig_offsets(data_dir, by_rig[rig], cache_dir, limb_twist=limb_twist)[rig]
 
 
-def fitted_rig(files: list[Path], mapping, limb_twist: str) -> np.ndarray:
-    """A rig's segment offsets fitted on ``files`` as ``build_rig_offsets`` fits a catalogue rig's: on the walks
-    (files under a folder or with a name that says "walk") where there are any, the clips whose feet stand flat
-    somewhere (the foot frames are level there); where none does, the feet taken level where they move slowest."""
+def fitted_rig(files: list[Path], walks: list[Path], mapping, limb_twist: str) -> np.ndarray:
+    """A rig's segment offsets fitted on ``files`` with ``build_rig_offsets``' rules (a rig's walks are the nearest
+    to the neutral stance that defines the frames), on its ``walks`` where there are any (a training rig needs
+    three, else all its clips; a user's folder has fewer, and one walk is nearer to neutral than any sprint), the
+    clips whose feet stand flat somewhere (the foot frames are level there); where none does, the feet taken
+    level where they move slowest."""
     from service.core.body import NoStanceError, read_clip_offsets, rig_offsets
 
-    walks = [f for f in files if "walk" in f"{f.parent.name}/{f.name}".lower()]
     chosen = walks or files
     if not walks:
         log.warning(

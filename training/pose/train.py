@@ -101,7 +101,7 @@ def _shifted(arrays: list[np.ndarray], T: int, look_ahead: int) -> torch.Tensor:
 def forward_kinematics(R_root: torch.Tensor, offsets_m: torch.Tensor) -> torch.Tensor:
     """Segment origins (B, T, S, 3) in the root's frame from root-relative orientations (B, T, S, 3, 3) of every
     body segment and each sequence's bones (B, S, 3): ``service.core.body.segment_origins`` in torch."""
-    p = [torch.zeros(R_root.shape[:2] + (3,))]
+    p = [R_root.new_zeros(R_root.shape[:2] + (3,))]
     for k in range(1, len(BODY_SEGMENTS)):
         parent = PARENT_INDEX[k]
         p.append(p[parent] + torch.einsum("btij,bj->bti", R_root[:, :, parent], offsets_m[:, k]))

@@ -86,14 +86,29 @@ def test_a_user_s_clips_of_a_training_rig_are_scored_in_its_training_frames(data
     """Sprints of a rig the models trained on get that rig's frames (fitted on its walks), not frames fitted on
     the sprints; a skeleton the data directory does not have gets None (its frames are fitted on the clips)."""
     from training.data.catalog import mocap_entries
-    from training.pose.data import build_rig_offsets
-    from training.pose.pipeline import catalogue_rig
+    from training.pose.data import build_rig_offsets, load_motion
+    from training.pose.pipeline import catalogue_rig, user_clips
 
     runs = [data_dir / e.path for e in mocap_entries(data_dir, ["run"], ["cmu_li2018"])][:2]
     entries = mocap_entries(data_dir, sources=["cmu_li2018"])
     for twist in ("rig", "hinge"):
         trained = build_rig_offsets(data_dir, entries, tmp_path / "cache", limb_twist=twist)["cmu_li2018"]
         np.testing.assert_allclose(catalogue_rig(runs, data_dir, tmp_path / "cache", twist), trained, atol=1e-12)
+    # and so a user's folder of them is read (evaluate-pose with a data directory)
+    sprints = tmp_path / "sprints"
+    sprints.mkdir()
+    for p in runs:
+        (sprints / p.name).symlink_to(p)
+    [clip, _] = user_clips([sprints], None, "hinge", data_dir, tmp_path / "cache")
+    np.testing.assert_allclose(
+        clip.motion.R_world_segment, load_motion(Path(clip.path), "", 0, None, trained).R_world_segment, atol=1e-12
+    )
+    # the root's OFFSET (where a take starts) is no part of the skeleton: Bandai-Namco's takes start anywhere
+    moved = tmp_path / "moved.bvh"
+    text = runs[0].read_text()
+    assert "OFFSET 0.000000 0.000000 0.000000" in text.splitlines()[3]
+    moved.write_text(text.replace("OFFSET 0.000000 0.000000 0.000000", "OFFSET 1.5 0.0 -2.0", 1))
+    np.testing.assert_allclose(catalogue_rig([moved], data_dir, tmp_path / "cache", "hinge"), trained, atol=1e-12)
     renamed = tmp_path / "07_01.bvh"
     renamed.write_text((data_dir / "mocap/cmu_iclone/07_01.bvh").read_text().replace("CC_Base_", "Lab_"))
     assert catalogue_rig([renamed], data_dir, tmp_path / "cache", "rig") is None

@@ -112,3 +112,22 @@ def test_the_position_term_is_the_forward_kinematics_of_the_answers_and_weighs_p
 
     assert cost("LeftUpperLeg") > cost("LeftFoot") > 0.0
     assert cost("LeftToe") == 0.0  # a leaf moves no joint: its rotation is the rotation loss's alone
+
+
+def test_the_position_term_s_truth_is_shifted_with_the_targets() -> None:
+    """With a look-ahead the output at frame t answers frame t - L: the whole body's truth (``_shifted``) must sit
+    where ``_batch`` puts the targets, or the term would judge each answer against another frame."""
+    import torch
+
+    from service.core.body import BODY_SEGMENTS
+    from training.pose.train import _batch, _shifted
+
+    rng = np.random.default_rng(2)
+    out = [3, 7, 12]
+    full = [rng.normal(size=(n, len(BODY_SEGMENTS), 3, 3)).astype(np.float32) for n in (40, 40)]
+    sessions = [SimpleNamespace(features=np.zeros((len(f), 4), np.float32), targets=f[:, out]) for f in full]
+    for look_ahead in (0, 5):
+        x, y, _ = _batch(sessions, look_ahead)
+        shifted = _shifted(full, x.shape[1], look_ahead)
+        assert torch.equal(shifted[:, :, out], y)
+        assert torch.equal(shifted[:, look_ahead + 1, 0], torch.from_numpy(np.stack([f[1, 0] for f in full])))
