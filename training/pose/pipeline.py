@@ -413,11 +413,11 @@ def user_clips(
     cache_dir: Path | None = None,
 ) -> list[MotionClip]:
     """BVH files (plain or .gz), or folders of them, on the canonical body at 60 Hz; the activity is the folder's
-    name. Without a mapping file the skeleton must be one of the known families. All files are taken to share one
-    rig, and its segment frames are the training clips' where it is a rig of the data directory (``data_dir``: the
-    same skeleton, ``catalogue_rig``), else fitted on these files as the catalogue fits a rig's (``fitted_rig``);
-    with ``limb_twist`` "hinge" the limbs turned so that the elbows' and knees' hinges lie along y
-    (``training.pose.data.hinge_twisted``)."""
+    name. Without a mapping file the skeleton must be one of the known families. The files of one skeleton
+    (``_skeleton``: one rig, or one person of a family that fits a skeleton per person) share their segment frames:
+    the training clips' where it is a rig of the data directory (``data_dir``, ``catalogue_rig``), else fitted on
+    these files as the catalogue fits a rig's (``fitted_rig``); with ``limb_twist`` "hinge" the limbs turned so that
+    the elbows' and knees' hinges lie along y (``training.pose.data.hinge_twisted``)."""
     import hashlib
 
     from service.core.body import load_mapping
@@ -432,15 +432,23 @@ def user_clips(
         walks += [q for q in found if "walk" in (str(q.relative_to(p)) if p.is_dir() else q.name).lower()]
     if not files:
         raise ValueError(f"no .bvh or .bvh.gz files in {[str(p) for p in paths]}")
-    offsets = None
-    if mapping is None and data_dir is not None:
-        offsets = catalogue_rig(files, data_dir, cache_dir or Path(".cache/pose_motion"), limb_twist)
-    if offsets is None:
-        offsets = fitted_rig(files, walks, mapping, limb_twist)
+    rigs: dict[str, list[Path]] = {}
+    for f in files:
+        rigs.setdefault(_skeleton(f), []).append(f)
+    if len(rigs) > 1:
+        log.info("%d skeletons among the %d files: each has its own segment frames", len(rigs), len(files))
+    offsets: dict[Path, np.ndarray] = {}
+    for group in rigs.values():
+        rig = None
+        if mapping is None and data_dir is not None:
+            rig = catalogue_rig(group, data_dir, cache_dir or Path(".cache/pose_motion"), limb_twist)
+        if rig is None:
+            rig = fitted_rig(group, [w for w in walks if w in group], mapping, limb_twist)
+        offsets |= dict.fromkeys(group, rig)
     clips = []
     for f in files:
         digest = hashlib.sha256(f.read_bytes()).hexdigest()[:20]
-        motion = load_motion(f, "", 0, mapping, offsets)
+        motion = load_motion(f, "", 0, mapping, offsets[f])
         clips.append(MotionClip(str(f), "user", f.parent.name, f.parent.name, motion, digest))
     return clips
 

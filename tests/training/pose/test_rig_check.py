@@ -103,6 +103,17 @@ def test_a_user_s_clips_of_a_training_rig_are_scored_in_its_training_frames(data
     np.testing.assert_allclose(
         clip.motion.R_world_segment, load_motion(Path(clip.path), "", 0, None, trained).R_world_segment, atol=1e-12
     )
+    # a folder of two rigs: each file in its own rig's frames
+    walk = data_dir / mocap_entries(data_dir, ["walk"], ["cmu_iclone"])[0].path
+    (sprints / walk.name).symlink_to(walk)
+    iclone = build_rig_offsets(
+        data_dir, mocap_entries(data_dir, sources=["cmu_iclone"]), tmp_path / "cache", limb_twist="hinge"
+    )
+    for clip in user_clips([sprints], None, "hinge", data_dir, tmp_path / "cache"):
+        rig = iclone["cmu_iclone"] if clip.path.endswith(walk.name) else trained
+        np.testing.assert_allclose(
+            clip.motion.R_world_segment, load_motion(Path(clip.path), "", 0, None, rig).R_world_segment, atol=1e-12
+        )
     # the root's OFFSET (where a take starts) is no part of the skeleton: Bandai-Namco's takes start anywhere
     moved = tmp_path / "moved.bvh"
     text = runs[0].read_text()
