@@ -52,6 +52,18 @@ def read_bvh(path: str | Path) -> Bvh:
     return _parse(tokens, str(path))
 
 
+def read_bvh_header(path: str | Path) -> Bvh:
+    """A BVH file's skeleton alone (no frames read: ``motion`` has no rows), plain or gzipped."""
+    path = Path(path)
+    header = []
+    with gzip.open(path, "rt") if path.suffix == ".gz" else path.open() as f:
+        for line in f:
+            if line.strip().startswith("MOTION"):
+                break
+            header.append(line)
+    return _parse("".join(header).split() + ["MOTION", "Frames:", "0", "Frame", "Time:", "1"], str(path))
+
+
 def _expect(tokens: list[str], i: int, word: str, where: str) -> int:
     if i >= len(tokens) or tokens[i] != word:
         found = tokens[i] if i < len(tokens) else "end of file"

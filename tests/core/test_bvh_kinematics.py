@@ -137,3 +137,17 @@ def test_functional_frames_on_real_walking_are_small_turns_and_a_fixed_point(dat
     assert np.any(corr.angle_deg > 1.0), "the geometric frames are not already functional"
     again = functional_correction(corrected)
     np.testing.assert_allclose(again.angle_deg[1:6], 0.0, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "path",
+    ["mocap/cmu_li2018/walking/train_walking_1.bvh", "mocap/bandai_namco/dataset-2/dataset-2_walk_active_001.bvh.gz"],
+)
+def test_the_header_alone_is_the_file_s_skeleton(data_dir: Path, path: str) -> None:
+    from service.core.bvh import read_bvh_header
+
+    whole, header = read_bvh(data_dir / path), read_bvh_header(data_dir / path)
+    assert [j.name for j in header.joints] == [j.name for j in whole.joints] and len(header.motion) == 0
+    for a, b in zip(header.joints, whole.joints, strict=True):
+        assert a.parent == b.parent and a.channels == b.channels and np.array_equal(a.offset, b.offset)
+    assert header.end_sites.keys() == whole.end_sites.keys()

@@ -7,6 +7,7 @@ reported and never used to choose.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import tempfile
@@ -457,19 +458,11 @@ def _skeleton(path: Path) -> str:
     """A BVH file's skeleton from its header: joint names, parents, channels and the bone offsets (to 1e-3 of its
     unit) of the joints without position channels (the root's OFFSET is where a take starts, and Bandai-Namco's
     position channels replace its joints' offsets)."""
-    import gzip
     import hashlib
 
-    from service.core.bvh import _parse
+    from service.core.bvh import read_bvh_header
 
-    opener = gzip.open if path.suffix == ".gz" else open
-    header = []
-    with opener(path, "rt") as f:
-        for line in f:
-            if line.strip().startswith("MOTION"):
-                break
-            header.append(line)
-    bvh = _parse("".join(header).split() + ["MOTION", "Frames:", "0", "Frame", "Time:", "1"], str(path))
+    bvh = read_bvh_header(path)
     h = hashlib.sha256()
     for j in bvh.joints:
         h.update(f"{j.name}|{j.parent}|{','.join(j.channels)}|".encode())
@@ -485,23 +478,35 @@ def catalogue_rig(files: list[Path], data_dir: Path, cache_dir: Path, limb_twist
     walks), where every file has a skeleton of exactly one whole-source rig of the data directory; else None. A
     user's clips of a rig the models trained on are then scored in exactly the frames they learned, whatever the
     clips do (fitted on a folder of sprints, the pelvis's and trunk's frames would take the sprint's lean)."""
-    from training.pose.data import build_rig_offsets, rig_key
+    from training.pose.data import build_rig_offsets
 
     wanted = {_skeleton(f) for f in files}
     if len(wanted) != 1:
         return None
-    by_rig: dict[str, list] = {}
-    for e in mocap_entries(data_dir):
-        if rig_key(e) == e.source:  # whole-source rigs (each cmu_raw file is its own person's skeleton)
-            by_rig.setdefault(e.source, []).append(e)
-    matches = [rig for rig, entries in by_rig.items() if wanted <= {_skeleton(data_dir / e.path) for e in entries}]
+    rigs = _catalogue_skeletons(data_dir)
+    matches = [rig for rig, (skeletons, _) in rigs.items() if wanted <= skeletons]
     if len(matches) != 1:
         if matches:
             log.info("the skeleton is that of %s alike: frames fitted on the clips", " and ".join(matches))
         return None
     [rig] = matches
     log.info("segment frames: the %s rig's, as its training clips had them", rig)
-    return build_rig_offsets(data_dir, by_rig[rig], cache_dir, limb_twist=limb_twist)[rig]
+    return build_rig_offsets(data_dir, rigs[rig][1], cache_dir, limb_twist=limb_twist)[rig]
+
+
+@functools.lru_cache(maxsize=4)
+def _catalogue_skeletons(data_dir: Path) -> dict[str, tuple[set[str], list]]:
+    """Per whole-source rig of the data directory (each cmu_raw file is its own person's skeleton, so not one),
+    the skeletons of its files and its catalogue entries; read once per data directory (about 2 s)."""
+    from training.pose.data import rig_key
+
+    out: dict[str, tuple[set[str], list]] = {}
+    for e in mocap_entries(data_dir):
+        if rig_key(e) == e.source:
+            skeletons, entries = out.setdefault(e.source, (set(), []))
+            skeletons.add(_skeleton(data_dir / e.path))
+            entries.append(e)
+    return out
 
 
 def fitted_rig(files: list[Path], walks: list[Path], mapping, limb_twist: str) -> np.ndarray:
