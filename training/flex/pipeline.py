@@ -331,7 +331,12 @@ def evaluate_served(loaded, data: FlexData, validation: bool = False) -> dict:
     """A loaded ONNX flex model on the test sets ``build_sets`` makes (same seeds as its training run), or with
     ``validation`` on the validation suits its run chose its epoch and the registry its champion by."""
     m = loaded.manifest
-    cfg = FlexConfig(name=m.name, joints=m.joints, sensors=[c.removesuffix("_flex") for c in m.channels])
+    cfg = FlexConfig(
+        name=m.name,
+        joints=m.joints,
+        sensors=[c.removesuffix("_flex") for c in m.channels],
+        model={"window": m.window_samples},
+    )
     lat = m.flex.latency_samples
     if validation:
         val = window_set(data.val, 1, VAL_SEED, cfg.model.window)
