@@ -588,12 +588,13 @@ def evaluate_pose(
     manifest = read_manifest(model / "manifest.json")
     td = manifest.training_data
     limb_twist = td.get("limb_twist", "rig")  # scored in the segment frames the model answers in
+    skipped: list[dict[str, str]] = []  # a user's files that could not be scored, with the reason
     if paths:
         try:  # the data directory's rigs give a user's clips of the same skeleton their training frames
             known = resolve_data_dir(data_dir)
         except RuntimeError:
             known = None
-        clips = user_clips(list(paths), mapping, limb_twist, known, cache_dir)
+        clips = user_clips(list(paths), mapping, limb_twist, known, cache_dir, skipped)
     else:
         cfg = PoseConfig(
             name=manifest.name,
@@ -633,8 +634,10 @@ def evaluate_pose(
     if as_json:
         per_clip = [{"clip": r.path, "frames": r.frames, **r.metrics} for r in results]
         segments = {s: {"angle_deg": error[s], "constant_per_clip_deg": constant[s]} for s in error}
-        typer.echo(json.dumps({"clips": per_clip, **summary, "segments": segments}, indent=1))
+        typer.echo(json.dumps({"clips": per_clip, **summary, "segments": segments, "skipped": skipped}, indent=1))
         return
+    for left_out in skipped:
+        typer.echo(f"left out {left_out['clip']}: {left_out['reason']}")
     typer.echo(results_table(results))
     typer.echo("segment          angle°  of it constant per clip°")
     for s in error:

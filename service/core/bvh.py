@@ -52,16 +52,25 @@ def read_bvh(path: str | Path) -> Bvh:
     return _parse(tokens, str(path))
 
 
-def read_bvh_header(path: str | Path) -> Bvh:
-    """A BVH file's skeleton alone (no frames read: ``motion`` has no rows), plain or gzipped."""
+def read_bvh_header(path: str | Path) -> tuple[Bvh, int]:
+    """A BVH file's skeleton and frame time alone (no frames read: ``motion`` has no rows), plain or gzipped, and
+    the number of frames its header declares."""
     path = Path(path)
     header = []
     with gzip.open(path, "rt") if path.suffix == ".gz" else path.open() as f:
         for line in f:
-            if line.strip().startswith("MOTION"):
-                break
             header.append(line)
-    return _parse("".join(header).split() + ["MOTION", "Frames:", "0", "Frame", "Time:", "1"], str(path))
+            if line.strip().startswith("Frame Time:"):
+                break
+    tokens = "".join(header).split()
+    if "MOTION" not in tokens:
+        raise BvhFormatError(f"{path}: expected 'MOTION' after the HIERARCHY, found the end of the file")
+    k = tokens.index("MOTION")
+    if k + 6 > len(tokens) or tokens[k + 1] != "Frames:":
+        raise BvhFormatError(f"{path}: expected 'Frames: N' and 'Frame Time: s' after 'MOTION'")
+    frames = int(tokens[k + 2])
+    tokens[k + 2] = "0"  # the header alone: no values follow
+    return _parse(tokens, str(path)), frames
 
 
 def _expect(tokens: list[str], i: int, word: str, where: str) -> int:

@@ -146,8 +146,9 @@ def test_functional_frames_on_real_walking_are_small_turns_and_a_fixed_point(dat
 def test_the_header_alone_is_the_file_s_skeleton(data_dir: Path, path: str) -> None:
     from service.core.bvh import read_bvh_header
 
-    whole, header = read_bvh(data_dir / path), read_bvh_header(data_dir / path)
+    whole, (header, frames) = read_bvh(data_dir / path), read_bvh_header(data_dir / path)
     assert [j.name for j in header.joints] == [j.name for j in whole.joints] and len(header.motion) == 0
+    assert frames == len(whole.motion) and header.frame_time_s == whole.frame_time_s
     for a, b in zip(header.joints, whole.joints, strict=True):
         assert a.parent == b.parent and a.channels == b.channels and np.array_equal(a.offset, b.offset)
     assert header.end_sites.keys() == whole.end_sites.keys()

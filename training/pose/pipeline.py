@@ -412,16 +412,20 @@ def user_clips(
     limb_twist: str = "rig",
     data_dir: Path | None = None,
     cache_dir: Path | None = None,
+    skipped: list[dict[str, str]] | None = None,
 ) -> list[MotionClip]:
     """BVH files (plain or .gz), or folders of them, on the canonical body at 60 Hz; the activity is the folder's
     name. Without a mapping file the skeleton must be one of the known families. The files of one skeleton
     (``_skeleton``: one rig, or one person of a family that fits a skeleton per person) share their segment frames:
     the training clips' where it is a rig of the data directory (``data_dir``, ``catalogue_rig``), else fitted on
     these files as the catalogue fits a rig's (``fitted_rig``); with ``limb_twist`` "hinge" the limbs turned so that
-    the elbows' and knees' hinges lie along y (``training.pose.data.hinge_twisted``)."""
+    the elbows' and knees' hinges lie along y (``training.pose.data.hinge_twisted``). A file that cannot be scored
+    (not BVH, shorter than ``MIN_USER_SECONDS``, a skeleton the mapping does not fit) is left out with the reason,
+    appended to ``skipped`` and logged, unless no file can be: then its error is raised."""
     import hashlib
 
-    from service.core.body import load_mapping
+    from service.core.body import MappingError, load_mapping
+    from service.core.bvh import BvhFormatError, read_bvh_header
     from training.pose.data import load_motion
 
     mapping = load_mapping(mapping_file) if mapping_file else None
@@ -433,25 +437,55 @@ def user_clips(
         walks += [q for q in found if "walk" in (str(q.relative_to(p)) if p.is_dir() else q.name).lower()]
     if not files:
         raise ValueError(f"no .bvh or .bvh.gz files in {[str(p) for p in paths]}")
+    errors: list[Exception] = []
+
+    def leave_out(group: list[Path], exc: Exception) -> None:
+        errors.append(exc)
+        for f in group:
+            log.warning("left out %s: %s", f, exc)
+            if skipped is not None:
+                skipped.append({"clip": str(f), "reason": str(exc)})
+
     rigs: dict[str, list[Path]] = {}
     for f in files:
-        rigs.setdefault(_skeleton(f), []).append(f)
+        try:
+            bvh, frames = read_bvh_header(f)
+            seconds = frames * bvh.frame_time_s
+            if seconds < MIN_USER_SECONDS:
+                raise ValueError(f"{frames} frames, {seconds:.2f} s: shorter than {MIN_USER_SECONDS} s")
+            rigs.setdefault(_skeleton(f), []).append(f)
+        except (BvhFormatError, ValueError, OSError) as exc:
+            leave_out([f], exc)
     if len(rigs) > 1:
         log.info("%d skeletons among the %d files: each has its own segment frames", len(rigs), len(files))
     offsets: dict[Path, np.ndarray] = {}
     for group in rigs.values():
-        rig = None
-        if mapping is None and data_dir is not None:
-            rig = catalogue_rig(group, data_dir, cache_dir or Path(".cache/pose_motion"), limb_twist)
-        if rig is None:
-            rig = fitted_rig(group, [w for w in walks if w in group], mapping, limb_twist)
-        offsets |= dict.fromkeys(group, rig)
+        try:
+            rig = None
+            if mapping is None and data_dir is not None:
+                rig = catalogue_rig(group, data_dir, cache_dir or Path(".cache/pose_motion"), limb_twist)
+            if rig is None:
+                rig = fitted_rig(group, [w for w in walks if w in group], mapping, limb_twist)
+            offsets |= dict.fromkeys(group, rig)
+        except (MappingError, ValueError) as exc:  # a skeleton the mapping does not fit, a clip it cannot read
+            leave_out(group, exc)
     clips = []
     for f in files:
+        if f not in offsets:
+            continue
+        try:
+            motion = load_motion(f, "", 0, mapping, offsets[f])
+        except (MappingError, ValueError) as exc:
+            leave_out([f], exc)
+            continue
         digest = hashlib.sha256(f.read_bytes()).hexdigest()[:20]
-        motion = load_motion(f, "", 0, mapping, offsets[f])
         clips.append(MotionClip(str(f), "user", f.parent.name, f.parent.name, motion, digest))
+    if not clips:
+        raise errors[0]
     return clips
+
+
+MIN_USER_SECONDS = 0.5  # a user's clip shorter than this is left out: too short to simulate sensors on
 
 
 def _skeleton(path: Path) -> str:
@@ -462,7 +496,7 @@ def _skeleton(path: Path) -> str:
 
     from service.core.bvh import read_bvh_header
 
-    bvh = read_bvh_header(path)
+    bvh, _ = read_bvh_header(path)
     h = hashlib.sha256()
     for j in bvh.joints:
         h.update(f"{j.name}|{j.parent}|{','.join(j.channels)}|".encode())

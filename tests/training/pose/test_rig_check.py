@@ -150,3 +150,30 @@ def test_a_folder_whose_feet_never_stand_flat_is_scored_with_the_feet_level_at_t
         k = BODY_SEGMENTS.index(f"{side}Foot")
         rel = np.einsum("tji,tjk->tik", motion.R_world_segment[:, k], clip.motion.R_world_segment[:, k])
         assert np.degrees(Rotation.from_matrix(rel).magnitude()).max() < 10.0, side
+
+
+def test_a_user_s_files_that_cannot_be_scored_are_left_out_with_the_reason(data_dir, tmp_path) -> None:
+    """One broken or too short file in a folder does not stop the others; a folder of nothing else is an error."""
+    from service.core.bvh import BvhFormatError
+    from training.data.catalog import mocap_entries
+    from training.pose.pipeline import MIN_USER_SECONDS, user_clips
+
+    good = data_dir / mocap_entries(data_dir, ["run"], ["cmu_li2018"])[0].path
+    lines = good.read_text().splitlines()
+    k = next(i for i, line in enumerate(lines) if line.startswith("Frames:"))
+    short = lines[:k] + ["Frames: 3", lines[k + 1]] + lines[k + 2 : k + 5]  # 3 frames at 120 Hz
+    folder = tmp_path / "clips"
+    folder.mkdir()
+    (folder / good.name).symlink_to(good)
+    (folder / "short.bvh").write_text("\n".join(short) + "\n")
+    (folder / "broken.bvh").write_text("HIERARCHY\nROOT Hips\n")
+    skipped: list[dict[str, str]] = []
+    [clip] = user_clips([folder], None, "rig", skipped=skipped)
+    assert clip.path.endswith(good.name)
+    reasons = {Path(s["clip"]).name: s["reason"] for s in skipped}
+    assert set(reasons) == {"short.bvh", "broken.bvh"}
+    assert f"shorter than {MIN_USER_SECONDS} s" in reasons["short.bvh"] and "MOTION" in reasons["broken.bvh"]
+    (folder / good.name).unlink()
+    (folder / "short.bvh").unlink()
+    with pytest.raises(BvhFormatError, match="MOTION"):
+        user_clips([folder], None, "rig")
