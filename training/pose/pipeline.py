@@ -218,7 +218,14 @@ def run_pose_experiment(
             data.train,
             _judging(data, cfg, val_sessions),
             on_epoch=lambda e, row: mlflow.log_metrics(
-                {"train_loss": row["train_loss"], "val_angle_deg_epoch": row["val_angle_deg"], "lr": row["lr"]}, step=e
+                {
+                    "train_loss": row["train_loss"],
+                    # comparable across recipes with and without the joint-position term
+                    "train_rotation_loss": row["train_rotation_loss"],
+                    "val_angle_deg_epoch": row["val_angle_deg"],
+                    "lr": row["lr"],
+                },
+                step=e,
             ),
         )
         net = result.net

@@ -212,7 +212,7 @@ def train_pose(
         net.train()
         picks = rng.choice(len(train_clips), size=cfg.train.sequences_per_epoch, p=weights)
         batches = _length_buckets(picks, [c.motion.n_frames for c in train_clips], cfg.train.batch_size, rng)
-        losses = []
+        losses, rotation_losses = [], []  # the whole loss and its rotation term (the same without position_loss)
         bar = tqdm(batches, desc=f"{cfg.name} epoch {epoch}", unit="batch", leave=False, mininterval=5.0)
         for batch in bar:
             n = min(W, min(train_clips[i].motion.n_frames for i in batch))
@@ -226,11 +226,12 @@ def train_pose(
                 bodies.append(clip.motion)
             x, y, lengths = _batch(sessions, L)
             pred = net(x)
-            loss = _loss(pred, y, lengths, L)
+            loss = rotation_loss = _loss(pred, y, lengths, L)
             if cfg.train.position_loss:
                 full = _shifted([root_relative_targets(m, BODY_SEGMENTS) for m in bodies], x.shape[1], L)
                 offsets = torch.from_numpy(np.stack([clip_body(m).offsets_m for m in bodies]).astype(np.float32))
                 loss = loss + cfg.train.position_loss * _position_loss(pred, full, offsets, output_index, lengths, L)
+            rotation_losses.append(rotation_loss.item())
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
@@ -244,6 +245,7 @@ def train_pose(
         row = {
             "epoch": epoch,
             "train_loss": float(np.mean(losses)),
+            "train_rotation_loss": float(np.mean(rotation_losses)),
             "val_angle_deg": val,
             "lr": lr,
             "wall_s": time.time() - t0,

@@ -58,6 +58,19 @@ def shipped(
     return out
 
 
+def test_the_rotation_term_is_logged_apart_from_the_joint_position_term(shipped: dict[str, dict]) -> None:
+    """``train_loss`` holds both terms where the position term is on; ``train_rotation_loss`` compares recipes."""
+    client = MlflowClient()
+
+    def history(name: str, key: str) -> list[float]:
+        return [h.value for h in sorted(client.get_metric_history(shipped[name]["run_id"], key), key=lambda h: h.step)]
+
+    plain, with_term = "tiny_full6", "tiny_full6_stream"
+    assert history(plain, "train_rotation_loss") == pytest.approx(history(plain, "train_loss"))
+    rotation, whole = history(with_term, "train_rotation_loss"), history(with_term, "train_loss")
+    assert len(rotation) == len(whole) == 2 and all(r < t for r, t in zip(rotation, whole, strict=True))
+
+
 def test_the_job_logs_its_run_registers_and_ships_a_valid_model(shipped: dict[str, dict]) -> None:
     result = shipped["tiny_full6"]
     client = MlflowClient()
