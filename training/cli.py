@@ -1,6 +1,6 @@
 """``wearmocap-train``: thin typer commands over the training library (I2S: simulate, train, register, export,
-evaluate; pose: pose-train, evaluate-pose, pose-placement, pose-rig-hinges; flex: flex-train, evaluate-flex,
-capacitive-train, evaluate-capacitive; snapshot-export / snapshot-restore, ui).
+evaluate; pose: pose-train, evaluate-pose, pose-placement, pose-rig-hinges, pose-rig-pairs; flex: flex-train,
+evaluate-flex, capacitive-train, evaluate-capacitive; snapshot-export / snapshot-restore, ui).
 Run ``python -m training.cli --help``.
 """
 
@@ -461,6 +461,19 @@ def pose_rig_hinges(
     from training.pose.rig_check import rig_hinge_table
 
     typer.echo(rig_hinge_table(resolve_data_dir(data_dir), cache_dir, per_source, seed, limb_twist=limb_twist))
+
+
+@app.command("pose-rig-pairs")
+def pose_rig_pairs(
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+    limb_twist: str = typer.Option("hinge", help="the frames' limb rule: rig or hinge (as served)"),
+) -> None:
+    """How far apart li2018's and iClone's versions of the same CMU trials hold each segment (against the vertical
+    and the pelvis's heading): what two rigs' frames disagree on for the same motion."""
+    from training.pose.rig_check import paired_trial_table
+
+    typer.echo(paired_trial_table(resolve_data_dir(data_dir), cache_dir, limb_twist=limb_twist))
 
 
 @app.command("pose-free-batch")

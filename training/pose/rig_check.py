@@ -56,3 +56,47 @@ def rig_hinge_table(
             f"{np.median(a[:, 2]):.0f}° |"
         )
     return "\n".join(lines)
+
+
+def paired_trial_table(data_dir: Path, cache_dir: Path, workers: int = 2, limb_twist: str = "hinge") -> str:
+    """``paired_trial_angles`` as a markdown table."""
+    apart = paired_trial_angles(data_dir, cache_dir, workers, limb_twist)
+    pairs = len(next(iter(apart.values())))
+    lines = [f"| segment | li2018 against iClone, same trial ({pairs} pairs): median | range |", "| --- | --- | --- |"]
+    for segment, a in apart.items():
+        lines.append(f"| {segment} | {np.median(a):.1f}° | {a.min():.1f}…{a.max():.1f}° |")
+    return "\n".join(lines)
+
+
+def paired_trial_angles(
+    data_dir: Path, cache_dir: Path, workers: int = 2, limb_twist: str = "hinge"
+) -> dict[str, np.ndarray]:
+    """Per segment, how far apart (degrees, one per pair) li2018's and iClone's versions of the same CMU trial (the
+    catalogue's "SAME CMU TRIAL" notes) hold it against the vertical and the pelvis's heading: the angle between
+    the two clips' rotation means, median and range over the pairs. The same person doing the same thing: what
+    differs is how each retargeting placed the joints and how our per-rig frames read them, so this much of any
+    held-out figure on one rig against a model that learned the other is convention, not error."""
+    import re
+
+    from scipy.spatial.transform import Rotation
+
+    from training.data.catalog import read_catalog
+
+    same = re.compile(r"SAME CMU TRIAL as (mocap/cmu_iclone/[0-9_]+\.bvh)")
+    notes = {e.path: same.search(e.notes) for e in read_catalog(data_dir)}
+    wanted = {p: m.group(1) for p, m in notes.items() if m}
+    entries = [e for e in mocap_entries(data_dir) if e.path in wanted or e.path in wanted.values()]
+    clips = {c.path: c for c in build_motions(data_dir, entries, cache_dir, workers, limb_twist=limb_twist)}
+    pelvis = BODY_SEGMENTS.index("Pelvis")
+
+    def posture(path: str) -> Rotation:  # each segment's rotation mean over the clip, the pelvis's heading taken out
+        R = clips[path].motion.R_world_segment
+        x = R[:, pelvis, :, 0]
+        heading = Rotation.from_rotvec(np.arctan2(x[:, 1], x[:, 0])[:, None] * [0.0, 0.0, 1.0]).as_matrix()
+        rel = np.einsum("tji,tsjk->tsik", heading, R)
+        return Rotation.concatenate([Rotation.from_matrix(rel[:, k]).mean() for k in range(len(BODY_SEGMENTS))])
+
+    apart = np.degrees(
+        [(posture(a).inv() * posture(b)).magnitude() for a, b in wanted.items() if a in clips and b in clips]
+    )
+    return {segment: apart[:, k] for k, segment in enumerate(BODY_SEGMENTS)}
