@@ -6,6 +6,8 @@ neutral. An anatomical reference that every rig shares is the hinge of the joint
 axis that DESIGN.md §2's frames put along y (left) of the upper arm, the knee likewise in the thigh's frame. Where a
 rig's hinge axis lies off y, turned about z by an azimuth, its upper arms (thighs) are turned by that azimuth
 against an anatomical frame; two rigs whose azimuths differ score the same posture with that difference as error.
+Where two rigs retargeted the same recording (li2018 and iClone), every segment can be compared directly
+(``paired_trial_angles``).
 """
 
 from __future__ import annotations
@@ -73,7 +75,7 @@ def paired_trial_angles(
 ) -> dict[str, np.ndarray]:
     """Per segment, how far apart (degrees, one per pair) li2018's and iClone's versions of the same CMU trial (the
     catalogue's "SAME CMU TRIAL" notes) hold it against the vertical and the pelvis's heading: the angle between
-    the two clips' rotation means, median and range over the pairs. The same person doing the same thing: what
+    the two clips' rotation means over the clip. The same person doing the same thing: what
     differs is how each retargeting placed the joints and how our per-rig frames read them, so this much of any
     held-out figure on one rig against a model that learned the other is convention, not error."""
     import re
