@@ -70,32 +70,33 @@ def _batch(sessions: list[Session], look_ahead: int) -> tuple[torch.Tensor, torc
     """Padded features (B, T, F), targets (B, T, S, 3, 3) shifted by the look-ahead, lengths (B,)."""
     T = max(len(s.features) for s in sessions)
     B, F = len(sessions), sessions[0].features.shape[1]
-    S = sessions[0].targets.shape[1]
     x = np.zeros((B, T, F), np.float32)
-    y = np.zeros((B, T, S, 3, 3), np.float32)
     lengths = np.zeros(B, np.int64)
     for i, s in enumerate(sessions):
         n = len(s.features)
         x[i, :n], lengths[i] = s.features, n
-        # with look-ahead L the output at frame t is the pose of frame t - L; the first L outputs have no target
-        y[i, look_ahead:n] = s.targets[: n - look_ahead] if look_ahead else s.targets
-    return torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(lengths)
-
-
-def _loss(pred: torch.Tensor, target: torch.Tensor, lengths: torch.Tensor, look_ahead: int) -> torch.Tensor:
-    T = pred.shape[1]
-    t = torch.arange(T)[None, :]
-    mask = ((t < lengths[:, None]) & (t >= look_ahead)).float()
-    err = ((pred - target) ** 2).sum(dim=(-1, -2)).mean(-1)  # (B, T)
-    return (err * mask).sum() / mask.sum().clamp(min=1.0)
+    return torch.from_numpy(x), _shifted([s.targets for s in sessions], T, look_ahead), torch.from_numpy(lengths)
 
 
 def _shifted(arrays: list[np.ndarray], T: int, look_ahead: int) -> torch.Tensor:
-    """Per-frame arrays (n_i, ...) as one (B, T, ...) tensor, shifted by the look-ahead as ``_batch`` shifts."""
+    """Per-frame arrays (n_i, ...) as one zero-padded (B, T, ...) tensor, shifted by the look-ahead: with look-ahead
+    L the output at frame t is the pose of frame t - L; the first L outputs have no target."""
     out = np.zeros((len(arrays), T, *arrays[0].shape[1:]), np.float32)
     for i, a in enumerate(arrays):
         out[i, look_ahead : len(a)] = a[: len(a) - look_ahead] if look_ahead else a
     return torch.from_numpy(out)
+
+
+def _frame_mask(T: int, lengths: torch.Tensor, look_ahead: int) -> torch.Tensor:
+    """(B, T): 1 on the frames a loss judges (within the sequence, after the look-ahead's first L)."""
+    t = torch.arange(T)[None, :]
+    return ((t < lengths[:, None]) & (t >= look_ahead)).float()
+
+
+def _loss(pred: torch.Tensor, target: torch.Tensor, lengths: torch.Tensor, look_ahead: int) -> torch.Tensor:
+    mask = _frame_mask(pred.shape[1], lengths, look_ahead)
+    err = ((pred - target) ** 2).sum(dim=(-1, -2)).mean(-1)  # (B, T)
+    return (err * mask).sum() / mask.sum().clamp(min=1.0)
 
 
 def forward_kinematics(R_root: torch.Tensor, offsets_m: torch.Tensor) -> torch.Tensor:
@@ -122,9 +123,7 @@ def _position_loss(
     answered = full.clone()
     answered[:, :, output_index] = pred
     d = ((forward_kinematics(answered, offsets_m) - forward_kinematics(full, offsets_m)) ** 2).sum(-1)[..., 1:]
-    T = pred.shape[1]
-    t = torch.arange(T)[None, :]
-    mask = ((t < lengths[:, None]) & (t >= look_ahead)).float()
+    mask = _frame_mask(pred.shape[1], lengths, look_ahead)
     return (d.mean(-1) * mask).sum() / mask.sum().clamp(min=1.0)
 
 
