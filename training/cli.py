@@ -751,34 +751,18 @@ def evaluate_flex(
 
     from service.core.flex import JOINT_COMPONENTS
     from service.inference.registry import load_model
-    from training.flex.config import FlexConfig
-    from training.flex.pipeline import SELECTION_METRIC, evaluate_served, load_flex_data
+    from training.flex.pipeline import SELECTION_METRIC, evaluate_served, load_flex_data, shipped_config
 
     if tag and not validation:
         raise typer.BadParameter("--tag writes the validation figure the registry compares by: give --validation")
     loaded = load_model(newest_shipped(model, "flex_bilstm_cm"), 2)
     m = loaded.manifest
-    td = m.training_data
-    if "test_subjects" not in td:
+    if "test_subjects" not in m.training_data:
         raise typer.BadParameter(
             f"{m.name} {m.version} is not a simulated-suit model (its manifest names no held-out subjects); "
             "a capacitive sleeve model is scored by evaluate-capacitive"
         )
-    # its clips built as its run built them (joints, strips, window), on the split its run had, in the segment frames
-    # its angles are in ("rig" where the manifest does not say)
-    cfg = FlexConfig(
-        name=m.name,
-        joints=m.joints,
-        sensors=[c.removesuffix("_flex") for c in m.channels],
-        model={"window": m.window_samples},
-        data={
-            "limb_twist": td.get("limb_twist", "rig"),
-            "sources": td.get("sources"),
-            "test_subjects": td["test_subjects"],
-            "val_subjects": td["validation_subjects"],
-            "test_activities_of_unlabelled": td["test_unlabelled_clips"],
-        },
-    )
+    cfg = shipped_config(m)  # its clips built and split as its run had them
     data = load_flex_data(cfg, resolve_data_dir(data_dir), cache_dir)
     out = evaluate_served(loaded, data, validation)
     if validation:

@@ -327,16 +327,31 @@ def run_flex_experiment(
         return summary
 
 
-def evaluate_served(loaded, data: FlexData, validation: bool = False) -> dict:
-    """A loaded ONNX flex model on the test sets ``build_sets`` makes (same seeds as its training run), or with
-    ``validation`` on the validation suits its run chose its epoch and the registry its champion by."""
-    m = loaded.manifest
-    cfg = FlexConfig(
+def shipped_config(m) -> FlexConfig:
+    """The config a shipped simulated-suit model's clips are built and scored with, from its manifest: its joints,
+    strips and window, the split its run had, and the segment frames its angles are in ("rig" where the manifest
+    does not say)."""
+    td = m.training_data
+    return FlexConfig(
         name=m.name,
         joints=m.joints,
         sensors=[c.removesuffix("_flex") for c in m.channels],
         model={"window": m.window_samples},
+        data={
+            "limb_twist": td.get("limb_twist", "rig"),
+            "sources": td.get("sources"),
+            "test_subjects": td["test_subjects"],
+            "val_subjects": td["validation_subjects"],
+            "test_activities_of_unlabelled": td["test_unlabelled_clips"],
+        },
     )
+
+
+def evaluate_served(loaded, data: FlexData, validation: bool = False) -> dict:
+    """A loaded ONNX flex model on the test sets ``build_sets`` makes (same seeds as its training run), or with
+    ``validation`` on the validation suits its run chose its epoch and the registry its champion by."""
+    m = loaded.manifest
+    cfg = shipped_config(m)
     lat = m.flex.latency_samples
     if validation:
         val = window_set(data.val, 1, VAL_SEED, cfg.model.window)
