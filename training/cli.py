@@ -468,12 +468,13 @@ def pose_rig_pairs(
     data_dir: Path | None = DataDir,
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
     limb_twist: str = typer.Option("hinge", help="the frames' limb rule: rig or hinge (as served)"),
+    trunk_axes: str = typer.Option("spine", help="the upper trunk's rule: spine (the rigs' joints) or thorax"),
 ) -> None:
     """How far apart li2018's and iClone's versions of the same CMU trials hold each segment (against the vertical
     and the pelvis's heading): what two rigs' frames disagree on for the same motion."""
     from training.pose.rig_check import paired_trial_table
 
-    typer.echo(paired_trial_table(resolve_data_dir(data_dir), cache_dir, limb_twist=limb_twist))
+    typer.echo(paired_trial_table(resolve_data_dir(data_dir), cache_dir, limb_twist=limb_twist, trunk_axes=trunk_axes))
 
 
 @app.command("pose-free-batch")
@@ -600,14 +601,15 @@ def evaluate_pose(
         raise typer.BadParameter("--tag writes the validation figure the registry compares by: give --validation")
     manifest = read_manifest(model / "manifest.json")
     td = manifest.training_data
-    limb_twist = td.get("limb_twist", "rig")  # scored in the segment frames the model answers in
+    # scored in the segment frames the model answers in
+    limb_twist, trunk_axes = td.get("limb_twist", "rig"), td.get("trunk_axes", "spine")
     skipped: list[dict[str, str]] = []  # a user's files that could not be scored, with the reason
     if paths:
         try:  # the data directory's rigs give a user's clips of the same skeleton their training frames
             known = resolve_data_dir(data_dir)
         except RuntimeError:
             known = None
-        clips = user_clips(list(paths), mapping, limb_twist, known, cache_dir, skipped)
+        clips = user_clips(list(paths), mapping, limb_twist, known, cache_dir, skipped, trunk_axes)
     else:
         cfg = PoseConfig(
             name=manifest.name,
@@ -618,6 +620,7 @@ def evaluate_pose(
                 "val_subjects": td["validation_subjects"],
                 "test_activities_of_unlabelled": td["test_unlabelled_clips"],
                 "limb_twist": limb_twist,
+                "trunk_axes": trunk_axes,
             },
         )
         data = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir)

@@ -104,6 +104,15 @@ for _s in BODY_SEGMENTS:
         _AXIS_RULE[_s] = "foot"
     _AXIS_RULE.setdefault(_s, "down")
 _AXIS_RULE.pop("Pelvis")
+# trunk_axes "thorax": the upper trunk's frames from landmarks every rig places alike (the hip and shoulder joint
+# centres) instead of where each rig puts its spine and neck joints; li2018 and iClone read the same CMU trial
+# 18° apart on T8 and 14-17° on the shoulders with the spine's joints, 5° and 1° with these (docs/pose.md). T8: z
+# from the hip centre to the shoulder centre; the shoulders, neck and head: T8's target (as the head and hands
+# take their parent's), so that in the rig's walks each is, on average, as upright as the thorax.
+_TRUNK_RULES = {
+    "spine": {},
+    "thorax": {"T8": "thorax", "LeftShoulder": "parent", "RightShoulder": "parent", "Neck": "parent"},
+}
 # Flat stance: ankle and toe slower than this and within STANCE_HEIGHT_M of their lowest in the clip
 STANCE_SPEED_M_S = 0.2
 STANCE_HEIGHT_M = 0.03
@@ -484,7 +493,11 @@ def rig_offsets(per_clip: list[np.ndarray]) -> np.ndarray:
 
 
 def clip_offsets(
-    poses: GlobalPoses, mapping: SkeletonMapping, end_sites_m: dict[str, np.ndarray], feet_at_slowest: bool = False
+    poses: GlobalPoses,
+    mapping: SkeletonMapping,
+    end_sites_m: dict[str, np.ndarray],
+    feet_at_slowest: bool = False,
+    trunk_axes: str = "spine",
 ) -> np.ndarray:
     """Each segment's R_bone_segment ``(S, 3, 3)`` fitted on one clip: the rotation mean of R_bone⁻¹ · target.
     A foot that never stands flat raises ``NoStanceError``, or with ``feet_at_slowest`` is taken level where it
@@ -505,13 +518,17 @@ def clip_offsets(
     heading = _unit(np.cross(y_pelvis, up))
     targets: dict[str, np.ndarray] = {"Pelvis": _frame_z_x(np.cross(heading, y_pelvis), heading)}
     weights: dict[str, np.ndarray] = {"Pelvis": np.ones(len(P))}
+    rules = {**_AXIS_RULE, **_TRUNK_RULES[trunk_axes]}
+    hip_centre = (l_hip + r_hip) / 2.0
+    shoulders = [P[:, poses.index(mapping.segments[f"{side}UpperArm"][0])] for side in ("Left", "Right")]
+    shoulder_centre = (shoulders[0] + shoulders[1]) / 2.0
     for s in BODY_SEGMENTS:
         joint, distal = mapping.segments[s]
         p = pos(joint, joint)
         d = pos(distal, joint) if distal else None
         if s == "Pelvis":
             continue
-        rule = _AXIS_RULE[s]
+        rule = rules[s]
         if rule == "parent":
             parent = BODY_PARENT[s]
             targets[s], weights[s] = targets[parent], weights[parent]
@@ -524,6 +541,8 @@ def clip_offsets(
             )
         if rule == "trunk":
             d = P[:, poses.index(mapping.segments["Neck"][0])]
+        elif rule == "thorax":
+            p, d, rule = hip_centre, shoulder_centre, "trunk"
         axis = {"trunk": d - p, "up": d - p, "down": p - d, "left": d - p, "right": p - d, "foot": d - p}[rule]
         align = np.abs(np.sum(_unit(axis) * heading, -1))
         weights[s] = 1.0 - align
@@ -674,8 +693,12 @@ def read_body_motion(
 
 
 def read_clip_offsets(
-    path: str | Path, mapping: SkeletonMapping | None = None, source: str = "", feet_at_slowest: bool = False
+    path: str | Path,
+    mapping: SkeletonMapping | None = None,
+    source: str = "",
+    feet_at_slowest: bool = False,
+    trunk_axes: str = "spine",
 ) -> np.ndarray:
     """The clip's own R_bone_segment per segment, the input of ``rig_offsets`` (``clip_offsets``)."""
     poses, mapping, ends = read_rig(path, mapping, source)
-    return clip_offsets(poses, mapping, ends, feet_at_slowest)
+    return clip_offsets(poses, mapping, ends, feet_at_slowest, trunk_axes)

@@ -47,6 +47,10 @@ class PoseDataConfig(Strict):
     # elbow's and knee's hinge axes lie along y ("hinge": training.pose.data.hinge_twisted; the same rule for
     # every rig, where the rigs' own frames differ by up to 42°)
     limb_twist: Literal["rig", "hinge"] = "rig"
+    # How the upper trunk's frames (T8, shoulders, neck, head) are read: from each rig's spine and neck joints
+    # ("spine"), or from the hip and shoulder joint centres, which the rigs place alike ("thorax":
+    # service.core.body; the rigs' own spine joints read the same trial up to 18° apart)
+    trunk_axes: Literal["spine", "thorax"] = "spine"
 
 
 class PoseModelConfig(Strict):

@@ -8,6 +8,7 @@ bytes, the rate and ``MOTION_VERSION``.
 
 from __future__ import annotations
 
+import collections
 import hashlib
 import logging
 from concurrent.futures import ProcessPoolExecutor
@@ -86,14 +87,14 @@ def load_motion(
     return resample_motion(motion.crop(skip_frames), MODEL_RATE_HZ)
 
 
-def _clip_offsets_job(args: tuple[Path, CatalogEntry, Path]) -> np.ndarray | None:
-    data_dir, e, cache_dir = args
+def _clip_offsets_job(args: tuple[Path, CatalogEntry, Path, str]) -> np.ndarray | None:
+    data_dir, e, cache_dir, trunk_axes = args
     path = data_dir / e.path
-    cached = cache_dir / "clip_offsets" / f"{_digest(path)}.npy"
+    cached = cache_dir / "clip_offsets" / f"{_digest(path)}{'' if trunk_axes == 'spine' else '-' + trunk_axes}.npy"
     if cached.exists():
         return np.load(cached)
     try:
-        off = read_clip_offsets(path, None, e.source)
+        off = read_clip_offsets(path, None, e.source, trunk_axes=trunk_axes)
     except Exception as exc:  # logged and left out of its rig's mean, as the clip itself is left out below
         log.warning("no offsets for %s: %s", e.path, exc)
         return None
@@ -103,7 +104,12 @@ def _clip_offsets_job(args: tuple[Path, CatalogEntry, Path]) -> np.ndarray | Non
 
 
 def build_rig_offsets(
-    data_dir: Path, entries: list[CatalogEntry], cache_dir: Path, workers: int = 2, limb_twist: str = "rig"
+    data_dir: Path,
+    entries: list[CatalogEntry],
+    cache_dir: Path,
+    workers: int = 2,
+    limb_twist: str = "rig",
+    trunk_axes: str = "spine",
 ) -> dict:
     """Per rig (``rig_key``), the segment offsets of ``rig_offsets`` over the rig's walking clips in the catalogue
     (all its clips where it has fewer than three walks; never only ``entries``: the rig's frames must not depend on
@@ -112,21 +118,26 @@ def build_rig_offsets(
     everything = mocap_entries(data_dir)
     wanted = {rig_key(e) for e in entries}
     rig_entries = [e for e in everything if rig_key(e) in wanted]
-    jobs = [(data_dir, e, cache_dir) for e in rig_entries]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        offs = list(
-            tqdm(pool.map(_clip_offsets_job, jobs, chunksize=8), total=len(jobs), desc="rig frames", unit="clip")
-        )
-    per_rig: dict[str, list[np.ndarray]] = {}
-    walks: dict[str, list[np.ndarray]] = {}
-    for e, off in zip(rig_entries, offs, strict=True):
-        if off is not None:
-            per_rig.setdefault(rig_key(e), []).append(off)
-            if e.activity == "walk":
-                walks.setdefault(rig_key(e), []).append(off)
+    walk_count = collections.Counter(rig_key(e) for e in rig_entries if e.activity == "walk")
+
+    def fitted(chosen: list[CatalogEntry]) -> list[tuple[CatalogEntry, np.ndarray]]:
+        jobs = [(data_dir, e, cache_dir, trunk_axes) for e in chosen]
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            offs = pool.map(_clip_offsets_job, jobs, chunksize=8)
+            offs = list(tqdm(offs, total=len(jobs), desc="rig frames", unit="clip"))
+        return [(e, off) for e, off in zip(chosen, offs, strict=True) if off is not None]
+
     # Neutral stance defines the frames (DESIGN.md §2); walking is the nearest to it that every rig has: a rig's
-    # dances and raised arms would turn its arms' frames (iClone forearms by about 60° about their long axis).
-    out = {rig: rig_offsets(walks[rig] if len(walks.get(rig, [])) >= 3 else v) for rig, v in per_rig.items()}
+    # dances and raised arms would turn its arms' frames (iClone forearms by about 60° about their long axis). A
+    # rig's other clips are read only where fewer than three of its walks give offsets.
+    done = fitted([e for e in rig_entries if e.activity == "walk" or walk_count[rig_key(e)] < 3])
+    walks = collections.Counter(rig_key(e) for e, _ in done if e.activity == "walk")
+    done += fitted([e for e in rig_entries if e.activity != "walk" and walk_count[rig_key(e)] >= 3 > walks[rig_key(e)]])
+    per_rig: dict[str, list[np.ndarray]] = {}
+    for e, off in done:
+        if e.activity == "walk" or walks[rig_key(e)] < 3:
+            per_rig.setdefault(rig_key(e), []).append(off)
+    out = {rig: rig_offsets(v) for rig, v in per_rig.items()}
     if limb_twist == "hinge":
         walking = {}
         for e in rig_entries:
@@ -215,10 +226,11 @@ def build_motions(
     workers: int = 2,
     min_frames: int = 32,
     limb_twist: str = "rig",
+    trunk_axes: str = "spine",
 ) -> list[MotionClip]:
     """Every entry on the canonical body, from the cache where possible, with a progress bar; each rig's clips
     share one set of segment frames (``build_rig_offsets``)."""
-    rigs = build_rig_offsets(data_dir, entries, cache_dir, workers, limb_twist)
+    rigs = build_rig_offsets(data_dir, entries, cache_dir, workers, limb_twist, trunk_axes)
     jobs = [(data_dir, e, cache_dir, rigs.get(rig_key(e))) for e in entries]
     with ProcessPoolExecutor(max_workers=workers) as pool:
         clips = list(tqdm(pool.map(_load_or_compute, jobs, chunksize=8), total=len(jobs), desc="mocap", unit="clip"))

@@ -77,9 +77,9 @@ class PoseData:
 
 
 def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> PoseData:
-    entries = mocap_entries(data_dir, sources=cfg.data.sources)
-    clips = build_motions(data_dir, entries, cache_dir, workers, limb_twist=cfg.data.limb_twist)
     d = cfg.data
+    entries = mocap_entries(data_dir, sources=d.sources)
+    clips = build_motions(data_dir, entries, cache_dir, workers, limb_twist=d.limb_twist, trunk_axes=d.trunk_axes)
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     log.info("pose split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
     if d.selection is None:
@@ -286,7 +286,9 @@ def run_pose_experiment(
             "validation_subjects": cfg.data.val_subjects,
             "test_subjects": cfg.data.test_subjects,
             "test_unlabelled_clips": cfg.data.test_activities_of_unlabelled,
-            "limb_twist": cfg.data.limb_twist,  # the segment frames it answers in (evaluate-pose scores in the same)
+            # the segment frames it answers in (evaluate-pose scores in the same)
+            "limb_twist": cfg.data.limb_twist,
+            "trunk_axes": cfg.data.trunk_axes,
             "bandai_namco": trains_on_bandai(data.train),
             "train_wall_time_s": round(result.wall_s, 1),
             "best_epoch": result.best_epoch,
@@ -420,13 +422,15 @@ def user_clips(
     data_dir: Path | None = None,
     cache_dir: Path | None = None,
     skipped: list[dict[str, str]] | None = None,
+    trunk_axes: str = "spine",
 ) -> list[MotionClip]:
     """BVH files (plain or .gz), or folders of them, on the canonical body at 60 Hz; the activity is the folder's
     name. Without a mapping file the skeleton must be one of the known families. The files of one skeleton
     (``_skeleton``: one rig, or one person of a family that fits a skeleton per person) share their segment frames:
     the training clips' where it is a rig of the data directory (``data_dir``, ``catalogue_rig``), else fitted on
     these files as the catalogue fits a rig's (``fitted_rig``); with ``limb_twist`` "hinge" the limbs turned so that
-    the elbows' and knees' hinges lie along y (``training.pose.data.hinge_twisted``). A file that cannot be scored
+    the elbows' and knees' hinges lie along y (``training.pose.data.hinge_twisted``), with ``trunk_axes`` "thorax"
+    the upper trunk read from the hip and shoulder joint centres (``service.core.body``). A file that cannot be scored
     (not BVH, shorter than ``MIN_USER_SECONDS``, a skeleton the mapping does not fit) is left out with the reason,
     appended to ``skipped`` and logged, unless no file can be: then its error is raised."""
     import hashlib
@@ -470,9 +474,9 @@ def user_clips(
         try:
             rig = None
             if mapping is None and data_dir is not None:
-                rig = catalogue_rig(group, data_dir, cache_dir or Path(".cache/pose_motion"), limb_twist)
+                rig = catalogue_rig(group, data_dir, cache_dir or Path(".cache/pose_motion"), limb_twist, trunk_axes)
             if rig is None:
-                rig = fitted_rig(group, [w for w in walks if w in group], mapping, limb_twist)
+                rig = fitted_rig(group, [w for w in walks if w in group], mapping, limb_twist, trunk_axes)
             offsets |= dict.fromkeys(group, rig)
         except (MappingError, ValueError) as exc:  # a skeleton the mapping does not fit, a clip it cannot read
             leave_out(group, exc)
@@ -514,7 +518,9 @@ def _skeleton(path: Path) -> str:
     return h.hexdigest()
 
 
-def catalogue_rig(files: list[Path], data_dir: Path, cache_dir: Path, limb_twist: str) -> np.ndarray | None:
+def catalogue_rig(
+    files: list[Path], data_dir: Path, cache_dir: Path, limb_twist: str, trunk_axes: str = "spine"
+) -> np.ndarray | None:
     """The segment offsets the training clips of the same rig got (``build_rig_offsets``: fitted on the rig's
     walks), where every file has a skeleton of exactly one whole-source rig of the data directory; else None. A
     user's clips of a rig the models trained on are then scored in exactly the frames they learned, whatever the
@@ -532,7 +538,7 @@ def catalogue_rig(files: list[Path], data_dir: Path, cache_dir: Path, limb_twist
         return None
     [rig] = matches
     log.info("segment frames: the %s rig's, as its training clips had them", rig)
-    return build_rig_offsets(data_dir, rigs[rig][1], cache_dir, limb_twist=limb_twist)[rig]
+    return build_rig_offsets(data_dir, rigs[rig][1], cache_dir, limb_twist=limb_twist, trunk_axes=trunk_axes)[rig]
 
 
 @functools.lru_cache(maxsize=4)
@@ -550,7 +556,7 @@ def _catalogue_skeletons(data_dir: Path) -> dict[str, tuple[set[str], list]]:
     return out
 
 
-def fitted_rig(files: list[Path], walks: list[Path], mapping, limb_twist: str) -> np.ndarray:
+def fitted_rig(files: list[Path], walks: list[Path], mapping, limb_twist: str, trunk_axes: str = "spine") -> np.ndarray:
     """A rig's segment offsets fitted on ``files`` with ``build_rig_offsets``' rules (a rig's walks are the nearest
     to the neutral stance that defines the frames), on its ``walks`` where there are any (a training rig needs
     three, else all its clips; a user's folder has fewer, and one walk is nearer to neutral than any sprint), the
@@ -568,7 +574,7 @@ def fitted_rig(files: list[Path], walks: list[Path], mapping, limb_twist: str) -
     per_clip, no_stance = [], []
     for f in chosen:
         try:
-            per_clip.append(read_clip_offsets(f, mapping))
+            per_clip.append(read_clip_offsets(f, mapping, trunk_axes=trunk_axes))
         except NoStanceError as exc:
             no_stance.append(exc)
     if not per_clip:  # no clip stands flat long enough (sprints, jumps): the feet level where they move slowest
@@ -578,7 +584,7 @@ def fitted_rig(files: list[Path], walks: list[Path], mapping, limb_twist: str) -
             no_stance[0],
             len(chosen),
         )
-        per_clip = [read_clip_offsets(f, mapping, feet_at_slowest=True) for f in chosen]
+        per_clip = [read_clip_offsets(f, mapping, feet_at_slowest=True, trunk_axes=trunk_axes) for f in chosen]
     offsets = rig_offsets(per_clip)
     if limb_twist == "hinge":
         from training.pose.data import HINGE_CLIPS, hinge_twisted

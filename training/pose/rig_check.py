@@ -60,9 +60,11 @@ def rig_hinge_table(
     return "\n".join(lines)
 
 
-def paired_trial_table(data_dir: Path, cache_dir: Path, workers: int = 2, limb_twist: str = "hinge") -> str:
+def paired_trial_table(
+    data_dir: Path, cache_dir: Path, workers: int = 2, limb_twist: str = "hinge", trunk_axes: str = "spine"
+) -> str:
     """``paired_trial_angles`` as a markdown table."""
-    apart = paired_trial_angles(data_dir, cache_dir, workers, limb_twist)
+    apart = paired_trial_angles(data_dir, cache_dir, workers, limb_twist, trunk_axes)
     pairs = len(next(iter(apart.values())))
     lines = [f"| segment | li2018 against iClone, same trial ({pairs} pairs): median | range |", "| --- | --- | --- |"]
     for segment, a in apart.items():
@@ -71,7 +73,7 @@ def paired_trial_table(data_dir: Path, cache_dir: Path, workers: int = 2, limb_t
 
 
 def paired_trial_angles(
-    data_dir: Path, cache_dir: Path, workers: int = 2, limb_twist: str = "hinge"
+    data_dir: Path, cache_dir: Path, workers: int = 2, limb_twist: str = "hinge", trunk_axes: str = "spine"
 ) -> dict[str, np.ndarray]:
     """Per segment, how far apart (degrees, one per pair) li2018's and iClone's versions of the same CMU trial (the
     catalogue's "SAME CMU TRIAL" notes) hold it against the vertical and the pelvis's heading: the angle between
@@ -88,7 +90,8 @@ def paired_trial_angles(
     notes = {e.path: same.search(e.notes) for e in read_catalog(data_dir)}
     wanted = {p: m.group(1) for p, m in notes.items() if m}
     entries = [e for e in mocap_entries(data_dir) if e.path in wanted or e.path in wanted.values()]
-    clips = {c.path: c for c in build_motions(data_dir, entries, cache_dir, workers, limb_twist=limb_twist)}
+    built = build_motions(data_dir, entries, cache_dir, workers, limb_twist=limb_twist, trunk_axes=trunk_axes)
+    clips = {c.path: c for c in built}
     pelvis = BODY_SEGMENTS.index("Pelvis")
 
     def posture(path: str) -> Rotation:  # each segment's rotation mean over the clip, the pelvis's heading taken out

@@ -80,6 +80,20 @@ def test_evaluate_pose_s_clips_take_the_frames_of_the_model_s_limb_rule(data_dir
 
     assert abs(azimuth(user_clips([tmp_path], None, "rig"))) > 10.0
     assert abs(azimuth(user_clips([tmp_path], None, "hinge"))) < 1.0
+    # and for a model whose upper trunk is read from the thorax: the shoulders held, on average, as T8 is
+    t8, shoulder = BODY_SEGMENTS.index("T8"), BODY_SEGMENTS.index("LeftShoulder")
+
+    def shoulder_from_t8(clips) -> float:
+        rel = np.concatenate(
+            [
+                np.einsum("tji,tjk->tik", c.motion.R_world_segment[:, t8], c.motion.R_world_segment[:, shoulder])
+                for c in clips
+            ]
+        )
+        return float(np.degrees(Rotation.from_matrix(rel).mean().magnitude()))
+
+    assert shoulder_from_t8(user_clips([tmp_path], None, "hinge")) > 10.0
+    assert shoulder_from_t8(user_clips([tmp_path], None, "hinge", trunk_axes="thorax")) < 3.0
 
 
 def test_a_user_s_clips_of_a_training_rig_are_scored_in_its_training_frames(data_dir, tmp_path) -> None:
@@ -181,7 +195,8 @@ def test_a_user_s_files_that_cannot_be_scored_are_left_out_with_the_reason(data_
 
 def test_the_same_trial_in_two_rigs_reads_the_same_limbs_in_hinge_frames(data_dir, tmp_path) -> None:
     """li2018 and iClone retargeted the same CMU trials: in the hinge frames their arms and legs agree within a few
-    degrees; the trunk, head and hands do not (their frames come from each rig's own joints, docs/pose.md)."""
+    degrees; the trunk, head and hands do not where their frames come from each rig's own joints, and the upper
+    trunk does where it is read from the hip and shoulder joint centres (docs/pose.md)."""
     from training.pose.rig_check import paired_trial_angles
 
     apart = paired_trial_angles(data_dir, tmp_path)
@@ -189,3 +204,11 @@ def test_the_same_trial_in_two_rigs_reads_the_same_limbs_in_hinge_frames(data_di
     for side in ("Left", "Right"):
         for limb in ("UpperArm", "ForeArm", "UpperLeg", "LowerLeg"):
             assert np.median(apart[side + limb]) < 3.0, side + limb
+    # the upper trunk read from the hip and shoulder joint centres: T8 and the shoulders agree, the head nearly
+    thorax = paired_trial_angles(data_dir, tmp_path, trunk_axes="thorax")
+    assert np.median(apart["T8"]) > 12.0 and np.median(thorax["T8"]) < 8.0
+    for segment in ("LeftShoulder", "RightShoulder"):
+        assert np.median(apart[segment]) > 10.0 and np.median(thorax[segment]) < 3.0, segment
+    assert np.median(thorax["Head"]) < np.median(apart["Head"]) - 4.0
+    for segment in ("Pelvis", "L5", "LeftForeArm", "RightLowerLeg"):  # the rest as before
+        assert np.median(thorax[segment]) == pytest.approx(np.median(apart[segment]), abs=0.05), segment
