@@ -30,6 +30,9 @@ class FlexDataConfig(Strict):
     # the limbs' turn about their long axes: each rig's ("rig") or from the elbow's and knee's hinge axes ("hinge",
     # as PoseDataConfig.limb_twist)
     limb_twist: Literal["rig", "hinge"] = "rig"
+    # the upper trunk's frames: from each rig's spine joints ("spine") or the hip and shoulder joint centres
+    # ("thorax", as PoseDataConfig.trunk_axes)
+    trunk_axes: Literal["spine", "thorax"] = "spine"
 
 
 class FlexModelConfig(Strict):

@@ -54,9 +54,9 @@ class FlexData:
 
 
 def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> FlexData:
-    entries = mocap_entries(data_dir, sources=cfg.data.sources)
-    clips = build_motions(data_dir, entries, cache_dir, workers, limb_twist=cfg.data.limb_twist)
     d = cfg.data
+    entries = mocap_entries(data_dir, sources=d.sources)
+    clips = build_motions(data_dir, entries, cache_dir, workers, limb_twist=d.limb_twist, trunk_axes=d.trunk_axes)
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     if d.mirror:
         train = train + [mirrored(c) for c in train]
@@ -278,7 +278,9 @@ def run_flex_experiment(
             "validation_subjects": cfg.data.val_subjects,
             "test_subjects": cfg.data.test_subjects,
             "test_unlabelled_clips": cfg.data.test_activities_of_unlabelled,
-            "limb_twist": cfg.data.limb_twist,  # the segment frames its angles are in (evaluate-flex scores in them)
+            # the segment frames its angles are in (evaluate-flex scores in them)
+            "limb_twist": cfg.data.limb_twist,
+            "trunk_axes": cfg.data.trunk_axes,
             "bandai_namco": data.bandai,
             "train_wall_time_s": round(result.wall_s, 1),
             "best_epoch": result.best_epoch,
@@ -329,8 +331,8 @@ def run_flex_experiment(
 
 def shipped_config(m) -> FlexConfig:
     """The config a shipped simulated-suit model's clips are built and scored with, from its manifest: its joints,
-    strips and window, the split its run had, and the segment frames its angles are in ("rig" where the manifest
-    does not say)."""
+    strips and window, the split its run had, and the segment frames its angles are in ("rig" and "spine" where
+    the manifest does not say)."""
     td = m.training_data
     return FlexConfig(
         name=m.name,
@@ -339,6 +341,7 @@ def shipped_config(m) -> FlexConfig:
         model={"window": m.window_samples},
         data={
             "limb_twist": td.get("limb_twist", "rig"),
+            "trunk_axes": td.get("trunk_axes", "spine"),
             "sources": td.get("sources"),
             "test_subjects": td["test_subjects"],
             "val_subjects": td["validation_subjects"],
