@@ -95,6 +95,7 @@ def test_the_shipped_flex_model_is_served_and_scores_as_in_its_run(flex_runs: di
     assert manifest.channels == ["LeftKnee_flex", "RightKnee_flex", "LeftElbow_flex", "RightElbow_flex"]
     assert manifest.value_range == [0.0, 4095.0] and manifest.sample_rate_hz == 20.0 and manifest.window_samples == 100
     assert manifest.training_data["limb_twist"] == "rig"  # the frames evaluate-flex scores it in
+    assert manifest.training_data["trunk_axes"] == "spine"
     model = FlexModel(load_model(target, 1))
     served = evaluate_served(model.loaded, flex_runs["data"])
     logged = flat = flex_runs["results"][0]

@@ -99,6 +99,7 @@ def test_the_job_logs_its_run_registers_and_ships_a_valid_model(shipped: dict[st
     assert manifest.task == "imu_pose" and manifest.pose.sensors[0] == "Pelvis"
     assert manifest.training_data["bandai_namco"] is False and "licence" not in manifest.training_data
     assert manifest.training_data["limb_twist"] == "rig"  # the frames evaluate-pose scores it in
+    assert manifest.training_data["trunk_axes"] == "spine"
     assert manifest.evaluations[0].metrics["test_walk_angle_all_deg"] == pytest.approx(
         m["test_walk_angle_all_deg"], abs=0.05
     )
