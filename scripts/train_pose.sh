@@ -12,8 +12,9 @@ cd "$(dirname "$0")/.."
 # walking (Zheng et al. 2021 §5); then six sensors where Zheng et al. 2021 §6 places them (the placement search first:
 # it is what the config lists)
 python -m training.cli pose-placement training/configs/pose_full6.yaml --sensors 10
-# All in frames that take each limb's turn from its hinge (data.limb_twist: hinge, since these major versions).
-for served in pose_full6:3.0.0 pose_lower3:3.0.0 pose_full6_stream:3.0.0 pose_lower3_stream:3.0.0 \
+# All in frames that take each limb's turn from its hinge (data.limb_twist: hinge, since these major versions); the
+# six-sensor default and its streaming form also read the upper trunk from the thorax (data.trunk_axes, since 4.0.0).
+for served in pose_full6:4.0.0 pose_lower3:3.0.0 pose_full6_stream:4.0.0 pose_lower3_stream:3.0.0 \
   pose_full6_walk:2.0.0 pose_lower3_walk:2.0.0 pose_lower3_walk_stream:2.0.0 pose_mrmr6:2.0.0; do
   python -m training.cli pose-train "training/configs/${served%%:*}.yaml" --ship --version "${served##*:}"
 done
