@@ -25,7 +25,9 @@ done
 # recipe (feet as Zimmermann et al. 2018, Bandai-Namco by frames). pose_full6_by_frames is the share comparison
 # behind 2.1.0 (at 2.1.0's constant rate and 18 epochs).
 # These comparisons' figures in docs/pose.md were trained in the rigs' frames (before 3.0.0): add
-# -s data.limb_twist=rig to any of them to reproduce its figure; as written they train in the hinge frames.
+# -s data.limb_twist=rig to any of them to reproduce its figure (and -s data.trunk_axes=spine to those built from
+# pose_full6.yaml or pose_full6_stream.yaml, whose recipe reads the thorax since 4.0.0); as written they train in
+# the hinge frames.
 python -m training.cli pose-train training/configs/pose_lower3.yaml -s name=pose_lower3_axisangle -s train.mirror=0 \
   -s model.representation=axis_angle -s train.max_epochs=13 -s train.time_budget_s=1e9
 python -m training.cli pose-train training/configs/pose_full6.yaml -s name=pose_full6_ffn -s model.kind=ffn \

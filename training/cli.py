@@ -472,8 +472,11 @@ def pose_rig_pairs(
 ) -> None:
     """How far apart li2018's and iClone's versions of the same CMU trials hold each segment (against the vertical
     and the pelvis's heading): what two rigs' frames disagree on for the same motion."""
+    from service.core.body import TRUNK_AXES
     from training.pose.rig_check import paired_trial_table
 
+    if trunk_axes not in TRUNK_AXES:
+        raise typer.BadParameter(f"--trunk-axes is one of {list(TRUNK_AXES)}, got {trunk_axes!r}")
     typer.echo(paired_trial_table(resolve_data_dir(data_dir), cache_dir, limb_twist=limb_twist, trunk_axes=trunk_axes))
 
 
@@ -582,7 +585,6 @@ def evaluate_pose(
     import json
 
     from service.core.manifest import read_manifest, write_manifest
-    from training.pose.config import PoseConfig
     from training.pose.evaluate import per_segment_mean
     from training.pose.pipeline import (
         TEST_SEED,
@@ -590,6 +592,7 @@ def evaluate_pose(
         evaluate_shipped_pose,
         load_pose_data,
         results_table,
+        shipped_config,
         user_clips,
     )
 
@@ -600,29 +603,16 @@ def evaluate_pose(
     if tag and not validation:
         raise typer.BadParameter("--tag writes the validation figure the registry compares by: give --validation")
     manifest = read_manifest(model / "manifest.json")
-    td = manifest.training_data
-    # scored in the segment frames the model answers in
-    limb_twist, trunk_axes = td.get("limb_twist", "rig"), td.get("trunk_axes", "spine")
+    cfg = shipped_config(manifest)  # scored in the segment frames the model answers in
     skipped: list[dict[str, str]] = []  # a user's files that could not be scored, with the reason
     if paths:
         try:  # the data directory's rigs give a user's clips of the same skeleton their training frames
             known = resolve_data_dir(data_dir)
         except RuntimeError:
             known = None
-        clips = user_clips(list(paths), mapping, limb_twist, known, cache_dir, skipped, trunk_axes)
+        d = cfg.data
+        clips = user_clips(list(paths), mapping, d.limb_twist, known, cache_dir, skipped, d.trunk_axes)
     else:
-        cfg = PoseConfig(
-            name=manifest.name,
-            sensors=manifest.pose.sensors,
-            data={
-                "sources": td.get("sources"),  # the sources it trained on: the split its run scored
-                "test_subjects": td["test_subjects"],
-                "val_subjects": td["validation_subjects"],
-                "test_activities_of_unlabelled": td["test_unlabelled_clips"],
-                "limb_twist": limb_twist,
-                "trunk_axes": trunk_axes,
-            },
-        )
         data = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir)
         clips = data.val if validation else data.test
     results, summary = evaluate_shipped_pose(model, clips, VAL_SEED if validation else TEST_SEED)

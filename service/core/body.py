@@ -113,6 +113,17 @@ _TRUNK_RULES = {
     "spine": {},
     "thorax": {"T8": "thorax", "LeftShoulder": "parent", "RightShoulder": "parent", "Neck": "parent"},
 }
+TRUNK_AXES: tuple[str, ...] = tuple(_TRUNK_RULES)
+
+
+def check_trunk_axes(trunk_axes: str) -> str:
+    """``trunk_axes`` if it names a rule, else a ValueError that lists them (a typo must not fall back to frames
+    of another rule without a word)."""
+    if trunk_axes not in _TRUNK_RULES:
+        raise ValueError(f"trunk_axes is one of {list(TRUNK_AXES)}, got {trunk_axes!r}")
+    return trunk_axes
+
+
 # Flat stance: ankle and toe slower than this and within STANCE_HEIGHT_M of their lowest in the clip
 STANCE_SPEED_M_S = 0.2
 STANCE_HEIGHT_M = 0.03
@@ -445,7 +456,8 @@ def body_motion(
 
     ``end_sites_m``: joint name → the end-site offset in the joint's local frame, metres (``bvh_end_sites``).
     ``offsets``: the rig's R_bone_segment per segment ``(S, 3, 3)`` (``rig_offsets``); without them each clip
-    fits its own (``clip_offsets``), which moves with what the clip does (an arm's twist in a clip of raised arms).
+    fits its own (``clip_offsets``, the spine rule), which moves with what the clip does (an arm's twist in a clip of
+    raised arms).
     """
     R_offset = clip_offsets(poses, mapping, end_sites_m) if offsets is None else offsets
     P, R = poses.positions_m, poses.R_world_joint
@@ -501,8 +513,11 @@ def clip_offsets(
 ) -> np.ndarray:
     """Each segment's R_bone_segment ``(S, 3, 3)`` fitted on one clip: the rotation mean of R_bone⁻¹ · target.
     A foot that never stands flat raises ``NoStanceError``, or with ``feet_at_slowest`` is taken level where it
-    moves slowest (its contact: an approximation for rigs of which no clip stands flat)."""
+    moves slowest (its contact: an approximation for rigs of which no clip stands flat). ``trunk_axes`` names the
+    upper trunk's targets (``_TRUNK_RULES``): "spine" from the rig's own spine and clavicle joints, "thorax" from
+    the hip and shoulder joint centres."""
     mapping.check(poses.names)
+    rules = {**_AXIS_RULE, **_TRUNK_RULES[check_trunk_axes(trunk_axes)]}
     P, R = poses.positions_m, poses.R_world_joint
 
     def pos(name: str, owner: str) -> np.ndarray:
@@ -518,7 +533,6 @@ def clip_offsets(
     heading = _unit(np.cross(y_pelvis, up))
     targets: dict[str, np.ndarray] = {"Pelvis": _frame_z_x(np.cross(heading, y_pelvis), heading)}
     weights: dict[str, np.ndarray] = {"Pelvis": np.ones(len(P))}
-    rules = {**_AXIS_RULE, **_TRUNK_RULES[trunk_axes]}
     hip_centre = (l_hip + r_hip) / 2.0
     shoulders = [P[:, poses.index(mapping.segments[f"{side}UpperArm"][0])] for side in ("Left", "Right")]
     shoulder_centre = (shoulders[0] + shoulders[1]) / 2.0

@@ -3,7 +3,8 @@
 Every BVH of the data directory (CMU li2018, iClone, raw, and both Bandai-Namco sets) is read through
 ``service.core.body`` with its family's mapping table, T-pose frames dropped, resampled to 60 Hz (slerp and cubic
 spline: Bandai-Namco is 30 fps) and stored as float32 quaternions and positions, keyed by a digest of the file's
-bytes, the rate and ``MOTION_VERSION``.
+bytes, the rate, ``MOTION_VERSION`` and its rig's segment offsets (which the frame rules, ``limb_twist`` and
+``trunk_axes``, decide).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from service.core.body import (
     BodyMotion,
     SkeletonMapping,
     body_motion,
+    check_trunk_axes,
     read_body_motion,
     read_clip_offsets,
     read_rig,
@@ -112,15 +114,19 @@ def build_rig_offsets(
     trunk_axes: str = "spine",
 ) -> dict:
     """Per rig (``rig_key``), the segment offsets of ``rig_offsets`` over the rig's walking clips in the catalogue
-    (all its clips where it has fewer than three walks; never only ``entries``: the rig's frames must not depend on
-    which clips a run selects). ``limb_twist`` "hinge": each arm and leg segment then turned about its long axis so
-    that the elbow's (knee's) hinge lies along its y (``hinge_twisted``)."""
+    (all its clips where fewer than three of its walks give offsets; never only ``entries``: the rig's frames must
+    not depend on which clips a run selects). ``limb_twist`` "hinge": each arm and leg segment then turned about its
+    long axis so that the elbow's (knee's) hinge lies along its y (``hinge_twisted``). ``trunk_axes``: the upper
+    trunk's rule (``service.core.body.clip_offsets``); each clip's offsets are cached per rule."""
+    check_trunk_axes(trunk_axes)
     everything = mocap_entries(data_dir)
     wanted = {rig_key(e) for e in entries}
     rig_entries = [e for e in everything if rig_key(e) in wanted]
     walk_count = collections.Counter(rig_key(e) for e in rig_entries if e.activity == "walk")
 
     def fitted(chosen: list[CatalogEntry]) -> list[tuple[CatalogEntry, np.ndarray]]:
+        if not chosen:
+            return []
         jobs = [(data_dir, e, cache_dir, trunk_axes) for e in chosen]
         with ProcessPoolExecutor(max_workers=workers) as pool:
             offs = pool.map(_clip_offsets_job, jobs, chunksize=8)
@@ -132,7 +138,9 @@ def build_rig_offsets(
     # rig's other clips are read only where fewer than three of its walks give offsets.
     done = fitted([e for e in rig_entries if e.activity == "walk" or walk_count[rig_key(e)] < 3])
     walks = collections.Counter(rig_key(e) for e, _ in done if e.activity == "walk")
-    done += fitted([e for e in rig_entries if e.activity != "walk" and walk_count[rig_key(e)] >= 3 > walks[rig_key(e)]])
+    # a rig with three walks of which fewer than three give offsets: its other clips too
+    rest = [e for e in rig_entries if e.activity != "walk" and walk_count[rig_key(e)] >= 3 and walks[rig_key(e)] < 3]
+    done += fitted(rest)
     per_rig: dict[str, list[np.ndarray]] = {}
     for e, off in done:
         if e.activity == "walk" or walks[rig_key(e)] < 3:

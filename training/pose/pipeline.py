@@ -435,10 +435,11 @@ def user_clips(
     appended to ``skipped`` and logged, unless no file can be: then its error is raised."""
     import hashlib
 
-    from service.core.body import MappingError, load_mapping
+    from service.core.body import MappingError, check_trunk_axes, load_mapping
     from service.core.bvh import BvhFormatError, read_bvh_header
     from training.pose.data import load_motion
 
+    check_trunk_axes(trunk_axes)
     mapping = load_mapping(mapping_file) if mapping_file else None
     files, walks = [], []
     for p in paths:
@@ -591,6 +592,24 @@ def fitted_rig(files: list[Path], walks: list[Path], mapping, limb_twist: str, t
 
         offsets = hinge_twisted(offsets, chosen[:: max(1, len(chosen) // HINGE_CLIPS)][:HINGE_CLIPS], "", mapping)
     return offsets
+
+
+def shipped_config(m) -> PoseConfig:
+    """The config a shipped pose model's clips are built and scored with, from its manifest: its sensors, the split
+    its run had and the segment frames it answers in ("rig" and "spine" where the manifest does not say)."""
+    td = m.training_data
+    return PoseConfig(
+        name=m.name,
+        sensors=m.pose.sensors,
+        data={
+            "sources": td.get("sources"),  # the sources it trained on: the split its run scored
+            "test_subjects": td["test_subjects"],
+            "val_subjects": td["validation_subjects"],
+            "test_activities_of_unlabelled": td["test_unlabelled_clips"],
+            "limb_twist": td.get("limb_twist", "rig"),
+            "trunk_axes": td.get("trunk_axes", "spine"),
+        },
+    )
 
 
 def evaluate_shipped_pose(

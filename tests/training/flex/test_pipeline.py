@@ -278,3 +278,25 @@ def test_mirror_adds_each_training_clip_performed_by_the_mirror_image_body(
     for c, m in zip(plain.train, both.train[len(plain.train) :], strict=True):
         # the mirror body's left knee bends as the clip's right knee did
         np.testing.assert_allclose(m.bend[:, left], c.bend[:, right], atol=1e-3)
+
+
+def test_the_served_suit_model_is_scored_in_the_frames_its_manifest_names() -> None:
+    """evaluate-flex builds its clips from the manifest: the served suit model's angles are in the thorax frames,
+    a manifest that names no trunk rule in the spine's."""
+    from training.flex.pipeline import shipped_config
+
+    models = Path(__file__).resolve().parents[3] / "onnx_models"
+    served = read_manifest(next((models / "flex_bilstm_cm").glob("*/manifest.json")))
+    cfg = shipped_config(served)
+    assert (
+        (cfg.data.trunk_axes, cfg.data.limb_twist)
+        == ("thorax", "hinge")
+        == (
+            served.training_data["trunk_axes"],
+            served.training_data["limb_twist"],
+        )
+    )
+    older = served.model_copy(
+        update={"training_data": {k: v for k, v in served.training_data.items() if k != "trunk_axes"}}
+    )
+    assert shipped_config(older).data.trunk_axes == "spine"

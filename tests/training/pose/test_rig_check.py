@@ -105,9 +105,10 @@ def test_a_user_s_clips_of_a_training_rig_are_scored_in_its_training_frames(data
 
     runs = [data_dir / e.path for e in mocap_entries(data_dir, ["run"], ["cmu_li2018"])][:2]
     entries = mocap_entries(data_dir, sources=["cmu_li2018"])
-    for twist in ("rig", "hinge"):
-        trained = build_rig_offsets(data_dir, entries, tmp_path / "cache", limb_twist=twist)["cmu_li2018"]
-        np.testing.assert_allclose(catalogue_rig(runs, data_dir, tmp_path / "cache", twist), trained, atol=1e-12)
+    for twist, trunk in (("rig", "spine"), ("hinge", "spine"), ("hinge", "thorax")):
+        cache = tmp_path / "cache"
+        trained = build_rig_offsets(data_dir, entries, cache, limb_twist=twist, trunk_axes=trunk)["cmu_li2018"]
+        np.testing.assert_allclose(catalogue_rig(runs, data_dir, cache, twist, trunk), trained, atol=1e-12)
     # and so a user's folder of them is read (evaluate-pose with a data directory)
     sprints = tmp_path / "sprints"
     sprints.mkdir()
@@ -212,3 +213,85 @@ def test_the_same_trial_in_two_rigs_reads_the_same_limbs_in_hinge_frames(data_di
     assert np.median(thorax["Head"]) < np.median(apart["Head"]) - 4.0
     for segment in ("Pelvis", "L5", "LeftForeArm", "RightLowerLeg"):  # the rest as before
         assert np.median(thorax[segment]) == pytest.approx(np.median(apart[segment]), abs=0.05), segment
+
+
+def test_a_shipped_model_is_scored_in_the_frames_its_manifest_names() -> None:
+    """evaluate-pose builds its clips from the manifest: the six-sensor default reads the thorax, the mRMR model
+    (trained before that rule) the rigs' spines, and a manifest that names neither the old defaults."""
+    from service.core.manifest import read_manifest
+    from training.pose.pipeline import shipped_config
+
+    models = Path(__file__).resolve().parents[3] / "onnx_models"
+    served = read_manifest(next((models / "pose_full6").glob("*/manifest.json")))
+    older = read_manifest(models / "pose_mrmr6" / "2.0.0" / "manifest.json")
+    assert (served.training_data["trunk_axes"], shipped_config(served).data.trunk_axes) == ("thorax", "thorax")
+    assert shipped_config(served).data.limb_twist == "hinge" and "trunk_axes" not in older.training_data
+    assert shipped_config(older).data.trunk_axes == "spine"
+    assert shipped_config(served).data.test_subjects == served.training_data["test_subjects"]
+
+
+def test_an_unknown_trunk_rule_is_refused_not_read_as_another(tmp_path) -> None:
+    from service.core.body import check_trunk_axes
+    from training.pose.data import build_rig_offsets
+    from training.pose.pipeline import user_clips
+
+    assert check_trunk_axes("thorax") == "thorax"
+    for call in (
+        lambda: user_clips([tmp_path], None, "hinge", trunk_axes="Thorax"),
+        lambda: build_rig_offsets(tmp_path, [], tmp_path, trunk_axes="chest"),
+    ):
+        with pytest.raises(ValueError, match="trunk_axes is one of"):
+            call()
+
+
+def test_a_rig_s_frames_are_fitted_on_its_walks_and_on_all_its_clips_only_where_too_few_walks_give_offsets(
+    tmp_path, monkeypatch
+) -> None:
+    """Which clips each rig's offsets average: its walks where three of them give offsets; all that give offsets
+    where fewer do (too few walks, or walks that cannot be fitted); the other clips are read only then."""
+    import training.pose.data as data
+    from training.data.catalog import CatalogEntry
+
+    def entry(source: str, name: str, activity: str) -> CatalogEntry:
+        return CatalogEntry(f"{source}/{name}", source, "", activity, 60.0, "", "")
+
+    clips = [entry("a", f"w{k}", "walk") for k in range(3)] + [entry("a", "d0", "dance")]  # three good walks
+    clips += [entry("b", "w0", "walk"), entry("b", "d0", "dance"), entry("b", "d1", "dance")]  # one walk
+    clips += [entry("c", f"w{k}", "walk") for k in range(3)] + [entry("c", "d0", "dance")]  # walks that fail
+    turn = {e.path: k for k, e in enumerate(clips)}  # each clip's offsets: a turn of its own about z
+    read: list[str] = []
+
+    def job(args):
+        _, e, _, _ = args
+        read.append(e.path)
+        if e.path.startswith("c/w") and e.path != "c/w0":
+            return None
+        return np.broadcast_to(Rotation.from_euler("z", turn[e.path], degrees=True).as_matrix(), (21, 3, 3))
+
+    monkeypatch.setattr(data, "mocap_entries", lambda _: clips)
+    monkeypatch.setattr(data, "_clip_offsets_job", job)
+    monkeypatch.setattr(data, "ProcessPoolExecutor", _InProcessPool)
+    monkeypatch.setattr(
+        data,
+        "rig_offsets",
+        lambda per_clip: sorted(round(Rotation.from_matrix(o[0]).as_euler("xyz", degrees=True)[2]) for o in per_clip),
+    )
+    out = data.build_rig_offsets(tmp_path, clips, tmp_path)
+    assert out == {"a": [0, 1, 2], "b": [4, 5, 6], "c": [7, 10]}  # a: its walks; b: all; c: the walk and the dance
+    assert "a/d0" not in read  # a rig with three good walks never reads its other clips
+
+
+class _InProcessPool:
+    """ProcessPoolExecutor's ``map`` in this process (a monkeypatched job is not seen by worker processes)."""
+
+    def __init__(self, max_workers: int) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+    def map(self, fn, jobs, chunksize: int = 1):
+        return map(fn, jobs)
