@@ -287,15 +287,8 @@ def test_the_served_suit_model_is_scored_in_the_frames_its_manifest_names() -> N
 
     models = Path(__file__).resolve().parents[3] / "onnx_models"
     served = read_manifest(next((models / "flex_bilstm_cm").glob("*/manifest.json")))
-    cfg = shipped_config(served)
-    assert (
-        (cfg.data.trunk_axes, cfg.data.limb_twist)
-        == ("thorax", "hinge")
-        == (
-            served.training_data["trunk_axes"],
-            served.training_data["limb_twist"],
-        )
-    )
+    cfg, td = shipped_config(served), served.training_data
+    assert (cfg.data.trunk_axes, cfg.data.limb_twist) == (td["trunk_axes"], td["limb_twist"]) == ("thorax", "hinge")
     older = served.model_copy(
         update={"training_data": {k: v for k, v in served.training_data.items() if k != "trunk_axes"}}
     )
