@@ -101,6 +101,7 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
             "pose_full6_hinge",
             "flex_bilstm_cm_hinge",
             "pose_lower3_hinge_seed1",
+            "pose_full6_thorax_seed1",
         }
         | {f"flex_{v}_hinge_last_s{seed}" for v in ("bilstm", "bilstm_cm", "bilstm_cm_baseline") for seed in (0, 1)}
         | {f"flex_{v}" for v in ("bilstm", "bilstm_c", "bilstm_m", "transformer", "fcn", "tcn", "bilstm_half_cmu")}
