@@ -30,7 +30,7 @@ from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_par
 from training.flex.simulate import AGEING_BEYOND, FLEX_RATE_HZ, draw_sensor, draw_suit, simulate_counts
 from training.flex.train import FlexTrainResult, torch_predictor, train_flex
 from training.plots import bars_png, curves_png, flex_learning_curve_png, traces_png
-from training.pose.data import build_motions, dataset_digest, held_out_split, mirrored
+from training.pose.data import build_motions, dataset_digest, held_out_split, mirrored, shipped_split_and_frames
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
@@ -333,20 +333,12 @@ def shipped_config(m) -> FlexConfig:
     """The config a shipped simulated-suit model's clips are built and scored with, from its manifest: its joints,
     strips and window, the split its run had, and the segment frames its angles are in ("rig" and "spine" where
     the manifest does not say)."""
-    td = m.training_data
     return FlexConfig(
         name=m.name,
         joints=m.joints,
         sensors=[c.removesuffix("_flex") for c in m.channels],
         model={"window": m.window_samples},
-        data={
-            "limb_twist": td.get("limb_twist", "rig"),
-            "trunk_axes": td.get("trunk_axes", "spine"),
-            "sources": td.get("sources"),
-            "test_subjects": td["test_subjects"],
-            "val_subjects": td["validation_subjects"],
-            "test_activities_of_unlabelled": td["test_unlabelled_clips"],
-        },
+        data=shipped_split_and_frames(m.training_data),
     )
 
 

@@ -247,6 +247,20 @@ def build_motions(
     return kept
 
 
+def shipped_split_and_frames(training_data: dict) -> dict:
+    """From a shipped model's ``training_data``, the data-config fields that rebuild the clips its run scored: the
+    sources it trained on, its split and the segment frames it answers in ("rig" and "spine" where not named)."""
+    td = training_data
+    return {
+        "sources": td.get("sources"),
+        "test_subjects": td["test_subjects"],
+        "val_subjects": td["validation_subjects"],
+        "test_activities_of_unlabelled": td["test_unlabelled_clips"],
+        "limb_twist": td.get("limb_twist", "rig"),
+        "trunk_axes": td.get("trunk_axes", "spine"),
+    }
+
+
 def split_by_subject(
     clips: list[MotionClip], test_groups: list[str], val_groups: list[str], test_clips: list[str]
 ) -> tuple[list[MotionClip], list[MotionClip], list[MotionClip]]:

@@ -42,6 +42,7 @@ from training.pose.data import (
     dataset_digest,
     held_out_split,
     pose_evaluation_digest,
+    shipped_split_and_frames,
     trains_on_bandai,
 )
 from training.pose.evaluate import (
@@ -597,19 +598,7 @@ def fitted_rig(files: list[Path], walks: list[Path], mapping, limb_twist: str, t
 def shipped_config(m) -> PoseConfig:
     """The config a shipped pose model's clips are built and scored with, from its manifest: its sensors, the split
     its run had and the segment frames it answers in ("rig" and "spine" where the manifest does not say)."""
-    td = m.training_data
-    return PoseConfig(
-        name=m.name,
-        sensors=m.pose.sensors,
-        data={
-            "sources": td.get("sources"),  # the sources it trained on: the split its run scored
-            "test_subjects": td["test_subjects"],
-            "val_subjects": td["validation_subjects"],
-            "test_activities_of_unlabelled": td["test_unlabelled_clips"],
-            "limb_twist": td.get("limb_twist", "rig"),
-            "trunk_axes": td.get("trunk_axes", "spine"),
-        },
-    )
+    return PoseConfig(name=m.name, sensors=m.pose.sensors, data=shipped_split_and_frames(m.training_data))
 
 
 def evaluate_shipped_pose(
