@@ -82,6 +82,10 @@ class FlexSpec(BaseModel):
     angle_convention: str
     simulated_sensor: str = ""  # the sensor model trained on, for simulated-data models
     readout_check: ReadoutCheckSpec | None = None  # refuse readings of a failed read-out (capacitive sleeves)
+    # how the graph reads the raw readings before its min-max bounds: as they are ("minmax"), each channel over its
+    # window's mean ("window_relative"), or as log resistance through the read-out named in the channels' units
+    # ("log_resistance": another divider or amplifier needs another model)
+    input_norm: str = "minmax"
 
 
 class SessionConfidenceSpec(BaseModel):

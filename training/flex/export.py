@@ -14,7 +14,7 @@ from service.core.flex import JOINT_COMPONENTS
 from service.core.manifest import Evaluation, FlexSpec, Manifest, ReadoutCheckSpec, TensorSpec
 from training.flex.config import FlexConfig
 from training.flex.models import FlexNet
-from training.flex.simulate import ADC_MAX, FLEX_RATE_HZ
+from training.flex.simulate import ADC_MAX, AMP_GAIN, DIVIDER_OHM, FLEX_RATE_HZ, VCC
 
 OPSET = 17
 TASK = "flex_pose"
@@ -46,6 +46,14 @@ def onnx_parity(path: Path, golden: dict[str, np.ndarray]) -> float:
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     got = session.run(None, {"counts": golden["counts"]})[0]
     return float(np.max(np.abs(got - golden["expected"])))
+
+
+# the simulated suit's channels; a model that reads resistance back depends on the read-out's parts
+_SUIT_UNITS = {
+    False: "12-bit ADC counts (0-4095), Chen et al. 2024 eq. 1",
+    True: f"12-bit ADC counts (0-4095) over {VCC:g} V, Chen et al. 2024 eq. 1 with R_i {DIVIDER_OHM / 1000:g} kΩ "
+    f"and G {AMP_GAIN:g} (read back to resistance by the model)",
+}
 
 
 def build_flex_manifest(
@@ -97,7 +105,7 @@ def build_flex_manifest(
         window_samples=W,
         hop_samples=1,
         channels=channels,
-        units=units or {c: "12-bit ADC counts (0-4095), Chen et al. 2024 eq. 1" for c in channels},
+        units=units or {c: _SUIT_UNITS[cfg.model.input_norm == "log_resistance"] for c in channels},
         classes=[],
         joints=joints,
         joint_components=components,
@@ -111,6 +119,7 @@ def build_flex_manifest(
             angle_convention=angle_convention,
             simulated_sensor=simulated_sensor,
             readout_check=readout_check,
+            input_norm=cfg.model.input_norm,
         ),
         sha256=sha256,
         training_data=training_data,

@@ -2,7 +2,8 @@
 
 Every network takes ``(B, window, C)`` raw readings (counts) and does inside the graph what is stateless
 (DESIGN.md §1): min-max normalisation with the training set's per-channel bounds (§3.4.3; for real sleeves
-optionally of each channel relative to its window's mean, ``input_norm``), the dynamic
+optionally of each channel relative to its window's mean, or for the simulated strips of the log resistance read
+back from the counts, ``input_norm``), the dynamic
 calibration of eq. 2 where enabled, then only the last ``steps`` samples go to the network (§4.2.4). It predicts
 one set of joint angles per step (the loss of eq. 3 is over the whole short sequence); with the median layer
 (§3.4.4, kernel 3, padding 1) the steps' predictions are smoothed and the answer is the second-to-last step, the
@@ -20,6 +21,23 @@ import torch
 from torch import nn
 
 from training.flex.config import FlexModelConfig
+from training.flex.simulate import ADC_MAX, AMP_GAIN
+
+
+def log_resistance(x: torch.Tensor) -> torch.Tensor:
+    """Counts → log(R / R_i) through Chen et al. 2024 eq. 1 with the nominal read-out (``training.flex.simulate``):
+    R / (R_i + R) = counts / (4096 G) + 1/2. Counts at 0 (R at or below R_i) and at the rail are clamped."""
+    u = (x / ((ADC_MAX + 1) * AMP_GAIN) + 0.5).clamp(0.5 + 1e-4, 1.0 - 1e-4)
+    return torch.log(u) - torch.log1p(-u)
+
+
+def readings(x: torch.Tensor, input_norm: str) -> torch.Tensor:
+    """``(B, T, C)`` raw readings → what the min-max bounds apply to (``FlexModelConfig.input_norm``)."""
+    if input_norm == "window_relative":
+        return x / x.mean(dim=1, keepdim=True).clamp_min(1e-6) - 1.0
+    if input_norm == "log_resistance":
+        return log_resistance(x)
+    return x
 
 
 class DynamicCalibration(nn.Module):
@@ -172,9 +190,7 @@ class FlexNet(nn.Module):
         return self.cfg.steps - 1 - self.answer_step
 
     def normalised(self, x: torch.Tensor) -> torch.Tensor:
-        if self.cfg.input_norm == "window_relative":
-            x = x / x.mean(dim=1, keepdim=True).clamp_min(1e-6) - 1.0
-        return (x - self.input_min) / self.input_span
+        return (readings(x, self.cfg.input_norm) - self.input_min) / self.input_span
 
     def steps_standardised(self, x: torch.Tensor) -> torch.Tensor:
         """Predictions of every step in units of the training targets' standard deviation about their mean."""

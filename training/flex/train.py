@@ -17,7 +17,7 @@ from tqdm import tqdm
 from training.flex.config import FlexConfig
 from training.flex.data import WindowSet
 from training.flex.evaluate import predict_windows
-from training.flex.models import FlexNet
+from training.flex.models import FlexNet, readings
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,9 @@ def build_net(cfg: FlexConfig, train: WindowSet) -> FlexNet:
     if cfg.model.input_norm == "window_relative":
         ends = np.random.default_rng(cfg.seed).choice(train.ends, size=min(4000, len(train.ends)), replace=False)
         x, _ = train.batch(np.zeros(len(ends), int), ends, 1)
-        flat = (x / x.mean(axis=1, keepdims=True) - 1.0).reshape(-1, x.shape[-1])
+        flat = readings(torch.from_numpy(x), cfg.model.input_norm).numpy().reshape(-1, x.shape[-1])
+    elif cfg.model.input_norm == "log_resistance":
+        flat = readings(torch.from_numpy(flat).unsqueeze(0), cfg.model.input_norm).numpy()[0]
     y = train.angles.reshape(len(train.angles), -1)
     return FlexNet(
         cfg.model,

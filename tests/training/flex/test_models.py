@@ -11,7 +11,8 @@ import torch
 
 from training.flex.config import FlexModelConfig
 from training.flex.export import export_flex_onnx
-from training.flex.models import DynamicCalibration, FlexNet, median3
+from training.flex.models import DynamicCalibration, FlexNet, log_resistance, median3
+from training.flex.simulate import DIVIDER_OHM, SensorParams, counts, draw_sensor, resistance_ohm
 
 VARIANTS = [
     ("bilstm", False, False),
@@ -24,9 +25,11 @@ VARIANTS = [
 ]
 
 
-def _net(kind: str, calibration: bool, median: bool, channels: int = 4, joints: int = 3) -> FlexNet:
+def _net(
+    kind: str, calibration: bool, median: bool, channels: int = 4, joints: int = 3, input_norm: str = "minmax"
+) -> FlexNet:
     torch.manual_seed(0)
-    cfg = FlexModelConfig(kind=kind, calibration=calibration, median=median)
+    cfg = FlexModelConfig(kind=kind, calibration=calibration, median=median, input_norm=input_norm)
     return FlexNet(
         cfg,
         channels,
@@ -69,11 +72,40 @@ def test_the_baseline_init_starts_the_calibration_as_a_subtraction_of_the_window
         torch.testing.assert_close(cal(torch.full((1, 100, 2), 0.4)), torch.zeros(1, 100, 2))
 
 
-@pytest.mark.parametrize("kind, calibration, median", VARIANTS)
+def _exact_sensor(**fixed: float) -> SensorParams:
+    exact = {"noise_counts": 0.0, "amp_tol": 0.0, "divider_tol": 0.0, "baseline_rate_per_min": 0.0}
+    return draw_sensor(np.random.default_rng(3), **(exact | fixed))
+
+
+def test_log_resistance_reads_the_strip_back_through_eq_1_and_turns_ageing_into_an_offset() -> None:
+    theta = np.abs(np.sin(np.linspace(0, 12, 100))) * 100.0  # bending and straightening, 5 s at 20 Hz
+    rng = np.random.default_rng(0)
+    new, aged = _exact_sensor(baseline0=0.0), _exact_sensor(baseline0=0.45)
+    r_new = resistance_ohm(theta, new)
+    c_new, c_aged = counts(r_new, new, rng), counts(resistance_ohm(theta, aged), aged, rng)
+    back = np.exp(log_resistance(torch.from_numpy(c_new)).numpy()) * DIVIDER_OHM
+    np.testing.assert_allclose(back, r_new, rtol=2e-3)  # within a count's quantisation
+    shift = log_resistance(torch.from_numpy(c_aged)) - log_resistance(torch.from_numpy(c_new))
+    # ageing multiplies R by 1.45: log R moves by log 1.45 at every angle, where the counts' step shrinks as the
+    # strip bends (the divider's curve)
+    np.testing.assert_allclose(shift.numpy(), np.log(1.45), atol=3e-3)
+    step = c_aged - c_new
+    assert step[theta < 5].mean() > 1.5 * step[theta > 90].mean()
+    cal = DynamicCalibration(100, 15, 10, 8, init="baseline")
+    with torch.no_grad():  # so the calibration module, started as a subtraction, takes the ageing out
+        a = cal(log_resistance(torch.from_numpy(c_new)).view(1, 100, 1))
+        b = cal(log_resistance(torch.from_numpy(c_aged)).view(1, 100, 1))
+    torch.testing.assert_close(a, b, atol=4e-3, rtol=0)
+
+
+@pytest.mark.parametrize(
+    "kind, calibration, median, input_norm",
+    [(*v, "minmax") for v in VARIANTS] + [("bilstm", True, True, "log_resistance")],
+)
 def test_each_variant_answers_one_pose_per_window_and_exports_with_parity(
-    kind, calibration, median, tmp_path: Path
+    kind, calibration, median, input_norm, tmp_path: Path
 ) -> None:
-    net = _net(kind, calibration, median)
+    net = _net(kind, calibration, median, input_norm=input_norm)
     x = torch.from_numpy(np.random.default_rng(0).uniform(500, 3500, size=(6, 100, 4)).astype(np.float32))
     with torch.no_grad():
         y = net(x)
