@@ -773,7 +773,12 @@ def evaluate_flex(
                     "(restore the store with snapshot-restore, or set MLFLOW_TRACKING_URI to the one it was trained in)"
                 )
             typer.echo(f"{m.name} versions {tagged}: {SELECTION_METRIC} {val['mae_deg']:.4f}", err=True)
-        typer.echo(json.dumps(val, indent=1) if as_json else f"validation: {val['mae_deg']:.2f}°")
+        if as_json:
+            typer.echo(json.dumps(val | {"ageing": out["ageing"]}, indent=1))
+            return
+        typer.echo(f"validation: {val['mae_deg']:.2f}° jitter {val['jitter_deg_s3'] / 1e4:.3f}e4 °/s³")
+        for b, v in out["ageing"].items():
+            typer.echo(f"validation, ageing {b}: {v['mae_deg']:.2f}° jitter {v['jitter_deg_s3'] / 1e4:.3f}e4")
         return
     if as_json:
         typer.echo(json.dumps(out, indent=1))

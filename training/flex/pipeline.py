@@ -211,6 +211,11 @@ def run_flex_experiment(
             mlflow.log_metrics(
                 {"test_ageing_mae_deg": s["mae_deg"], "test_ageing_jitter": s["jitter_deg_s3"]}, step=int(b * 100)
             )
+        for b in AGEING_BEYOND:  # the same on the validation suits: what a choice made for ageing may look at
+            s = clip_metrics(predict, ageing_set(sets["val"], VAL_SEED, b), 0, lat, cfg.joints, cfg.sensors)
+            mlflow.log_metrics(
+                {"val_ageing_mae_deg": s["mae_deg"], "val_ageing_jitter": s["jitter_deg_s3"]}, step=int(b * 100)
+            )
         replaced = clip_metrics(predict, sets["replaced"], 0, lat, cfg.joints, cfg.sensors)
         mlflow.log_metrics(flat_metrics(replaced, "test_replaced"))
         other_lot = clip_metrics(predict, sets["other_lot"], 0, lat, cfg.joints, cfg.sensors)
@@ -350,7 +355,13 @@ def evaluate_served(loaded, data: FlexData, validation: bool = False) -> dict:
     lat = m.flex.latency_samples
     if validation:
         val = window_set(data.val, 1, VAL_SEED, cfg.model.window)
-        return {"model": f"{m.name} {m.version}", "val": clip_metrics(loaded.run, val, 0, lat, cfg.joints, cfg.sensors)}
+        score_val = lambda ws: clip_metrics(loaded.run, ws, 0, lat, cfg.joints, cfg.sensors)  # noqa: E731
+        aged = {b: score_val(ageing_set(val, VAL_SEED, b)) for b in AGEING_BEYOND}
+        return {
+            "model": f"{m.name} {m.version}",
+            "val": score_val(val),
+            "ageing": {b: {"mae_deg": v["mae_deg"], "jitter_deg_s3": v["jitter_deg_s3"]} for b, v in aged.items()},
+        }
     sets = build_sets(cfg, data, train=False)
     score = lambda key: clip_metrics(loaded.run, sets[key], 0, lat, cfg.joints, cfg.sensors)  # noqa: E731
     ageing = {b: score(f"ageing_{b}") for b in AGEING_BEYOND}
