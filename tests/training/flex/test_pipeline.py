@@ -300,3 +300,6 @@ def test_the_served_suit_model_is_scored_in_the_frames_its_manifest_names() -> N
         update={"training_data": {k: v for k, v in served.training_data.items() if k != "trunk_axes"}}
     )
     assert shipped_config(older).data.trunk_axes == "spine"
+    # it reads the counts back to resistance, so its manifest names the read-out's parts that this depends on
+    assert served.flex.input_norm == "log_resistance"
+    assert all("R_i 15 kΩ" in u and "G 2.3" in u for u in served.units.values())
