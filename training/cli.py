@@ -729,7 +729,8 @@ def evaluate_flex(
     validation: bool = typer.Option(
         False,
         "--validation",
-        help="score the validation subjects' suits, which its run chose its epoch by, not the held-out ones",
+        help="score the validation subjects' suits, which its run chose its epoch by, not the held-out ones (and "
+        "the same suits aged beyond the training range, which a choice made for ageing may look at)",
     ),
     tag: bool = typer.Option(
         False,

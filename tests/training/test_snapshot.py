@@ -104,6 +104,7 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
             "pose_full6_thorax_seed1",
         }
         | {f"flex_{v}_hinge_last_s{seed}" for v in ("bilstm", "bilstm_cm", "bilstm_cm_baseline") for seed in (0, 1)}
+        | {f"flex_{v}_logr_last_s{seed}" for v in ("bilstm", "bilstm_cm", "bilstm_cm_baseline") for seed in (0, 1)}
         | {f"flex_{v}" for v in ("bilstm", "bilstm_c", "bilstm_m", "transformer", "fcn", "tcn", "bilstm_half_cmu")}
         | {f"flex_{v}_last" for v in ("bilstm", "bilstm_cm", "bilstm_cm_baseline")}
         | {f"flex_capacitive_knee_{v}" for v in ("plain", "m", "cm", "minmax", "reverse", "leg_left", "leg_right")}

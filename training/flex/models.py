@@ -26,7 +26,8 @@ from training.flex.simulate import ADC_MAX, AMP_GAIN
 
 def log_resistance(x: torch.Tensor) -> torch.Tensor:
     """Counts → log(R / R_i) through Chen et al. 2024 eq. 1 with the nominal read-out (``training.flex.simulate``):
-    R / (R_i + R) = counts / (4096 G) + 1/2. Counts at 0 (R at or below R_i) and at the rail are clamped."""
+    R / (R_i + R) = counts / (4096 G) + 1/2. Counts at 0 (R at or below R_i) read as R = R_i; the upper clamp only
+    guards the logarithm (4095 counts is R ≈ 14 R_i)."""
     u = (x / ((ADC_MAX + 1) * AMP_GAIN) + 0.5).clamp(0.5 + 1e-4, 1.0 - 1e-4)
     return torch.log(u) - torch.log1p(-u)
 

@@ -349,7 +349,8 @@ def shipped_config(m) -> FlexConfig:
 
 def evaluate_served(loaded, data: FlexData, validation: bool = False) -> dict:
     """A loaded ONNX flex model on the test sets ``build_sets`` makes (same seeds as its training run), or with
-    ``validation`` on the validation suits its run chose its epoch and the registry its champion by."""
+    ``validation`` on the validation suits its run chose its epoch and the registry its champion by, and those
+    suits aged beyond the training range."""
     m = loaded.manifest
     cfg = shipped_config(m)
     lat = m.flex.latency_samples
