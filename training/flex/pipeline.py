@@ -10,7 +10,7 @@ import json
 import logging
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import mlflow
@@ -24,7 +24,7 @@ from service.inference.registry import load_model
 from training.config import flatten
 from training.data.catalog import BANDAI_LICENCE, is_bandai_namco, mocap_entries
 from training.flex.config import FlexConfig
-from training.flex.data import FlexClip, WindowSet, clip_seed, clip_suit, flex_clip, window_set
+from training.flex.data import FlexClip, WindowSet, clip_seed, clip_suit, flex_clip, tail_split, window_set
 from training.flex.evaluate import clip_metrics, flat_metrics, mean_pose_predictor
 from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_parity
 from training.flex.simulate import AGEING_BEYOND, FLEX_RATE_HZ, draw_sensor, draw_suit, simulate_counts
@@ -51,6 +51,8 @@ class FlexData:
     digest_val: str
     bandai: bool
     source: str = ""  # the data directory
+    # the last ``data.seen_tail`` of every training clip, kept out of training (Chen et al. 2024 §3.3's protocol)
+    seen: list[FlexClip] = field(default_factory=list)
 
 
 def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> FlexData:
@@ -62,14 +64,20 @@ def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: in
         train = train + [mirrored(c) for c in train]
     log.info("flex split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
     conv = lambda cl: [flex_clip(c, cfg.joints, cfg.sensors, cfg.model.window) for c in cl]  # noqa: E731
+    flex_train, seen, digest_train = conv(train), [], dataset_digest(train)
+    if d.seen_tail > 0:
+        split = [tail_split(c, d.seen_tail, cfg.model.window) for c in flex_train]
+        flex_train, seen = [h for h, _ in split], [t for _, t in split if t is not None]
+        digest_train += f"-tail{d.seen_tail:g}"
     return FlexData(
-        conv(train),
+        flex_train,
         conv(val),
         conv(test),
-        dataset_digest(train),
+        digest_train,
         dataset_digest(val),
         any(is_bandai_namco(c.source) for c in train),
         str(data_dir),
+        seen,
     )
 
 
@@ -201,6 +209,11 @@ def run_flex_experiment(
         val = clip_metrics(predict, sets["val"], 0, lat, cfg.joints, cfg.sensors)
         test = clip_metrics(predict, sets["test"], 0, lat, cfg.joints, cfg.sensors)
         mlflow.log_metrics(flat_metrics(val, "val") | flat_metrics(test, "test"))
+        if data.seen:  # the training people's held-back tails: Chen et al. 2024 §3.3's test, not ours
+            seen_set = window_set(data.seen, 1, TEST_SEED, cfg.model.window)
+            seen = clip_metrics(predict, seen_set, 0, lat, cfg.joints, cfg.sensors)
+            mlflow.log_metrics(flat_metrics(seen, "seen"))
+            log.info("seen people (the last %g of each training clip): %.2f°", cfg.data.seen_tail, seen["mae_deg"])
         mean = sets["train"].angles.mean(axis=0)
         baseline = clip_metrics(mean_pose_predictor(mean), sets["test"], 0, lat, cfg.joints, cfg.sensors)
         mlflow.log_metrics(flat_metrics(baseline, "test_meanpose"))
@@ -292,6 +305,8 @@ def run_flex_experiment(
             "epochs_run": len(result.history),
             "stopped": result.stopped,
         } | ({"licence": BANDAI_LICENCE} if data.bandai else {})
+        if cfg.data.seen_tail:  # trained without the last share of each training clip
+            training_data["seen_tail"] = cfg.data.seen_tail
         metrics = {k: round(v, 4) for k, v in flat_metrics(test, "test").items() if "_joint_" not in k}
         metrics |= {f"test_ageing_{int(100 * b)}pct_mae_deg": round(v["mae_deg"], 4) for b, v in ageing.items()}
         metrics |= {
