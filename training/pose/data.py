@@ -13,7 +13,7 @@ import collections
 import hashlib
 import logging
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -311,6 +311,18 @@ def mirrored(clip: MotionClip) -> MotionClip:
         m.sample_rate_hz,
     )
     return MotionClip(f"{clip.path}#mirror", clip.source, clip.subject, clip.activity, motion, f"{clip.digest}-mirror")
+
+
+def tail_split(clip: MotionClip, share: float, min_frames: int) -> tuple[MotionClip, MotionClip | None]:
+    """``clip`` without the last ``share`` of its frames, and those frames as a clip of their own (``<path>#tail``),
+    when they are at least ``min_frames``; else the clip whole and no tail."""
+    n = clip.motion.n_frames
+    k = int(round(n * share))
+    if k < min_frames or n - k < min_frames:
+        return clip, None
+    head = replace(clip, motion=clip.motion.crop(0, n - k))
+    tail = replace(clip, path=f"{clip.path}#tail", motion=clip.motion.crop(n - k), digest=f"{clip.digest}-tail")
+    return head, tail
 
 
 def dataset_digest(clips: list[MotionClip]) -> str:

@@ -11,7 +11,7 @@ import functools
 import json
 import logging
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import mlflow
@@ -43,6 +43,7 @@ from training.pose.data import (
     held_out_split,
     pose_evaluation_digest,
     shipped_split_and_frames,
+    tail_split,
     trains_on_bandai,
 )
 from training.pose.evaluate import (
@@ -75,6 +76,8 @@ class PoseData:
     val: list[MotionClip]
     test: list[MotionClip]
     selection: Selection | None = None  # with ``data.selection``: how ``train`` was chosen
+    # with ``data.seen_tail``: the training clips' held-back tails (Zheng et al. 2021 §7's protocol)
+    seen: list[MotionClip] = field(default_factory=list)
 
 
 def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> PoseData:
@@ -83,8 +86,13 @@ def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: in
     clips = build_motions(data_dir, entries, cache_dir, workers, limb_twist=d.limb_twist, trunk_axes=d.trunk_axes)
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     log.info("pose split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
+    seen: list[MotionClip] = []
+    if d.seen_tail > 0:  # two seconds at least on both sides of the cut
+        split = [tail_split(c, d.seen_tail, int(2 * MODEL_RATE_HZ)) for c in train]
+        train, seen = [h for h, _ in split], [t for _, t in split if t is not None]
+        log.info("seen people: the last %g of %d training clips held back", d.seen_tail, len(seen))
     if d.selection is None:
-        return PoseData(train, val, test)
+        return PoseData(train, val, test, seen=seen)
     s = d.selection
     is_ref = [
         c.activity in s.reference_activities and (s.reference_sources is None or c.source in s.reference_sources)
@@ -99,7 +107,7 @@ def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: in
     unit = max(1, round(s.unit_s * MODEL_RATE_HZ))
     selection = select(rest, reference, unit, s.eta0, cfg.train.sequence_frames, s.weights, s.optimise)
     # Zheng et al. 2021 §5.1: the selected data and the reference data are trained on
-    return PoseData(reference + selected_clips(rest, selection.runs), val, test, selection)
+    return PoseData(reference + selected_clips(rest, selection.runs), val, test, selection, seen)
 
 
 def default_body(clips: list[MotionClip]) -> Body:
@@ -250,6 +258,12 @@ def run_pose_experiment(
         mean_pose = mean_pose_predictor(baseline_sessions)
         baseline = summarise(evaluate_clips(mean_pose, data.test, test_sessions, cfg.sensors, cfg.outputs))
         mlflow.log_metrics(flat_metrics(baseline, "test_meanpose"))
+        if data.seen:  # the training people's held-back tails: Zheng et al. 2021 §7's test, not ours
+            seen_sessions = fixed_sessions(data.seen, cfg, TEST_SEED)
+            seen = summarise(evaluate_clips(predict, data.seen, seen_sessions, cfg.sensors, cfg.outputs))
+            mlflow.log_metrics(flat_metrics(seen, "seen"))
+            for a, v in sorted(seen["activity"].items()):
+                log.info("seen people, %s: %.2f° over all segments", a, v["angle_all_deg"])
         seg = per_segment_mean(test_results)
         mlflow.log_artifact(
             str(
@@ -296,6 +310,8 @@ def run_pose_experiment(
             "epochs_run": len(result.history),
             "stopped": result.stopped,
         }
+        if cfg.data.seen_tail:  # trained without the last share of each training clip
+            training_data["seen_tail"] = cfg.data.seen_tail
         if data.selection is not None:  # a model for one scenario (Zheng et al. 2021 §5)
             training_data["selected_for"] = {
                 "reference_activities": cfg.data.selection.reference_activities,
