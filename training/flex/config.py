@@ -33,9 +33,10 @@ class FlexDataConfig(Strict):
     # the upper trunk's frames: from each rig's spine joints ("spine") or the hip and shoulder joint centres
     # ("thorax", as PoseDataConfig.trunk_axes)
     trunk_axes: Literal["spine", "thorax"] = "spine"
-    # Chen et al. 2024 §3.3's protocol beside ours: the last share of every training clip is kept out of training
-    # and scored as "seen people" (their test is 10 % of each recorded action of the same ten subjects); 0: off
-    seen_tail: float = Field(0.0, ge=0.0, le=0.5)
+    # Chen et al. 2024 §3.3's protocol beside ours: this share of the training clips (other takes of the same people
+    # and activities, ``training.pose.data.seen_split``) is kept out of training and scored as "seen people" (their
+    # test is 10 % of each recorded action of the same ten subjects); 0: off
+    seen_share: float = Field(0.0, ge=0.0, le=0.5)
 
 
 class FlexModelConfig(Strict):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import hashlib
 from collections import Counter
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -49,19 +49,6 @@ def flex_clip(clip: MotionClip, joints: list[str], sensors: list[str], window: i
         bend_angles_deg(R, sensors).astype(np.float32),
         window - 1,
     )
-
-
-def tail_split(c: FlexClip, share: float, window: int) -> tuple[FlexClip, FlexClip | None]:
-    """``c`` without the last ``share`` of its frames, and those frames as a clip of their own (named
-    ``<path>#tail``) whose first ``window - 1`` frames, the motion just before them, fill its calibration window;
-    no tail where the share rounds to no frame."""
-    k = int(round(c.frames * share))
-    if k < 1:
-        return c, None
-    cut = len(c.angles) - k
-    head = replace(c, angles=c.angles[:cut], bend=c.bend[:cut])
-    tail = replace(c, path=f"{c.path}#tail", angles=c.angles[cut - window + 1 :], bend=c.bend[cut - window + 1 :])
-    return head, replace(tail, pad=window - 1)
 
 
 def clip_seed(seed: int, path: str, k: int) -> int:

@@ -24,13 +24,20 @@ from service.inference.registry import load_model
 from training.config import flatten
 from training.data.catalog import BANDAI_LICENCE, is_bandai_namco, mocap_entries
 from training.flex.config import FlexConfig
-from training.flex.data import FlexClip, WindowSet, clip_seed, clip_suit, flex_clip, tail_split, window_set
+from training.flex.data import FlexClip, WindowSet, clip_seed, clip_suit, flex_clip, window_set
 from training.flex.evaluate import clip_metrics, flat_metrics, mean_pose_predictor
 from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_parity
 from training.flex.simulate import AGEING_BEYOND, FLEX_RATE_HZ, draw_sensor, draw_suit, simulate_counts
 from training.flex.train import FlexTrainResult, torch_predictor, train_flex
 from training.plots import bars_png, curves_png, flex_learning_curve_png, traces_png
-from training.pose.data import build_motions, dataset_digest, held_out_split, mirrored, shipped_split_and_frames
+from training.pose.data import (
+    build_motions,
+    dataset_digest,
+    held_out_split,
+    mirrored,
+    seen_split,
+    shipped_split_and_frames,
+)
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
@@ -51,7 +58,7 @@ class FlexData:
     digest_val: str
     bandai: bool
     source: str = ""  # the data directory
-    # the last ``data.seen_tail`` of every training clip, kept out of training (Chen et al. 2024 §3.3's protocol)
+    # with ``data.seen_share``: training clips held back (Chen et al. 2024 §3.3's protocol)
     seen: list[FlexClip] = field(default_factory=list)
 
 
@@ -60,24 +67,20 @@ def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: in
     entries = mocap_entries(data_dir, sources=d.sources)
     clips = build_motions(data_dir, entries, cache_dir, workers, limb_twist=d.limb_twist, trunk_axes=d.trunk_axes)
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
+    train, seen = seen_split(train, d.seen_share) if d.seen_share > 0 else (train, [])
     if d.mirror:
         train = train + [mirrored(c) for c in train]
     log.info("flex split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
     conv = lambda cl: [flex_clip(c, cfg.joints, cfg.sensors, cfg.model.window) for c in cl]  # noqa: E731
-    flex_train, seen, digest_train = conv(train), [], dataset_digest(train)
-    if d.seen_tail > 0:
-        split = [tail_split(c, d.seen_tail, cfg.model.window) for c in flex_train]
-        flex_train, seen = [h for h, _ in split], [t for _, t in split if t is not None]
-        digest_train += f"-tail{d.seen_tail:g}"
     return FlexData(
-        flex_train,
+        conv(train),
         conv(val),
         conv(test),
-        digest_train,
+        dataset_digest(train),
         dataset_digest(val),
         any(is_bandai_namco(c.source) for c in train),
         str(data_dir),
-        seen,
+        conv(seen),
     )
 
 
@@ -209,11 +212,11 @@ def run_flex_experiment(
         val = clip_metrics(predict, sets["val"], 0, lat, cfg.joints, cfg.sensors)
         test = clip_metrics(predict, sets["test"], 0, lat, cfg.joints, cfg.sensors)
         mlflow.log_metrics(flat_metrics(val, "val") | flat_metrics(test, "test"))
-        if data.seen:  # the training people's held-back tails: Chen et al. 2024 §3.3's test, not ours
+        if data.seen:  # other takes of the training people: Chen et al. 2024 §3.3's test, not ours
             seen_set = window_set(data.seen, 1, TEST_SEED, cfg.model.window)
             seen = clip_metrics(predict, seen_set, 0, lat, cfg.joints, cfg.sensors)
             mlflow.log_metrics(flat_metrics(seen, "seen"))
-            log.info("seen people (the last %g of each training clip): %.2f°", cfg.data.seen_tail, seen["mae_deg"])
+            log.info("seen people (%d training clips held back): %.2f°", len(data.seen), seen["mae_deg"])
         mean = sets["train"].angles.mean(axis=0)
         baseline = clip_metrics(mean_pose_predictor(mean), sets["test"], 0, lat, cfg.joints, cfg.sensors)
         mlflow.log_metrics(flat_metrics(baseline, "test_meanpose"))
@@ -305,8 +308,8 @@ def run_flex_experiment(
             "epochs_run": len(result.history),
             "stopped": result.stopped,
         } | ({"licence": BANDAI_LICENCE} if data.bandai else {})
-        if cfg.data.seen_tail:  # trained without the last share of each training clip
-            training_data["seen_tail"] = cfg.data.seen_tail
+        if cfg.data.seen_share:  # trained without a share of the training clips
+            training_data["seen_share"] = cfg.data.seen_share
         metrics = {k: round(v, 4) for k, v in flat_metrics(test, "test").items() if "_joint_" not in k}
         metrics |= {f"test_ageing_{int(100 * b)}pct_mae_deg": round(v["mae_deg"], 4) for b, v in ageing.items()}
         metrics |= {

@@ -51,10 +51,10 @@ class PoseDataConfig(Strict):
     # ("spine"), or from the hip and shoulder joint centres, which the rigs place alike ("thorax":
     # service.core.body; the rigs' own spine joints read the same trial up to 18° apart)
     trunk_axes: Literal["spine", "thorax"] = "spine"
-    # Zheng et al. 2021 §7's protocol beside ours: the last share of every training clip is kept out of training and
-    # scored as "seen people" (their test set is 20,000 frames of their own four people's walking, running and
-    # basketball); 0: off
-    seen_tail: float = Field(0.0, ge=0.0, le=0.5)
+    # Zheng et al. 2021 §7's protocol beside ours: this share of the training clips (other takes of the same people
+    # and activities, ``training.pose.data.seen_split``) is kept out of training and scored as "seen people" (their
+    # test set is 20,000 frames of their own four people's walking, running and basketball); 0: off
+    seen_share: float = Field(0.0, ge=0.0, le=0.5)
 
 
 class PoseModelConfig(Strict):

@@ -13,7 +13,7 @@ import collections
 import hashlib
 import logging
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -313,16 +313,11 @@ def mirrored(clip: MotionClip) -> MotionClip:
     return MotionClip(f"{clip.path}#mirror", clip.source, clip.subject, clip.activity, motion, f"{clip.digest}-mirror")
 
 
-def tail_split(clip: MotionClip, share: float, min_frames: int) -> tuple[MotionClip, MotionClip | None]:
-    """``clip`` without the last ``share`` of its frames, and those frames as a clip of their own (``<path>#tail``),
-    when they are at least ``min_frames``; else the clip whole and no tail."""
-    n = clip.motion.n_frames
-    k = int(round(n * share))
-    if k < min_frames or n - k < min_frames:
-        return clip, None
-    head = replace(clip, motion=clip.motion.crop(0, n - k))
-    tail = replace(clip, path=f"{clip.path}#tail", motion=clip.motion.crop(n - k), digest=f"{clip.digest}-tail")
-    return head, tail
+def seen_split(clips: list[MotionClip], share: float) -> tuple[list[MotionClip], list[MotionClip]]:
+    """Training clips → (those trained on, those held back as "seen people"): other takes of the people and
+    activities trained on, about ``share`` of the clips, chosen by each clip's digest (the same on every machine)."""
+    held = [int(c.digest[:8], 16) / 16**8 < share for c in clips]
+    return [c for c, h in zip(clips, held, strict=True) if not h], [c for c, h in zip(clips, held, strict=True) if h]
 
 
 def dataset_digest(clips: list[MotionClip]) -> str:

@@ -42,8 +42,8 @@ from training.pose.data import (
     dataset_digest,
     held_out_split,
     pose_evaluation_digest,
+    seen_split,
     shipped_split_and_frames,
-    tail_split,
     trains_on_bandai,
 )
 from training.pose.evaluate import (
@@ -76,7 +76,7 @@ class PoseData:
     val: list[MotionClip]
     test: list[MotionClip]
     selection: Selection | None = None  # with ``data.selection``: how ``train`` was chosen
-    # with ``data.seen_tail``: the training clips' held-back tails (Zheng et al. 2021 §7's protocol)
+    # with ``data.seen_share``: training clips held back (Zheng et al. 2021 §7's protocol)
     seen: list[MotionClip] = field(default_factory=list)
 
 
@@ -87,10 +87,9 @@ def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: in
     train, val, test = held_out_split(clips, d.test_subjects, d.val_subjects, d.test_activities_of_unlabelled)
     log.info("pose split: %d train, %d validation, %d test clips", len(train), len(val), len(test))
     seen: list[MotionClip] = []
-    if d.seen_tail > 0:  # two seconds at least on both sides of the cut
-        split = [tail_split(c, d.seen_tail, int(2 * MODEL_RATE_HZ)) for c in train]
-        train, seen = [h for h, _ in split], [t for _, t in split if t is not None]
-        log.info("seen people: the last %g of %d training clips held back", d.seen_tail, len(seen))
+    if d.seen_share > 0:
+        train, seen = seen_split(train, d.seen_share)
+        log.info("seen people: %d training clips held back", len(seen))
     if d.selection is None:
         return PoseData(train, val, test, seen=seen)
     s = d.selection
@@ -258,7 +257,7 @@ def run_pose_experiment(
         mean_pose = mean_pose_predictor(baseline_sessions)
         baseline = summarise(evaluate_clips(mean_pose, data.test, test_sessions, cfg.sensors, cfg.outputs))
         mlflow.log_metrics(flat_metrics(baseline, "test_meanpose"))
-        if data.seen:  # the training people's held-back tails: Zheng et al. 2021 §7's test, not ours
+        if data.seen:  # other takes of the training people: Zheng et al. 2021 §7's test, not ours
             seen_sessions = fixed_sessions(data.seen, cfg, TEST_SEED)
             seen = summarise(evaluate_clips(predict, data.seen, seen_sessions, cfg.sensors, cfg.outputs))
             mlflow.log_metrics(flat_metrics(seen, "seen"))
@@ -310,8 +309,8 @@ def run_pose_experiment(
             "epochs_run": len(result.history),
             "stopped": result.stopped,
         }
-        if cfg.data.seen_tail:  # trained without the last share of each training clip
-            training_data["seen_tail"] = cfg.data.seen_tail
+        if cfg.data.seen_share:  # trained without a share of the training clips
+            training_data["seen_share"] = cfg.data.seen_share
         if data.selection is not None:  # a model for one scenario (Zheng et al. 2021 §5)
             training_data["selected_for"] = {
                 "reference_activities": cfg.data.selection.reference_activities,
