@@ -65,9 +65,10 @@ def test_a_stream_window_waits_for_company_until_the_most_impatient_deadline() -
 
 
 def test_a_single_window_takes_its_turn_between_the_chunks_of_a_large_batch() -> None:
-    # A 64-window batch (8 chunks of 10 ms) starts first; a single window arriving 15 ms later runs on its own in
-    # the next chunk, not after the whole batch (nor padded with the batch's windows).
-    chunks = _run([(0.0, 64, None), (0.015, 1, None)], seconds=0.01)
+    # A 64-window batch (8 chunks of 50 ms) starts first; a single window arriving 75 ms later, half-way through the
+    # second chunk, runs on its own in the next chunk, not after the whole batch (nor padded with the batch's
+    # windows). (Chunks of 10 ms and 15 ms left too little margin on a busy machine.)
+    chunks = _run([(0.0, 64, None), (0.075, 1, None)], seconds=0.05)
     assert chunks[:2] == [[0] * 8, [0] * 8]
     assert chunks[2] == [1]
     assert sum(len(c) for c in chunks) == 65
