@@ -102,6 +102,8 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
             "flex_bilstm_cm_hinge",
             "pose_lower3_hinge_seed1",
             "pose_full6_thorax_seed1",
+            "pose_full6_seen",
+            "flex_bilstm_cm_seen",
         }
         | {f"flex_{v}_hinge_last_s{seed}" for v in ("bilstm", "bilstm_cm", "bilstm_cm_baseline") for seed in (0, 1)}
         | {f"flex_{v}_logr_last_s{seed}" for v in ("bilstm", "bilstm_cm", "bilstm_cm_baseline") for seed in (0, 1)}
