@@ -104,6 +104,7 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
             "pose_full6_thorax_seed1",
             "pose_full6_seen",
             "flex_bilstm_cm_seen",
+            "flex_bilstm_logr",
         }
         | {f"flex_{v}_hinge_last_s{seed}" for v in ("bilstm", "bilstm_cm", "bilstm_cm_baseline") for seed in (0, 1)}
         | {f"flex_{v}_logr_last_s{seed}" for v in ("bilstm", "bilstm_cm", "bilstm_cm_baseline") for seed in (0, 1)}
