@@ -220,18 +220,15 @@ def run_flex_experiment(
         mean = sets["train"].angles.mean(axis=0)
         baseline = clip_metrics(mean_pose_predictor(mean), sets["test"], 0, lat, cfg.joints, cfg.sensors)
         mlflow.log_metrics(flat_metrics(baseline, "test_meanpose"))
-        ageing = {}
-        for b in AGEING_BEYOND:
-            s = clip_metrics(predict, sets[f"ageing_{b}"], 0, lat, cfg.joints, cfg.sensors)
-            ageing[b] = {"mae_deg": s["mae_deg"], "jitter_deg_s3": s["jitter_deg_s3"]}
-            mlflow.log_metrics(
-                {"test_ageing_mae_deg": s["mae_deg"], "test_ageing_jitter": s["jitter_deg_s3"]}, step=int(b * 100)
-            )
-        for b in AGEING_BEYOND:  # the same on the validation suits: what a choice made for ageing may look at
-            s = clip_metrics(predict, ageing_set(sets["val"], VAL_SEED, b), 0, lat, cfg.joints, cfg.sensors)
-            mlflow.log_metrics(
-                {"val_ageing_mae_deg": s["mae_deg"], "val_ageing_jitter": s["jitter_deg_s3"]}, step=int(b * 100)
-            )
+        ageing = ageing_curve(predict, aged(sets, "ageing_"), lat, cfg)
+        # the same on the validation suits: what a choice made for ageing may look at
+        val_ageing = ageing_curve(predict, aged(sets, "val_ageing_"), lat, cfg)
+        for split, curve in (("test", ageing), ("val", val_ageing)):
+            for b, v in curve.items():
+                mlflow.log_metrics(
+                    {f"{split}_ageing_mae_deg": v["mae_deg"], f"{split}_ageing_jitter": v["jitter_deg_s3"]},
+                    step=int(b * 100),
+                )
         replaced = clip_metrics(predict, sets["replaced"], 0, lat, cfg.joints, cfg.sensors)
         mlflow.log_metrics(flat_metrics(replaced, "test_replaced"))
         other_lot = clip_metrics(predict, sets["other_lot"], 0, lat, cfg.joints, cfg.sensors)
@@ -374,28 +371,36 @@ def evaluate_served(loaded, data: FlexData, validation: bool = False) -> dict:
     lat = m.flex.latency_samples
     if validation:
         val = window_set(data.val, 1, VAL_SEED, cfg.model.window)
-        score_val = lambda ws: clip_metrics(loaded.run, ws, 0, lat, cfg.joints, cfg.sensors)  # noqa: E731
-        aged = {b: score_val(ageing_set(val, VAL_SEED, b)) for b in AGEING_BEYOND}
         return {
             "model": f"{m.name} {m.version}",
-            "val": score_val(val),
-            "ageing": {b: {"mae_deg": v["mae_deg"], "jitter_deg_s3": v["jitter_deg_s3"]} for b, v in aged.items()},
+            "val": clip_metrics(loaded.run, val, 0, lat, cfg.joints, cfg.sensors),
+            "ageing": ageing_curve(loaded.run, {b: ageing_set(val, VAL_SEED, b) for b in AGEING_BEYOND}, lat, cfg),
         }
     sets = build_sets(cfg, data, train=False)
     score = lambda key: clip_metrics(loaded.run, sets[key], 0, lat, cfg.joints, cfg.sensors)  # noqa: E731
-    ageing = {b: score(f"ageing_{b}") for b in AGEING_BEYOND}
     return {
         "model": f"{m.name} {m.version}",
         "test": score("test"),
-        "ageing": {b: {"mae_deg": v["mae_deg"], "jitter_deg_s3": v["jitter_deg_s3"]} for b, v in ageing.items()},
+        "ageing": ageing_curve(loaded.run, aged(sets, "ageing_"), lat, cfg),
         "replaced": score("replaced"),
         "other_lot": score("other_lot"),
     }
 
 
+def aged(sets: dict[str, WindowSet], prefix: str) -> dict[float, WindowSet]:
+    """``build_sets``' suits aged to each share of ``AGEING_BEYOND``: ``prefix`` "ageing_" (test) or "val_ageing_"."""
+    return {b: sets[f"{prefix}{b}"] for b in AGEING_BEYOND}
+
+
+def ageing_curve(predict, aged_sets: dict[float, WindowSet], lat: int, cfg: FlexConfig) -> dict[float, dict]:
+    """Error and jitter on the same suits aged to each share (``aged_sets[b]``)."""
+    scores = {b: clip_metrics(predict, ws, 0, lat, cfg.joints, cfg.sensors) for b, ws in aged_sets.items()}
+    return {b: {"mae_deg": s["mae_deg"], "jitter_deg_s3": s["jitter_deg_s3"]} for b, s in scores.items()}
+
+
 def build_sets(cfg: FlexConfig, data: FlexData, train: bool = True) -> dict[str, WindowSet]:
-    """Training suits (``suits_per_clip``, seed ``cfg.seed``), one fixed suit per validation and test clip, and
-    the test clips under ageing beyond the training range and with a sensor replaced."""
+    """Training suits (``suits_per_clip``, seed ``cfg.seed``), one fixed suit per validation and test clip, the
+    test and validation clips under ageing beyond the training range and the test clips with a sensor replaced."""
     w = cfg.model.window
     sets = {"val": window_set(data.val, 1, VAL_SEED, w), "test": window_set(data.test, 1, TEST_SEED, w)}
     if train:
@@ -409,6 +414,7 @@ def build_sets(cfg: FlexConfig, data: FlexData, train: bool = True) -> dict[str,
         )
     for b in AGEING_BEYOND:
         sets[f"ageing_{b}"] = ageing_set(sets["test"], TEST_SEED, b)
+        sets[f"val_ageing_{b}"] = ageing_set(sets["val"], VAL_SEED, b)
     sets["replaced"] = replacement_set(sets["test"], TEST_SEED)
     sets["other_lot"] = other_lot_set(sets["test"], TEST_SEED)
     return sets
