@@ -374,12 +374,14 @@ def evaluate_real_command(
     config: Path = typer.Option(..., help="the config whose held-out real recordings to use"),
     data_dir: Path | None = DataDir,
 ) -> None:
-    """Assignment accuracy on the real recordings a config did not train on (compare models on one set)."""
+    """On the real recordings a config did not train on (compare models on one set): an assignment model's accuracy,
+    an alignment model's label-free checks (stability, half turns, uprightness; ``evaluate_real_alignment``)."""
     import tempfile
 
     import mlflow
 
-    from training.i2s.evaluate import evaluate_real, onnx_predictor
+    from service.core.manifest import read_manifest
+    from training.i2s.evaluate import evaluate_real, evaluate_real_alignment, onnx_predictor
     from training.i2s.pipeline import held_out_recordings
     from training.tracking import default_tracking_uri
 
@@ -387,11 +389,22 @@ def evaluate_real_command(
     with tempfile.TemporaryDirectory() as tmp:
         if source.startswith("runs:/"):
             mlflow.set_tracking_uri(default_tracking_uri())
-            uri = mlflow.get_run(source.removeprefix("runs:/")).data.tags["model_uri"]
-            onnx_path = next(Path(mlflow.artifacts.download_artifacts(uri, dst_path=tmp)).rglob("*.onnx"))
+            run = mlflow.get_run(source.removeprefix("runs:/"))
+            task = run.data.tags["task"]
+            onnx_path = next(
+                Path(mlflow.artifacts.download_artifacts(run.data.tags["model_uri"], dst_path=tmp)).rglob("*.onnx")
+            )
         else:
+            task = read_manifest(Path(source) / "manifest.json").task.removeprefix("i2s_")
             onnx_path = Path(source) / "model.onnx"
-        metrics, _ = evaluate_real(onnx_predictor(onnx_path), held_out_recordings(cfg, resolve_data_dir(data_dir)))
+        recordings = held_out_recordings(cfg, resolve_data_dir(data_dir))
+        typer.echo(f"{task} on {len(recordings)} recordings: {', '.join(r.name for r in recordings)}")
+        if task == "alignment":
+            for key, value in evaluate_real_alignment(onnx_predictor(onnx_path), recordings).items():
+                if not key.startswith("nominal_frame_heading_deg/"):
+                    typer.echo(f"{key}: {value:.4f}")
+            return
+        metrics, _ = evaluate_real(onnx_predictor(onnx_path), recordings)
     for key, value in metrics.items():
         shown = ("accuracy/", "joint", "window_joint", "real_accuracy", "real_joint", "real_window_joint")
         if key.startswith((*shown, "real_n_windows")):

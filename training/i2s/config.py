@@ -100,10 +100,13 @@ class TrainConfig(_Strict):
     # trained: needs max_epochs 0, and takes no init_from_* and no turn averages of its own
     ensemble_of: list[str] | None = None
     max_minutes: float | None = None  # wall-time budget; stops after the epoch that crosses it
-    # assignment: distil this shipped float32 assignment model (onnx_models/<name>/<version>; an ensemble stands for
-    # its members, each with its turn averages) into the one-pass network trained (Hinton et al. 2015; not in
-    # Zimmermann et al. 2018): loss = (1 - distill_weight) × cross entropy + distill_weight × τ² × KL(teacher ‖
-    # student), both softened at τ = distill_temperature (training.i2s.train.distillation_loss)
+    # distil this shipped float32 model of the same task (onnx_models/<name>/<version>) into the network trained
+    # (Hinton et al. 2015; not in Zimmermann et al. 2018). Assignment (an ensemble stands for its members, each with
+    # its turn averages): loss = (1 - distill_weight) × cross entropy + distill_weight × τ² × KL(teacher ‖ student),
+    # both softened at τ = distill_temperature (training.i2s.train.distillation_loss). Alignment (the teacher's
+    # network without its functional axes, which the student's export adds again): (1 - distill_weight) × the
+    # quaternion distance to the label + distill_weight × the distance to the teacher's quaternion; real windows,
+    # which carry no alignment label, learn the teacher's alone (training.i2s.train.alignment_distillation_loss)
     distill_from: str | None = None
     distill_weight: float = Field(default=0.9, ge=0.0, le=1.0)
     distill_temperature: float = Field(default=2.0, gt=0.0)
@@ -183,7 +186,7 @@ class ExperimentConfig(_Strict):
         return self.tracking.registered_model or self.name
 
     @model_validator(mode="after")
-    def _a_teacher_teaches_assignment(self) -> ExperimentConfig:
+    def _a_teacher_teaches_a_network_that_trains(self) -> ExperimentConfig:
         taught = self.train.distill_activities
         if taught is not None and self.train.distill_from is None:
             raise ValueError("train.distill_activities names the windows a teacher speaks for; set train.distill_from")
@@ -191,10 +194,16 @@ class ExperimentConfig(_Strict):
             raise ValueError(
                 f"train.distill_activities must be some of data.activities {self.data.activities}; got {taught}"
             )
-        if self.train.distill_from is not None and (self.task != "assignment" or self.train.ensemble_of):
+        if self.train.distill_from is not None and self.train.ensemble_of:
+            raise ValueError("train.distill_from teaches a network that trains; ensemble_of is assembled, not trained")
+        if self.train.distill_from is None and self.task == "alignment" and self.data.real_fraction > 0:
             raise ValueError(
-                "train.distill_from teaches an assignment network that trains; got task "
-                f"{self.task!r}{' and ensemble_of (assembled, not trained)' if self.train.ensemble_of else ''}"
+                "real recordings carry no alignment labels: real windows in alignment training need a teacher "
+                "(train.distill_from) to learn from"
+            )
+        if self.task == "alignment" and self.data.real_fraction > 0 and self.data.real_val_fraction > 0:
+            raise ValueError(
+                "the alignment's validation is scored on labels, which real windows lack: set data.real_val_fraction 0"
             )
         return self
 

@@ -150,8 +150,9 @@ def _teacher(cfg: ExperimentConfig) -> dict[str, dict]:
             "sha256": teacher.sha256,
             "activities": t.distill_activities,
             "weight": t.distill_weight,
-            "temperature": t.distill_temperature,
         }
+        # the softening of the class distributions: an alignment teacher's quaternions have none
+        | ({"temperature": t.distill_temperature} if cfg.task == "assignment" else {})
     }
 
 

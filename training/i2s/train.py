@@ -20,13 +20,19 @@ from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm import tqdm
 
+from service.core.manifest import read_manifest
 from training.config import flatten
 from training.i2s.config import ExperimentConfig
 from training.i2s.data.mocap import Clip
 from training.i2s.data.split import recordings_digest
 from training.i2s.data.windows import Augmentation, Batch, RealWindowSampler, WindowSampler, concat_batches
 from training.i2s.models import AlignmentNet, AssignmentNet
-from training.i2s.warmstart import assignment_ensemble, check_real_recordings_declared, teacher_from_shipped
+from training.i2s.warmstart import (
+    alignment_teacher_from_shipped,
+    assignment_ensemble,
+    check_real_recordings_declared,
+    teacher_from_shipped,
+)
 
 log = logging.getLogger(__name__)
 
@@ -108,13 +114,44 @@ def distillation_loss(
     return ((1.0 - share) * hard + share * soft).mean()
 
 
+def alignment_distillation_loss(
+    q_student: torch.Tensor,
+    q_teacher: torch.Tensor,
+    segment: torch.Tensor,
+    q_true: torch.Tensor,
+    weight: float,
+    taught: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """An alignment network taught by another (``train.distill_from``; Hinton et al. 2015 carried over to a
+    regression): per window, the sign-invariant quaternion distance of the true segment's row to the label and to
+    the teacher's row, in shares (1 − weight) and weight, averaged over the windows. A window without a label (real:
+    ``q_true`` NaN) learns the teacher's row alone; one the teacher does not speak for (``taught`` False, ``(B,)``
+    bool; None: all) its label alone. ``q_student``, ``q_teacher``: ``(B, 7, 4)``."""
+    rows = torch.arange(len(segment))
+    student, teacher = q_student[rows, segment], q_teacher[rows, segment]
+    labelled = torch.isfinite(q_true).all(-1)
+    if taught is None:
+        taught = torch.ones_like(labelled)
+    if bool((~labelled & ~taught).any()):
+        raise ValueError("a window without an alignment label must be one the teacher speaks for")
+    to_label = quat_distance(student, torch.where(labelled[:, None], q_true, teacher))
+    to_teacher = quat_distance(student, teacher)
+    share = torch.where(labelled, torch.where(taught, weight, 0.0), 1.0)
+    return ((1.0 - share) * to_label + share * to_teacher).mean()
+
+
 def build_teacher(cfg: ExperimentConfig) -> nn.Module | None:
-    """The frozen network ``train.distill_from`` names (None without one); the real recordings it trained on must
-    be this run's training recordings too."""
+    """The frozen network ``train.distill_from`` names (None without one), of this run's task; the real recordings
+    it trained on must be this run's training recordings too."""
     t = cfg.train
     if t.distill_from is None:
         return None
+    teacher_task = read_manifest(Path(t.distill_from) / "manifest.json").task
+    if teacher_task != f"i2s_{cfg.task}":
+        raise ValueError(f"train.distill_from {t.distill_from} is an {teacher_task} model; this run trains {cfg.task}")
     check_real_recordings_declared([t.distill_from], cfg.data.real_train_recordings, "teacher")
+    if cfg.task == "alignment":
+        return alignment_teacher_from_shipped(Path(t.distill_from), t.keep_prob)
     return teacher_from_shipped(Path(t.distill_from), t.keep_prob)
 
 
@@ -250,8 +287,11 @@ def train(
     (``cfg.data.real_fraction`` of it): pre-training then fine-tuning as in Zimmermann et al. 2018 §4.3. ``real_val``
     joins the validation in the same share, so early stopping and the warm start's epoch 0 are judged on real windows
     too (reported alone as ``val_real_*``)."""
-    if (real is not None or real_val is not None) and cfg.task != "assignment":
-        raise ValueError("real recordings carry no alignment labels; mix them into assignment training only")
+    if cfg.task == "alignment" and (real_val is not None or (real is not None and cfg.train.distill_from is None)):
+        raise ValueError(
+            "real recordings carry no alignment labels: an alignment network learns from them only through a teacher "
+            "(train.distill_from), and validates on simulated windows alone"
+        )
     t = cfg.train
     device = torch.device(t.device)
     teacher = build_teacher(cfg)  # before the seed: building it draws torch's random numbers, training must not see
@@ -309,6 +349,11 @@ def train(
             imu, seg, q, taught = (x.to(device, non_blocking=True) for x in next(batches))
             if t.alignment_loss == "stereographic_l2" and isinstance(model, AlignmentNet):
                 loss = stereographic_l2_loss(model, imu, seg, q)
+            elif teacher is not None and cfg.task == "alignment":
+                q_student = model(imu)
+                with torch.no_grad():
+                    q_teacher = teacher(imu)
+                loss = alignment_distillation_loss(q_student, q_teacher, seg, q, t.distill_weight, taught)
             elif teacher is not None:
                 logits = model(imu)
                 with torch.no_grad():  # a batch without a taught window (rare with few of them) asks nothing

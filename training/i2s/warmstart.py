@@ -207,6 +207,32 @@ def teacher_from_shipped(model_dir: Path, keep_prob: float = 0.8) -> nn.Module:
     return teacher
 
 
+def alignment_teacher_from_shipped(model_dir: Path, keep_prob: float = 0.8) -> AlignmentNet:
+    """A shipped float32 alignment model's network as a frozen torch network in evaluation mode: its canonical
+    frame and LSTM stride as shipped, without its functional axes (weight-free steps on the network's answer that
+    the student's export adds again), so that it answers what the network it teaches answers; its sizes read from
+    its file, its weights checked against the whole graph's golden output on the way (``warm_start_from_shipped``)."""
+    exporter = read_manifest(model_dir / "manifest.json").exporter
+    graph = onnx.load(str(model_dir / "model.onnx")).graph
+    inits = {i.name: i for i in graph.initializer}
+    conv = next(n for n in graph.node if n.op_type == "Conv")
+    lstm = next(n for n in graph.node if n.op_type == "LSTM")
+    channels, _, kernel = (int(d) for d in inits[conv.input[1]].dims)
+    net = AlignmentNet(
+        int(inits[lstm.input[2]].dims[-1]),
+        channels,
+        kernel,
+        keep_prob,
+        canonical=any(node.name.startswith("/canonical/") for node in graph.node),
+        rnn_stride=int(exporter.get("rnn_stride", 1)),
+    )
+    net.load_state_dict(warm_start_from_shipped(model_dir, net))
+    net.eval()
+    for p in net.parameters():
+        p.requires_grad_(False)
+    return net
+
+
 def real_recordings_seen(model_dir: Path) -> list[str]:
     """The real recordings a shipped model trained on, an ensemble's through its members (manifest
     ``training_data.real_train_recordings``)."""
