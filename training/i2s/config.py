@@ -37,6 +37,10 @@ class DataConfig(_Strict):
     # the share of drawn real training windows read as if worn by the mirror-image body (``mirrored_readings``):
     # the other side's segment, so a group's one-sided habits (a paretic leg, a braced knee) cannot teach the side
     real_mirror: float = Field(0.0, ge=0.0, le=1.0)
+    # turn every drawn real training window by a random rotation, as if its sensor were strapped on another way
+    # (uniform over rotations; accelerometer and gyroscope alike): the real gaits in every mounting. Only where a
+    # teacher answers for the turned window (an alignment network's label would turn with it; train.distill_from)
+    real_rotation: bool = False
     sample_rate_hz: float = 60.0
     cutoff_hz: float = 10.0
     filter_order: int = 8
@@ -200,6 +204,11 @@ class ExperimentConfig(_Strict):
             raise ValueError(
                 "real recordings carry no alignment labels: real windows in alignment training need a teacher "
                 "(train.distill_from) to learn from"
+            )
+        if self.data.real_rotation and (self.train.distill_from is None or self.task != "alignment"):
+            raise ValueError(
+                "data.real_rotation turns real windows for a teacher to answer: it needs an alignment run with "
+                "train.distill_from"
             )
         if self.task == "alignment" and self.data.real_fraction > 0 and self.data.real_val_fraction > 0:
             raise ValueError(

@@ -1,9 +1,11 @@
 """The training loop: its weight average (``train.ema_decay``), which weights it returns (``train.keep``), and a
 network taught by a shipped one (``train.distill_from``)."""
 
+import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from training.data.catalog import mocap_entries
@@ -11,7 +13,9 @@ from training.i2s.config import load_config
 from training.i2s.data.mocap import build_kinematics
 from training.i2s.train import build_model, train
 
-CONFIG = Path(__file__).resolve().parents[3] / "training/configs/i2s_assignment.yaml"
+ROOT = Path(__file__).resolve().parents[3]
+CONFIG = ROOT / "training/configs/i2s_assignment.yaml"
+ALIGNMENT = ROOT / "training/configs/i2s_alignment.yaml"
 TINY = ["train.steps_per_epoch=1", "train.max_epochs=1", "train.val_windows=128", "train.batch_size=64"]
 
 
@@ -133,18 +137,25 @@ def test_a_distilled_network_learns_what_its_teacher_says(data_dir: Path, kinema
     assert taught > 0.5 and labelled < 0.3, (taught, labelled)
 
 
-def test_only_an_assignment_network_that_trains_has_a_teacher() -> None:
-    import pytest
+def test_a_teacher_teaches_a_network_of_its_own_task_that_trains() -> None:
+    from training.i2s.train import build_teacher
 
-    teacher = "train.distill_from=mlflow_snapshot/models/i2s_assignment/1.8.0"
-    alignment = Path(__file__).resolve().parents[3] / "training/configs/i2s_alignment.yaml"
-    with pytest.raises(ValueError, match="distill_from teaches an assignment network"):
-        load_config(alignment, [teacher])
+    teacher = f"train.distill_from={ROOT}/mlflow_snapshot/models/i2s_assignment/1.8.0"
+    with pytest.raises(ValueError, match="is an i2s_assignment model; this run trains alignment"):
+        build_teacher(load_config(ALIGNMENT, [teacher]))
+    with pytest.raises(ValueError, match="is an i2s_alignment model; this run trains assignment"):
+        build_teacher(load_config(CONFIG, [f"train.distill_from={alignment_teacher_dir()}"]))
     ensemble = (
         "train.ensemble_of=[mlflow_snapshot/models/i2s_assignment/1.6.0,mlflow_snapshot/models/i2s_assignment/1.8.0]"
     )
     with pytest.raises(ValueError, match="assembled, not trained"):
         load_config(CONFIG, [teacher, ensemble, "train.max_epochs=0"])
+    # real windows carry no alignment label: an alignment run takes them only with a teacher, and validates without
+    real = ["data.real_train_recordings=[ximu3_lowerbody]", "data.real_fraction=0.25", "data.real_val_fraction=0"]
+    with pytest.raises(ValueError, match="need a teacher"):
+        load_config(ALIGNMENT, real)
+    with pytest.raises(ValueError, match="set data.real_val_fraction 0"):
+        load_config(ALIGNMENT, [*real, "data.real_val_fraction=0.2", teacher])
     with pytest.raises(ValueError, match="set train.distill_from"):
         load_config(CONFIG, ["train.distill_activities=[walk]"])
     with pytest.raises(ValueError, match="must be some of data.activities"):
@@ -196,3 +207,120 @@ def test_a_distilled_networks_manifest_names_its_teacher() -> None:
     assert record["model"] == "i2s_assignment/1.9.0" and record["activities"] == ["walk", "run"]
     assert record["sha256"] == read_manifest(teacher_dir / "manifest.json").sha256
     assert (record["weight"], record["temperature"]) == (0.9, 2.0)
+
+
+def alignment_teacher_dir() -> Path:
+    """The float32 file of the alignment the service has served since 2026-12-05 (3.10.0), where it lies now."""
+    for root in ("onnx_models", "mlflow_snapshot/models"):
+        if (ROOT / root / "i2s_alignment/3.10.0/model.onnx").exists():
+            return ROOT / root / "i2s_alignment/3.10.0"
+    raise FileNotFoundError("i2s_alignment 3.10.0 is neither served nor archived")
+
+
+def test_the_alignment_distillation_loss_is_the_label_and_the_teacher_in_their_shares() -> None:
+    """Per window the true segment's row: weight 0 is the distance to the label, weight 1 the distance to the
+    teacher's row; a window without a label (NaN, real) learns the teacher's alone whatever the weight, one the
+    teacher does not speak for its label alone; a student that says what both say has zero loss and gradient."""
+    from training.i2s.train import alignment_distillation_loss, quat_distance
+
+    torch.manual_seed(0)
+    unit = lambda x: x / x.norm(dim=-1, keepdim=True)  # noqa: E731
+    student = unit(torch.randn(8, 7, 4)).requires_grad_(True)
+    teacher, q_true = unit(torch.randn(8, 7, 4)), unit(torch.randn(8, 4))
+    segment = torch.randint(0, 7, (8,))
+    rows = torch.arange(8)
+    to_label = quat_distance(student[rows, segment], q_true)
+    to_teacher = quat_distance(student[rows, segment], teacher[rows, segment])
+    torch.testing.assert_close(alignment_distillation_loss(student, teacher, segment, q_true, 0.0), to_label.mean())
+    torch.testing.assert_close(alignment_distillation_loss(student, teacher, segment, q_true, 1.0), to_teacher.mean())
+    real = torch.tensor([False, True] * 4)
+    unlabelled = torch.where(real[:, None], torch.full_like(q_true, float("nan")), q_true)
+    mixed = alignment_distillation_loss(student, teacher, segment, unlabelled, 0.25)
+    torch.testing.assert_close(mixed, torch.where(real, to_teacher, 0.75 * to_label + 0.25 * to_teacher).mean())
+    taught = real.clone()  # the simulated windows untaught: their labels alone
+    torch.testing.assert_close(
+        alignment_distillation_loss(student, teacher, segment, unlabelled, 0.25, taught),
+        torch.where(real, to_teacher, to_label).mean(),
+    )
+    with pytest.raises(ValueError, match="without an alignment label must be one the teacher speaks for"):
+        alignment_distillation_loss(student, teacher, segment, unlabelled, 0.25, ~real)
+    agreed = teacher.clone().requires_grad_(True)
+    loss = alignment_distillation_loss(agreed, teacher, segment, teacher[rows, segment].clone(), 0.5)
+    loss.backward()
+    radial = (agreed.grad * agreed).sum(-1, keepdim=True) * agreed  # off the unit sphere, which the net's norm fixes
+    assert float(loss) < 1e-6 and float((agreed.grad - radial).abs().max()) < 1e-5
+    assert float(alignment_distillation_loss(student, teacher, segment, q_true, 0.5)) > 0.1
+
+
+def test_the_alignment_teacher_is_the_shipped_network_without_its_functional_axes() -> None:
+    """Frozen, one answer per segment, no functional axes of its own; its weights in the shipped graph's form (the
+    functional axes and the pelvis rule of its manifest) give the shipped golden quaternions."""
+    from training.i2s.models import AlignmentNet
+    from training.i2s.train import build_teacher
+
+    teacher_dir = alignment_teacher_dir()
+    teacher = build_teacher(load_config(ALIGNMENT, [f"train.distill_from={teacher_dir}"]))
+    assert isinstance(teacher, AlignmentNet) and not teacher.training
+    assert not any(p.requires_grad for p in teacher.parameters())
+    assert teacher.functional_axes is None and teacher.rnn_stride == 1
+    manifest = json.loads((teacher_dir / "manifest.json").read_text())
+    shipped = AlignmentNet(
+        128,
+        64,
+        16,
+        canonical=True,
+        functional_axes=manifest["exporter"]["functional_axes"],
+        pelvis_half_turn=manifest["exporter"]["pelvis_half_turn"],
+    )
+    shipped.load_state_dict(teacher.state_dict())
+    shipped.eval()
+    with np.load(teacher_dir / "golden.npz") as golden, torch.no_grad():
+        imu = torch.from_numpy(golden["imu"])
+        raw, wrapped = teacher(imu).numpy(), shipped(imu).numpy()
+        expected = golden["expected"]
+    assert raw.shape == expected.shape == (len(imu), 7, 4)
+    np.testing.assert_allclose(np.minimum(abs(wrapped - expected), abs(wrapped + expected)).max(), 0.0, atol=1e-4)
+    assert np.minimum(abs(raw - expected), abs(raw + expected)).max() > 1e-2  # the functional axes do turn it
+
+
+def test_an_alignment_network_learns_its_teachers_answer_on_real_windows(
+    data_dir: Path, kinematics_cache: Path, monkeypatch
+) -> None:
+    """Trained with a teacher that answers one fixed rotation for every window, on simulated windows without a
+    teacher's say (weight 0) and real windows, which have no label: the real windows pull the network's answer on
+    real windows towards the teacher's; the same network without the real windows stays away from it."""
+    import training.i2s.train as loop
+    from service.core.recordings import read_recording
+    from training.i2s.data.windows import RealWindowSampler
+
+    entries = [e for e in mocap_entries(data_dir, ["walk"]) if e.group == "cmu_07"][:2]
+    clips = build_kinematics(data_dir, entries, kinematics_cache)
+    fixed = torch.tensor([0.5, 0.5, -0.5, 0.5])
+
+    class Constant(torch.nn.Module):
+        def forward(self, imu: torch.Tensor) -> torch.Tensor:
+            return fixed.expand(len(imu), 7, 4)
+
+    monkeypatch.setattr(loop, "build_teacher", lambda cfg: Constant())
+    real = RealWindowSampler([read_recording(data_dir, "ximu3_lowerbody")])
+    probe = real.sample(np.random.default_rng(5), 128)
+    sets = [
+        *TINY,
+        "train.steps_per_epoch=40",
+        "train.lr=0.003",
+        "train.keep=last",
+        "train.canonical_frame=true",
+        "train.distill_weight=0",
+        "train.distill_from=unused",  # the teacher is the constant above
+        "data.real_val_fraction=0",
+    ]
+
+    def distance_to_teacher(real_fraction: float) -> float:
+        cfg = load_config(ALIGNMENT, [*sets, f"data.real_fraction={real_fraction}"])
+        net = loop.train(cfg, clips, clips, real=real if real_fraction else None).model
+        with torch.no_grad():
+            q = net(torch.from_numpy(probe.imu))[torch.arange(len(probe.segment)), torch.from_numpy(probe.segment)]
+        return float(loop.quat_distance(q, fixed.expand_as(q)).mean())
+
+    taught, alone = distance_to_teacher(0.5), distance_to_teacher(0.0)
+    assert taught < 0.5 * alone, (taught, alone)

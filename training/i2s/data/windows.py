@@ -279,6 +279,7 @@ class RealWindowSampler:
     samples, ``"validation"`` the rest, so no validation window shares a sample with a training window;
     ``"all"`` takes everything. ``mirror`` is the share of drawn windows read as the mirror-image body's
     (``mirrored_readings``, label ↔ the other side's segment); a draw of none leaves the random stream as it was.
+    ``rotate`` turns each drawn window by a uniformly random rotation (``turned_readings``).
     """
 
     def __init__(
@@ -287,8 +288,9 @@ class RealWindowSampler:
         part: Literal["all", "train", "validation"] = "all",
         val_fraction: float = 0.2,
         mirror: float = 0.0,
+        rotate: bool = False,
     ) -> None:
-        self.mirror = mirror
+        self.mirror, self.rotate = mirror, rotate
         imu, seg = [], []
         for rec in recordings:
             for sensor in rec.sensors:
@@ -314,7 +316,17 @@ class RealWindowSampler:
             flip = rng.random(batch_size) < self.mirror
             imu = np.where(flip[:, None, None], mirrored_readings(imu), imu).astype(np.float32)
             segment = np.where(flip, np.asarray(MIRROR)[segment], segment)
+        if self.rotate:
+            imu = turned_readings(imu, Rotation.random(batch_size, rng).as_matrix().astype(np.float32))
         return Batch(np.ascontiguousarray(imu), segment, nan_q)
+
+
+def turned_readings(imu: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Windows ``(B, T, 6)`` read by sensors turned by ``R`` ``(B, 3, 3)`` (new sensor ← old sensor): each window's
+    accelerometer and gyroscope vectors rotated alike, ``R @ v`` at every sample."""
+    acc = np.einsum("bij,btj->bti", R, imu[..., :3])
+    gyr = np.einsum("bij,btj->bti", R, imu[..., 3:])
+    return np.concatenate([acc, gyr], axis=-1).astype(np.float32)
 
 
 def real_window_samplers(
@@ -327,9 +339,10 @@ def real_window_samplers(
         return None, None
     fraction = cfg.data.real_val_fraction
     mirror = cfg.data.real_mirror  # training windows only: validation reads the recordings as they are
+    rotate = cfg.data.real_rotation
     if fraction == 0:
-        return RealWindowSampler(recordings, mirror=mirror), None
-    train = RealWindowSampler(recordings, "train", fraction, mirror=mirror)
+        return RealWindowSampler(recordings, mirror=mirror, rotate=rotate), None
+    train = RealWindowSampler(recordings, "train", fraction, mirror=mirror, rotate=rotate)
     return train, RealWindowSampler(recordings, "validation", fraction)
 
 
