@@ -114,6 +114,25 @@ def test_mirrored_real_windows_swap_sides_and_flip_the_mirrored_axes(data_dir: P
     assert (train_part.mirror, val_part.mirror) == (0.5, 0.0)
 
 
+def test_turned_real_windows_are_the_same_windows_read_by_a_sensor_strapped_another_way(data_dir: Path) -> None:
+    """``rotate``: the same windows as without it (drawn first), each turned by one rotation of its own: every
+    sample's accelerometer and gyroscope keep their lengths and the angle between them, and the windows differ;
+    ``data.real_rotation`` asks for it only where a teacher answers an alignment run."""
+    recording = read_recording(data_dir, "capacitive_sub01/CSBaseline")
+    a = RealWindowSampler([recording]).sample(np.random.default_rng(0), 64)
+    b = RealWindowSampler([recording], rotate=True).sample(np.random.default_rng(0), 64)
+    np.testing.assert_array_equal(a.segment, b.segment)
+    for x in (slice(0, 3), slice(3, 6)):
+        np.testing.assert_allclose(np.linalg.norm(b.imu[..., x], axis=-1), np.linalg.norm(a.imu[..., x], axis=-1), 1e-4)
+    dot = lambda w: (w[..., :3] * w[..., 3:]).sum(-1)  # noqa: E731
+    np.testing.assert_allclose(dot(b.imu), dot(a.imu), rtol=1e-3, atol=1e-3)
+    assert not np.isclose(a.imu, b.imu, atol=1e-2).all(axis=(1, 2)).any()
+    alignment = REPO / "training/configs/i2s_alignment_distilled.yaml"
+    assert load_config(alignment, ["data.real_rotation=true"]).data.real_rotation
+    with pytest.raises(ValueError, match="real_rotation turns real windows for a teacher"):
+        load_config(REPO / "training/configs/i2s_assignment_real.yaml", ["data.real_rotation=true"])
+
+
 def test_real_validation_windows_come_after_every_training_window(data_dir: Path) -> None:
     """The time split: the validation part is the last fifth of each sensor's recording, and no validation window
     shares a sample with a training window."""
