@@ -87,6 +87,9 @@ class PoseTrainConfig(Strict):
     # origins after forward kinematics with each sequence's own bones, root-relative (TransPose and PIP supervise
     # joint positions; ours is one term on the same network). 0: rotations only (Zheng et al. 2021).
     position_loss: float = Field(0.0, ge=0.0)
+    # Assemble instead of training: the mean of these finished runs' networks (MLflow run ids of this recipe with
+    # other seeds; ``training.pose.models.PoseEnsemble``, our addition), offline models only
+    ensemble_of: list[str] | None = None
 
 
 class PoseConfig(Strict):
@@ -106,6 +109,11 @@ class PoseConfig(Strict):
             raise ValueError(f"sensors start with Pelvis; segments are {list(BODY_SEGMENTS)}; unknown {unknown}")
         if self.model.look_ahead and self.model.kind != "lstm":
             raise ValueError("look_ahead is for the unidirectional lstm")
+        if self.train.ensemble_of is not None and (len(self.train.ensemble_of) < 2 or self.model.kind != "bilstm"):
+            raise ValueError(
+                "train.ensemble_of assembles two or more offline (bilstm) networks; got "
+                f"{len(self.train.ensemble_of)} of kind {self.model.kind}"
+            )
         if self.train.sequence_frames <= 2 * self.train.context_frames:
             raise ValueError(
                 f"train.sequence_frames ({self.train.sequence_frames}) must exceed twice train.context_frames "

@@ -17,7 +17,7 @@ from service.core.manifest import Evaluation, Manifest, PoseSpec, TensorSpec, re
 from training.data.catalog import BANDAI_LICENCE
 from training.pose.config import PoseConfig, is_streaming
 from training.pose.data import MODEL_RATE_HZ
-from training.pose.models import PoseNet, StreamingExport
+from training.pose.models import PoseEnsemble, PoseNet, StreamingExport
 
 OPSET = 17
 PARITY_ATOL = 1e-4
@@ -85,7 +85,7 @@ def onnx_parity(path: Path, golden: dict[str, np.ndarray], cfg: PoseConfig, net:
 
 def build_pose_manifest(
     cfg: PoseConfig,
-    net: PoseNet,
+    net: PoseNet | PoseEnsemble,
     version: str,
     sha256: str,
     body: Body,
@@ -142,7 +142,8 @@ def build_pose_manifest(
             feature_version=FEATURE_VERSION,
             acc_scale_mps2=ACC_SCALE_MPS2,
             representation=cfg.model.representation,
-            architecture=f"{cfg.model.kind} hidden {net.hidden} x {net.layers}",
+            architecture=(f"mean of {len(cfg.train.ensemble_of)} × " if cfg.train.ensemble_of else "")
+            + f"{cfg.model.kind} hidden {net.hidden} x {net.layers}",
             streaming=streaming,
             look_ahead_frames=cfg.model.look_ahead if streaming else cfg.train.context_frames,
             window_frames=1 if streaming else cfg.train.sequence_frames,

@@ -47,6 +47,25 @@ def matrices_from_axis_angle(r: torch.Tensor) -> torch.Tensor:
     return eye + s * K + (1.0 - c) * (K @ K)
 
 
+class PoseEnsemble(nn.Module):
+    """The mean of several offline pose networks of one recipe (``train.ensemble_of``; not in Zheng et al. 2021):
+    per frame and segment the members' rotation matrices are averaged and the mean's first two columns
+    orthonormalised (Gram–Schmidt, as the 6D head does), a projection back onto the rotations that keeps the mean's
+    direction. ``(B, T, F)`` → ``(B, T, S, 3, 3)`` like a ``PoseNet``."""
+
+    def __init__(self, members: list[PoseNet]) -> None:
+        super().__init__()
+        first = members[0]
+        if len(members) < 2 or any(m.kind != "bilstm" for m in members):
+            raise ValueError("an ensemble is two or more offline (bilstm) networks")
+        self.members = nn.ModuleList(members)
+        self.kind, self.look_ahead, self.hidden, self.layers = first.kind, first.look_ahead, first.hidden, first.layers
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        R = torch.stack([m(x) for m in self.members]).mean(0)
+        return matrices_from_6d(torch.cat([R[..., :, 0], R[..., :, 1]], dim=-1))
+
+
 class PoseNet(nn.Module):
     def __init__(
         self,

@@ -22,6 +22,7 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, clip_body
+from service.core.calibration import features_per_frame
 from service.core.manifest import Evaluation, sha256_file
 from service.inference.pose import PoseModel, whole_body
 from service.inference.registry import load_model
@@ -55,10 +56,11 @@ from training.pose.evaluate import (
     summarise,
 )
 from training.pose.export import build_pose_manifest, export_pose_onnx, golden_pair, onnx_parity
+from training.pose.models import PoseEnsemble
 from training.pose.placement import CANDIDATES, search_placement
 from training.pose.selection import Selection, select, selected_clips
 from training.pose.simulate import Session
-from training.pose.train import PoseTrainResult, fixed_sessions, torch_predictor, train_pose
+from training.pose.train import PoseTrainResult, build_net, fixed_sessions, torch_predictor, train_pose
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
@@ -157,6 +159,31 @@ def _snapshot(net_predict, clip: MotionClip, session: Session, cfg: PoseConfig, 
     )
 
 
+# What an ensemble's members must share with its config: the sensors and outputs, the network, the frames the
+# truth is read in and the people held out for validation and test.
+MEMBER_PARAMS = ("sensors", "output_segments", "model.", "data.limb_twist", "data.trunk_axes", "data.val_subjects")
+MEMBER_PARAMS += ("data.test_subjects", "data.test_activities_of_unlabelled", "train.sequence_frames")
+
+
+def assembled(cfg: PoseConfig) -> PoseTrainResult:
+    """``train.ensemble_of``: the finished runs' networks (their logged checkpoints) averaged, not trained; each run
+    must share ``MEMBER_PARAMS`` with ``cfg``."""
+    assert cfg.train.ensemble_of is not None
+    client, own = MlflowClient(), {k: str(v) for k, v in flatten(cfg.model_dump()).items()}
+    members = []
+    for run_id in cfg.train.ensemble_of:
+        params = client.get_run(run_id).data.params
+        differ = sorted(k for k, v in own.items() if k.startswith(MEMBER_PARAMS) and params.get(k) != v)
+        if differ:
+            raise ValueError(f"run {run_id} is not of this recipe: {[(k, params.get(k), own[k]) for k in differ]}")
+        path = mlflow.artifacts.download_artifacts(f"runs:/{run_id}/checkpoint/model_state.pt")
+        net = build_net(cfg, features_per_frame(len(cfg.sensors)))
+        net.load_state_dict(torch.load(path, weights_only=True))
+        members.append(net.eval())
+    mlflow.set_tag("ensemble_of", ",".join(cfg.train.ensemble_of))
+    return PoseTrainResult(PoseEnsemble(members).eval(), stopped="assembled")
+
+
 def _judging(data: PoseData, cfg: PoseConfig, val_sessions: list[Session]) -> list[Session]:
     """The validation sessions that choose the epoch: a model for one scenario is judged on that scenario's
     validation clips (its reference activities), where the validation subjects have any."""
@@ -221,20 +248,24 @@ def run_pose_experiment(
         _log_datasets(data, data_dir)
         if data.selection is not None:
             _log_selection(data.selection, cfg, tmp)
-        result: PoseTrainResult = train_pose(
-            cfg,
-            data.train,
-            _judging(data, cfg, val_sessions),
-            on_epoch=lambda e, row: mlflow.log_metrics(
-                {
-                    "train_loss": row["train_loss"],
-                    # comparable across recipes with and without the joint-position term
-                    "train_rotation_loss": row["train_rotation_loss"],
-                    "val_angle_deg_epoch": row["val_angle_deg"],
-                    "lr": row["lr"],
-                },
-                step=e,
-            ),
+        result: PoseTrainResult = (
+            assembled(cfg)
+            if cfg.train.ensemble_of
+            else train_pose(
+                cfg,
+                data.train,
+                _judging(data, cfg, val_sessions),
+                on_epoch=lambda e, row: mlflow.log_metrics(
+                    {
+                        "train_loss": row["train_loss"],
+                        # comparable across recipes with and without the joint-position term
+                        "train_rotation_loss": row["train_rotation_loss"],
+                        "val_angle_deg_epoch": row["val_angle_deg"],
+                        "lr": row["lr"],
+                    },
+                    step=e,
+                ),
+            )
         )
         net = result.net
         mlflow.log_metrics(
@@ -244,7 +275,9 @@ def run_pose_experiment(
         label_run(MlflowClient(), run.info.run_id)  # its name and description in the UI
         torch.save(net.state_dict(), tmp / "model_state.pt")
         mlflow.log_artifact(str(tmp / "model_state.pt"), "checkpoint")
-        mlflow.log_artifact(str(pose_learning_curve_png(result.history, tmp / "learning_curve.png", cfg.name)), "plots")
+        if result.history:  # an assembled ensemble has no epochs
+            curve = pose_learning_curve_png(result.history, tmp / "learning_curve.png", cfg.name)
+            mlflow.log_artifact(str(curve), "plots")
 
         predict = torch_predictor(net, served_chunks(cfg))  # as the service runs it
         val_summary = summarise(evaluate_clips(predict, data.val, val_sessions, cfg.sensors, cfg.outputs))
@@ -309,6 +342,8 @@ def run_pose_experiment(
             "epochs_run": len(result.history),
             "stopped": result.stopped,
         }
+        if cfg.train.ensemble_of:  # assembled from these runs' networks, not trained
+            training_data["ensemble_of"] = cfg.train.ensemble_of
         if cfg.data.seen_share:  # trained without a share of the training clips
             training_data["seen_share"] = cfg.data.seen_share
         if data.selection is not None:  # a model for one scenario (Zheng et al. 2021 §5)
