@@ -14,10 +14,16 @@ cd "$(dirname "$0")/.."
 python -m training.cli pose-placement training/configs/pose_full6.yaml --sensors 10
 # All in frames that take each limb's turn from its hinge (data.limb_twist: hinge, since these major versions); the
 # six-sensor default and its streaming form also read the upper trunk from the thorax (data.trunk_axes, since 4.0.0).
-for served in pose_full6:4.0.0 pose_lower3:3.0.0 pose_full6_stream:4.0.0 pose_lower3_stream:3.0.0 \
+for served in pose_lower3:3.0.0 pose_full6_stream:4.0.0 pose_lower3_stream:3.0.0 \
   pose_full6_walk:2.0.0 pose_lower3_walk:2.0.0 pose_lower3_walk_stream:2.0.0 pose_mrmr6:2.0.0; do
   python -m training.cli pose-train "training/configs/${served%%:*}.yaml" --ship --version "${served##*:}"
 done
+# pose_full6 4.1.0: the mean of two seeds of its recipe (train.ensemble_of); the first is 4.0.0 (archived after)
+run_id() { tee /dev/stderr | grep -o 'run_id=[0-9a-f]*' | tail -1 | cut -d= -f2; }
+seed0=$(python -m training.cli pose-train training/configs/pose_full6.yaml --ship --version 4.0.0 | run_id)
+seed1=$(python -m training.cli pose-train training/configs/pose_full6.yaml -s seed=1 -s name=pose_full6_thorax_seed1 | run_id)
+python -m training.cli pose-train training/configs/pose_full6.yaml -s "train.ensemble_of=[$seed0,$seed1]" --ship --version 4.1.0
+python -m training.cli archive-model pose_full6 4.0.0
 # Comparisons (not shipped), each for at most the epochs its reference ran (13 for pose_lower3 1.0.0, 18 for
 # pose_full6) and no time budget, so that a slower or busier machine compares the same training: axis-angle against
 # 6D at the lower-body size; Vlutters 2016's FFNN against the Bi-LSTM of Zheng et al. 2021 with six sensors (its

@@ -131,3 +131,49 @@ def test_the_position_term_s_truth_is_shifted_with_the_targets() -> None:
         shifted = _shifted(full, x.shape[1], look_ahead)
         assert torch.equal(shifted[:, :, out], y)
         assert torch.equal(shifted[:, look_ahead + 1, 0], torch.from_numpy(np.stack([f[1, 0] for f in full])))
+
+
+def test_an_ensemble_answers_rotations_between_its_members_and_exports_as_one_graph(tmp_path) -> None:
+    """``PoseEnsemble``: of two copies of one network it answers that network's rotations; of two networks it
+    answers proper rotations that lie between theirs (nearer each than they are to each other), and its ONNX file
+    gives torch's answer. ``train.ensemble_of`` takes two or more offline networks."""
+    from pathlib import Path
+
+    import pytest
+    import torch
+
+    from service.core.calibration import features_per_frame
+    from training.pose.config import load_pose_config
+    from training.pose.export import export_pose_onnx, golden_pair, onnx_parity
+    from training.pose.models import PoseEnsemble
+    from training.pose.train import build_net
+
+    config = Path(__file__).resolve().parents[3] / "training/configs/pose_full6.yaml"
+    cfg = load_pose_config(config, ["model.hidden=32", "train.ensemble_of=[a,b]"])
+    F = features_per_frame(len(cfg.sensors))
+    torch.manual_seed(0)
+    a, b = build_net(cfg, F).eval(), build_net(cfg, F).eval()
+    x = torch.randn(2, 40, F)
+    with torch.no_grad():
+        twin = PoseEnsemble([a, a]).eval()
+        torch.testing.assert_close(twin(x), a(x), atol=1e-5, rtol=0)
+        ens = PoseEnsemble([a, b]).eval()
+        Ra, Rb, Re = a(x), b(x), ens(x)
+    eye = torch.eye(3).expand_as(Re)
+    torch.testing.assert_close(Re @ Re.transpose(-1, -2), eye, atol=1e-5, rtol=0)
+    assert torch.allclose(torch.linalg.det(Re), torch.ones(Re.shape[:-2]), atol=1e-5)
+
+    def angle(P: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
+        cos = ((P.transpose(-1, -2) @ Q).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+        return torch.arccos(cos.clamp(-1, 1))
+
+    apart = angle(Ra, Rb)
+    assert float(apart.mean()) > 0.1  # two seeds answer differently
+    assert (angle(Re, Ra) < apart + 1e-4).all() and (angle(Re, Rb) < apart + 1e-4).all()
+    path = export_pose_onnx(ens, cfg, tmp_path / "model.onnx")
+    golden = golden_pair(ens, x[0].numpy(), cfg)
+    assert onnx_parity(path, golden, cfg, ens) < 1e-4
+    with pytest.raises(ValueError, match="two or more offline"):
+        load_pose_config(config, ["train.ensemble_of=[a]"])
+    with pytest.raises(ValueError, match="two or more offline"):
+        load_pose_config(config, ["train.ensemble_of=[a,b]", "model.kind=lstm"])
