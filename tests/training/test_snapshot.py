@@ -102,6 +102,7 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
             "flex_bilstm_cm_hinge",
             "pose_lower3_hinge_seed1",
             "pose_full6_thorax_seed1",
+            "pose_lower3_seed0",
             "pose_full6_seen",
             "flex_bilstm_cm_seen",
             "flex_bilstm_logr",

@@ -167,13 +167,14 @@ MEMBER_PARAMS += ("data.test_subjects", "data.test_activities_of_unlabelled", "t
 
 def assembled(cfg: PoseConfig) -> PoseTrainResult:
     """``train.ensemble_of``: the finished runs' networks (their logged checkpoints) averaged, not trained; each run
-    must share ``MEMBER_PARAMS`` with ``cfg``."""
+    must share ``MEMBER_PARAMS`` with ``cfg`` (a run older than an option ran as its default does)."""
     assert cfg.train.ensemble_of is not None
     client, own = MlflowClient(), {k: str(v) for k, v in flatten(cfg.model_dump()).items()}
+    default = {k: str(v) for k, v in flatten(PoseConfig(name=cfg.name).model_dump()).items()}
     members = []
     for run_id in cfg.train.ensemble_of:
         params = client.get_run(run_id).data.params
-        differ = sorted(k for k, v in own.items() if k.startswith(MEMBER_PARAMS) and params.get(k) != v)
+        differ = sorted(k for k, v in own.items() if k.startswith(MEMBER_PARAMS) and params.get(k, default.get(k)) != v)
         if differ:
             raise ValueError(f"run {run_id} is not of this recipe: {[(k, params.get(k), own[k]) for k in differ]}")
         path = mlflow.artifacts.download_artifacts(f"runs:/{run_id}/checkpoint/model_state.pt")
