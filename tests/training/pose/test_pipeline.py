@@ -105,6 +105,29 @@ def test_the_job_logs_its_run_registers_and_ships_a_valid_model(shipped: dict[st
     )
 
 
+def test_an_offline_model_assembled_from_finished_runs_answers_as_their_mean(
+    shipped: dict[str, dict], data_dir: Path, canonical_cache: Path, tmp_path: Path
+) -> None:
+    """``train.ensemble_of``: the finished run twice over answers what it answered (its validation figures), the
+    manifest says what it was assembled from, and a run of another recipe is refused with what differs."""
+    member = shipped["tiny_full6"]
+    base = {"name": "tiny_full6", "model": {"kind": "bilstm", "hidden": 16, "layers": 1}, "data": TINY["data"]}
+    base |= {"tracking": {"experiment": "test-pose"}}
+    cfg = PoseConfig.model_validate(
+        base | {"train": {**TINY["train"], "lr_schedule": "cosine", "ensemble_of": [member["run_id"]] * 2}}
+    )
+    out = run_pose_experiment(cfg, data_dir, canonical_cache, tmp_path, "0.0.2", workers=2)
+    want, got = member["val"]["overall"]["all"], out["val"]["overall"]["all"]
+    assert got["angle_all_deg"] == pytest.approx(want["angle_all_deg"], abs=1e-3)
+    manifest = read_manifest(Path(out["shipped"]) / "manifest.json")
+    assert manifest.training_data["ensemble_of"] == [member["run_id"]] * 2
+    assert manifest.pose.architecture.startswith("mean of 2 × bilstm")
+    other = shipped["tiny_full6_stream"]["run_id"]
+    mixed = cfg.model_copy(update={"train": cfg.train.model_copy(update={"ensemble_of": [member["run_id"], other]})})
+    with pytest.raises(ValueError, match=f"run {other} is not of this recipe.*model.kind"):
+        run_pose_experiment(mixed, data_dir, canonical_cache, tmp_path, "0.0.3", workers=2)
+
+
 def test_a_run_on_selected_data_logs_what_was_selected(shipped: dict[str, dict]) -> None:
     client = MlflowClient()
     run_id = shipped["tiny_full6_stream"]["run_id"]
