@@ -390,13 +390,15 @@ def evaluate_real_command(
         if source.startswith("runs:/"):
             mlflow.set_tracking_uri(default_tracking_uri())
             run = mlflow.get_run(source.removeprefix("runs:/"))
-            task = run.data.tags["task"]
+            task = run.data.tags.get("task") or run.data.params.get("task", "")
             onnx_path = next(
                 Path(mlflow.artifacts.download_artifacts(run.data.tags["model_uri"], dst_path=tmp)).rglob("*.onnx")
             )
         else:
             task = read_manifest(Path(source) / "manifest.json").task.removeprefix("i2s_")
             onnx_path = Path(source) / "model.onnx"
+        if task not in ("assignment", "alignment"):
+            raise typer.BadParameter(f"evaluate-real reads I2S assignment and alignment models; {source} is {task!r}")
         recordings = held_out_recordings(cfg, resolve_data_dir(data_dir))
         typer.echo(f"{task} on {len(recordings)} recordings: {', '.join(r.name for r in recordings)}")
         if task == "alignment":

@@ -200,15 +200,26 @@ class ExperimentConfig(_Strict):
             )
         if self.train.distill_from is not None and self.train.ensemble_of:
             raise ValueError("train.distill_from teaches a network that trains; ensemble_of is assembled, not trained")
+        if self.train.distill_from is not None and self.task == "alignment":
+            t = self.train
+            if t.alignment_loss == "stereographic_l2":
+                raise ValueError("an alignment teacher teaches through the quaternion loss: alignment_loss quaternion")
+            if (t.functional_axes or t.pelvis_half_turn is not None) and t.max_epochs > 0:
+                raise ValueError(
+                    "an alignment teacher answers without functional axes: train the student without them and wrap "
+                    "it afterwards (train.max_epochs 0 with train.functional_axes)"
+                )
         if self.train.distill_from is None and self.task == "alignment" and self.data.real_fraction > 0:
             raise ValueError(
                 "real recordings carry no alignment labels: real windows in alignment training need a teacher "
                 "(train.distill_from) to learn from"
             )
-        if self.data.real_rotation and (self.train.distill_from is None or self.task != "alignment"):
+        if self.data.real_rotation and (
+            self.train.distill_from is None or self.task != "alignment" or self.data.real_fraction == 0
+        ):
             raise ValueError(
                 "data.real_rotation turns real windows for a teacher to answer: it needs an alignment run with "
-                "train.distill_from"
+                "train.distill_from and data.real_fraction > 0"
             )
         if self.task == "alignment" and self.data.real_fraction > 0 and self.data.real_val_fraction > 0:
             raise ValueError(

@@ -212,7 +212,10 @@ def alignment_teacher_from_shipped(model_dir: Path, keep_prob: float = 0.8) -> A
     frame and LSTM stride as shipped, without its functional axes (weight-free steps on the network's answer that
     the student's export adds again), so that it answers what the network it teaches answers; its sizes read from
     its file, its weights checked against the whole graph's golden output on the way (``warm_start_from_shipped``)."""
-    exporter = read_manifest(model_dir / "manifest.json").exporter
+    manifest = read_manifest(model_dir / "manifest.json")
+    exporter = manifest.exporter
+    if manifest.task != "i2s_alignment" or "quantization" in exporter:
+        raise ValueError(f"an alignment teacher is a float32 alignment file; {model_dir} is not ({manifest.task})")
     graph = onnx.load(str(model_dir / "model.onnx")).graph
     inits = {i.name: i for i in graph.initializer}
     conv = next(n for n in graph.node if n.op_type == "Conv")

@@ -159,22 +159,25 @@ def _snapshot(net_predict, clip: MotionClip, session: Session, cfg: PoseConfig, 
     )
 
 
-# What an ensemble's members must share with its config: the sensors and outputs, the network, the frames the
-# truth is read in and the people held out for validation and test.
-MEMBER_PARAMS = ("sensors", "output_segments", "model.", "data.limb_twist", "data.trunk_axes", "data.val_subjects")
-MEMBER_PARAMS += ("data.test_subjects", "data.test_activities_of_unlabelled", "train.sequence_frames")
+# What an ensemble's members may differ in from its config (their seed, what they are called and where they are
+# tracked, how long they may run and on how many threads); every other parameter of the recipe must be the same.
+MEMBER_FREEDOMS = ("name", "seed", "tracking.", "train.ensemble_of", "train.time_budget_s", "train.threads")
 
 
 def assembled(cfg: PoseConfig) -> PoseTrainResult:
     """``train.ensemble_of``: the finished runs' networks (their logged checkpoints) averaged, not trained; each run
-    must share ``MEMBER_PARAMS`` with ``cfg`` (a run older than an option ran as its default does)."""
+    must have ``cfg``'s recipe but for ``MEMBER_FREEDOMS`` (a run older than an option ran as its default does)."""
     assert cfg.train.ensemble_of is not None
     client, own = MlflowClient(), {k: str(v) for k, v in flatten(cfg.model_dump()).items()}
     default = {k: str(v) for k, v in flatten(PoseConfig(name=cfg.name).model_dump()).items()}
     members = []
     for run_id in cfg.train.ensemble_of:
         params = client.get_run(run_id).data.params
-        differ = sorted(k for k, v in own.items() if k.startswith(MEMBER_PARAMS) and params.get(k, default.get(k)) != v)
+        if params.get("train.ensemble_of", "None") != "None":
+            raise ValueError(f"run {run_id} is itself an ensemble; name its members")
+        differ = sorted(
+            k for k, v in own.items() if not k.startswith(MEMBER_FREEDOMS) and params.get(k, default.get(k)) != v
+        )
         if differ:
             raise ValueError(f"run {run_id} is not of this recipe: {[(k, params.get(k), own[k]) for k in differ]}")
         path = mlflow.artifacts.download_artifacts(f"runs:/{run_id}/checkpoint/model_state.pt")

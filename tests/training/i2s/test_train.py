@@ -156,6 +156,18 @@ def test_a_teacher_teaches_a_network_of_its_own_task_that_trains() -> None:
         load_config(ALIGNMENT, real)
     with pytest.raises(ValueError, match="set data.real_val_fraction 0"):
         load_config(ALIGNMENT, [*real, "data.real_val_fraction=0.2", teacher])
+    # an alignment teacher answers quaternions without functional axes: the student learns them so, wrapped after
+    aligned = f"train.distill_from={alignment_teacher_dir()}"
+    with pytest.raises(ValueError, match="through the quaternion loss"):
+        load_config(ALIGNMENT, [aligned, "train.canonical_frame=false", "train.alignment_loss=stereographic_l2"])
+    with pytest.raises(ValueError, match="train the student without them"):
+        load_config(ALIGNMENT, [aligned, "train.functional_axes=[Pelvis]"])
+    wrap = load_config(ALIGNMENT, [aligned, "train.functional_axes=[Pelvis]", "train.max_epochs=0"])
+    assert wrap.train.functional_axes == ["Pelvis"]
+    with pytest.raises(ValueError, match="data.real_fraction > 0"):
+        load_config(ALIGNMENT, [aligned, "data.real_rotation=true"])
+    with pytest.raises(ValueError, match="float32 alignment file"):  # its int8 twin
+        build_teacher(load_config(ALIGNMENT, [aligned.replace("3.10.0", "3.11.0")]))
     with pytest.raises(ValueError, match="set train.distill_from"):
         load_config(CONFIG, ["train.distill_activities=[walk]"])
     with pytest.raises(ValueError, match="must be some of data.activities"):
