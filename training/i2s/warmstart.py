@@ -118,10 +118,17 @@ def warm_start_from_shipped(
 
 
 def shipped_graph(
-    model_dir: Path, task: str, hidden: int, channels: int, kernel: int, keep_prob: float = 0.8
+    model_dir: Path,
+    task: str,
+    hidden: int,
+    channels: int,
+    kernel: int,
+    keep_prob: float = 0.8,
+    functional_axes: bool = True,
 ) -> AssignmentNet | AlignmentNet:
     """An untrained network with the weight-free parts of a shipped float32 graph: its turn averages or functional
-    axes (manifest ``exporter``) and its canonical frame (read from the graph: older manifests do not record it)."""
+    axes (manifest ``exporter``; ``functional_axes`` False: the alignment network alone, without them) and its
+    canonical frame (read from the graph: older manifests do not record it)."""
     exporter = read_manifest(model_dir / "manifest.json").exporter
     graph = onnx.load(str(model_dir / "model.onnx")).graph
     canonical = any(node.name.startswith("/canonical/") for node in graph.node)
@@ -132,8 +139,8 @@ def shipped_graph(
             kernel,
             keep_prob,
             canonical=canonical,
-            functional_axes=exporter.get("functional_axes"),
-            pelvis_half_turn=exporter.get("pelvis_half_turn"),
+            functional_axes=exporter.get("functional_axes") if functional_axes else None,
+            pelvis_half_turn=exporter.get("pelvis_half_turn") if functional_axes else None,
             rnn_stride=int(exporter.get("rnn_stride", 1)),
         )
     return AssignmentNet(hidden, channels, kernel, keep_prob, canonical=canonical, **averaging_options(exporter))
@@ -173,15 +180,15 @@ class _LogProbabilities(nn.Module):
         return torch.log_softmax(self.net(imu), -1)
 
 
-def assignment_sizes(model_dir: Path) -> tuple[int, int, int]:
-    """(hidden, channels, kernel) of a shipped one-network assignment graph, read from its first convolution's and
-    its GRU's weights."""
+def network_sizes(model_dir: Path) -> tuple[int, int, int]:
+    """(hidden, channels, kernel) of a shipped one-network float32 graph, read from its first convolution's and its
+    recurrent layer's weights (the assignment's GRU, the alignment's LSTM)."""
     graph = onnx.load(str(model_dir / "model.onnx")).graph
     inits = {i.name: i for i in graph.initializer}
     conv = next(n for n in graph.node if n.op_type == "Conv")
-    gru = next(n for n in graph.node if n.op_type == "GRU")
+    rnn = next(n for n in graph.node if n.op_type in ("GRU", "LSTM"))
     channels, _, kernel = inits[conv.input[1]].dims
-    return int(inits[gru.input[2]].dims[-1]), int(channels), int(kernel)
+    return int(inits[rnn.input[2]].dims[-1]), int(channels), int(kernel)
 
 
 def teacher_from_shipped(model_dir: Path, keep_prob: float = 0.8) -> nn.Module:
@@ -190,7 +197,7 @@ def teacher_from_shipped(model_dir: Path, keep_prob: float = 0.8) -> nn.Module:
     or one network; its sizes read from its file, its weights checked against every golden output on the way."""
     exporter = read_manifest(model_dir / "manifest.json").exporter
     members = ensemble_members(exporter, model_dir.parent.parent)
-    hidden, channels, kernel = assignment_sizes(Path(members[0]) if members else model_dir)
+    hidden, channels, kernel = network_sizes(Path(members[0]) if members else model_dir)
     if members:
         net: nn.Module = assignment_ensemble(members, hidden, channels, kernel, keep_prob)
         net.load_state_dict(ensemble_state(members, net))  # type: ignore[arg-type]
@@ -209,26 +216,14 @@ def teacher_from_shipped(model_dir: Path, keep_prob: float = 0.8) -> nn.Module:
 
 def alignment_teacher_from_shipped(model_dir: Path, keep_prob: float = 0.8) -> AlignmentNet:
     """A shipped float32 alignment model's network as a frozen torch network in evaluation mode: its canonical
-    frame and LSTM stride as shipped, without its functional axes (weight-free steps on the network's answer that
-    the student's export adds again), so that it answers what the network it teaches answers; its sizes read from
-    its file, its weights checked against the whole graph's golden output on the way (``warm_start_from_shipped``)."""
-    manifest = read_manifest(model_dir / "manifest.json")
-    exporter = manifest.exporter
-    if manifest.task != "i2s_alignment" or "quantization" in exporter:
-        raise ValueError(f"an alignment teacher is a float32 alignment file; {model_dir} is not ({manifest.task})")
-    graph = onnx.load(str(model_dir / "model.onnx")).graph
-    inits = {i.name: i for i in graph.initializer}
-    conv = next(n for n in graph.node if n.op_type == "Conv")
-    lstm = next(n for n in graph.node if n.op_type == "LSTM")
-    channels, _, kernel = (int(d) for d in inits[conv.input[1]].dims)
-    net = AlignmentNet(
-        int(inits[lstm.input[2]].dims[-1]),
-        channels,
-        kernel,
-        keep_prob,
-        canonical=any(node.name.startswith("/canonical/") for node in graph.node),
-        rnn_stride=int(exporter.get("rnn_stride", 1)),
-    )
+    frame and LSTM stride as shipped, without its functional axes (weight-free steps on the network's answer, which
+    the student trains without too and is wrapped in afterwards), so that it answers what the network it teaches
+    answers; its sizes read from its file, its weights checked against the whole graph's golden output on the way
+    (``warm_start_from_shipped``)."""
+    if "quantization" in read_manifest(model_dir / "manifest.json").exporter:  # its task: ``build_teacher``
+        raise ValueError(f"an alignment teacher is a float32 alignment file; {model_dir} is an int8 one")
+    net = shipped_graph(model_dir, "alignment", *network_sizes(model_dir), keep_prob, functional_axes=False)
+    assert isinstance(net, AlignmentNet)
     net.load_state_dict(warm_start_from_shipped(model_dir, net))
     net.eval()
     for p in net.parameters():
