@@ -86,7 +86,7 @@ class FlexSpec(BaseModel):
     # window's mean ("window_relative"), or as log resistance through the read-out named in the channels' units
     # ("log_resistance": another divider or amplifier needs another model); None: not stated (manifests before
     # 2026-12-05)
-    input_norm: Literal["minmax", "window_relative", "log_resistance"] | None = None
+    input_norm: Literal["minmax", "window_relative", "window_standardised", "log_resistance"] | None = None
 
 
 class SessionConfidenceSpec(BaseModel):

@@ -56,7 +56,7 @@ class FlexModelConfig(Strict):
     # log_resistance (ours, for the simulated strips): the counts read back through eq. 1's nominal divider and
     # amplifier to log(R / R_i), then min-max; ageing multiplies the resistance, so there it is an offset, which
     # eq. 2's subtraction can take out (in counts the divider turns it into a change of level and of swing)
-    input_norm: Literal["minmax", "window_relative", "log_resistance"] = "minmax"
+    input_norm: Literal["minmax", "window_relative", "window_standardised", "log_resistance"] = "minmax"
     # bilstm: Dense1, Dense2, the LSTM's hidden units per direction, Dense3, Dense4 (appendix B: 100, 512, 512,
     # 1024, 150)
     bilstm_sizes: tuple[int, int, int, int, int] = (100, 512, 512, 1024, 150)

@@ -34,8 +34,12 @@ def log_resistance(x: torch.Tensor) -> torch.Tensor:
 
 def readings(x: torch.Tensor, input_norm: str) -> torch.Tensor:
     """``(B, T, C)`` raw readings → what the min-max bounds apply to (``FlexModelConfig.input_norm``)."""
-    if input_norm == "window_relative":
-        return x / x.mean(dim=1, keepdim=True).clamp_min(1e-6) - 1.0
+    if input_norm in ("window_relative", "window_standardised"):
+        relative = x / x.mean(dim=1, keepdim=True).clamp_min(1e-6) - 1.0
+        if input_norm == "window_relative":
+            return relative
+        # each channel's swing over its window in units of its own spread: a sleeve that modulates by other amounts
+        return relative / relative.std(dim=1, keepdim=True).clamp_min(1e-3)
     if input_norm == "log_resistance":
         return log_resistance(x)
     return x

@@ -35,7 +35,7 @@ def build_net(cfg: FlexConfig, train: WindowSet) -> FlexNet:
     """A network with the training set's normalisation: counts min-max per channel (§3.4.3), targets
     standardised per output."""
     flat = train.counts.reshape(-1, train.counts.shape[-1])
-    if cfg.model.input_norm == "window_relative":
+    if cfg.model.input_norm in ("window_relative", "window_standardised"):
         ends = np.random.default_rng(cfg.seed).choice(train.ends, size=min(4000, len(train.ends)), replace=False)
         x, _ = train.batch(np.zeros(len(ends), int), ends, 1)
         flat = readings(torch.from_numpy(x), cfg.model.input_norm).numpy().reshape(-1, x.shape[-1])
