@@ -90,6 +90,9 @@ class PoseTrainConfig(Strict):
     # Assemble instead of training: the mean of these finished runs' networks (MLflow run ids of this recipe with
     # other seeds; ``training.pose.models.PoseEnsemble``, our addition), offline models only
     ensemble_of: list[str] | None = None
+    # and each of them also run on the mirror image of the input, its answer mirrored back (our addition; the
+    # sensors and outputs must come in left/right pairs); with it one run is enough
+    ensemble_mirror: bool = False
 
 
 class PoseConfig(Strict):
@@ -109,11 +112,14 @@ class PoseConfig(Strict):
             raise ValueError(f"sensors start with Pelvis; segments are {list(BODY_SEGMENTS)}; unknown {unknown}")
         if self.model.look_ahead and self.model.kind != "lstm":
             raise ValueError("look_ahead is for the unidirectional lstm")
-        if self.train.ensemble_of is not None and (len(self.train.ensemble_of) < 2 or self.model.kind != "bilstm"):
+        fewest = 1 if self.train.ensemble_mirror else 2
+        if self.train.ensemble_of is not None and (len(self.train.ensemble_of) < fewest or self.model.kind != "bilstm"):
             raise ValueError(
-                "train.ensemble_of assembles two or more offline (bilstm) networks; got "
-                f"{len(self.train.ensemble_of)} of kind {self.model.kind}"
+                "train.ensemble_of assembles two or more offline (bilstm) networks (one with train.ensemble_mirror); "
+                f"got {len(self.train.ensemble_of)} of kind {self.model.kind}"
             )
+        if self.train.ensemble_mirror and self.train.ensemble_of is None:
+            raise ValueError("train.ensemble_mirror mirrors the networks of train.ensemble_of; name them")
         if self.train.sequence_frames <= 2 * self.train.context_frames:
             raise ValueError(
                 f"train.sequence_frames ({self.train.sequence_frames}) must exceed twice train.context_frames "

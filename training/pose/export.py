@@ -143,7 +143,8 @@ def build_pose_manifest(
             acc_scale_mps2=ACC_SCALE_MPS2,
             representation=cfg.model.representation,
             architecture=(f"mean of {len(cfg.train.ensemble_of)} × " if cfg.train.ensemble_of else "")
-            + f"{cfg.model.kind} hidden {net.hidden} x {net.layers}",
+            + f"{cfg.model.kind} hidden {net.hidden} x {net.layers}"
+            + (", each also on the mirror image" if cfg.train.ensemble_mirror else ""),
             streaming=streaming,
             look_ahead_frames=cfg.model.look_ahead if streaming else cfg.train.context_frames,
             window_frames=1 if streaming else cfg.train.sequence_frames,

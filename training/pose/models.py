@@ -47,22 +47,71 @@ def matrices_from_axis_angle(r: torch.Tensor) -> torch.Tensor:
     return eye + s * K + (1.0 - c) * (K @ K)
 
 
+def other_side(segment: str) -> str:
+    """A segment's counterpart on the other side of the body (itself on the midline)."""
+    return segment.replace("Left", "#").replace("Right", "Left").replace("#", "Right")
+
+
+class Mirror(nn.Module):
+    """The mirror image through the body's sagittal plane, M = diag(1, −1, 1) in the pelvis frame (x anterior, y left,
+    z up), of a model's features and of its answers (``training.pose.data.mirrored`` does it to a clip).
+
+    Features (``service.core.calibration.pose_features``): the pelvis's up and own acceleration turn into M v; each
+    other sensor's pelvis-relative rotation into M R M and its acceleration into M a, read from its counterpart's
+    place. Answers: each output segment's rotation is its counterpart's, M R M. Every sensor and output needs its
+    counterpart among them."""
+
+    def __init__(self, sensors: list[str], outputs: list[str]) -> None:
+        super().__init__()
+        for names, what in ((sensors, "sensors"), (outputs, "output segments")):
+            lonely = [n for n in names if other_side(n) not in names]
+            if lonely:
+                raise ValueError(f"a mirror image needs every one of the {what} with its other side; {lonely} have none")
+        lateral = torch.tensor([1.0, -1.0, 1.0])
+        flip = torch.outer(lateral, lateral)
+        index, sign = [0, 1, 2, 3, 4, 5], [lateral, lateral]
+        for name in sensors[1:]:
+            start = 6 + 12 * (sensors.index(other_side(name)) - 1)
+            index += list(range(start, start + 12))
+            sign += [flip.reshape(9), lateral]
+        self.register_buffer("feature_index", torch.tensor(index))
+        self.register_buffer("feature_sign", torch.cat(sign))
+        self.register_buffer("output_index", torch.tensor([outputs.index(other_side(n)) for n in outputs]))
+        self.register_buffer("output_sign", flip)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, T, F)`` → the mirror image's features."""
+        return x.index_select(-1, self.feature_index) * self.feature_sign
+
+    def answers(self, R: torch.Tensor) -> torch.Tensor:
+        """``(B, T, S, 3, 3)`` answered for the mirror image → the answers for the body itself."""
+        return R.index_select(2, self.output_index) * self.output_sign
+
+
 class PoseEnsemble(nn.Module):
     """The mean of several offline pose networks of one recipe (``train.ensemble_of``; not in Zheng et al. 2021):
     per frame and segment the members' rotation matrices are averaged and the mean's first two columns
     orthonormalised (Gram–Schmidt, as the 6D head does), a projection back onto the rotations that keeps the mean's
-    direction. ``(B, T, F)`` → ``(B, T, S, 3, 3)`` like a ``PoseNet``."""
+    direction. With ``mirror`` each member also answers the mirror image of the input, its answer mirrored back
+    (``train.ensemble_mirror``): a network trained on both bodies then answers mirror-image motions mirror-image
+    poses exactly, and what side-to-side habit its training people left in it averages out.
+    ``(B, T, F)`` → ``(B, T, S, 3, 3)`` like a ``PoseNet``."""
 
-    def __init__(self, members: list[PoseNet]) -> None:
+    def __init__(self, members: list[PoseNet], mirror: Mirror | None = None) -> None:
         super().__init__()
         first = members[0]
-        if len(members) < 2 or any(m.kind != "bilstm" for m in members):
-            raise ValueError("an ensemble is two or more offline (bilstm) networks")
+        if len(members) < (1 if mirror else 2) or any(m.kind != "bilstm" for m in members):
+            raise ValueError("an ensemble is two or more offline (bilstm) networks, or one with its mirror image")
         self.members = nn.ModuleList(members)
+        self.mirror = mirror
         self.kind, self.look_ahead, self.hidden, self.layers = first.kind, first.look_ahead, first.hidden, first.layers
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        R = torch.stack([m(x) for m in self.members]).mean(0)
+        answers = [m(x) for m in self.members]
+        if self.mirror is not None:
+            x_mirror = self.mirror.features(x)
+            answers += [self.mirror.answers(m(x_mirror)) for m in self.members]
+        R = torch.stack(answers).mean(0)
         return matrices_from_6d(torch.cat([R[..., :, 0], R[..., :, 1]], dim=-1))
 
 

@@ -56,7 +56,7 @@ from training.pose.evaluate import (
     summarise,
 )
 from training.pose.export import build_pose_manifest, export_pose_onnx, golden_pair, onnx_parity
-from training.pose.models import PoseEnsemble
+from training.pose.models import Mirror, PoseEnsemble
 from training.pose.placement import CANDIDATES, search_placement
 from training.pose.selection import Selection, select, selected_clips
 from training.pose.simulate import Session
@@ -161,7 +161,15 @@ def _snapshot(net_predict, clip: MotionClip, session: Session, cfg: PoseConfig, 
 
 # What an ensemble's members may differ in from its config (their seed, what they are called and where they are
 # tracked, how long they may run and on how many threads); every other parameter of the recipe must be the same.
-MEMBER_FREEDOMS = ("name", "seed", "tracking.", "train.ensemble_of", "train.time_budget_s", "train.threads")
+MEMBER_FREEDOMS = (
+    "name",
+    "seed",
+    "tracking.",
+    "train.ensemble_of",
+    "train.ensemble_mirror",
+    "train.time_budget_s",
+    "train.threads",
+)
 
 
 def assembled(cfg: PoseConfig) -> PoseTrainResult:
@@ -185,7 +193,8 @@ def assembled(cfg: PoseConfig) -> PoseTrainResult:
         net.load_state_dict(torch.load(path, weights_only=True))
         members.append(net.eval())
     mlflow.set_tag("ensemble_of", ",".join(cfg.train.ensemble_of))
-    return PoseTrainResult(PoseEnsemble(members).eval(), stopped="assembled")
+    mirror = Mirror(cfg.sensors, cfg.outputs) if cfg.train.ensemble_mirror else None
+    return PoseTrainResult(PoseEnsemble(members, mirror).eval(), stopped="assembled")
 
 
 def _judging(data: PoseData, cfg: PoseConfig, val_sessions: list[Session]) -> list[Session]:
@@ -348,6 +357,8 @@ def run_pose_experiment(
         }
         if cfg.train.ensemble_of:  # assembled from these runs' networks, not trained
             training_data["ensemble_of"] = cfg.train.ensemble_of
+            if cfg.train.ensemble_mirror:
+                training_data["ensemble_mirror"] = True
         if cfg.data.seen_share:  # trained without a share of the training clips
             training_data["seen_share"] = cfg.data.seen_share
         if data.selection is not None:  # a model for one scenario (Zheng et al. 2021 §5)

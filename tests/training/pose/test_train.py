@@ -177,3 +177,51 @@ def test_an_ensemble_answers_rotations_between_its_members_and_exports_as_one_gr
         load_pose_config(config, ["train.ensemble_of=[a]"])
     with pytest.raises(ValueError, match="two or more offline"):
         load_pose_config(config, ["train.ensemble_of=[a,b]", "model.kind=lstm"])
+
+
+def test_the_mirror_image_of_features_and_answers(tmp_path) -> None:
+    """``Mirror``: the features it makes of a motion are those of the mirror-image motion (left and right sensors
+    swapped, every rotation M R M and vector M v, M = diag(1, −1, 1)); an ensemble with the mirror answers the mirror
+    image of a motion with the mirror image of its answer, and exports as one graph. Sensors or outputs without
+    their other side are refused."""
+    from pathlib import Path
+
+    import numpy as np
+    import pytest
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from service.core.calibration import features_per_frame, pose_features
+    from training.pose.config import load_pose_config
+    from training.pose.export import export_pose_onnx, golden_pair, onnx_parity
+    from training.pose.models import Mirror, PoseEnsemble, other_side
+    from training.pose.train import build_net
+
+    config = Path(__file__).resolve().parents[3] / "training/configs/pose_full6.yaml"
+    cfg = load_pose_config(config, ["model.hidden=32", "train.ensemble_of=[a]", "train.ensemble_mirror=true"])
+    mirror = Mirror(cfg.sensors, cfg.outputs)
+    T, N = 30, len(cfg.sensors)
+    R = Rotation.random(T * N, random_state=3).as_matrix().reshape(T, N, 3, 3)
+    acc = np.random.default_rng(3).normal(size=(T, N, 3))
+    M = np.diag([1.0, -1.0, 1.0])
+    swap = [cfg.sensors.index(other_side(s)) for s in cfg.sensors]
+    assert swap != list(range(N))
+    x = torch.from_numpy(pose_features(R, acc))
+    x_mirror = torch.from_numpy(pose_features(M @ R[:, swap] @ M, acc[:, swap] @ M))
+    torch.testing.assert_close(mirror.features(x), x_mirror, atol=1e-6, rtol=0)
+    torch.testing.assert_close(mirror.features(mirror.features(x)), x)
+
+    torch.manual_seed(0)
+    net = build_net(cfg, features_per_frame(N)).eval()
+    ens = PoseEnsemble([net], mirror).eval()
+    with torch.no_grad():
+        plain, answer, answer_mirror = net(x[None]), ens(x[None]), ens(x_mirror[None])
+    torch.testing.assert_close(answer_mirror, mirror.answers(answer), atol=1e-5, rtol=0)
+    assert float((answer - plain).abs().max()) > 1e-3  # an untrained network is not its own mirror image
+    path = export_pose_onnx(ens, cfg, tmp_path / "model.onnx")
+    assert onnx_parity(path, golden_pair(ens, x.numpy(), cfg), cfg, ens) < 1e-4
+
+    with pytest.raises(ValueError, match="have none"):
+        Mirror(["Pelvis", "LeftForeArm", "Head"], cfg.outputs)
+    with pytest.raises(ValueError, match="name them"):
+        load_pose_config(config, ["train.ensemble_mirror=true"])
