@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request, Response
 
 from service.api.routes import _json, _Route, _settings
 from service.api.schemas import FlexRequest, FlexResponse, error_responses
-from service.inference.flex import MAX_FLEX_SAMPLES, FlexModel, block_rows
+from service.inference.flex import MAX_FLEX_SAMPLES, FlexModel, block_rows, reading_warnings
 from service.inference.predict import InputError
 from service.settings import Settings
 
@@ -51,6 +51,7 @@ def flex_answer(model: FlexModel, rows: np.ndarray) -> FlexResponse:
             for j, joint in enumerate(m.joints)
         },
         angle_convention=m.flex.angle_convention,
+        warnings=reading_warnings(rows, model),
     )
 
 

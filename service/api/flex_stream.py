@@ -16,7 +16,9 @@ Server → client
   started (model, version, channels, joints, joint_components, sample_rate_hz, window_samples, latency_samples,
   decimation) · angles ({"first_sample": i, "frames": n, "angles_deg": n x joints x components}: sample i at
   the model's rate is the first one answered; each answer is latency_samples behind the newest reading it saw;
-  nothing comes until the first window of window_samples is full) · gap / late · error (then close, after the
+  nothing comes until the first window of window_samples is full) · warning (once, over the first window's
+  readings: every value small where the model takes counts, or a channel that never changes) · gap / late · error
+  (then close, after the
   answers of every accepted packet).
 Close codes: 1003 unsupported data, 1008 protocol violation (wrong channels, values out of range, NaN; a failed
 read-out where the manifest declares ``flex.readout_check``, after the answers of the readings before it), 1009
@@ -145,6 +147,8 @@ async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, out
     if failure is not None:
         rows = rows[: failure.row]  # the readings before the failure are answered, then the stream closes
     if len(rows):
+        if found := live.first_window_warnings(rows):
+            outbox.put({"type": "warning", "warnings": found})
         await _answer(ws, live, rows, outbox, received)
     if failure is not None:
         where = f"reading {seq + failure.row} (packet seq {seq}, row {failure.row})"

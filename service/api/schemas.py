@@ -388,6 +388,12 @@ class FlexResponse(BaseModel):
     frames: int
     angles_deg: dict[str, dict[str, list[float]]]
     angle_convention: str
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="the readings look like a mistake the value range lets through (every value at most 5 where "
+        "the model takes counts in the thousands: volts or 0–1 values; a channel that reads one value over a whole "
+        "calibration window: a disconnected, shorted or saturated sensor): the angles are given, but check",
+    )
 
 
 BodySegmentName = Literal[BODY_SEGMENTS]  # type: ignore[valid-type]

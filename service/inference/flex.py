@@ -92,6 +92,33 @@ def check_rows(x: np.ndarray, model: FlexModel, where: str) -> None:
             )
 
 
+# Every reading of a block at most this, for a model whose range reaches into the thousands (12-bit counts), reads
+# as volts or values scaled to 0–1: a 3.3 V read-out gives 0–3.3 V, the model takes its ADC's counts.
+SMALL_READING = 5.0
+
+
+def reading_warnings(x: np.ndarray, model: FlexModel) -> list[str]:
+    """Warnings for rows ``(T, C)`` that pass ``check_rows`` but read like a mistake: every value small where the
+    model takes counts in the thousands (volts or 0–1 values sent as counts), or a channel that reads one value over
+    a whole calibration window or more (a disconnected, shorted or saturated sensor; at the range's end, the ADC's
+    limit). The angles are answered; the warnings say why they may be wrong."""
+    m = model.manifest
+    out = []
+    peak = float(np.abs(x).max()) if x.size else 0.0
+    if m.value_range is not None and m.value_range[1] >= 1000.0 and peak <= SMALL_READING:
+        unit = m.units.get(m.channels[0]) or f"values in [{m.value_range[0]:g}, {m.value_range[1]:g}]"
+        out.append(f"every reading is at most {peak:.3g}, where the model takes {unit}: are they volts or 0–1 values?")
+    if len(x) >= model.window:
+        for c in np.flatnonzero(np.ptp(x, axis=0) == 0.0):
+            value = float(x[0, c])
+            limit = " (the end of the value range: the read-out's limit)" if value in (m.value_range or ()) else ""
+            out.append(
+                f"channel {m.channels[c]} reads {value:g}{limit} in all {len(x)} samples: a disconnected, shorted or "
+                f"saturated sensor reads so, and its joints' angles are guesses"
+            )
+    return out
+
+
 def readout_message(failure: ReadoutFailure, model: FlexModel, where: str) -> str:
     """What a client is told when its sensor's read-out fails: where, which channel, what it read and expected."""
     spec = model.manifest.flex.readout_check
@@ -154,6 +181,19 @@ class LiveFlex:
         self.samples_in = 0  # readings accepted, at the stream's rate
         self.model_samples = 0  # samples pushed into the window, at the model's rate
         self.readout = model.readout_check(model.manifest.sample_rate_hz * factor)  # one reference per stream
+        self._first: list[np.ndarray] | None = []  # the first window's readings, until ``first_window_warnings``
+
+    def first_window_warnings(self, rows: np.ndarray) -> list[str]:
+        """``reading_warnings`` once, over the stream's first calibration window of readings (at the stream's
+        rate); empty before and after."""
+        if self._first is None:
+            return []
+        self._first.append(rows)
+        first = np.concatenate(self._first)
+        if len(first) < self.model.window * self.factor:
+            return []
+        self._first = None
+        return reading_warnings(first, self.model)
 
     def take(self, rows: np.ndarray) -> tuple[int, np.ndarray]:
         """Accept readings at the stream's rate → (model-rate index of the first answer, the model inputs they

@@ -281,3 +281,30 @@ def test_flex_sessions_are_refused_while_the_flex_answers_rise(flex_client: Test
             error = json.loads(ws.receive_text())
         assert error["close_code"] == 1013 and "flex answers of the last second take 70 ms" in error["detail"], error
         first.send_text(json.dumps({"type": "stop"}))
+
+
+def test_readings_that_look_like_volts_or_a_dead_channel_are_answered_with_warnings(flex_client: TestClient) -> None:
+    """Volts (or 0–1 values) where the model takes 12-bit counts, and a channel that reads one value over the whole
+    calibration window, pass the range check; the angles are answered with warnings that say what it looks like,
+    on REST and once on the stream. Plausible counts get none."""
+    volts = np.random.default_rng(6).uniform(0.5, 2.5, size=(WINDOW + 10, len(CHANNELS)))
+    r = flex_client.post("/v1/pose/flex", json={"samples": volts.tolist()})
+    assert r.status_code == 200, r.text
+    assert r.json()["frames"] == 11
+    (warning,) = r.json()["warnings"]
+    assert "at most 2.5" in warning and "volts or 0–1 values" in warning, warning
+
+    dead = _block(WINDOW + 10, seed=7)
+    dead[:, 1] = 4095.0
+    (warning,) = flex_client.post("/v1/pose/flex", json={"samples": dead.tolist()}).json()["warnings"]
+    assert f"channel {CHANNELS[1]} reads 4095 (the end of the value range" in warning, warning
+    assert flex_client.post("/v1/pose/flex", json={"samples": _block(WINDOW + 10).tolist()}).json()["warnings"] == []
+
+    with flex_client.websocket_connect("/v1/stream/flex") as ws:
+        ws.send_json({"type": "start", "channels": CHANNELS})
+        ws.receive_json()
+        messages = _stream(ws, [(k, dead[k : k + 7]) for k in range(0, len(dead), 7)])
+    warnings = [m for m in messages if m["type"] == "warning"]
+    assert len(warnings) == 1 and CHANNELS[1] in warnings[0]["warnings"][0], messages
+    first_angles = next(i for i, m in enumerate(messages) if m["type"] == "angles")
+    assert messages.index(warnings[0]) < first_angles  # with the first answers, not after the stream
