@@ -66,7 +66,7 @@ class Mirror(nn.Module):
         for names, what in ((sensors, "sensors"), (outputs, "output segments")):
             lonely = [n for n in names if other_side(n) not in names]
             if lonely:
-                raise ValueError(f"a mirror image needs every one of the {what} with its other side; {lonely} have none")
+                raise ValueError(f"a mirror image needs each of the {what} with its other side; {lonely} have none")
         lateral = torch.tensor([1.0, -1.0, 1.0])
         flip = torch.outer(lateral, lateral)
         index, sign = [0, 1, 2, 3, 4, 5], [lateral, lateral]
