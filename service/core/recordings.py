@@ -6,6 +6,7 @@ gyr in rad/s, sensor frame, with the known segment.
 from __future__ import annotations
 
 import csv
+import gzip
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -75,15 +76,39 @@ GAITMAP_ROTATED = {"imu_sample_not_rotated.csv": "imu_sample.csv"}
 GAITMAP_SKIPPED = frozenset({"imu_sample_ms_left.csv", "imu_sample_ms_right.csv", *GAITMAP_ROTATED.values()})
 
 
+def _files(folder: Path, pattern: str) -> list[Path]:
+    """The files in ``folder`` matching ``pattern``, plain or gzipped (``pattern`` + ``.gz``): the data directory may
+    hold either form of any file."""
+    return sorted(folder.glob(pattern)) + sorted(folder.glob(f"{pattern}.gz"))
+
+
+def _one_file(folder: Path, pattern: str) -> Path:
+    """The one file in ``folder`` matching ``pattern``, plain or gzipped; else an error naming what was found."""
+    found = _files(folder, pattern)
+    if len(found) != 1:
+        names = [p.name for p in found] or "none"
+        raise FileNotFoundError(f"{folder}: expected one file {pattern} (or {pattern}.gz), found {names}")
+    return found[0]
+
+
+def _open_text(path: Path):
+    """A text file, plain or gzipped (by its ``.gz`` suffix)."""
+    return gzip.open(path, "rt", newline="") if path.suffix == ".gz" else open(path, newline="")
+
+
+def _plain_name(path: Path) -> str:
+    return path.name.removesuffix(".gz")
+
+
 def read_ximu3(data_dir: Path, name: str = "ximu3_lowerbody") -> RealRecording:
     """x-IMU3 devices (about 50 Hz, irregular), one folder each (``<label> <serial> (UDP)``, the label naming the
     segment, ``XIMU3_SEGMENTS``; other labels are read with no segment), resampled by timestamp onto one 60 Hz grid
     over the time all devices recorded."""
     root = data_dir / "imu_real" / name
     streams = []
-    for folder in sorted(p for p in root.iterdir() if (p / "Inertial.csv").is_file()):
+    for folder in sorted(p for p in root.iterdir() if p.is_dir() and _files(p, "Inertial.csv")):
         label = folder.name.rsplit(" ", 2)[0]
-        table = np.loadtxt(folder / "Inertial.csv", delimiter=",", skiprows=1)
+        table = np.loadtxt(_one_file(folder, "Inertial.csv"), delimiter=",", skiprows=1)
         t_s = table[:, 0] * 1e-6
         imu = to_contract_units(table[:, [4, 5, 6, 1, 2, 3]], "g", "deg/s")
         seg = XIMU3_SEGMENTS.get(label)
@@ -104,7 +129,8 @@ def read_ximu3(data_dir: Path, name: str = "ximu3_lowerbody") -> RealRecording:
 def _read_trc(path: Path) -> tuple[np.ndarray, list[str], float]:
     """An OpenSim TRC file: numeric rows ``(T, 2 + 3 * n_markers)`` (frame, time, xyz...), the marker names and
     the data rate (Hz) its header gives."""
-    lines = path.read_text().splitlines()
+    with _open_text(path) as fh:
+        lines = fh.read().splitlines()
     rate = float(dict(zip(lines[1].split("\t"), lines[2].split("\t"), strict=False))["DataRate"])
     rows = [line.split() for line in lines[5:] if line.strip()]
     return np.array(rows, dtype=np.float64), lines[3].split("\t")[2:], rate
@@ -115,10 +141,10 @@ def read_capacitive(data_dir: Path, trial: str, source: str = "capacitive_sub01"
     ``OpenSim_<subject>_<trial>_Accel.trc`` / ``_Gyro.trc`` pair of one trial folder. Sensors are named by the
     files' header (``CAPACITIVE_SEGMENTS``; others, such as the torso, are read with no segment)."""
     folder = data_dir / "imu_real" / source / trial
-    (accel,) = folder.glob(f"OpenSim_*_{trial}_Accel.trc")
-    subject = accel.name.removeprefix("OpenSim_").removesuffix(f"_{trial}_Accel.trc")
+    accel = _one_file(folder, f"OpenSim_*_{trial}_Accel.trc")
+    subject = _plain_name(accel).removeprefix("OpenSim_").removesuffix(f"_{trial}_Accel.trc")
     acc, names, rate = _read_trc(accel)
-    gyr, gyr_names, gyr_rate = _read_trc(folder / accel.name.replace("_Accel.trc", "_Gyro.trc"))
+    gyr, gyr_names, gyr_rate = _read_trc(_one_file(folder, f"OpenSim_{subject}_{trial}_Gyro.trc"))
     if gyr_names != names or gyr_rate != rate:
         raise ValueError(f"{folder}: Accel and Gyro files disagree on sensors or rate ({names}, {gyr_names})")
     n = min(len(acc), len(gyr))
@@ -139,8 +165,8 @@ def read_gaitmap(data_dir: Path, file: str) -> RealRecording:
     activity of a file not in ``GAITMAP_FILES`` come from the data directory's ``index.csv``."""
     rate, subject, activity = GAITMAP_FILES.get(file) or _indexed(data_dir, f"imu_real/gaitmap_foot/{file}")
     folder = data_dir / "imu_real" / "gaitmap_foot"
-    raw = _gaitmap_feet(folder / file)
-    rotated = _gaitmap_feet(folder / GAITMAP_ROTATED[file]) if file in GAITMAP_ROTATED else None
+    raw = _gaitmap_feet(_one_file(folder, file))
+    rotated = _gaitmap_feet(_one_file(folder, GAITMAP_ROTATED[file])) if file in GAITMAP_ROTATED else None
     sensors = []
     for side, seg in (("left_sensor", "LeftFoot"), ("right_sensor", "RightFoot")):
         nominal = None if rotated is None else rotation_between(raw[side], rotated[side], GAITMAP_ROTATED[file])
@@ -150,7 +176,7 @@ def read_gaitmap(data_dir: Path, file: str) -> RealRecording:
 
 def _gaitmap_feet(path: Path) -> dict[str, np.ndarray]:
     """``left_sensor`` / ``right_sensor`` → ``(T, 6)`` acc, gyr as stored (two header rows: sensor, axis)."""
-    with open(path) as fh:
+    with _open_text(path) as fh:
         sensor_row, axis_row = fh.readline().strip().split(","), fh.readline().strip().split(",")
     table = np.loadtxt(path, delimiter=",", skiprows=2)
     columns = ["acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z"]
@@ -180,14 +206,14 @@ def _gaitmap_convert(raw: np.ndarray, rate_hz: float) -> np.ndarray:
 def _indexed(data_dir: Path, path: str) -> tuple[float, str, str]:
     """(rate Hz, subject, activity) of a data file from ``index.csv`` (a blank subject: the file is its own)."""
     with open(data_dir / "index.csv", newline="") as fh:
-        row = next((r for r in csv.DictReader(fh) if r["path"] == path), None)
+        row = next((r for r in csv.DictReader(fh) if r["path"] in (path, f"{path}.gz")), None)
     if row is None or not row["fps"]:
         raise ValueError(f"{path}: index.csv gives no sample rate for it")
     return float(row["fps"]), row["subject"] or f"{Path(path).stem}_unknown", row["activity"] or "unknown"
 
 
 def _is_gaitmap_imu(path: Path) -> bool:
-    with open(path) as fh:
+    with _open_text(path) as fh:
         return "left_sensor" in fh.readline() and "acc_x" in fh.readline()
 
 
@@ -204,14 +230,15 @@ def recording_names(data_dir: Path) -> list[str]:
       ``movingreality/<participant>/<trial>``
     """
     root = data_dir / "imu_real"
-    names = [p.name for p in sorted(root.glob("ximu3_*")) if any(p.glob("*/Inertial.csv"))]
+    names = [p.name for p in sorted(root.glob("ximu3_*")) if _files(p, "*/Inertial.csv")]
     for source in sorted(root.glob("capacitive_*")):
-        trials = (t for t in sorted(source.iterdir()) if any(t.glob(f"OpenSim_*_{t.name}_Accel.trc")))
+        trials = (t for t in sorted(source.iterdir()) if t.is_dir() and _files(t, f"OpenSim_*_{t.name}_Accel.trc"))
         names += [f"{source.name}/{t.name}" for t in trials]
     gaitmap = root / "gaitmap_foot"
-    extra = sorted(p.name for p in gaitmap.glob("*.csv") if p.name not in GAITMAP_FILES) if gaitmap.is_dir() else []
-    files = [f for f in GAITMAP_FILES if (gaitmap / f).is_file()]
-    files += [f for f in extra if f not in GAITMAP_SKIPPED and _is_gaitmap_imu(gaitmap / f)]
+    present = {_plain_name(p): p for p in (_files(gaitmap, "*.csv") if gaitmap.is_dir() else [])}
+    files = [f for f in GAITMAP_FILES if f in present]
+    extra = sorted(f for f in present if f not in GAITMAP_FILES and f not in GAITMAP_SKIPPED)
+    files += [f for f in extra if _is_gaitmap_imu(present[f])]
     names += [f"gaitmap_foot/{f.removesuffix('.csv')}" for f in files]
     movingreality = root / "movingreality"
     trials = sorted(movingreality.glob("*/*")) if movingreality.is_dir() else []
@@ -364,14 +391,16 @@ def read_capacitive_oriented(data_dir: Path, trial: str, source: str = "capaciti
     y, z of each sensor frame in a z-up world, checked: the rotated specific force averages +9.7-9.96 m/s² up),
     keyed by segment (``CAPACITIVE_SEGMENTS``), at 100 Hz."""
     folder = data_dir / "imu_real" / source / trial
-    (orient,) = folder.glob(f"OpenSim_*_{trial}_Orientations.sto")
-    lines = orient.read_text().splitlines()
+    orient = _one_file(folder, f"OpenSim_*_{trial}_Orientations.sto")
+    with _open_text(orient) as fh:
+        lines = fh.read().splitlines()
     head = next(k for k, line in enumerate(lines) if line.startswith("endheader"))
     names = lines[head + 1].split("\t")[1:]
     rows = [line.split("\t") for line in lines[head + 2 :] if line.strip()]
     q = np.array([[[float(v) for v in cell.split(",")] for cell in row[1:]] for row in rows])
-    acc, acc_names, rate = _read_trc(folder / orient.name.replace("_Orientations.sto", "_Accel.trc"))
-    gyr, _, _ = _read_trc(folder / orient.name.replace("_Orientations.sto", "_Gyro.trc"))
+    stem = _plain_name(orient).removesuffix("_Orientations.sto")
+    acc, acc_names, rate = _read_trc(_one_file(folder, f"{stem}_Accel.trc"))
+    gyr, _, _ = _read_trc(_one_file(folder, f"{stem}_Gyro.trc"))
     n = min(len(q), len(acc), len(gyr))
     out = {}
     for k, column in enumerate(names):
@@ -403,8 +432,8 @@ CAPACITIVE_REFERENCE_S = 10.0
 def _read_sleeve_file(data_dir: Path, trial: str, side: str, source: str) -> tuple[list[str], np.ndarray]:
     """One leg's sleeve file (``*_LCS.mot`` / ``*_RCS.mot``): its column names and numeric rows."""
     folder = data_dir / "imu_real" / source / trial
-    (path,) = folder.glob(f"OpenSim_*_{trial}_{side[0]}CS.mot")
-    lines = path.read_text().splitlines()
+    with _open_text(_one_file(folder, f"OpenSim_*_{trial}_{side[0]}CS.mot")) as fh:
+        lines = fh.read().splitlines()
     head = next(k for k, line in enumerate(lines) if line.startswith("endheader"))
     names = lines[head + 1].split("\t")
     return names, np.array([[float(v) for v in line.split("\t")] for line in lines[head + 2 :] if line.strip()])

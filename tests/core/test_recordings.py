@@ -183,6 +183,51 @@ def test_recordings_added_beside_the_published_ones_are_found_and_read(data_dir:
         read_recording(tmp_path, "gaitmap_foot/my_walk")
 
 
+def test_gzipped_recordings_read_as_the_plain_ones(data_dir: Path, tmp_path: Path) -> None:
+    """Every file of the real recordings may be gzipped in a data directory (``.trc.gz``, ``.sto.gz``, ``.mot.gz``,
+    ``Inertial.csv.gz``, gaitmap's ``.csv.gz``): they are found by the same layout and read as the plain files, the
+    capacitive trial's sleeves and orientations too."""
+    import gzip
+    import shutil
+
+    from service.core.recordings import (
+        read_capacitive_oriented,
+        read_capacitive_sleeve,
+        recording_names,
+    )
+
+    real, packed = data_dir / "imu_real", tmp_path / "imu_real"
+
+    def pack(source: Path, target: Path) -> None:
+        target.mkdir(parents=True, exist_ok=True)
+        for item in source.iterdir():
+            if item.is_dir():
+                pack(item, target / item.name)
+            elif item.suffix != ".gz" and item.name.startswith(("OpenSim_", "Inertial", "imu_sample")):
+                with open(item, "rb") as fh, gzip.open(target / f"{item.name}.gz", "wb") as out:
+                    shutil.copyfileobj(fh, out)
+
+    pack(real / "capacitive_sub01" / "CSStiffKnee", packed / "capacitive_sub01" / "CSStiffKnee")
+    pack(real / "ximu3_lowerbody", packed / "ximu3_lowerbody")
+    pack(real / "gaitmap_foot", packed / "gaitmap_foot")
+    shutil.copy(data_dir / "index.csv", tmp_path / "index.csv")
+    names = ["capacitive_sub01/CSStiffKnee", "ximu3_lowerbody"] + [n for n in RECORDING_NAMES if "gaitmap" in n]
+    assert sorted(recording_names(tmp_path)) == sorted(names)
+    for name in names:
+        new, old = read_recording(tmp_path, name), read_recording(data_dir, name)
+        assert [s.segment for s in new.sensors] == [s.segment for s in old.sensors] and new.subject == old.subject
+        for a, b in zip(new.sensors, old.sensors, strict=True):
+            np.testing.assert_array_equal(a.imu, b.imu)
+            assert (a.nominal_frame is None) == (b.nominal_frame is None)
+    for side in ("Left", "Right"):
+        new_cs, old_cs = (read_capacitive_sleeve(d, "CSStiffKnee", side) for d in (tmp_path, data_dir))
+        np.testing.assert_array_equal(new_cs[0], old_cs[0])
+    new_q, old_q = (read_capacitive_oriented(d, "CSStiffKnee") for d in (tmp_path, data_dir))
+    assert new_q.keys() == old_q.keys()
+    for seg in old_q:
+        np.testing.assert_array_equal(new_q[seg].q_world_sensor, old_q[seg].q_world_sensor)
+
+
 def test_capacitive_sleeves_are_put_in_step_with_the_xsens_sensors_by_their_board_imu(
     data_dir: Path, tmp_path: Path
 ) -> None:
