@@ -18,8 +18,7 @@ Server → client
   the model's rate is the first one answered; each answer is latency_samples behind the newest reading it saw;
   nothing comes until the first window of window_samples is full) · warning (once, over the first window's
   readings: every value small where the model takes counts, or a channel that never changes) · gap / late · error
-  (then close, after the
-  answers of every accepted packet).
+  (then close, after the answers of every accepted packet).
 Close codes: 1003 unsupported data, 1008 protocol violation (wrong channels, values out of range, NaN; a failed
 read-out where the manifest declares ``flex.readout_check``, after the answers of the readings before it), 1009
 message too big, 1011 no flex model loaded, 1013 at capacity (try again later), 1000 after stop; 1008 also for a
