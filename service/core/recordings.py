@@ -449,6 +449,9 @@ def read_capacitive_sleeve(
     climbing to 1e6-1e8) and never recovers. ``until_failure=False`` keeps every row, failed or not. The rows are
     as the file gives them, not synchronised with the Xsens sensors (``capacitive_sleeve_sync``)."""
     names, x = _read_sleeve_file(data_dir, trial, side, source)
+    missing = [c for c in CAPACITIVE_CHANNELS if c not in names]
+    if missing:
+        raise ValueError(f"{source}/{trial} {side} sleeve: no column {missing}; the file has {names}")
     cols = [names.index(c) for c in CAPACITIVE_CHANNELS]
     cs = x[:, cols]
     rate = 1.0 / float(np.median(np.diff(x[:, 0])))
