@@ -64,6 +64,9 @@ class PoseModelConfig(Strict):
     layers: int = 2
     input_dropout: float = 0.2  # Zheng et al. 2021 §4.2
     look_ahead: int = Field(0, ge=0, le=30)  # lstm: frames of future it sees (streaming: 5)
+    # each output segment answered relative to a sensed segment next to it (``training.pose.models.anchor_sensors``:
+    # a thigh from its shank, a hand from its forearm) instead of the pelvis (ours); not for look-ahead models
+    anchored: bool = False
 
 
 class PoseTrainConfig(Strict):
@@ -112,6 +115,8 @@ class PoseConfig(Strict):
             raise ValueError(f"sensors start with Pelvis; segments are {list(BODY_SEGMENTS)}; unknown {unknown}")
         if self.model.look_ahead and self.model.kind != "lstm":
             raise ValueError("look_ahead is for the unidirectional lstm")
+        if self.model.anchored and self.model.look_ahead:
+            raise ValueError("model.anchored needs the input frame of each answer: not with look_ahead")
         fewest = 1 if self.train.ensemble_mirror else 2
         if self.train.ensemble_of is not None and (len(self.train.ensemble_of) < fewest or self.model.kind != "bilstm"):
             raise ValueError(

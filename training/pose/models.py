@@ -22,6 +22,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from service.core.body import BODY_PARENT
+
 REPRESENTATION_WIDTH = {"6d": 6, "axis_angle": 3}
 
 
@@ -115,6 +117,19 @@ class PoseEnsemble(nn.Module):
         return matrices_from_6d(torch.cat([R[..., :, 0], R[..., :, 1]], dim=-1))
 
 
+def anchor_sensors(sensors: list[str], outputs: list[str]) -> list[int]:
+    """For each output segment, the sensor (index into ``sensors``; 0, the pelvis, where none) whose orientation its
+    answer is taken relative to (``model.anchored``): a sensed segment next to it in the body's tree, its child first
+    (the knee's and elbow's hinge turn a thigh or upper arm about one axis from the shank or forearm below; the
+    neck carries the head), else its parent (a hand on its forearm, a foot on its shank)."""
+    anchors = []
+    for name in outputs:
+        children = [k for k, s in enumerate(sensors) if BODY_PARENT[s] == name]
+        parent = BODY_PARENT[name]
+        anchors.append(children[0] if children else sensors.index(parent) if parent in sensors else 0)
+    return anchors
+
+
 class PoseNet(nn.Module):
     def __init__(
         self,
@@ -126,6 +141,7 @@ class PoseNet(nn.Module):
         input_dropout: float = 0.2,
         representation: str = "6d",
         look_ahead: int = 0,
+        anchors: list[int] | None = None,
     ) -> None:
         super().__init__()
         if kind not in ("bilstm", "lstm", "ffn"):
@@ -134,6 +150,21 @@ class PoseNet(nn.Module):
             raise ValueError(f"representation must be one of {sorted(REPRESENTATION_WIDTH)}, got {representation!r}")
         self.kind, self.representation, self.look_ahead = kind, representation, look_ahead
         self.n_segments, self.hidden, self.layers = n_segments, hidden, layers
+        if anchors is not None and (len(anchors) != n_segments or look_ahead):
+            raise ValueError("anchors: one sensor index per output segment, for networks without look-ahead")
+        # each output's answer turned by its anchor sensor's pelvis-relative rotation (the features' 9 numbers of
+        # that sensor, ``service.core.calibration.pose_features``; the identity appended last for the pelvis)
+        self.anchored = anchors is not None and any(anchors)
+        index = [n_features + j for j in range(9)] * n_segments
+        if anchors is not None:
+            index = [
+                i
+                for a in anchors
+                for i in (
+                    range(n_features, n_features + 9) if a == 0 else range(6 + 12 * (a - 1), 6 + 12 * (a - 1) + 9)
+                )
+            ]
+        self.register_buffer("anchor_index", torch.tensor(index), persistent=False)
         self.register_buffer("mean", torch.zeros(n_features))
         self.register_buffer("std", torch.ones(n_features))
         self.dropout = nn.Dropout(input_dropout)
@@ -154,12 +185,19 @@ class PoseNet(nn.Module):
         y = self.out(y).reshape(*y.shape[:2], self.n_segments, REPRESENTATION_WIDTH[self.representation])
         return matrices_from_6d(y) if self.representation == "6d" else matrices_from_axis_angle(y)
 
+    def anchor_rotations(self, x: torch.Tensor) -> torch.Tensor:
+        """Features ``(B, T, F)`` → each output's anchor rotation, pelvis-relative ``(B, T, S, 3, 3)``."""
+        eye = torch.eye(3, dtype=x.dtype, device=x.device).reshape(1, 1, 9).expand(*x.shape[:2], 9)
+        rows = torch.cat([x, eye], dim=-1).index_select(-1, self.anchor_index)
+        return rows.reshape(*x.shape[:2], self.n_segments, 3, 3)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, T, F)`` → ``(B, T, S, 3, 3)``."""
         h = self.embed(self.dropout((x - self.mean) / self.std))
         if self.rnn is not None:
             h, _ = self.rnn(h)
-        return self._head(h)
+        R = self._head(h)
+        return self.anchor_rotations(x) @ R if self.anchored else R
 
     def step(
         self, x: torch.Tensor, h0: torch.Tensor, c0: torch.Tensor
@@ -169,7 +207,8 @@ class PoseNet(nn.Module):
             raise TypeError("only the unidirectional lstm streams")
         h = self.embed((x - self.mean) / self.std)
         h, (h1, c1) = self.rnn(h, (h0, c0))
-        return self._head(h), h1, c1
+        R = self._head(h)
+        return (self.anchor_rotations(x) @ R if self.anchored else R), h1, c1
 
 
 class StreamingExport(nn.Module):

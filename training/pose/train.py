@@ -27,7 +27,7 @@ from service.inference.pose import run_chunked
 from training.data.catalog import is_bandai_namco
 from training.pose.config import PoseConfig, served_chunks
 from training.pose.data import MotionClip, mirrored
-from training.pose.models import PoseNet
+from training.pose.models import PoseNet, anchor_sensors
 from training.pose.simulate import SensorNoise, Session, root_relative_targets, simulate_session
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,10 @@ def build_net(cfg: PoseConfig, n_features: int) -> PoseNet:
     m = cfg.model
     dropout = 0.5 if m.kind == "ffn" else m.input_dropout  # Vlutters 2016 §IV-C: 0.5 on the input of the FFNN
     hidden = 100 if m.kind == "ffn" and m.hidden == 256 else m.hidden  # Vlutters 2016: 100 hidden units
-    return PoseNet(m.kind, n_features, len(cfg.outputs), hidden, m.layers, dropout, m.representation, m.look_ahead)
+    anchors = anchor_sensors(cfg.sensors, cfg.outputs) if m.anchored else None
+    return PoseNet(
+        m.kind, n_features, len(cfg.outputs), hidden, m.layers, dropout, m.representation, m.look_ahead, anchors
+    )
 
 
 def session_of(

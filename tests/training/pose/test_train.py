@@ -225,3 +225,53 @@ def test_the_mirror_image_of_features_and_answers(tmp_path) -> None:
         Mirror(["Pelvis", "LeftForeArm", "Head"], cfg.outputs)
     with pytest.raises(ValueError, match="name them"):
         load_pose_config(config, ["train.ensemble_mirror=true"])
+
+
+def test_anchored_outputs_turn_with_the_sensed_segment_next_to_them(tmp_path) -> None:
+    """``model.anchored``: a thigh and a foot answer relative to their shank, an upper arm and a hand to their forearm,
+    the neck to the head, the rest to the pelvis; each answer is its anchor sensor's pelvis-relative rotation (read
+    from the features) times the network's own, so turning a shank's reading turns its thigh's answer with it; the
+    file exports with ONNX parity; a look-ahead model refuses it."""
+    from pathlib import Path
+
+    import numpy as np
+    import pytest
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from service.core.calibration import features_per_frame, pose_features
+    from training.pose.config import load_pose_config
+    from training.pose.export import export_pose_onnx, golden_pair, onnx_parity
+    from training.pose.models import anchor_sensors
+    from training.pose.train import build_net
+
+    configs = Path(__file__).resolve().parents[3] / "training/configs"
+    six = load_pose_config(configs / "pose_full6.yaml", ["model.hidden=32", "model.anchored=true"])
+    named = {o: six.sensors[k] for o, k in zip(six.outputs, anchor_sensors(six.sensors, six.outputs), strict=True)}
+    assert named["LeftUpperLeg"] == named["LeftFoot"] == "LeftLowerLeg" and named["Neck"] == "Head"
+    assert (
+        named["RightUpperArm"] == named["RightHand"] == "RightForeArm" and named["T8"] == named["LeftToe"] == "Pelvis"
+    )
+
+    cfg = load_pose_config(configs / "pose_lower3.yaml", ["model.hidden=32", "model.anchored=true"])
+    torch.manual_seed(0)
+    net = build_net(cfg, features_per_frame(len(cfg.sensors))).eval()
+    T, N = 20, len(cfg.sensors)
+    R = Rotation.random(T * N, random_state=5).as_matrix().reshape(T, N, 3, 3)
+    acc = np.random.default_rng(5).normal(size=(T, N, 3))
+    x = torch.from_numpy(pose_features(R, acc))[None]
+    plain = build_net(cfg.model_copy(update={"model": cfg.model.model_copy(update={"anchored": False})}), x.shape[-1])
+    plain.load_state_dict(net.state_dict())
+    thigh = cfg.outputs.index("LeftUpperLeg")
+    turn = Rotation.from_euler("y", 40, degrees=True).as_matrix()
+    rel = np.einsum("tji,tnjk->tnik", R[:, 0], R)  # each sensor relative to the pelvis
+    turned = x.clone()
+    turned[0, :, 6:15] = torch.from_numpy((rel[:, 1] @ turn).reshape(T, 9))  # the left shank's 9 numbers
+    with torch.no_grad():
+        torch.testing.assert_close(net(x), net.anchor_rotations(x) @ plain.eval()(x), atol=1e-5, rtol=0)
+        shank = net.anchor_rotations(turned)[0, :, thigh]
+    torch.testing.assert_close(shank, torch.from_numpy(rel[:, 1] @ turn).float(), atol=1e-5, rtol=0)
+    path = export_pose_onnx(net, cfg, tmp_path / "model.onnx")
+    assert onnx_parity(path, golden_pair(net, x[0].numpy(), cfg), cfg, net) < 1e-4
+    with pytest.raises(ValueError, match="not with look_ahead"):
+        load_pose_config(configs / "pose_full6_stream.yaml", ["model.anchored=true"])
