@@ -12,6 +12,9 @@ mean and std) sits inside the graph, so the exported ONNX takes the features as 
   seen L future frames (TransPose's online mode: 5 frames, 83 ms at 60 Hz).
 - ``ffn`` (Vlutters 2016 §IV-C): one frame in, one hidden ReLU layer, dropout 0.5 on the input, linear out.
 
+With ``anchors`` (``model.anchored``, ours) each output's rotation is the network's times a sensed neighbour's
+pelvis-relative rotation (``anchor_sensors``: a thigh from its shank), read from the input features.
+
 Output representation: ``6d`` (the first two columns, Gram–Schmidt; Zhou et al. 2019) or ``axis_angle``
 (Zheng et al. 2021's choice; Rodrigues' formula), both turned into matrices in the graph so the loss and the
 service see the same thing.
@@ -155,15 +158,11 @@ class PoseNet(nn.Module):
         # each output's answer turned by its anchor sensor's pelvis-relative rotation (the features' 9 numbers of
         # that sensor, ``service.core.calibration.pose_features``; the identity appended last for the pelvis)
         self.anchored = anchors is not None and any(anchors)
-        index = [n_features + j for j in range(9)] * n_segments
-        if anchors is not None:
-            index = [
-                i
-                for a in anchors
-                for i in (
-                    range(n_features, n_features + 9) if a == 0 else range(6 + 12 * (a - 1), 6 + 12 * (a - 1) + 9)
-                )
-            ]
+
+        def rows(a: int) -> range:  # the identity (appended after the features) for the pelvis, else sensor a's R
+            return range(n_features, n_features + 9) if a == 0 else range(6 + 12 * (a - 1), 15 + 12 * (a - 1))
+
+        index = [i for a in (anchors or [0] * n_segments) for i in rows(a)]
         self.register_buffer("anchor_index", torch.tensor(index), persistent=False)
         self.register_buffer("mean", torch.zeros(n_features))
         self.register_buffer("std", torch.ones(n_features))
