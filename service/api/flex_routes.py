@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request, Response
 
 from service.api.routes import _json, _Route, _settings
 from service.api.schemas import FlexRequest, FlexResponse, error_responses
-from service.inference.flex import MAX_FLEX_SAMPLES, FlexModel, block_rows, reading_warnings
+from service.inference.flex import MAX_FLEX_SAMPLES, FlexModel, block_rows
 from service.inference.predict import InputError
 from service.settings import Settings
 
@@ -35,7 +35,7 @@ def choose_flex_model(models: dict[str, FlexModel], name: str | None, width: int
     raise HTTPException(422, f"model: {why} loaded flex_pose model takes rows of {width} values; name one of {listing}")
 
 
-def flex_answer(model: FlexModel, rows: np.ndarray) -> FlexResponse:
+def flex_answer(model: FlexModel, rows: np.ndarray, warnings: list[str]) -> FlexResponse:
     angles = model.run_block(rows)
     m = model.manifest
     per_joint = np.round(angles.astype(np.float64), 3)
@@ -51,7 +51,7 @@ def flex_answer(model: FlexModel, rows: np.ndarray) -> FlexResponse:
             for j, joint in enumerate(m.joints)
         },
         angle_convention=m.flex.angle_convention,
-        warnings=reading_warnings(rows, model),
+        warnings=warnings,
     )
 
 
@@ -81,5 +81,5 @@ async def pose_from_flex(body: FlexRequest, request: Request, settings: Settings
     model = choose_flex_model(flex_models(request.app), body.model, width)
     if body.channels is not None and body.channels != model.manifest.channels:
         raise InputError(f"channels: {model.name} takes {model.manifest.channels} in this order, got {body.channels}")
-    rows = block_rows(body.samples, body.sample_rate_hz, model, MAX_FLEX_SAMPLES)
-    return _json(await request.app.state.runner.run_call(flex_answer, model, rows))
+    rows, warnings = block_rows(body.samples, body.sample_rate_hz, model, MAX_FLEX_SAMPLES)
+    return _json(await request.app.state.runner.run_call(flex_answer, model, rows, warnings))

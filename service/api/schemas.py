@@ -391,8 +391,8 @@ class FlexResponse(BaseModel):
     warnings: list[str] = Field(
         default_factory=list,
         description="the readings look like a mistake the value range lets through (every value at most 5 where "
-        "the model takes counts in the thousands: volts or 0–1 values; a channel that reads one value over a whole "
-        "calibration window: a disconnected, shorted or saturated sensor): the angles are given, but check",
+        "the model takes counts in the thousands: volts or 0–1 values; a channel that reads one value over the whole "
+        "block: a disconnected, shorted or saturated sensor): the angles are given, but check",
     )
 
 

@@ -83,7 +83,8 @@ class FlexSpec(BaseModel):
     simulated_sensor: str = ""  # the sensor model trained on, for simulated-data models
     readout_check: ReadoutCheckSpec | None = None  # refuse readings of a failed read-out (capacitive sleeves)
     # how the graph reads the raw readings before its min-max bounds: as they are ("minmax"), each channel over its
-    # window's mean ("window_relative"), or as log resistance through the read-out named in the channels' units
+    # window's mean ("window_relative"), that over its window's standard deviation ("window_standardised"), or as log
+    # resistance through the read-out named in the channels' units
     # ("log_resistance": another divider or amplifier needs another model); None: not stated (manifests before
     # 2026-12-05)
     input_norm: Literal["minmax", "window_relative", "window_standardised", "log_resistance"] | None = None

@@ -78,8 +78,10 @@ GAITMAP_SKIPPED = frozenset({"imu_sample_ms_left.csv", "imu_sample_ms_right.csv"
 
 def _files(folder: Path, pattern: str) -> list[Path]:
     """The files in ``folder`` matching ``pattern``, plain or gzipped (``pattern`` + ``.gz``): the data directory may
-    hold either form of any file."""
-    return sorted(folder.glob(pattern)) + sorted(folder.glob(f"{pattern}.gz"))
+    hold either form of any file; where it holds both, the plain one."""
+    plain = sorted(folder.glob(pattern))
+    names = {p.name for p in plain}
+    return plain + [p for p in sorted(folder.glob(f"{pattern}.gz")) if p.name.removesuffix(".gz") not in names]
 
 
 def _one_file(folder: Path, pattern: str) -> Path:

@@ -98,13 +98,16 @@ SMALL_READING = 5.0
 
 
 def reading_warnings(x: np.ndarray, model: FlexModel) -> list[str]:
-    """Warnings for rows ``(T, C)`` that pass ``check_rows`` but read like a mistake: every value small where the
-    model takes counts in the thousands (volts or 0–1 values sent as counts), or a channel that reads one value over
-    a whole calibration window or more (a disconnected, shorted or saturated sensor; at the range's end, the ADC's
-    limit). The angles are answered; the warnings say why they may be wrong."""
+    """Warnings for rows ``(T, C)`` as the client sent them (before any resampling) that pass ``check_rows`` but read
+    like a mistake: every value small where the model takes counts in the thousands (volts or 0–1 values sent as
+    counts), or a channel that reads one value over all the rows, at least a calibration window's worth (a
+    disconnected, shorted or saturated sensor; at the range's end, the ADC's limit). The angles are answered; the
+    warnings say why they may be wrong."""
     m = model.manifest
-    out = []
-    peak = float(np.abs(x).max()) if x.size else 0.0
+    out: list[str] = []
+    if not x.size:
+        return out
+    peak = float(np.abs(x).max())
     if m.value_range is not None and m.value_range[1] >= 1000.0 and peak <= SMALL_READING:
         unit = m.units.get(m.channels[0]) or f"values in [{m.value_range[0]:g}, {m.value_range[1]:g}]"
         out.append(f"every reading is at most {peak:.3g}, where the model takes {unit}: are they volts or 0–1 values?")
@@ -130,8 +133,11 @@ def readout_message(failure: ReadoutFailure, model: FlexModel, where: str) -> st
     )
 
 
-def block_rows(samples: list[list[float]], rate_hz: float | None, model: FlexModel, max_samples: int) -> np.ndarray:
-    """A REST block → rows at the model's rate, validated; it must cover the calibration window."""
+def block_rows(
+    samples: list[list[float]], rate_hz: float | None, model: FlexModel, max_samples: int
+) -> tuple[np.ndarray, list[str]]:
+    """A REST block → rows at the model's rate, validated (it must cover the calibration window), and the
+    ``reading_warnings`` of the rows as sent (resampling would blur a channel that never changes)."""
     m = model.manifest
     width = len(m.channels)
     bad = next((k for k, r in enumerate(samples) if len(r) != width), None)
@@ -157,6 +163,7 @@ def block_rows(samples: list[list[float]], rate_hz: float | None, model: FlexMod
             readout_message(failure, model, f"samples[{failure.row}]")
             + f" (send samples[:{failure.row}] for the angles before it)"
         )
+    warnings = reading_warnings(x, model)
     if not np.isclose(rate, m.sample_rate_hz):
         x = resample_uniform(x, rate, m.sample_rate_hz)
     if len(x) < model.window:
@@ -166,7 +173,7 @@ def block_rows(samples: list[list[float]], rate_hz: float | None, model: FlexMod
             f"{m.sample_rate_hz:g} Hz ({model.window / m.sample_rate_hz:g} s), i.e. at least {need} samples at "
             f"{rate:g} Hz; got {len(samples)}"
         )
-    return x.astype(np.float32)
+    return x.astype(np.float32), warnings
 
 
 class LiveFlex:
@@ -182,6 +189,7 @@ class LiveFlex:
         self.model_samples = 0  # samples pushed into the window, at the model's rate
         self.readout = model.readout_check(model.manifest.sample_rate_hz * factor)  # one reference per stream
         self._first: list[np.ndarray] | None = []  # the first window's readings, until ``first_window_warnings``
+        self._first_rows = 0
 
     def first_window_warnings(self, rows: np.ndarray) -> list[str]:
         """``reading_warnings`` once, over the stream's first calibration window of readings (at the stream's
@@ -189,10 +197,10 @@ class LiveFlex:
         if self._first is None:
             return []
         self._first.append(rows)
-        first = np.concatenate(self._first)
-        if len(first) < self.model.window * self.factor:
+        self._first_rows += len(rows)
+        if self._first_rows < self.model.window * self.factor:
             return []
-        self._first = None
+        first, self._first = np.concatenate(self._first), None
         return reading_warnings(first, self.model)
 
     def take(self, rows: np.ndarray) -> tuple[int, np.ndarray]:

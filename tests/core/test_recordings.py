@@ -211,6 +211,8 @@ def test_gzipped_recordings_read_as_the_plain_ones(data_dir: Path, tmp_path: Pat
     pack(real / "ximu3_lowerbody", packed / "ximu3_lowerbody")
     pack(real / "gaitmap_foot", packed / "gaitmap_foot")
     shutil.copy(data_dir / "index.csv", tmp_path / "index.csv")
+    # a file in both forms is read once, in its plain form
+    shutil.copy(real / "gaitmap_foot" / "imu_sample_ic_stride.csv", packed / "gaitmap_foot")
     names = ["capacitive_sub01/CSStiffKnee", "ximu3_lowerbody"] + [n for n in RECORDING_NAMES if "gaitmap" in n]
     assert sorted(recording_names(tmp_path)) == sorted(names)
     for name in names:

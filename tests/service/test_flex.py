@@ -299,6 +299,12 @@ def test_readings_that_look_like_volts_or_a_dead_channel_are_answered_with_warni
     (warning,) = flex_client.post("/v1/pose/flex", json={"samples": dead.tolist()}).json()["warnings"]
     assert f"channel {CHANNELS[1]} reads 4095 (the end of the value range" in warning, warning
     assert flex_client.post("/v1/pose/flex", json={"samples": _block(WINDOW + 10).tolist()}).json()["warnings"] == []
+    # judged on the rows as sent: resampling a block sent at 5 times the model's rate would blur the dead channel
+    fast = np.repeat(dead, 5, axis=0)
+    r = flex_client.post("/v1/pose/flex", json={"samples": fast.tolist(), "sample_rate_hz": 5 * RATE})
+    assert r.status_code == 200, r.text
+    (warning,) = r.json()["warnings"]
+    assert f"channel {CHANNELS[1]} reads 4095 (the end of the value range" in warning, warning
 
     with flex_client.websocket_connect("/v1/stream/flex") as ws:
         ws.send_json({"type": "start", "channels": CHANNELS})

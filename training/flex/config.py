@@ -52,7 +52,8 @@ class FlexModelConfig(Strict):
     avg_kernel: int = 10
     avg_padding: int = 8
     # minmax: the training set's per-channel bounds (§3.4.3). window_relative (ours, for real sleeves whose
-    # read-outs differ tenfold between legs): each channel over its window's mean, minus one, then min-max.
+    # read-outs differ tenfold between legs): each channel over its window's mean, minus one, then min-max;
+    # window_standardised (ours, tried, not served): that over its window's standard deviation.
     # log_resistance (ours, for the simulated strips): the counts read back through eq. 1's nominal divider and
     # amplifier to log(R / R_i), then min-max; ageing multiplies the resistance, so there it is an offset, which
     # eq. 2's subtraction can take out (in counts the divider turns it into a change of level and of swing)

@@ -12,8 +12,8 @@ mean and std) sits inside the graph, so the exported ONNX takes the features as 
   seen L future frames (TransPose's online mode: 5 frames, 83 ms at 60 Hz).
 - ``ffn`` (Vlutters 2016 §IV-C): one frame in, one hidden ReLU layer, dropout 0.5 on the input, linear out.
 
-With ``anchors`` (``model.anchored``, ours) each output's rotation is the network's times a sensed neighbour's
-pelvis-relative rotation (``anchor_sensors``: a thigh from its shank), read from the input features.
+With ``anchors`` (``model.anchored``, ours) each output's rotation is a sensed neighbour's pelvis-relative rotation,
+read from the input features, times the network's (``anchor_sensors``: a thigh from its shank).
 
 Output representation: ``6d`` (the first two columns, Gram–Schmidt; Zhou et al. 2019) or ``axis_angle``
 (Zheng et al. 2021's choice; Rodrigues' formula), both turned into matrices in the graph so the loss and the

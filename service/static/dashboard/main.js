@@ -155,6 +155,8 @@ function onFlex(side, m) {
     byId("flex-note").textContent = `${m.model} ${m.version}: each sleeve's seven channels → knee flexion (°)`;
   } else if (m.type === "angles") {
     page.chart.push(side, m.angles_deg.map((frame) => frame[0][0]));
+  } else if (m.type === "warning") {
+    log(`/v1/stream/flex (${side}): ${m.warnings.join("; ")}`);
   } else if (m.type === "error") {
     log(`/v1/stream/flex (${side}): ${m.detail}`);
   }

@@ -100,7 +100,8 @@ def test_log_resistance_reads_the_strip_back_through_eq_1_and_turns_ageing_into_
 
 @pytest.mark.parametrize(
     "kind, calibration, median, input_norm",
-    [(*v, "minmax") for v in VARIANTS] + [("bilstm", True, True, "log_resistance")],
+    [(*v, "minmax") for v in VARIANTS]
+    + [("bilstm", True, True, "log_resistance"), ("bilstm", True, True, "window_standardised")],
 )
 def test_each_variant_answers_one_pose_per_window_and_exports_with_parity(
     kind, calibration, median, input_norm, tmp_path: Path
