@@ -73,6 +73,13 @@ BODY_PARENT: dict[str, str | None] = {
     "RightFoot": "RightLowerLeg",
     "RightToe": "RightFoot",
 }
+
+
+def other_side(segment: str) -> str:
+    """A segment's counterpart on the other side of the body (itself on the midline)."""
+    return segment.replace("Left", "#").replace("Right", "Left").replace("#", "Right")
+
+
 PARENT_INDEX: tuple[int, ...] = tuple(
     -1 if BODY_PARENT[s] is None else BODY_SEGMENTS.index(BODY_PARENT[s]) for s in BODY_SEGMENTS
 )

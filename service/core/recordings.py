@@ -340,15 +340,7 @@ MOVINGREALITY_SEGMENTS = {
 
 
 def _is_movingreality_trial(folder: Path) -> bool:
-    return folder.is_dir() and all(_csv_or_gz(folder / name) is not None for name in MOVINGREALITY_SEGMENTS)
-
-
-def _csv_or_gz(stem: Path) -> Path | None:
-    """``<stem>.csv.gz`` or ``<stem>.csv``, whichever exists (the data directory may hold either form)."""
-    for path in (stem.with_name(f"{stem.name}.csv.gz"), stem.with_name(f"{stem.name}.csv")):
-        if path.is_file():
-            return path
-    return None
+    return folder.is_dir() and all(_files(folder, f"{name}.csv") for name in MOVINGREALITY_SEGMENTS)
 
 
 def read_movingreality(data_dir: Path, participant: str, trial: str) -> RealRecording:
@@ -379,10 +371,7 @@ def read_movingreality_trial(data_dir: Path, participant: str, trial: str) -> li
     folder = data_dir / "imu_real" / "movingreality" / participant / trial
     sensors = []
     for name in MOVINGREALITY_SEGMENTS:
-        path = _csv_or_gz(folder / name)
-        if path is None:
-            raise FileNotFoundError(f"{folder}: no {name}.csv.gz or {name}.csv")
-        table = np.loadtxt(path, delimiter=",", skiprows=1)
+        table = np.loadtxt(_one_file(folder, f"{name}.csv"), delimiter=",", skiprows=1)
         rate = 1.0 / float(np.median(np.diff(table[:, 0])))
         sensors.append(OrientedSensor(name, table[:, 1:4], table[:, 4:7], table[:, 7:11], rate))
     return sensors

@@ -26,6 +26,7 @@ from service.core.body import (
     SkeletonMapping,
     body_motion,
     check_trunk_axes,
+    other_side,
     read_body_motion,
     read_clip_offsets,
     read_rig,
@@ -287,9 +288,7 @@ def held_out_split(
 
 
 # Each segment's counterpart on the other side (itself on the midline), and the reflection y -> -y.
-_OTHER_SIDE = np.array(
-    [BODY_SEGMENTS.index(s.replace("Left", "#").replace("Right", "Left").replace("#", "Right")) for s in BODY_SEGMENTS]
-)
+_OTHER_SIDE = np.array([BODY_SEGMENTS.index(other_side(s)) for s in BODY_SEGMENTS])
 _LATERAL = np.array([1.0, -1.0, 1.0])
 _FLIP = np.outer(_LATERAL, _LATERAL)  # (M R M)_ij = s_i R_ij s_j
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from service.core.body import BODY_PARENT
+from service.core.body import BODY_PARENT, other_side
 
 REPRESENTATION_WIDTH = {"6d": 6, "axis_angle": 3}
 
@@ -50,11 +50,6 @@ def matrices_from_axis_angle(r: torch.Tensor) -> torch.Tensor:
     s, c = torch.sin(theta)[..., None], torch.cos(theta)[..., None]
     eye = torch.eye(3, dtype=r.dtype, device=r.device).expand_as(K)
     return eye + s * K + (1.0 - c) * (K @ K)
-
-
-def other_side(segment: str) -> str:
-    """A segment's counterpart on the other side of the body (itself on the midline)."""
-    return segment.replace("Left", "#").replace("Right", "Left").replace("#", "Right")
 
 
 class Mirror(nn.Module):

@@ -191,10 +191,11 @@ def test_the_mirror_image_of_features_and_answers(tmp_path) -> None:
     import torch
     from scipy.spatial.transform import Rotation
 
+    from service.core.body import other_side
     from service.core.calibration import features_per_frame, pose_features
     from training.pose.config import load_pose_config
     from training.pose.export import export_pose_onnx, golden_pair, onnx_parity
-    from training.pose.models import Mirror, PoseEnsemble, other_side
+    from training.pose.models import Mirror, PoseEnsemble
     from training.pose.train import build_net
 
     config = Path(__file__).resolve().parents[3] / "training/configs/pose_full6.yaml"
