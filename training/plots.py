@@ -204,13 +204,20 @@ def skeleton_snapshots_png(
 
 
 def flex_learning_curve_png(history: list[dict[str, float]], path: Path, title: str) -> Path:
-    """Training loss (standardised squared error, eq. 3 of Chen et al. 2024) and validation error per epoch."""
+    """Training loss (standardised squared error, eq. 3 of Chen et al. 2024) and validation error per epoch, one
+    pair of curves per member where several networks were trained (``member`` in the rows)."""
     fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot([h["train_loss"] for h in history], color="C0", label="train loss")
+    ax2 = ax.twinx()
+    members = sorted({int(h.get("member", 0)) for h in history})
+    for k in members:
+        rows = [h for h in history if int(h.get("member", 0)) == k]
+        suffix = f", member {k}" if len(members) > 1 else ""
+        ax.plot([h["train_loss"] for h in rows], color="C0", alpha=1.0 - 0.25 * k, label=f"train loss{suffix}")
+        ax2.plot(
+            [h["val_mae_deg"] for h in rows], color="C1", alpha=1.0 - 0.25 * k, label=f"validation error (deg){suffix}"
+        )
     ax.set_xlabel("epoch")
     ax.set_ylabel("train loss (standardised MSE)")
-    ax2 = ax.twinx()
-    ax2.plot([h["val_mae_deg"] for h in history], color="C1", label="validation error (deg)")
     ax2.set_ylabel("validation mean tracking error (deg)")
     fig.legend(loc="upper right")
     ax.set_title(title)

@@ -276,7 +276,8 @@ def run_capacitive_experiment(
                 "train_wall_time_s": round(result.wall_s, 1),
                 "best_epoch": result.best_epoch,
                 "stopped": result.stopped,
-            },
+            }
+            | ({"member_best_epochs": result.member_best_epochs} if cfg.train.members > 1 else {}),
             evaluations,
             {"run_id": run.info.run_id, "experiment_id": run.info.experiment_id},
             channels=list(CAPACITIVE_CHANNELS),
@@ -311,10 +312,14 @@ def held_out_evaluation(run_id: str, cfg: CapacitiveConfig) -> Evaluation:
     ``cfg``, for the manifest of a model trained on every trial."""
     run = mlflow.get_run(local_run_id(run_id))  # the id a manifest names may be restored
     params, metrics = run.data.params, run.data.metrics
-    recipe = {k: str(v) for k, v in flatten(cfg.model_dump()).items() if k.startswith("model.") or k == "sync"}
+    recipe = {
+        k: str(v)
+        for k, v in flatten(cfg.model_dump()).items()
+        if k.startswith("model.") or k in ("sync", "train.members")
+    }
     # parameters added since a run was logged (absent there) had their default then; the sleeves were not
-    # synchronised before ``sync`` was
-    logged = {"sync": "False"} | dict(params)
+    # synchronised before ``sync`` was, and every run was one network before ``train.members``
+    logged = {"sync": "False", "train.members": "1"} | dict(params)
     differs = {k: (logged[k], v) for k, v in recipe.items() if k in logged and logged[k] != v}
     if "model.kind" not in params or differs:
         raise ValueError(f"run {run_id} is not this recipe: (its, ours) {differs}")

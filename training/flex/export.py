@@ -111,7 +111,8 @@ def build_flex_manifest(
         joint_components=components,
         value_range=value_range if value_range is not None else ([0.0, float(ADC_MAX)] if units is None else None),
         flex=FlexSpec(
-            architecture=f"{cfg.variant} (Chen et al. 2024 §3.4, appendix B)",
+            architecture=f"{cfg.variant} (Chen et al. 2024 §3.4, appendix B)"
+            + (f", the mean of {cfg.train.members} networks of consecutive seeds" if cfg.train.members > 1 else ""),
             calibration=cfg.model.calibration,
             median=cfg.model.median,
             steps=cfg.model.steps,

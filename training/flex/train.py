@@ -17,18 +17,19 @@ from tqdm import tqdm
 from training.flex.config import FlexConfig
 from training.flex.data import WindowSet
 from training.flex.evaluate import predict_windows
-from training.flex.models import FlexNet, readings
+from training.flex.models import FlexEnsemble, FlexNet, readings
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class FlexTrainResult:
-    net: FlexNet
-    history: list[dict[str, float]]
-    best_epoch: int
+    net: FlexNet | FlexEnsemble
+    history: list[dict[str, float]]  # every member's epochs in turn, each row naming its ``member``
+    best_epoch: int  # the first member's; ``member_best_epochs`` has each one's
     wall_s: float
     stopped: str
+    member_best_epochs: list[int]
 
 
 def build_net(cfg: FlexConfig, train: WindowSet) -> FlexNet:
@@ -78,6 +79,29 @@ def torch_predictor(net: FlexNet) -> Callable[[np.ndarray], np.ndarray]:
 def train_flex(
     cfg: FlexConfig, train: WindowSet, val: WindowSet, on_epoch: Callable[[int, dict], None] | None = None
 ) -> FlexTrainResult:
+    """One network, or ``cfg.train.members`` of consecutive seeds answering as their mean. ``on_epoch`` gets a
+    step that runs on over the members and the epoch's row (``member`` among its keys)."""
+    t0 = time.monotonic()
+    results = []
+    for k in range(cfg.train.members):
+        step0 = sum(len(r.history) for r in results)
+        report = None if on_epoch is None else (lambda e, row, s=step0: on_epoch(s + e, row))
+        results.append(_train_one(cfg.model_copy(update={"seed": cfg.seed + k}), train, val, report, k))
+    if len(results) == 1:
+        return results[0]
+    return FlexTrainResult(
+        FlexEnsemble([r.net for r in results]).eval(),
+        [row for r in results for row in r.history],
+        results[0].best_epoch,
+        time.monotonic() - t0,
+        "; ".join(f"member {k}: {r.stopped}" for k, r in enumerate(results)),
+        [r.best_epoch for r in results],
+    )
+
+
+def _train_one(
+    cfg: FlexConfig, train: WindowSet, val: WindowSet, on_epoch: Callable[[int, dict], None] | None, member: int
+) -> FlexTrainResult:
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.train.threads)
     rng = np.random.default_rng(cfg.seed)
@@ -110,11 +134,18 @@ def train_flex(
         sched.step()
         net.eval()
         val_mae = validation_mae(net, val)
-        row = {"train_loss": float(np.mean(losses)), "val_mae_deg": val_mae, "wall_s": time.monotonic() - t0}
+        row = {
+            "train_loss": float(np.mean(losses)),
+            "val_mae_deg": val_mae,
+            "wall_s": time.monotonic() - t0,
+            "member": member,
+        }
         history.append(row)
         if on_epoch:
             on_epoch(epoch, row)
-        log.info("%s epoch %d: loss %.4f, validation %.2f°", cfg.name, epoch, row["train_loss"], val_mae)
+        log.info(
+            "%s (seed %d) epoch %d: loss %.4f, validation %.2f°", cfg.name, cfg.seed, epoch, row["train_loss"], val_mae
+        )
         if val_mae < best:
             best, best_epoch = val_mae, epoch
             best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
@@ -130,4 +161,4 @@ def train_flex(
     else:
         best_epoch = len(history) - 1  # the epoch whose weights the run keeps
     net.eval()
-    return FlexTrainResult(net, history, best_epoch, time.monotonic() - t0, stopped)
+    return FlexTrainResult(net, history, best_epoch, time.monotonic() - t0, stopped, [best_epoch])

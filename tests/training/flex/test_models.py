@@ -11,7 +11,7 @@ import torch
 
 from training.flex.config import FlexModelConfig
 from training.flex.export import export_flex_onnx
-from training.flex.models import DynamicCalibration, FlexNet, log_resistance, median3
+from training.flex.models import DynamicCalibration, FlexEnsemble, FlexNet, log_resistance, median3
 from training.flex.simulate import DIVIDER_OHM, SensorParams, counts, draw_sensor, resistance_ohm
 
 VARIANTS = [
@@ -119,6 +119,29 @@ def test_each_variant_answers_one_pose_per_window_and_exports_with_parity(
     np.testing.assert_allclose(got, y.numpy()[:3], atol=1e-3)
 
 
+def test_an_ensemble_answers_the_mean_of_its_members_and_exports_with_parity(tmp_path: Path) -> None:
+    members = [_net("bilstm", True, True, input_norm="window_relative") for _ in range(3)]
+    for k, m in enumerate(members[1:], start=1):  # other weights, as other seeds would give
+        torch.manual_seed(k)
+        for p in m.net.parameters():
+            p.data.add_(0.05 * torch.randn_like(p))
+    ensemble = FlexEnsemble(members).eval()
+    x = torch.from_numpy(np.random.default_rng(0).uniform(500, 3500, size=(4, 100, 4)).astype(np.float32))
+    with torch.no_grad():
+        answers = [m(x) for m in members]
+        y = ensemble(x)
+    assert not torch.allclose(answers[0], answers[1])
+    torch.testing.assert_close(y, (answers[0] + answers[1] + answers[2]) / 3)
+    assert ensemble.latency_samples == 1 and ensemble.cfg == members[0].cfg
+    path = export_flex_onnx(ensemble, tmp_path / "ensemble.onnx")
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"counts": x.numpy()})[0]
+    np.testing.assert_allclose(got, y.numpy(), atol=1e-3)
+    with pytest.raises(ValueError, match="one recipe"):
+        FlexEnsemble([members[0], _net("bilstm", True, False, input_norm="window_relative")])
+    with pytest.raises(ValueError, match="two or more"):
+        FlexEnsemble(members[:1])
+
+
 def test_only_the_last_steps_reach_the_network_without_calibration() -> None:
     """Without the calibration module the answer depends on the last ``steps`` samples only; with it, on the
     whole window (its baseline)."""
@@ -153,6 +176,33 @@ def test_training_keeps_the_best_validation_epoch_or_the_last(keep: str) -> None
     kept = int(np.argmin(scores)) if keep == "best" else 3
     assert result.best_epoch == kept
     assert validation_mae(result.net, ws) == pytest.approx(scores[kept], rel=1e-5)
+    assert result.member_best_epochs == [result.best_epoch]
+
+
+def test_members_train_from_consecutive_seeds_and_answer_as_their_mean() -> None:
+    from training.flex.config import FlexConfig
+    from training.flex.data import FlexClip, window_set
+    from training.flex.train import train_flex
+
+    rng = np.random.default_rng(0)
+    bend = np.abs(np.cumsum(rng.standard_normal((400, 4)), axis=0)).astype(np.float32)
+    angles = np.repeat(bend[:, :1, None], 3, axis=2)[:, [0] * 12]
+    ws = window_set([FlexClip("c", "cmu_iclone", "g", "walk", angles.astype(np.float32), bend, 99)], 1, 0, 100)
+    train = {"max_epochs": 3, "windows_per_epoch": 64, "patience": 100, "threads": 1}
+    cfg = FlexConfig(name="t", seed=5, model={"kind": "fcn", "window": 100, "steps": 5}, train=train | {"members": 2})
+    steps: list[int] = []
+    result = train_flex(cfg, ws, ws, on_epoch=lambda step, row: steps.append(step))
+    assert isinstance(result.net, FlexEnsemble) and len(result.net.members) == 2
+    assert steps == list(range(6)) and [h["member"] for h in result.history] == [0, 0, 0, 1, 1, 1]
+    assert len(result.member_best_epochs) == 2 and result.best_epoch == result.member_best_epochs[0]
+    # each member is the network its seed trains alone
+    for k, member in enumerate(result.net.members):
+        alone = train_flex(
+            cfg.model_copy(update={"seed": 5 + k, "train": cfg.train.model_copy(update={"members": 1})}), ws, ws
+        )
+        x, _ = ws.batch(np.zeros(4, int), ws.ends[:4], 1)
+        with torch.no_grad():
+            torch.testing.assert_close(member(torch.from_numpy(x)), alone.net(torch.from_numpy(x)))
 
 
 def test_channel_gain_swings_each_channel_about_its_window_mean_within_the_range() -> None:

@@ -230,6 +230,10 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
     )
     with pytest.raises(ValueError, match="sync"):
         run_capacitive_experiment(every, data_dir, None, None, [unsynced["run_id"]])
+    # and a single network's as the figure of the mean of several (refused before anything trains)
+    several = every.model_copy(update={"train": every.train.model_copy(update={"members": 2})})
+    with pytest.raises(ValueError, match="train.members"):
+        run_capacitive_experiment(several, data_dir, None, None, [out["run_id"]])
 
 
 def test_synchronised_pairs_the_rows_read_at_the_same_moment() -> None:
