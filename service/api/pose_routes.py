@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
 from service.api.routes import _Route, _settings
 from service.api.schemas import PoseImuRequest, PoseImuResponse, SegmentTrack, error_responses
-from service.core.body import BODY_SEGMENTS
+from service.core.body import BODY_SEGMENTS, Body, body_bvh
+from service.core.bvh import format_bvh
 from service.core.calibration import (
     CalibrationError,
     is_still,
@@ -198,13 +201,24 @@ def unit_check(body: PoseImuRequest, r: Readings) -> list[str]:
     return out
 
 
-def pose_response(
-    model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None, warnings: list[str]
-) -> PoseImuResponse:
+def body_pose(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None) -> tuple[np.ndarray, Body]:
+    """Every segment's orientation ``(T, 21, 3, 3)`` in the sensors' world frame, and the body it is drawn on."""
     R_w_seg, a_w = segment_readings(r.q_world_sensor, r.acc_mps2, q_seg_sensor)
     R_out = model.predict(pose_features(R_w_seg, a_w))
     R_world = whole_body(R_w_seg, R_out, model.sensor_index, model.output_index)
-    body = model.body.scaled(height) if height else model.body
+    return R_world, model.body.scaled(height) if height else model.body
+
+
+def pose_bvh(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None) -> str:
+    """The pose as the text of a BVH file (``service.core.body.body_bvh``)."""
+    R_world, body = body_pose(model, r, q_seg_sensor, height)
+    return format_bvh(body_bvh(R_world, body, 60.0))
+
+
+def pose_response(
+    model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None, warnings: list[str]
+) -> PoseImuResponse:
+    R_world, body = body_pose(model, r, q_seg_sensor, height)
     answer = pose_answer(R_world, body)
     covered = set(covered_segments(model))
     sources = {s: "sensor" if s in model.spec.sensors else "model" if s in covered else "parent" for s in BODY_SEGMENTS}
@@ -239,9 +253,17 @@ def pose_response(
         "the segment each sensor is on, and a calibration: `declared` alignments (no pose needed, e.g. from "
         "/v1/imu/assign) or the frame span of a still N-pose/T-pose in this request. Returns per frame (60 Hz) and "
         "segment the global and parent-relative quaternions and joint positions of the default body (or of "
-        "`body_height_m`). The model is the offline one whose sensors match, or the one `model` names."
+        "`body_height_m`). The model is the offline one whose sensors match, or the one `model` names. With "
+        "`format=bvh` the same pose comes as a BVH file (one joint per segment, centimetres, Y up) for Blender, "
+        "MotionBuilder or OpenSim; its model and warnings in the headers `X-Pose-Model` and `X-Pose-Warnings`."
     ),
-    responses=error_responses(
+    responses={
+        200: {
+            "content": {"text/plain": {"example": "HIERARCHY\nROOT Pelvis\n{\n\tOFFSET 0.0000 0.0000 0.0000\n..."}},
+            "description": "JSON (default), or with `format=bvh` the text of a BVH file",
+        }
+    }
+    | error_responses(
         400,
         401,
         413,
@@ -253,12 +275,26 @@ def pose_response(
         },
     ),
 )
-async def pose_from_imu(body: PoseImuRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
+async def pose_from_imu(
+    body: PoseImuRequest,
+    request: Request,
+    settings: Settings = Depends(_settings),
+    format: Literal["json", "bvh"] = Query(  # noqa: A002 (the query parameter's name)
+        "json", description="`json` (default): quaternions and joint positions; `bvh`: a BVH file of the pose"
+    ),
+) -> Response:
     model = choose_model(pose_models(request), [s.segment for s in body.sensors], body.model, streaming=False)
     readings = read_sensors(body, model)
     q_seg_sensor = calibrate(body, model, readings)
     warnings = unit_check(body, readings)
-    answer = await request.app.state.runner.run_call(
-        pose_response, model, readings, q_seg_sensor, body.body_height_m, warnings
-    )
+    runner = request.app.state.runner
+    if format == "bvh":
+        text = await runner.run_call(pose_bvh, model, readings, q_seg_sensor, body.body_height_m)
+        headers = {
+            "Content-Disposition": f'attachment; filename="{model.name}.bvh"',
+            "X-Pose-Model": f"{model.name} {model.loaded.manifest.version}",
+            "X-Pose-Warnings": json.dumps(warnings),  # ASCII: json.dumps escapes the rest
+        }
+        return Response(text, media_type="text/plain; charset=utf-8", headers=headers)
+    answer = await runner.run_call(pose_response, model, readings, q_seg_sensor, body.body_height_m, warnings)
     return Response(answer.model_dump_json(), media_type="application/json")

@@ -1,4 +1,4 @@
-"""BVH reader: hierarchy, channels and motion frames, exactly as written in the file.
+"""BVH reader and writer: hierarchy, channels and motion frames, exactly as written in the file.
 
 No unit or axis conversion happens here (see ``service.core.kinematics``). Every joint's CHANNELS
 line is honoured: channel order differs between sources (``../shared/data/README.md``).
@@ -123,3 +123,34 @@ def _parse(tokens: list[str], where: str) -> Bvh:
             f"found {values.size}"
         )
     return Bvh(tuple(joints), end_sites, frame_time_s, values.reshape(n_frames, n_channels))
+
+
+def format_bvh(bvh: Bvh, decimals: int = 4) -> str:
+    """The text of a BVH file: the hierarchy (joints in ``bvh.joints`` order, each after its parent), then the
+    motion table, ``decimals`` after the point. ``read_bvh`` of the text gives ``bvh`` back to that precision."""
+    children: dict[int, list[int]] = {}
+    for k, joint in enumerate(bvh.joints):
+        children.setdefault(joint.parent, []).append(k)
+        if joint.parent >= k:
+            raise ValueError(f"joint {joint.name!r} comes before its parent")
+    if children.get(-1, []) != [0]:
+        raise ValueError("a BVH file has one root, the first joint")
+    num = lambda v: " ".join(f"{x:.{decimals}f}" for x in v)  # noqa: E731
+    lines = ["HIERARCHY"]
+
+    def joint_lines(k: int, depth: int) -> None:
+        joint, pad = bvh.joints[k], "\t" * depth
+        lines.append(f"{pad}{'ROOT' if joint.parent < 0 else 'JOINT'} {joint.name}")
+        lines.append(pad + "{")
+        lines.append(f"{pad}\tOFFSET {num(joint.offset)}")
+        lines.append(f"{pad}\tCHANNELS {len(joint.channels)} {' '.join(joint.channels)}")
+        for child in children.get(k, []):
+            joint_lines(child, depth + 1)
+        if k in bvh.end_sites:
+            lines.extend([f"{pad}\tEnd Site", f"{pad}\t{{", f"{pad}\t\tOFFSET {num(bvh.end_sites[k])}", f"{pad}\t}}"])
+        lines.append(pad + "}")
+
+    joint_lines(0, 0)
+    lines += ["MOTION", f"Frames: {len(bvh.motion)}", f"Frame Time: {bvh.frame_time_s:.8f}"]
+    lines += [num(row) for row in bvh.motion]
+    return "\n".join(lines) + "\n"

@@ -192,3 +192,35 @@ def test_a_z_up_file_reads_upright_through_its_mapping_and_is_refused_read_as_y_
     (tmp_path / "x.json").write_text(json.dumps(raw | {"up_axis": "x"}))
     with pytest.raises(MappingError, match="'x'"):
         load_mapping(tmp_path / "x.json")
+
+
+def test_a_pose_as_bvh_reads_back_as_the_same_segment_frames_and_joint_positions(tmp_path: Path) -> None:
+    """``body_bvh``: any orientations (a joint turned 90° about its Y included, where Euler angles lock), written and
+    read back by the BVH reader and forward kinematics, are the same frames (in the BVH world's axes) and origins;
+    the neutral stance stands upright on the lowest origin."""
+    from scipy.spatial.transform import Rotation
+
+    from service.core.body import Body, body_bvh
+    from service.core.bvh import format_bvh, read_bvh
+    from service.core.kinematics import C_PROJECT_BVH, forward_kinematics
+
+    rng = np.random.default_rng(0)
+    S = len(BODY_SEGMENTS)
+    offsets = rng.uniform(-0.05, 0.05, size=(S, 3))
+    offsets[:, 2] += np.array([-0.2 if "Leg" in s or "Foot" in s or "Arm" in s else 0.1 for s in BODY_SEGMENTS])
+    body = Body(offsets)
+    R = Rotation.random(30 * S, random_state=1).as_matrix().reshape(30, S, 3, 3)
+    R[0] = np.eye(3)
+    R[1, 5] = Rotation.from_euler("y", 90, degrees=True).as_matrix()
+    R[2, 7] = R[2, 6] @ Rotation.from_euler("y", -90, degrees=True).as_matrix()  # its parent-relative turn locks
+    (tmp_path / "pose.bvh").write_text(format_bvh(body_bvh(R, body, 60.0)))
+    bvh = read_bvh(tmp_path / "pose.bvh")
+    assert [j.name for j in bvh.joints] == list(BODY_SEGMENTS) and bvh.sample_rate_hz == pytest.approx(60.0)
+    assert set(bvh.end_sites) == {
+        BODY_SEGMENTS.index(s) for s in ("Head", "LeftHand", "RightHand", "LeftToe", "RightToe")
+    }
+    poses = forward_kinematics(bvh, 0.01, "y")
+    np.testing.assert_allclose(poses.R_world_joint @ C_PROJECT_BVH.T, R, atol=1e-5)
+    p = poses.positions_m
+    np.testing.assert_allclose(p - p[:, :1], body.forward(R), atol=1e-5)
+    assert p[0, :, 2].min() == pytest.approx(0.0, abs=1e-5) and p[0, 0, 2] > 0.1  # upright on the lowest origin

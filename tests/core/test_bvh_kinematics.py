@@ -152,3 +152,22 @@ def test_the_header_alone_is_the_file_s_skeleton(data_dir: Path, path: str) -> N
     for a, b in zip(header.joints, whole.joints, strict=True):
         assert a.parent == b.parent and a.channels == b.channels and np.array_equal(a.offset, b.offset)
     assert header.end_sites.keys() == whole.end_sites.keys()
+
+
+def test_a_written_file_reads_back_as_it_was(tmp_path: Path) -> None:
+    """``format_bvh`` of the CMU walk fixture (root with six channels, end sites) reads back to the same skeleton
+    and frames, to the four decimals it writes."""
+    from service.core.bvh import format_bvh
+
+    bvh = read_bvh(WALK_FIXTURE)
+    (tmp_path / "again.bvh").write_text(format_bvh(bvh))
+    again = read_bvh(tmp_path / "again.bvh")
+    assert [(j.name, j.parent, j.channels) for j in again.joints] == [
+        (j.name, j.parent, j.channels) for j in bvh.joints
+    ]
+    np.testing.assert_allclose([j.offset for j in again.joints], [j.offset for j in bvh.joints], atol=5e-5)
+    assert again.end_sites.keys() == bvh.end_sites.keys()
+    assert again.frame_time_s == pytest.approx(bvh.frame_time_s, abs=1e-8)
+    np.testing.assert_allclose(again.motion, bvh.motion, atol=5e-5)
+    a, b = forward_kinematics(again, 0.0254), forward_kinematics(bvh, 0.0254)
+    np.testing.assert_allclose(a.positions_m, b.positions_m, atol=1e-5)

@@ -20,7 +20,9 @@ from service.api.protocol import ALL_SENSORS, decode_pose_block, encode_binary
 from service.api.schemas import PoseImuRequest
 from service.app import create_app
 from service.core.body import BODY_SEGMENTS, BodyMotion
+from service.core.bvh import read_bvh
 from service.core.calibration import pose_features, segment_readings
+from service.core.kinematics import C_PROJECT_BVH, forward_kinematics
 from service.core.manifest import read_manifest
 from service.core.recordings import MOVINGREALITY_SEGMENTS, read_movingreality_trial
 from service.core.resample import resample_pose_rows
@@ -151,6 +153,34 @@ def test_rest_pose_from_declared_alignments_matches_the_model_and_the_truth(serv
     assert tall["body_height_m"] == pytest.approx(1.9, abs=1e-3)
     head = np.array(body["segments"]["Head"]["joint_position_m"])
     assert np.allclose(body["segments"]["Pelvis"]["joint_position_m"], 0.0) and 0.4 < np.median(head[:, 2]) < 0.8
+
+
+def test_the_pose_comes_as_a_bvh_file_that_reads_back_as_the_json_answer(server: str, walk, tmp_path: Path) -> None:
+    """``format=bvh`` on a real server: the same pose as the JSON answer, as a file the BVH reader and forward
+    kinematics read back to the same segment frames (in the BVH world's axes) and joint positions; the model and
+    the unit warnings in the headers; an unknown format is a 422 that names the known ones."""
+    motion, raw = walk
+    request = _body(raw, SIX_SENSORS, frames=slice(0, 240)) | {"body_height_m": 1.8}
+    arm = SIX_SENSORS.index("LeftForeArm")
+    request["sensors"][arm]["acc"] = (np.array(request["sensors"][arm]["acc"]) / 9.80665).tolist()  # sent in g
+    as_json = httpx.post(f"{server}/v1/pose/imu", json=request, timeout=60).json()
+    r = httpx.post(f"{server}/v1/pose/imu", params={"format": "bvh"}, json=request, timeout=60)
+    assert r.status_code == 200, r.text
+    assert (
+        r.headers["content-type"].startswith("text/plain")
+        and 'filename="pose_full6.bvh"' in r.headers["content-disposition"]
+    )
+    assert r.headers["x-pose-model"] == f"pose_full6 {as_json['model']['version']}"
+    assert json.loads(r.headers["x-pose-warnings"]) == as_json["warnings"] and len(as_json["warnings"]) == 1
+    (tmp_path / "walk.bvh").write_text(r.text)
+    poses = forward_kinematics(read_bvh(tmp_path / "walk.bvh"), 0.01, "y")
+    assert poses.names == BODY_SEGMENTS and len(poses.positions_m) == as_json["frames"] == min(240, motion.n_frames)
+    q = np.array([as_json["segments"][s]["q_world_segment"] for s in BODY_SEGMENTS]).transpose(1, 0, 2)
+    np.testing.assert_allclose(poses.R_world_joint @ C_PROJECT_BVH.T, matrix_from_quat(q), atol=1e-3)
+    p = np.array([as_json["segments"][s]["joint_position_m"] for s in BODY_SEGMENTS]).transpose(1, 0, 2)
+    np.testing.assert_allclose(poses.positions_m - poses.positions_m[:, :1], p, atol=1e-3)
+    bad = httpx.post(f"{server}/v1/pose/imu", params={"format": "fbx"}, json=request, timeout=60)
+    assert bad.status_code == 422 and "json" in bad.text and "bvh" in bad.text and "fbx" in bad.text
 
 
 def test_a_walking_model_answers_when_named_and_the_general_one_otherwise(client: TestClient, walk) -> None:
