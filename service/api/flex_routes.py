@@ -3,11 +3,15 @@ every sample answered once the model's calibration window is full."""
 
 from __future__ import annotations
 
+import json
+from typing import Literal
+
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
 from service.api.routes import _json, _Route, _settings
 from service.api.schemas import FlexRequest, FlexResponse, error_responses
+from service.core.recordings import format_opensim_storage
 from service.inference.flex import MAX_FLEX_SAMPLES, FlexModel, block_rows
 from service.inference.predict import InputError
 from service.settings import Settings
@@ -55,6 +59,20 @@ def flex_answer(model: FlexModel, rows: np.ndarray, warnings: list[str]) -> Flex
     )
 
 
+def flex_storage(model: FlexModel, rows: np.ndarray) -> str:
+    """The angles as an OpenSim storage file (``.mot``): time in seconds from the block's first sample (at the
+    model's rate), one column per joint and component (``Knee_flexion``), in degrees."""
+    angles = model.run_block(rows)
+    m = model.manifest
+    time_s = (model.window - 1 - model.latency + np.arange(len(angles))) / m.sample_rate_hz
+    columns = {
+        f"{joint}_{c}": angles[:, j, k].astype(np.float64)
+        for j, joint in enumerate(m.joints)
+        for k, c in enumerate(m.joint_components)
+    }
+    return format_opensim_storage(f"{m.name} {m.version}", time_s, columns, in_degrees=True)
+
+
 @router.post(
     "/v1/pose/flex",
     response_model=FlexResponse,
@@ -63,8 +81,16 @@ def flex_answer(model: FlexModel, rows: np.ndarray, warnings: list[str]) -> Flex
     description="The model (`GET /v1/models`, task `flex_pose`) declares its channels and their order, units and "
     "value range, rate, calibration window (`window_samples`), joints and angle convention. Every sample from the "
     "end of the first window on gets its angles (`latency_samples` behind the newest reading it saw). Other "
-    "rates are resampled to the model's. Answers 503 while no flex_pose model is loaded.",
-    responses=error_responses(
+    "rates are resampled to the model's. Answers 503 while no flex_pose model is loaded. With `format=mot` the "
+    "same angles come as an OpenSim storage file (time, then one column per joint and component, degrees); the "
+    "model and warnings in the headers `X-Flex-Model` and `X-Flex-Warnings`.",
+    responses={
+        200: {
+            "content": {"text/plain": {"example": "flex_capacitive_knee 1.2.0\nversion=1\n...\nendheader\n..."}},
+            "description": "JSON (default), or with `format=mot` the text of an OpenSim storage file",
+        }
+    }
+    | error_responses(
         400,
         401,
         413,
@@ -76,10 +102,26 @@ def flex_answer(model: FlexModel, rows: np.ndarray, warnings: list[str]) -> Flex
         },
     ),
 )
-async def pose_from_flex(body: FlexRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
+async def pose_from_flex(
+    body: FlexRequest,
+    request: Request,
+    settings: Settings = Depends(_settings),
+    format: Literal["json", "mot"] = Query(  # noqa: A002 (the query parameter's name)
+        "json", description="`json` (default); `mot`: an OpenSim storage file of the angles"
+    ),
+) -> Response:
     width = len(body.samples[0])
     model = choose_flex_model(flex_models(request.app), body.model, width)
     if body.channels is not None and body.channels != model.manifest.channels:
         raise InputError(f"channels: {model.name} takes {model.manifest.channels} in this order, got {body.channels}")
     rows, warnings = block_rows(body.samples, body.sample_rate_hz, model, MAX_FLEX_SAMPLES)
-    return _json(await request.app.state.runner.run_call(flex_answer, model, rows, warnings))
+    runner = request.app.state.runner
+    if format == "mot":
+        headers = {
+            "Content-Disposition": f'attachment; filename="{model.name}.mot"',
+            "X-Flex-Model": f"{model.name} {model.manifest.version}",
+            "X-Flex-Warnings": json.dumps(warnings),  # ASCII: json.dumps escapes the rest
+        }
+        text = await runner.run_call(flex_storage, model, rows)
+        return Response(text, media_type="text/plain; charset=utf-8", headers=headers)
+    return _json(await runner.run_call(flex_answer, model, rows, warnings))

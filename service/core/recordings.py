@@ -420,14 +420,42 @@ CAPACITIVE_FAILURE = 0.5  # a read-out failure: a channel off its median of the 
 CAPACITIVE_REFERENCE_S = 10.0
 
 
+def read_opensim_storage(path: Path) -> tuple[dict[str, str], list[str], np.ndarray]:
+    """An OpenSim storage file (``.mot`` / ``.sto``, plain or gzipped) of numbers: its header's ``key=value``
+    lines, the column names (time first) and the rows ``(T, columns)``."""
+    with _open_text(path) as fh:
+        lines = fh.read().splitlines()
+    try:
+        head = next(k for k, line in enumerate(lines) if line.strip() == "endheader")
+    except StopIteration:
+        raise ValueError(f"{path}: expected an 'endheader' line, found none") from None
+    header = dict(line.split("=", 1) for line in lines[:head] if "=" in line)
+    names = lines[head + 1].split("\t")
+    return header, names, np.array([[float(v) for v in line.split("\t")] for line in lines[head + 2 :] if line.strip()])
+
+
+def format_opensim_storage(name: str, time_s: np.ndarray, columns: dict[str, np.ndarray], in_degrees: bool) -> str:
+    """The text of an OpenSim storage file (version 1, as ``read_opensim_storage`` and OpenSim read it): ``name``,
+    the header, a tab-separated table with ``time`` first, then ``columns`` in their order."""
+    table = np.column_stack([time_s, *columns.values()]) if columns else np.asarray(time_s)[:, None]
+    lines = [
+        name,
+        "version=1",
+        f"nRows={len(table)}",
+        f"nColumns={table.shape[1]}",
+        f"inDegrees={'yes' if in_degrees else 'no'}",
+        "endheader",
+        "\t".join(["time", *columns]),
+    ]
+    lines += ["\t".join(f"{v:.6f}" for v in row) for row in table]
+    return "\n".join(lines) + "\n"
+
+
 def _read_sleeve_file(data_dir: Path, trial: str, side: str, source: str) -> tuple[list[str], np.ndarray]:
     """One leg's sleeve file (``*_LCS.mot`` / ``*_RCS.mot``): its column names and numeric rows."""
     folder = data_dir / "imu_real" / source / trial
-    with _open_text(_one_file(folder, f"OpenSim_*_{trial}_{side[0]}CS.mot")) as fh:
-        lines = fh.read().splitlines()
-    head = next(k for k, line in enumerate(lines) if line.startswith("endheader"))
-    names = lines[head + 1].split("\t")
-    return names, np.array([[float(v) for v in line.split("\t")] for line in lines[head + 2 :] if line.strip()])
+    _, names, rows = read_opensim_storage(_one_file(folder, f"OpenSim_*_{trial}_{side[0]}CS.mot"))
+    return names, rows
 
 
 def read_capacitive_sleeve(

@@ -14,6 +14,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from service.api.protocol import encode_binary
 from service.app import create_app
+from service.core.recordings import read_opensim_storage
 from service.settings import Settings
 from tests.service.conftest import TINY_POSE, tiny_pose_weights, write_tiny_model, write_tiny_pose_model
 
@@ -314,3 +315,26 @@ def test_readings_that_look_like_volts_or_a_dead_channel_are_answered_with_warni
     assert len(warnings) == 1 and CHANNELS[1] in warnings[0]["warnings"][0], messages
     first_angles = next(i for i, m in enumerate(messages) if m["type"] == "angles")
     assert messages.index(warnings[0]) < first_angles  # with the first answers, not after the stream
+
+
+def test_the_angles_come_as_an_opensim_storage_file(flex_client: TestClient, tmp_path: Path) -> None:
+    """``format=mot``: the JSON answer's angles as an OpenSim storage file, time in seconds from the block's first
+    sample; model and warnings in the headers; an unknown format is a 422 naming the known ones."""
+    x = _block(130)
+    as_json = flex_client.post("/v1/pose/flex", json={"samples": x.tolist()}).json()
+    r = flex_client.post("/v1/pose/flex", params={"format": "mot"}, json={"samples": x.tolist()})
+    assert r.status_code == 200, r.text
+    assert r.headers["x-flex-model"] == "flex_pose 0.0.1" and json.loads(r.headers["x-flex-warnings"]) == []
+    assert 'filename="flex_pose.mot"' in r.headers["content-disposition"]
+    (tmp_path / "angles.mot").write_text(r.text)
+    header, names, table = read_opensim_storage(tmp_path / "angles.mot")
+    assert header["inDegrees"] == "yes" and int(header["nRows"]) == len(table) == as_json["frames"] == 31
+    assert names == ["time"] + [f"{j}_{c}" for j in JOINTS for c in COMPONENTS]
+    np.testing.assert_allclose(table[:, 0], (WINDOW - 1 + np.arange(31)) / RATE, atol=1e-6)
+    want = np.stack([as_json["angles_deg"][j][c] for j in JOINTS for c in COMPONENTS], axis=1)
+    np.testing.assert_allclose(table[:, 1:], want, atol=2e-3)
+    volts = np.random.default_rng(6).uniform(0.5, 2.5, size=(WINDOW + 10, len(CHANNELS)))
+    r = flex_client.post("/v1/pose/flex", params={"format": "mot"}, json={"samples": volts.tolist()})
+    assert "volts" in json.loads(r.headers["x-flex-warnings"])[0]
+    bad = flex_client.post("/v1/pose/flex", params={"format": "csv"}, json={"samples": x.tolist()})
+    assert bad.status_code == 422 and "'json' or 'mot'" in bad.text

@@ -87,6 +87,20 @@ def test_the_sleeve_model_takes_the_sleeves_own_100_hz(server: str, data_dir: Pa
     n = min(len(rest), len(streamed))
     assert np.abs(rest[:n] - streamed[:n]).mean() < 1.0
     assert np.ptp(streamed) > 20.0  # a walking knee, not a constant
+    # the same block as an OpenSim storage file, for OpenSim's tools
+    r = httpx.post(
+        f"{server}/v1/pose/flex",
+        params={"format": "mot"},
+        json={"model": SLEEVE, "samples": x.tolist(), "sample_rate_hz": rate},
+        timeout=120,
+    )
+    assert r.status_code == 200 and r.headers["x-flex-model"].startswith(SLEEVE), r.text
+    lines = r.text.splitlines()
+    header = lines.index("endheader")
+    assert "inDegrees=yes" in lines[:header] and lines[header + 1].split("\t") == ["time", "Knee_flexion"]
+    table = np.array([[float(v) for v in line.split("\t")] for line in lines[header + 2 :]])
+    np.testing.assert_allclose(table[:, 1], rest, atol=2e-3)
+    assert table[0, 0] == pytest.approx(block["first_sample"] / 50.0)
 
 
 def block_channels(base: str) -> list[str]:
