@@ -212,10 +212,9 @@ def flex_learning_curve_png(history: list[dict[str, float]], path: Path, title: 
     for k in members:
         rows = [h for h in history if int(h.get("member", 0)) == k]
         suffix = f", member {k}" if len(members) > 1 else ""
-        ax.plot([h["train_loss"] for h in rows], color="C0", alpha=1.0 - 0.25 * k, label=f"train loss{suffix}")
-        ax2.plot(
-            [h["val_mae_deg"] for h in rows], color="C1", alpha=1.0 - 0.25 * k, label=f"validation error (deg){suffix}"
-        )
+        alpha = 1.0 - 0.6 * k / max(1, len(members) - 1)  # the first member darkest
+        ax.plot([h["train_loss"] for h in rows], color="C0", alpha=alpha, label=f"train loss{suffix}")
+        ax2.plot([h["val_mae_deg"] for h in rows], color="C1", alpha=alpha, label=f"validation error (deg){suffix}")
     ax.set_xlabel("epoch")
     ax.set_ylabel("train loss (standardised MSE)")
     ax2.set_ylabel("validation mean tracking error (deg)")

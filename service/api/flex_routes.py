@@ -3,15 +3,14 @@ every sample answered once the model's calibration window is full."""
 
 from __future__ import annotations
 
-import json
 from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
-from service.api.routes import _json, _Route, _settings
-from service.api.schemas import FlexRequest, FlexResponse, error_responses
-from service.core.recordings import format_opensim_storage
+from service.api.routes import _json, _Route, _settings, file_answer
+from service.api.schemas import FlexRequest, FlexResponse, error_responses, file_responses
+from service.core.opensim import format_opensim_storage
 from service.inference.flex import MAX_FLEX_SAMPLES, FlexModel, block_rows
 from service.inference.predict import InputError
 from service.settings import Settings
@@ -84,12 +83,9 @@ def flex_storage(model: FlexModel, rows: np.ndarray) -> str:
     "rates are resampled to the model's. Answers 503 while no flex_pose model is loaded. With `format=mot` the "
     "same angles come as an OpenSim storage file (time, then one column per joint and component, degrees); the "
     "model and warnings in the headers `X-Flex-Model` and `X-Flex-Warnings`.",
-    responses={
-        200: {
-            "content": {"text/plain": {"example": "flex_capacitive_knee 1.2.0\nversion=1\n...\nendheader\n..."}},
-            "description": "JSON (default), or with `format=mot` the text of an OpenSim storage file",
-        }
-    }
+    responses=file_responses(
+        "Flex", "flex_capacitive_knee 1.2.0\nversion=1\n...\nendheader\n...", "`mot` an OpenSim storage file"
+    )
     | error_responses(
         400,
         401,
@@ -117,11 +113,6 @@ async def pose_from_flex(
     rows, warnings = block_rows(body.samples, body.sample_rate_hz, model, MAX_FLEX_SAMPLES)
     runner = request.app.state.runner
     if format == "mot":
-        headers = {
-            "Content-Disposition": f'attachment; filename="{model.name}.mot"',
-            "X-Flex-Model": f"{model.name} {model.manifest.version}",
-            "X-Flex-Warnings": json.dumps(warnings),  # ASCII: json.dumps escapes the rest
-        }
         text = await runner.run_call(flex_storage, model, rows)
-        return Response(text, media_type="text/plain; charset=utf-8", headers=headers)
+        return file_answer(text, f"{model.name}.mot", "Flex", model.name, model.manifest.version, warnings)
     return _json(await runner.run_call(flex_answer, model, rows, warnings))

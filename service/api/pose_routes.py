@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
-from service.api.routes import _Route, _settings
-from service.api.schemas import PoseImuRequest, PoseImuResponse, SegmentTrack, error_responses
+from service.api.routes import _Route, _settings, file_answer
+from service.api.schemas import PoseImuRequest, PoseImuResponse, SegmentTrack, error_responses, file_responses
 from service.core.body import BODY_SEGMENTS, Body, body_bvh
 from service.core.bvh import format_bvh
 from service.core.calibration import (
@@ -257,12 +256,9 @@ def pose_response(
         "`format=bvh` the same pose comes as a BVH file (one joint per segment, centimetres, Y up) for Blender, "
         "MotionBuilder or OpenSim; its model and warnings in the headers `X-Pose-Model` and `X-Pose-Warnings`."
     ),
-    responses={
-        200: {
-            "content": {"text/plain": {"example": "HIERARCHY\nROOT Pelvis\n{\n\tOFFSET 0.0000 0.0000 0.0000\n..."}},
-            "description": "JSON (default), or with `format=bvh` the text of a BVH file",
-        }
-    }
+    responses=file_responses(
+        "Pose", "HIERARCHY\nROOT Pelvis\n{\n\tOFFSET 0.0000 0.0000 0.0000\n...", "`bvh` the text of a BVH file"
+    )
     | error_responses(
         400,
         401,
@@ -290,11 +286,7 @@ async def pose_from_imu(
     runner = request.app.state.runner
     if format == "bvh":
         text = await runner.run_call(pose_bvh, model, readings, q_seg_sensor, body.body_height_m)
-        headers = {
-            "Content-Disposition": f'attachment; filename="{model.name}.bvh"',
-            "X-Pose-Model": f"{model.name} {model.loaded.manifest.version}",
-            "X-Pose-Warnings": json.dumps(warnings),  # ASCII: json.dumps escapes the rest
-        }
-        return Response(text, media_type="text/plain; charset=utf-8", headers=headers)
+        version = model.loaded.manifest.version
+        return file_answer(text, f"{model.name}.bvh", "Pose", model.name, version, warnings)
     answer = await runner.run_call(pose_response, model, readings, q_seg_sensor, body.body_height_m, warnings)
     return Response(answer.model_dump_json(), media_type="application/json")

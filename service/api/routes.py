@@ -16,7 +16,7 @@ from fastapi.routing import APIRoute
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 
-from service.api.errors import ClientGone
+from service.api.errors import ClientGone, excerpt
 from service.api.schemas import (
     EXAMPLE_VERSIONS,
     MAX_WINDOWS_PER_REQUEST,
@@ -161,6 +161,24 @@ async def _disconnected(request: Request) -> None:
 def _json(body: BaseModel) -> Response:
     """Serialise a response model once, with pydantic's serializer (FastAPI would validate it again first)."""
     return Response(body.model_dump_json(), media_type="application/json")
+
+
+MAX_HEADER_WARNINGS = 8  # a proxy's response headers are limited (nginx: 4-8 KB by default)
+
+
+def file_answer(text: str, filename: str, prefix: str, model: str, version: str, warnings: list[str]) -> Response:
+    """A pose or angles as a file (BVH, OpenSim storage): the model and the warnings (the first
+    ``MAX_HEADER_WARNINGS``, each cut to 200 characters, then how many more) in the headers ``X-{prefix}-Model``
+    and ``X-{prefix}-Warnings`` (a JSON list; ASCII, as json.dumps escapes the rest)."""
+    shown = [excerpt(w, 200) for w in warnings[:MAX_HEADER_WARNINGS]]
+    if len(warnings) > MAX_HEADER_WARNINGS:
+        shown.append(f"(and {len(warnings) - MAX_HEADER_WARNINGS} more: the JSON answer lists every one)")
+    headers = {
+        "Content-Disposition": f'attachment; filename="{filename}"',
+        f"X-{prefix}-Model": f"{model} {version}",
+        f"X-{prefix}-Warnings": json.dumps(shown),
+    }
+    return Response(text, media_type="text/plain; charset=utf-8", headers=headers)
 
 
 def _window_results(

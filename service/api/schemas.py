@@ -600,6 +600,24 @@ RETRY_AFTER = {
 }
 
 
+def file_responses(prefix: str, example: str, what: str) -> dict[int | str, dict]:
+    """The OpenAPI entry of a route's 200 that also answers as a file (``format``): JSON or the file's text, with
+    the model and warnings headers of ``service.api.routes.file_answer``."""
+    return {
+        200: {
+            "description": f"JSON (default), or with `format` {what}",
+            "content": {"text/plain": {"example": example}},
+            "headers": {
+                f"X-{prefix}-Model": {"description": "the model's name and version", "schema": {"type": "string"}},
+                f"X-{prefix}-Warnings": {
+                    "description": "a JSON list of the answer's warnings (the first 8, then how many more)",
+                    "schema": {"type": "string"},
+                },
+            },
+        }
+    }
+
+
 def error_responses(*codes: int, details: dict[int, dict[str, str]] | None = None) -> dict[int | str, dict]:
     """OpenAPI entries for the 4xx/5xx answers of a route: the ``ErrorBody`` schema with an example body per cause
     (``details``: this route's ``detail`` per code and cause, replacing or adding to the default causes)."""

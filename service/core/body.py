@@ -17,7 +17,6 @@ orientation applied to a constant bone vector expressed in the parent's frame (`
 from __future__ import annotations
 
 import json
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,7 +24,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
-from service.core.bvh import Bvh, BvhJoint
+from service.core.bvh import Bvh, rotations_bvh
 from service.core.kinematics import C_PROJECT_BVH, GlobalPoses
 
 # Canonical segments in tree order (a parent precedes its children); Xsens MVN names (L5 lower spine, T8 upper).
@@ -666,38 +665,22 @@ def clip_body(motion: BodyMotion) -> Body:
     return Body(off)
 
 
-BVH_ROOT_CHANNELS = ("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation")
-BVH_JOINT_CHANNELS = ("Zrotation", "Yrotation", "Xrotation")
-
-
 def body_bvh(R_world_segment: np.ndarray, body: Body, sample_rate_hz: float) -> Bvh:
-    """Orientations ``(T, S, 3, 3)`` of the body's segments as a BVH clip that other tools open: one joint per
-    segment (``BODY_SEGMENTS``' names and tree), its OFFSET the body's bone in centimetres, rotations as intrinsic
-    Z-Y-X Euler angles in degrees. The world is the format's usual one, Y up, the neutral body facing +Z
-    (``service.core.kinematics.C_PROJECT_BVH``); each joint's frame is its segment's frame in those axes, so a
-    joint at rest (all angles 0) is the neutral stance. The root stands still at the neutral pelvis height above
-    the lowest segment origin (the toes), since the answers carry no translation; a leaf segment (head, hands,
-    toes) ends in half its own bone's length past it."""
+    """Orientations ``(T, S, 3, 3)`` of the body's segments as a BVH clip that other tools open
+    (``service.core.bvh.rotations_bvh``): one joint per segment (``BODY_SEGMENTS``' names and tree), its OFFSET the
+    body's bone in centimetres. The world is the format's usual one, Y up (``service.core.kinematics.C_PROJECT_BVH``:
+    the answers' x, y, z are the file's Z, X, Y), with the heading of the world the orientations are given in; each
+    joint's frame is its segment's frame in those axes, so all angles 0 is the neutral stance, facing +Z. The root
+    stands still at the neutral pelvis height above the lowest segment origin (the toes), since the answers carry no
+    translation; a leaf segment (head, hands, toes) ends half the length of the bone into it further on."""
     C = C_PROJECT_BVH  # project = C @ bvh
     R = np.einsum("ji,tsjk,kl->tsil", C, R_world_segment, C)  # each frame's axes in the BVH world
-    parent = np.array([max(k, 0) for k in PARENT_INDEX])  # the root's own row is replaced below
-    R_local = np.einsum("tsji,tsjk->tsik", R[:, parent], R)
-    R_local[:, 0] = R[:, 0]
-    with warnings.catch_warnings():  # a joint turned 90° about its Y reads its Z and X angles as one (gimbal lock)
-        warnings.simplefilter("ignore", UserWarning)
-        euler = Rotation.from_matrix(R_local.reshape(-1, 3, 3)).as_euler("ZYX", degrees=True)
-    T, S = R_world_segment.shape[:2]
     offsets_cm = body.offsets_m @ C * 100.0  # C.T @ offset per segment
-    rest = body.forward(np.broadcast_to(np.eye(3), (1, S, 3, 3)))[0]
-    root = np.array([0.0, -rest[:, 2].min() * 100.0, 0.0])
-    joints, start = [], 0
-    for k, name in enumerate(body.segments):
-        channels = BVH_ROOT_CHANNELS if k == 0 else BVH_JOINT_CHANNELS
-        joints.append(BvhJoint(name, PARENT_INDEX[k], np.zeros(3) if k == 0 else offsets_cm[k], channels, start))
-        start += len(channels)
-    leaves = set(range(S)) - set(PARENT_INDEX)
-    motion = np.concatenate([np.broadcast_to(root, (T, 3)), euler.reshape(T, S * 3)], axis=1)
-    return Bvh(tuple(joints), {k: 0.5 * offsets_cm[k] for k in sorted(leaves)}, 1.0 / sample_rate_hz, motion)
+    rest = body.forward(np.broadcast_to(np.eye(3), (1, len(body.segments), 3, 3)))[0]
+    root_cm = np.array([0.0, -rest[:, 2].min() * 100.0, 0.0])
+    leaves = sorted(set(range(len(body.segments))) - set(PARENT_INDEX))
+    ends = {k: 0.5 * offsets_cm[k] for k in leaves}
+    return rotations_bvh(body.segments, PARENT_INDEX, offsets_cm, R, root_cm, 1.0 / sample_rate_hz, ends)
 
 
 def standing_height(body: Body) -> float:

@@ -7,6 +7,7 @@ line is honoured: channel order differs between sources (``../shared/data/README
 from __future__ import annotations
 
 import gzip
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -125,16 +126,65 @@ def _parse(tokens: list[str], where: str) -> Bvh:
     return Bvh(tuple(joints), end_sites, frame_time_s, values.reshape(n_frames, n_channels))
 
 
+ROOT_CHANNELS = ("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation")
+JOINT_CHANNELS = ("Zrotation", "Yrotation", "Xrotation")
+
+
+def euler_zyx_deg(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` → intrinsic Z-Y-X Euler angles ``(..., 3)`` in degrees (z, y, x), so that
+    R = Rz(z) Ry(y) Rx(x), as BVH's "Zrotation Yrotation Xrotation" channels read. Where y is ±90° (gimbal lock)
+    only z ∓ x is defined: x is 0 there."""
+    sy = -np.clip(R[..., 2, 0], -1.0, 1.0)
+    y = np.arcsin(sy)
+    locked = np.abs(sy) > 1.0 - 1e-9
+    z = np.where(locked, np.arctan2(-R[..., 0, 1], R[..., 1, 1]), np.arctan2(R[..., 1, 0], R[..., 0, 0]))
+    x = np.where(locked, 0.0, np.arctan2(R[..., 2, 1], R[..., 2, 2]))
+    return np.degrees(np.stack([z, y, x], axis=-1))
+
+
+def rotations_bvh(
+    names: Sequence[str],
+    parents: Sequence[int],
+    offsets: np.ndarray,
+    R_world: np.ndarray,
+    root_position: np.ndarray,
+    frame_time_s: float,
+    end_sites: dict[int, np.ndarray],
+) -> Bvh:
+    """A skeleton's joint orientations ``(T, J, 3, 3)`` in a BVH world as a clip: each joint's rotation relative to
+    its parent as Z-Y-X Euler channels (the root's relative to the world, with position channels holding
+    ``root_position``, ``(3,)`` or ``(T, 3)``), ``offsets`` ``(J, 3)`` in the parent's frame (the root's unused)."""
+    T, J = R_world.shape[:2]
+    parent = np.array([max(k, 0) for k in parents])  # the root's own row is replaced below
+    R_local = np.einsum("tsji,tsjk->tsik", R_world[:, parent], R_world)
+    R_local[:, 0] = R_world[:, 0]
+    joints, start = [], 0
+    for k, name in enumerate(names):
+        channels = ROOT_CHANNELS if parents[k] < 0 else JOINT_CHANNELS
+        joints.append(BvhJoint(name, parents[k], np.zeros(3) if k == 0 else np.asarray(offsets[k]), channels, start))
+        start += len(channels)
+    motion = np.concatenate([np.broadcast_to(root_position, (T, 3)), euler_zyx_deg(R_local).reshape(T, 3 * J)], 1)
+    return Bvh(tuple(joints), end_sites, frame_time_s, motion)
+
+
 def format_bvh(bvh: Bvh, decimals: int = 4) -> str:
-    """The text of a BVH file: the hierarchy (joints in ``bvh.joints`` order, each after its parent), then the
-    motion table, ``decimals`` after the point. ``read_bvh`` of the text gives ``bvh`` back to that precision."""
+    """The text of a BVH file: the hierarchy, then the motion table, ``decimals`` after the point. ``read_bvh`` of
+    the text gives ``bvh`` back to that precision. The joints must be in the file's (depth-first) order with their
+    channels in that order, as ``read_bvh`` gives them."""
     children: dict[int, list[int]] = {}
     for k, joint in enumerate(bvh.joints):
         children.setdefault(joint.parent, []).append(k)
-        if joint.parent >= k:
-            raise ValueError(f"joint {joint.name!r} comes before its parent")
-    if children.get(-1, []) != [0]:
-        raise ValueError("a BVH file has one root, the first joint")
+    order: list[int] = []
+    stack = list(reversed(children.get(-1, [])))
+    while stack:
+        k = stack.pop()
+        order.append(k)
+        stack.extend(reversed(children.get(k, [])))
+    if children.get(-1, []) != [0] or order != list(range(len(bvh.joints))):
+        raise ValueError("a BVH file has one root, the first joint, and the others in depth-first order")
+    starts = np.cumsum([0] + [len(j.channels) for j in bvh.joints])
+    if [j.channel_start for j in bvh.joints] != starts[:-1].tolist() or bvh.motion.shape[1] != starts[-1]:
+        raise ValueError("each joint's channels must follow the previous joint's in the motion table")
     num = lambda v: " ".join(f"{x:.{decimals}f}" for x in v)  # noqa: E731
     lines = ["HIERARCHY"]
 

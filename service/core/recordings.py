@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from service.core.flex import ReadoutCheck
+from service.core.opensim import read_opensim_storage, storage_cells
 from service.core.resample import resample_timestamps, resample_uniform
 from service.core.rotations import matrix_from_quat
 from service.core.segments import segment_index
@@ -384,10 +385,8 @@ def read_capacitive_oriented(data_dir: Path, trial: str, source: str = "capaciti
     folder = data_dir / "imu_real" / source / trial
     orient = _one_file(folder, f"OpenSim_*_{trial}_Orientations.sto")
     with _open_text(orient) as fh:
-        lines = fh.read().splitlines()
-    head = next(k for k, line in enumerate(lines) if line.startswith("endheader"))
-    names = lines[head + 1].split("\t")[1:]
-    rows = [line.split("\t") for line in lines[head + 2 :] if line.strip()]
+        _, names, rows = storage_cells(fh.read(), str(orient))
+    names = names[1:]
     q = np.array([[[float(v) for v in cell.split(",")] for cell in row[1:]] for row in rows])
     stem = _plain_name(orient).removesuffix("_Orientations.sto")
     acc, acc_names, rate = _read_trc(_one_file(folder, f"{stem}_Accel.trc"))
@@ -420,41 +419,12 @@ CAPACITIVE_FAILURE = 0.5  # a read-out failure: a channel off its median of the 
 CAPACITIVE_REFERENCE_S = 10.0
 
 
-def read_opensim_storage(path: Path) -> tuple[dict[str, str], list[str], np.ndarray]:
-    """An OpenSim storage file (``.mot`` / ``.sto``, plain or gzipped) of numbers: its header's ``key=value``
-    lines, the column names (time first) and the rows ``(T, columns)``."""
-    with _open_text(path) as fh:
-        lines = fh.read().splitlines()
-    try:
-        head = next(k for k, line in enumerate(lines) if line.strip() == "endheader")
-    except StopIteration:
-        raise ValueError(f"{path}: expected an 'endheader' line, found none") from None
-    header = dict(line.split("=", 1) for line in lines[:head] if "=" in line)
-    names = lines[head + 1].split("\t")
-    return header, names, np.array([[float(v) for v in line.split("\t")] for line in lines[head + 2 :] if line.strip()])
-
-
-def format_opensim_storage(name: str, time_s: np.ndarray, columns: dict[str, np.ndarray], in_degrees: bool) -> str:
-    """The text of an OpenSim storage file (version 1, as ``read_opensim_storage`` and OpenSim read it): ``name``,
-    the header, a tab-separated table with ``time`` first, then ``columns`` in their order."""
-    table = np.column_stack([time_s, *columns.values()]) if columns else np.asarray(time_s)[:, None]
-    lines = [
-        name,
-        "version=1",
-        f"nRows={len(table)}",
-        f"nColumns={table.shape[1]}",
-        f"inDegrees={'yes' if in_degrees else 'no'}",
-        "endheader",
-        "\t".join(["time", *columns]),
-    ]
-    lines += ["\t".join(f"{v:.6f}" for v in row) for row in table]
-    return "\n".join(lines) + "\n"
-
-
 def _read_sleeve_file(data_dir: Path, trial: str, side: str, source: str) -> tuple[list[str], np.ndarray]:
     """One leg's sleeve file (``*_LCS.mot`` / ``*_RCS.mot``): its column names and numeric rows."""
     folder = data_dir / "imu_real" / source / trial
-    _, names, rows = read_opensim_storage(_one_file(folder, f"OpenSim_*_{trial}_{side[0]}CS.mot"))
+    path = _one_file(folder, f"OpenSim_*_{trial}_{side[0]}CS.mot")
+    with _open_text(path) as fh:
+        _, names, rows = read_opensim_storage(fh.read(), str(path))
     return names, rows
 
 

@@ -171,3 +171,29 @@ def test_a_written_file_reads_back_as_it_was(tmp_path: Path) -> None:
     np.testing.assert_allclose(again.motion, bvh.motion, atol=5e-5)
     a, b = forward_kinematics(again, 0.0254), forward_kinematics(bvh, 0.0254)
     np.testing.assert_allclose(a.positions_m, b.positions_m, atol=1e-5)
+
+
+def test_euler_angles_rebuild_every_rotation_also_where_they_lock() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from service.core.bvh import euler_zyx_deg
+
+    R = Rotation.random(200, random_state=3).as_matrix()
+    locked = Rotation.from_euler("ZYX", [[30.0, 90.0, 50.0], [-120.0, -90.0, 10.0], [0.0, 90.0, 0.0]], degrees=True)
+    R = np.concatenate([R, locked.as_matrix()])
+    angles = euler_zyx_deg(R)
+    np.testing.assert_allclose(Rotation.from_euler("ZYX", angles, degrees=True).as_matrix(), R, atol=1e-6)
+    assert np.all(np.abs(angles[:, 1]) <= 90.0) and np.all(angles[-3:, 2] == 0.0)
+
+
+def test_a_skeleton_out_of_file_order_is_refused() -> None:
+    from service.core.bvh import Bvh, BvhJoint, format_bvh
+
+    joints = (
+        BvhJoint("r", -1, np.zeros(3), ("Zrotation",), 0),
+        BvhJoint("a", 0, np.ones(3), ("Zrotation",), 1),
+        BvhJoint("b", 0, np.ones(3), ("Zrotation",), 2),
+        BvhJoint("a1", 1, np.ones(3), ("Zrotation",), 3),  # the file would list it before b
+    )
+    with pytest.raises(ValueError, match="depth-first"):
+        format_bvh(Bvh(joints, {}, 0.01, np.zeros((2, 4))))

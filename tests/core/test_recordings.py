@@ -271,18 +271,3 @@ def test_capacitive_sleeves_are_put_in_step_with_the_xsens_sensors_by_their_boar
     )
     unmatched = capacitive_sleeve_sync(tmp_path, "CSStiffKnee", "Left")
     assert unmatched.correlation < SYNC_MIN_CORRELATION and unmatched.applied_rows == 0
-
-
-def test_an_opensim_storage_file_reads_back_as_written(tmp_path: Path) -> None:
-    from service.core.recordings import format_opensim_storage, read_opensim_storage
-
-    t = np.arange(5) / 50.0
-    cols = {"Knee_flexion": np.array([0.0, 12.5, 30.25, -1.0, 7.123456]), "Hip_flexion": np.linspace(0, 1, 5)}
-    (tmp_path / "a.mot").write_text(format_opensim_storage("walk", t, cols, in_degrees=True))
-    header, names, table = read_opensim_storage(tmp_path / "a.mot")
-    assert header == {"version": "1", "nRows": "5", "nColumns": "3", "inDegrees": "yes"}
-    assert names == ["time", "Knee_flexion", "Hip_flexion"]
-    np.testing.assert_allclose(table, np.column_stack([t, *cols.values()]), atol=1e-6)
-    (tmp_path / "b.mot").write_text("walk\nversion=1\ntime\tx\n0\t1\n")
-    with pytest.raises(ValueError, match="endheader"):
-        read_opensim_storage(tmp_path / "b.mot")

@@ -14,7 +14,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from service.api.protocol import encode_binary
 from service.app import create_app
-from service.core.recordings import read_opensim_storage
+from service.core.opensim import read_opensim_storage
 from service.settings import Settings
 from tests.service.conftest import TINY_POSE, tiny_pose_weights, write_tiny_model, write_tiny_pose_model
 
@@ -317,7 +317,7 @@ def test_readings_that_look_like_volts_or_a_dead_channel_are_answered_with_warni
     assert messages.index(warnings[0]) < first_angles  # with the first answers, not after the stream
 
 
-def test_the_angles_come_as_an_opensim_storage_file(flex_client: TestClient, tmp_path: Path) -> None:
+def test_the_angles_come_as_an_opensim_storage_file(flex_client: TestClient) -> None:
     """``format=mot``: the JSON answer's angles as an OpenSim storage file, time in seconds from the block's first
     sample; model and warnings in the headers; an unknown format is a 422 naming the known ones."""
     x = _block(130)
@@ -326,8 +326,7 @@ def test_the_angles_come_as_an_opensim_storage_file(flex_client: TestClient, tmp
     assert r.status_code == 200, r.text
     assert r.headers["x-flex-model"] == "flex_pose 0.0.1" and json.loads(r.headers["x-flex-warnings"]) == []
     assert 'filename="flex_pose.mot"' in r.headers["content-disposition"]
-    (tmp_path / "angles.mot").write_text(r.text)
-    header, names, table = read_opensim_storage(tmp_path / "angles.mot")
+    header, names, table = read_opensim_storage(r.text, "answer")
     assert header["inDegrees"] == "yes" and int(header["nRows"]) == len(table) == as_json["frames"] == 31
     assert names == ["time"] + [f"{j}_{c}" for j in JOINTS for c in COMPONENTS]
     np.testing.assert_allclose(table[:, 0], (WINDOW - 1 + np.arange(31)) / RATE, atol=1e-6)
@@ -338,3 +337,12 @@ def test_the_angles_come_as_an_opensim_storage_file(flex_client: TestClient, tmp
     assert "volts" in json.loads(r.headers["x-flex-warnings"])[0]
     bad = flex_client.post("/v1/pose/flex", params={"format": "csv"}, json={"samples": x.tolist()})
     assert bad.status_code == 422 and "'json' or 'mot'" in bad.text
+
+
+def test_a_file_answer_lists_at_most_eight_warnings_in_its_header() -> None:
+    from service.api.routes import file_answer
+
+    r = file_answer("x", "a.mot", "Flex", "m", "1.0.0", [f"warning {k} " + "y" * 300 for k in range(20)])
+    shown = json.loads(r.headers["x-flex-warnings"])
+    assert len(shown) == 9 and shown[-1].startswith("(and 12 more") and all(len(w) < 230 for w in shown[:8])
+    assert r.headers["x-flex-model"] == "m 1.0.0" and r.body == b"x"

@@ -83,7 +83,8 @@ class FlexTrainConfig(Strict):
     # different amounts on another leg or person); 0: off
     channel_gain: float = Field(0.0, ge=0.0)
     # networks trained from the seeds seed, seed + 1, … and answering as their mean (``FlexEnsemble``; ours): each
-    # trains as one network would, chooses its own epoch on the validation part, and costs its share at run time
+    # trains as one network would (time_budget_s each), chooses its own epoch on the validation part, and costs its
+    # share at run time
     members: int = Field(1, ge=1, le=8)
 
 

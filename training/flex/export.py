@@ -13,7 +13,7 @@ import torch
 from service.core.flex import JOINT_COMPONENTS
 from service.core.manifest import Evaluation, FlexSpec, Manifest, ReadoutCheckSpec, TensorSpec
 from training.flex.config import FlexConfig
-from training.flex.models import FlexNet
+from training.flex.models import FlexEnsemble, FlexNet
 from training.flex.simulate import ADC_MAX, AMP_GAIN, DIVIDER_OHM, FLEX_RATE_HZ, VCC
 
 OPSET = 17
@@ -25,7 +25,7 @@ ANGLE_CONVENTION = (
 )
 
 
-def export_flex_onnx(net: FlexNet, path: Path) -> Path:
+def export_flex_onnx(net: FlexNet | FlexEnsemble, path: Path) -> Path:
     """TorchScript exporter: ``counts`` (batch, window, channels) → ``angles`` (batch, joints, 3)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     x = torch.zeros(2, net.cfg.window, net.input_min.shape[-1])
@@ -58,7 +58,7 @@ _SUIT_UNITS = {
 
 def build_flex_manifest(
     cfg: FlexConfig,
-    net: FlexNet,
+    net: FlexNet | FlexEnsemble,
     version: str,
     sha256: str,
     training_data: dict,

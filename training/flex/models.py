@@ -215,8 +215,7 @@ class FlexNet(nn.Module):
 
 class FlexEnsemble(nn.Module):
     """The mean answer of several networks of one recipe trained from consecutive seeds (``train.members``; ours,
-    not in Chen et al. 2024): on one person's sleeves a second seed moves the held-out error by 0.4° where the
-    validation error moves by 0.02°, so one network's figure is partly its draw. Same input and output as a
+    not in Chen et al. 2024; docs/flex.md has what it does on the sleeves). Same input and output as a
     ``FlexNet``; every member answers the same sample (same window, steps and median layer)."""
 
     def __init__(self, members: list[FlexNet]) -> None:

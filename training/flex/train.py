@@ -63,12 +63,12 @@ def swing_about_mean(x: np.ndarray, gain: float, rng: np.random.Generator) -> np
     return (mean + factor * (x - mean)).astype(x.dtype)
 
 
-def validation_mae(net: FlexNet, val: WindowSet, hop: int = 2) -> float:
+def validation_mae(net: FlexNet | FlexEnsemble, val: WindowSet, hop: int = 2) -> float:
     pred, truth = predict_windows(torch_predictor(net), val, 0, net.latency_samples, hop)
     return float(np.abs(pred - truth).mean())
 
 
-def torch_predictor(net: FlexNet) -> Callable[[np.ndarray], np.ndarray]:
+def torch_predictor(net: FlexNet | FlexEnsemble) -> Callable[[np.ndarray], np.ndarray]:
     def predict(x: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return net(torch.from_numpy(x)).numpy()
