@@ -114,6 +114,10 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
         | {f"flex_capacitive_knee_{v}" for v in ("plain", "m", "cm", "minmax", "reverse", "leg_left", "leg_right")}
         | {f"flex_capacitive_knee_{v}" for v in ("seed1", "steps12", "gain_leg_left", "gain_leg_right")}
         | {"flex_capacitive_knee_std_leg_left", "flex_capacitive_knee_std_leg_right"}
+        | {"flex_capacitive_knee_ens3_leg_left", "flex_capacitive_knee_ens3_leg_right"}
+        | {f"flex_capacitive_knee_leg_{leg}_seed{s}" for leg in ("left", "right") for s in (1, 2)}
+        | {f"flex_capacitive_knee_small_leg_{leg}_seed{s}" for leg in ("Left", "Right") for s in (0, 1, 2)}
+        | {"flex_capacitive_knee_seed2", "flex_capacitive_knee_reverse_seed1", "flex_capacitive_knee_reverse_seed2"}
         | {"pose_full6_mirror4", "pose_full6_mirror2", "pose_full6_e48", "pose_full6_e48_seed1", "pose_full6_e48_mean"}
         | {"pose_lower3_anchored", "pose_full6_anchored"}
     )
