@@ -185,7 +185,7 @@ def format_bvh(bvh: Bvh, decimals: int = 4) -> str:
     starts = np.cumsum([0] + [len(j.channels) for j in bvh.joints])
     if [j.channel_start for j in bvh.joints] != starts[:-1].tolist() or bvh.motion.shape[1] != starts[-1]:
         raise ValueError("each joint's channels must follow the previous joint's in the motion table")
-    num = lambda v: " ".join(f"{x:.{decimals}f}" for x in v)  # noqa: E731
+    num = lambda v: " ".join(f"{x:.{decimals}f}" for x in np.round(v, decimals) + 0.0)  # noqa: E731 (+0: no "-0.0")
     lines = ["HIERARCHY"]
 
     def joint_lines(k: int, depth: int) -> None:
