@@ -38,6 +38,11 @@ Server → client
   With "pose": {"output": "binary"} each pose message is a binary pose block instead (little-endian): uint16 1,
   uint16 S segments, uint32 first_frame, uint32 frames, then frames × S × 4 float32 q_world_segment (w x y z) and
   frames × S × 3 float32 joint_positions_m: 12 + 28 × frames × S bytes (``decode_pose_block``).
+  With "pose": {"output": "bvh"} (a live BVH stream, as motion-capture suits broadcast to animation tools)
+  "started" carries pose.bvh_hierarchy (the HIERARCHY of a BVH file of the session's body) and
+  pose.frame_time_s, and each pose message is {"type": "pose", first_frame, frames, bvh_motion}: one line of the
+  file's MOTION table per frame; the hierarchy, "MOTION", "Frames: N", "Frame Time: ..." and the lines make the
+  file (``service.core.body.body_bvh``).
   gap / late notices of a sensor that are still queued are merged into one ("count" notices; "missing" summed), and
   only the newest assignment is queued.
 Close codes: 1003 unsupported data, 1008 protocol violation (also a wrong X-API-Key or a browser Origin not allowed,
@@ -63,6 +68,10 @@ from service.api.schemas import (
     SegmentSet,
     check_declarations,
 )
+from service.core.body import Body, body_bvh
+from service.core.bvh import bvh_hierarchy_text, bvh_motion_text
+from service.core.rotations import matrix_from_quat
+from service.core.windowing import MODEL_RATE_HZ as POSE_RATE_HZ
 from service.inference.predict import MAX_ABS_READING
 
 HEADER = struct.Struct("<HHI")
@@ -113,8 +122,10 @@ class PoseStreamOptions(BaseModel):
         "`committed` where the served assignment model has a calibration, else `confidence` (the `started` message "
         "says which)",
     )
-    output: Literal["json", "binary"] = Field(
-        "json", description="pose messages as JSON, or as binary pose blocks (``encode_pose_block``)"
+    output: Literal["json", "binary", "bvh"] = Field(
+        "json",
+        description="pose messages as JSON, as binary pose blocks (``encode_pose_block``), or as lines of a BVH "
+        "file's motion table (``bvh_pose_message``)",
     )
 
 
@@ -194,6 +205,18 @@ def encode_pose_block(message: dict) -> bytes:
     p = np.asarray(message["joint_positions_m"], dtype="<f4")
     header = POSE_BLOCK.pack(POSE_BLOCK_KIND, q.shape[1], message["first_frame"], message["frames"])
     return header + q.tobytes() + p.tobytes()
+
+
+def bvh_pose_message(message: dict, body: Body) -> dict:
+    """A ``pose`` message as the lines of a BVH file's motion table (``bvh_hierarchy``'s joints and channels)."""
+    R = matrix_from_quat(np.asarray(message["q_world_segment"], dtype=np.float64))
+    rows = bvh_motion_text(body_bvh(R, body, POSE_RATE_HZ).motion)
+    return {"type": "pose", "first_frame": message["first_frame"], "frames": message["frames"], "bvh_motion": rows}
+
+
+def bvh_hierarchy(body: Body) -> str:
+    """The HIERARCHY of the BVH file a ``bvh`` pose stream's lines belong to (``bvh_pose_message``)."""
+    return bvh_hierarchy_text(body_bvh(np.zeros((0, len(body.segments), 3, 3)), body, POSE_RATE_HZ))
 
 
 def decode_pose_block(data: bytes) -> dict:

@@ -21,9 +21,12 @@ from pydantic import ValidationError
 from service.api.outbox import Outbox, SlowConsumer, accept, close, end_session, sender, serve_watched
 from service.api.protocol import (
     ALL_SENSORS,
+    POSE_RATE_HZ,
     ProtocolError,
     SamplesMessage,
     StartMessage,
+    bvh_hierarchy,
+    bvh_pose_message,
     check_frame_samples,
     check_samples,
     decode_binary,
@@ -375,6 +378,8 @@ async def _pose_frames(app: FastAPI, session: Session, joined: AlignResult) -> N
     messages = await app.state.pose_batcher.process(session.pose, frames, joined.first_frame)
     for message in messages:
         binary = message["type"] == "pose" and session.pose_output == "binary"
+        if message["type"] == "pose" and session.pose_output == "bvh":
+            message = bvh_pose_message(message, session.pose.body)
         if outbox.put_binary("pose", encode_pose_block(message)) if binary else outbox.put(message):
             app.state.metrics.dropped.inc()
         if message["type"] == "pose":
@@ -646,4 +651,8 @@ def _pose_started(session: Session) -> dict | None:
         "still_frames": live.still_frames if live.method == "still_pose" else 0,
         "output": session.pose_output,
         "body_height_m": round(live.body.height_m, 3),
-    }
+    } | (
+        {"bvh_hierarchy": bvh_hierarchy(live.body), "frame_time_s": 1.0 / POSE_RATE_HZ}
+        if session.pose_output == "bvh"
+        else {}
+    )

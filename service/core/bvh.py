@@ -171,6 +171,24 @@ def format_bvh(bvh: Bvh, decimals: int = 4) -> str:
     """The text of a BVH file: the hierarchy, then the motion table, ``decimals`` after the point. ``read_bvh`` of
     the text gives ``bvh`` back to that precision. The joints must be in the file's (depth-first) order with their
     channels in that order, as ``read_bvh`` gives them."""
+    return (
+        bvh_hierarchy_text(bvh, decimals)
+        + f"MOTION\nFrames: {len(bvh.motion)}\nFrame Time: {bvh.frame_time_s:.8f}\n"
+        + bvh_motion_text(bvh.motion, decimals)
+    )
+
+
+def bvh_motion_text(motion: np.ndarray, decimals: int = 4) -> str:
+    """Rows of a BVH motion table ``(T, channels)``, one line per frame ("" for none)."""
+    return "".join(_numbers(row, decimals) + "\n" for row in motion)
+
+
+def _numbers(values: np.ndarray, decimals: int) -> str:
+    return " ".join(f"{x:.{decimals}f}" for x in np.round(values, decimals) + 0.0)  # +0: no "-0.0"
+
+
+def bvh_hierarchy_text(bvh: Bvh, decimals: int = 4) -> str:
+    """The HIERARCHY part of a BVH file, through the root's closing brace (``format_bvh``'s checks)."""
     children: dict[int, list[int]] = {}
     for k, joint in enumerate(bvh.joints):
         children.setdefault(joint.parent, []).append(k)
@@ -185,22 +203,20 @@ def format_bvh(bvh: Bvh, decimals: int = 4) -> str:
     starts = np.cumsum([0] + [len(j.channels) for j in bvh.joints])
     if [j.channel_start for j in bvh.joints] != starts[:-1].tolist() or bvh.motion.shape[1] != starts[-1]:
         raise ValueError("each joint's channels must follow the previous joint's in the motion table")
-    num = lambda v: " ".join(f"{x:.{decimals}f}" for x in np.round(v, decimals) + 0.0)  # noqa: E731 (+0: no "-0.0")
     lines = ["HIERARCHY"]
 
     def joint_lines(k: int, depth: int) -> None:
         joint, pad = bvh.joints[k], "\t" * depth
         lines.append(f"{pad}{'ROOT' if joint.parent < 0 else 'JOINT'} {joint.name}")
         lines.append(pad + "{")
-        lines.append(f"{pad}\tOFFSET {num(joint.offset)}")
+        lines.append(f"{pad}\tOFFSET {_numbers(joint.offset, decimals)}")
         lines.append(f"{pad}\tCHANNELS {len(joint.channels)} {' '.join(joint.channels)}")
         for child in children.get(k, []):
             joint_lines(child, depth + 1)
         if k in bvh.end_sites:
-            lines.extend([f"{pad}\tEnd Site", f"{pad}\t{{", f"{pad}\t\tOFFSET {num(bvh.end_sites[k])}", f"{pad}\t}}"])
+            end = _numbers(bvh.end_sites[k], decimals)
+            lines.extend([f"{pad}\tEnd Site", f"{pad}\t{{", f"{pad}\t\tOFFSET {end}", f"{pad}\t}}"])
         lines.append(pad + "}")
 
     joint_lines(0, 0)
-    lines += ["MOTION", f"Frames: {len(bvh.motion)}", f"Frame Time: {bvh.frame_time_s:.8f}"]
-    lines += [num(row) for row in bvh.motion]
     return "\n".join(lines) + "\n"

@@ -450,6 +450,39 @@ def test_frame_packets_and_binary_pose_blocks_answer_as_the_json_stream_does(ser
     np.testing.assert_allclose(q_bin, q_ref, atol=2e-5)  # JSON carries 5 decimals, the blocks float32
 
 
+def test_a_live_bvh_stream_makes_the_file_of_the_json_stream_s_pose(server: str, walk, tmp_path: Path) -> None:
+    """``"output": "bvh"``: ``started`` carries the hierarchy, each pose message a line per frame; the file made of
+    them reads back (BVH reader, forward kinematics) to the same segment orientations as the JSON stream's."""
+    motion, raw = walk
+    n = min(240, motion.n_frames) // 8 * 8
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    packets = [(s.lower(), f, _rows(raw, k)[f : f + 8]) for f in range(0, n, 8) for k, s in enumerate(SIX_SENSORS)]
+    url = server.replace("http", "ws") + "/v1/stream"
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "body_height_m": 1.8}}
+    reference, code, reason = asyncio.run(_stream(url, start, packets))
+    assert code == 1000, reason
+    bvh_start = {**start, "pose": {**start["pose"], "output": "bvh"}}
+    messages, code, reason = asyncio.run(_stream(url, bvh_start, packets))
+    assert code == 1000, reason
+    started = messages[0]["pose"]
+    assert started["output"] == "bvh" and started["bvh_hierarchy"].startswith("HIERARCHY\nROOT Pelvis")
+    poses = [m for m in messages if m["type"] == "pose"]
+    assert [p["first_frame"] for p in poses] == [p["first_frame"] for p in reference if p["type"] == "pose"]
+    lines = "".join(p["bvh_motion"] for p in poses)
+    frames = sum(p["frames"] for p in poses)
+    assert lines.count("\n") == frames == n - 5
+    text = started["bvh_hierarchy"] + f"MOTION\nFrames: {frames}\nFrame Time: {started['frame_time_s']}\n" + lines
+    (tmp_path / "live.bvh").write_text(text)
+    poses_back = forward_kinematics(read_bvh(tmp_path / "live.bvh"), 0.01, "y")
+    q_ref = np.concatenate([np.array(m["q_world_segment"]) for m in reference if m["type"] == "pose"])
+    np.testing.assert_allclose(poses_back.R_world_joint @ C_PROJECT_BVH.T, matrix_from_quat(q_ref), atol=1e-3)
+    p_ref = np.concatenate([np.array(m["joint_positions_m"]) for m in reference if m["type"] == "pose"])
+    np.testing.assert_allclose(poses_back.positions_m - poses_back.positions_m[:, :1], p_ref, atol=1e-3)
+
+
 def test_a_pose_sensor_whose_readings_do_not_fit_its_declared_units_gets_one_warning(server: str, walk) -> None:
     """As the I2S stream: the left forearm sends g while declaring m/s² and is warned once, after the first 2 s of
     body frames; the other sensors are not; every frame is still answered."""
