@@ -22,6 +22,7 @@ from service.core.calibration import (
 from service.core.resample import resample_quats, resample_uniform
 from service.core.rotations import canonical_quat
 from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS, unit_warnings_over
+from service.core.windowing import MODEL_RATE_HZ
 from service.inference.pose import (
     MAX_POSE_FRAMES,
     MAX_POSE_IMU_RATE_HZ,
@@ -211,7 +212,7 @@ def body_pose(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: f
 def pose_bvh(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None) -> str:
     """The pose as the text of a BVH file (``service.core.body.body_bvh``)."""
     R_world, body = body_pose(model, r, q_seg_sensor, height)
-    return format_bvh(body_bvh(R_world, body, 60.0))
+    return format_bvh(body_bvh(R_world, body, MODEL_RATE_HZ))
 
 
 def pose_response(

@@ -71,7 +71,7 @@ from service.api.schemas import (
 from service.core.body import Body, body_bvh
 from service.core.bvh import bvh_hierarchy_text, bvh_motion_text
 from service.core.rotations import matrix_from_quat
-from service.core.windowing import MODEL_RATE_HZ as POSE_RATE_HZ
+from service.core.windowing import MODEL_RATE_HZ
 from service.inference.predict import MAX_ABS_READING
 
 HEADER = struct.Struct("<HHI")
@@ -208,15 +208,17 @@ def encode_pose_block(message: dict) -> bytes:
 
 
 def bvh_pose_message(message: dict, body: Body) -> dict:
-    """A ``pose`` message as the lines of a BVH file's motion table (``bvh_hierarchy``'s joints and channels)."""
+    """A ``pose`` message as the lines of a BVH file's motion table (``bvh_started``'s joints and channels)."""
     R = matrix_from_quat(np.asarray(message["q_world_segment"], dtype=np.float64))
-    rows = bvh_motion_text(body_bvh(R, body, POSE_RATE_HZ).motion)
+    rows = bvh_motion_text(body_bvh(R, body, MODEL_RATE_HZ).motion)
     return {"type": "pose", "first_frame": message["first_frame"], "frames": message["frames"], "bvh_motion": rows}
 
 
-def bvh_hierarchy(body: Body) -> str:
-    """The HIERARCHY of the BVH file a ``bvh`` pose stream's lines belong to (``bvh_pose_message``)."""
-    return bvh_hierarchy_text(body_bvh(np.zeros((0, len(body.segments), 3, 3)), body, POSE_RATE_HZ))
+def bvh_started(body: Body) -> dict:
+    """What ``started.pose`` adds for a ``bvh`` pose stream: the HIERARCHY of the BVH file its lines belong to
+    (``bvh_pose_message``) and the file's frame time."""
+    hierarchy = bvh_hierarchy_text(body_bvh(np.zeros((0, len(body.segments), 3, 3)), body, MODEL_RATE_HZ))
+    return {"bvh_hierarchy": hierarchy, "frame_time_s": 1.0 / MODEL_RATE_HZ}
 
 
 def decode_pose_block(data: bytes) -> dict:

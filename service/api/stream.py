@@ -21,12 +21,11 @@ from pydantic import ValidationError
 from service.api.outbox import Outbox, SlowConsumer, accept, close, end_session, sender, serve_watched
 from service.api.protocol import (
     ALL_SENSORS,
-    POSE_RATE_HZ,
     ProtocolError,
     SamplesMessage,
     StartMessage,
-    bvh_hierarchy,
     bvh_pose_message,
+    bvh_started,
     check_frame_samples,
     check_samples,
     decode_binary,
@@ -651,8 +650,4 @@ def _pose_started(session: Session) -> dict | None:
         "still_frames": live.still_frames if live.method == "still_pose" else 0,
         "output": session.pose_output,
         "body_height_m": round(live.body.height_m, 3),
-    } | (
-        {"bvh_hierarchy": bvh_hierarchy(live.body), "frame_time_s": 1.0 / POSE_RATE_HZ}
-        if session.pose_output == "bvh"
-        else {}
-    )
+    } | (bvh_started(live.body) if session.pose_output == "bvh" else {})
