@@ -1,6 +1,7 @@
 """``wearmocap-train``: thin typer commands over the training library (I2S: simulate, train, register, export,
-evaluate; pose: pose-train, evaluate-pose, pose-placement, pose-rig-hinges, pose-rig-pairs; flex: flex-train,
-evaluate-flex, capacitive-train, evaluate-capacitive; snapshot-export / snapshot-restore, ui).
+evaluate; pose: pose-train, evaluate-pose, pose-placement, pose-rig-hinges, pose-rig-pairs,
+pose-translation-design; flex: flex-train, evaluate-flex, capacitive-train, evaluate-capacitive; snapshot-export /
+snapshot-restore, ui).
 Run ``python -m training.cli --help``.
 """
 
@@ -495,6 +496,40 @@ def pose_rig_pairs(
     typer.echo(paired_trial_table(resolve_data_dir(data_dir), cache_dir, limb_twist=limb_twist, trunk_axes=trunk_axes))
 
 
+@app.command("pose-translation-design")
+def pose_translation_design(
+    model: Path = typer.Option(Path("onnx_models/pose_full6/4.1.0"), help="a shipped offline pose model"),
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+    flight_g: float | None = typer.Option(None, help="the flight threshold (specific force, g) to try"),
+    band_m: float | None = typer.Option(None, help="the contact band (m) to try"),
+    inertial_share: float | None = typer.Option(None, help="the inertial share to try"),
+) -> None:
+    """The translation rule on its design set (training-side clips only): per activity, the error of the pelvis
+    displacement over 1 s and 5 s windows with the model's answer, on the true pose, and for a pelvis kept still."""
+    import service.core.translation as translation
+    from service.core.manifest import read_manifest
+    from training.pose.pipeline import load_pose_data, shipped_config
+    from training.pose.translation_design import design_table
+
+    for name, value in (
+        ("FLIGHT_SPECIFIC_FORCE_G", flight_g),
+        ("CONTACT_BAND_M", band_m),
+        ("INERTIAL_SHARE", inertial_share),
+    ):
+        if value is not None:
+            setattr(translation, name, value)
+    constants = {k: getattr(translation, k) for k in ("FLIGHT_SPECIFIC_FORCE_G", "CONTACT_BAND_M", "INERTIAL_SHARE")}
+    data = load_pose_data(shipped_config(read_manifest(model / "manifest.json")), resolve_data_dir(data_dir), cache_dir)
+    typer.echo(f"{model}, {constants}")
+    typer.echo(f"{'design set':28s} clips  1 s cm  5 s cm  true pose 1 s cm  kept still 1 s cm")
+    for name, m in design_table(model, data.train).items():
+        typer.echo(
+            f"{name:28s} {m['clips']:5.0f}  {m['trans_1s_cm']:6.1f}  {m['trans_5s_cm']:6.1f}  "
+            f"{m['trans_truth_1s_cm']:16.1f}  {m['trans_still_1s_cm']:17.1f}"
+        )
+
+
 @app.command("pose-free-batch")
 def pose_free_batch(
     model: Path = typer.Argument(..., help="a shipped streaming pose model exported with a batch of one"),
@@ -669,9 +704,15 @@ def evaluate_pose(
                 f"{kind} {key:22s} all {m['angle_all_deg']:6.2f}°  unsensed {m['angle_unsensed_deg']:6.2f}°  "
                 f"SIP {m['sip_deg']:6.2f}°  JPE {m['jpe_cm']:5.2f} cm  jitter {m['jitter_mps3']:7.1f} m/s³"
             )
+            typer.echo(
+                f"{'':{len(kind) + 23}s} translation error over 1 s {m['trans_1s_cm']:5.1f} cm, over 5 s "
+                f"{m['trans_5s_cm']:5.1f} cm (on the true pose {m['trans_truth_1s_cm']:5.1f} cm, pelvis kept in place "
+                f"{m['trans_still_1s_cm']:5.1f} cm)"
+            )
     m = summary["overall"]["all"]
     typer.echo(
-        f"overall all {m['angle_all_deg']:.2f}°, unsensed {m['angle_unsensed_deg']:.2f}°, JPE {m['jpe_cm']:.2f} cm"
+        f"overall all {m['angle_all_deg']:.2f}°, unsensed {m['angle_unsensed_deg']:.2f}°, JPE {m['jpe_cm']:.2f} cm, "
+        f"translation over 1 s {m['trans_1s_cm']:.1f} cm (pelvis kept in place {m['trans_still_1s_cm']:.1f} cm)"
     )
 
 

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
 from service.api.routes import _Route, _settings, file_answer
 from service.api.schemas import PoseImuRequest, PoseImuResponse, SegmentTrack, error_responses, file_responses
-from service.core.body import BODY_SEGMENTS, Body, body_bvh
+from service.core.body import BODY_SEGMENTS, Body, body_bvh, feet_of
 from service.core.bvh import format_bvh
 from service.core.calibration import (
     CalibrationError,
@@ -21,6 +21,7 @@ from service.core.calibration import (
 )
 from service.core.resample import resample_quats, resample_uniform
 from service.core.rotations import canonical_quat
+from service.core.translation import RootTracker
 from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS, unit_warnings_over
 from service.core.windowing import MODEL_RATE_HZ
 from service.inference.pose import (
@@ -201,25 +202,39 @@ def unit_check(body: PoseImuRequest, r: Readings) -> list[str]:
     return out
 
 
-def body_pose(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None) -> tuple[np.ndarray, Body]:
-    """Every segment's orientation ``(T, 21, 3, 3)`` in the sensors' world frame, and the body it is drawn on."""
+@dataclass(frozen=True)
+class BodyPose:
+    """Every segment's orientation ``(T, 21, 3, 3)`` in the sensors' world frame, the body it is drawn on, and
+    with translation the pelvis positions ``(T, 3)``."""
+
+    R_world: np.ndarray
+    body: Body
+    root_m: np.ndarray | None
+
+
+def body_pose(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, body: PoseImuRequest) -> BodyPose:
     R_w_seg, a_w = segment_readings(r.q_world_sensor, r.acc_mps2, q_seg_sensor)
     R_out = model.predict(pose_features(R_w_seg, a_w))
     R_world = whole_body(R_w_seg, R_out, model.sensor_index, model.output_index)
-    return R_world, model.body.scaled(height) if height else model.body
+    drawn = model.body.scaled(body.body_height_m) if body.body_height_m else model.body
+    if body.translation == "none":
+        return BodyPose(R_world, drawn, None)
+    tracker = RootTracker(feet_of(drawn), MODEL_RATE_HZ)
+    return BodyPose(R_world, drawn, tracker.advance(drawn.forward(R_world), a_w[:, 0])[0])
 
 
-def pose_bvh(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None) -> str:
+def pose_bvh(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, body: PoseImuRequest) -> str:
     """The pose as the text of a BVH file (``service.core.body.body_bvh``)."""
-    R_world, body = body_pose(model, r, q_seg_sensor, height)
-    return format_bvh(body_bvh(R_world, body, MODEL_RATE_HZ))
+    pose = body_pose(model, r, q_seg_sensor, body)
+    return format_bvh(body_bvh(pose.R_world, pose.body, MODEL_RATE_HZ, pose.root_m))
 
 
 def pose_response(
-    model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height: float | None, warnings: list[str]
+    model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, body: PoseImuRequest, warnings: list[str]
 ) -> PoseImuResponse:
-    R_world, body = body_pose(model, r, q_seg_sensor, height)
-    answer = pose_answer(R_world, body)
+    pose = body_pose(model, r, q_seg_sensor, body)
+    R_world = pose.R_world
+    answer = pose_answer(R_world, pose.body)
     covered = set(covered_segments(model))
     sources = {s: "sensor" if s in model.spec.sensors else "model" if s in covered else "parent" for s in BODY_SEGMENTS}
     rnd = lambda a, d: np.round(a, d).tolist()  # noqa: E731
@@ -228,7 +243,7 @@ def pose_response(
         sample_rate_hz=60.0,
         frames=len(R_world),
         look_ahead_frames=model.spec.look_ahead_frames,
-        body_height_m=round(body.height_m, 3),
+        body_height_m=round(pose.body.height_m, 3),
         q_segment_sensor={i: rnd(q, 6) for i, q in zip(r.sensor_ids, q_seg_sensor, strict=True)},
         segments={
             s: SegmentTrack(
@@ -239,6 +254,7 @@ def pose_response(
             )
             for k, s in enumerate(BODY_SEGMENTS)
         },
+        root_position_m=None if pose.root_m is None else rnd(pose.root_m, 4),
         warnings=warnings,
     )
 
@@ -286,8 +302,8 @@ async def pose_from_imu(
     warnings = unit_check(body, readings)
     runner = request.app.state.runner
     if format == "bvh":
-        text = await runner.run_call(pose_bvh, model, readings, q_seg_sensor, body.body_height_m)
+        text = await runner.run_call(pose_bvh, model, readings, q_seg_sensor, body)
         version = model.loaded.manifest.version
         return file_answer(text, f"{model.name}.bvh", "Pose", model.name, version, warnings)
-    answer = await runner.run_call(pose_response, model, readings, q_seg_sensor, body.body_height_m, warnings)
+    answer = await runner.run_call(pose_response, model, readings, q_seg_sensor, body, warnings)
     return Response(answer.model_dump_json(), media_type="application/json")

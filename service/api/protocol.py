@@ -33,16 +33,19 @@ Server → client
   declared sessions are calibrated at the start, still-pose sessions after a still span, assignment sessions when
   the assignment is sure of the model's segments) · pose (from the streaming model, as frames complete: first_frame,
   frames, q_world_segment and joint_positions_m per frame in "started"'s pose.segments order; each frame answers
-  look_ahead_frames late) · warning (pose-only sessions: once per sensor, when the first 2 s of body frames
+  look_ahead_frames late; with "pose": {"translation": "feet"} also root_position_m, the pelvis per frame as
+  /v1/pose/imu gives it) · warning (pose-only sessions: once per sensor, when the first 2 s of body frames
   read implausibly for its declared units).
   With "pose": {"output": "binary"} each pose message is a binary pose block instead (little-endian): uint16 1,
   uint16 S segments, uint32 first_frame, uint32 frames, then frames × S × 4 float32 q_world_segment (w x y z) and
-  frames × S × 3 float32 joint_positions_m: 12 + 28 × frames × S bytes (``decode_pose_block``).
+  frames × S × 3 float32 joint_positions_m: 12 + 28 × frames × S bytes (``decode_pose_block``); with translation
+  the block's kind is 2 and frames × 3 float32 root_position_m follow: 12 + 28 × frames × S + 12 × frames bytes.
   With "pose": {"output": "bvh"} (a live BVH stream, as motion-capture suits broadcast to animation tools)
   "started" carries pose.bvh_hierarchy (the HIERARCHY of a BVH file of the session's body) and
   pose.frame_time_s, and each pose message is {"type": "pose", first_frame, frames, bvh_motion}: one line of the
-  file's MOTION table per frame; the hierarchy, "MOTION", "Frames: N", "Frame Time: ..." and the lines make the
-  file (``service.core.body.body_bvh``).
+  file's MOTION table per frame (the root's position channels: the translation, or the pelvis kept in place);
+  the hierarchy, "MOTION", "Frames: N", "Frame Time: ..." and the lines make the file
+  (``service.core.body.body_bvh``).
   gap / late notices of a sensor that are still queued are merged into one ("count" notices; "missing" summed), and
   only the newest assignment is queued.
 Close codes: 1003 unsupported data, 1008 protocol violation (also a wrong X-API-Key or a browser Origin not allowed,
@@ -60,6 +63,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from service.api.schemas import (
     CANDIDATE_SEGMENTS_DESCRIPTION,
+    TRANSLATION_DESCRIPTION,
     WORN_SEGMENTS_DESCRIPTION,
     AccUnit,
     BodySegmentName,
@@ -127,6 +131,7 @@ class PoseStreamOptions(BaseModel):
         description="pose messages as JSON, as binary pose blocks (``encode_pose_block``), or as lines of a BVH "
         "file's motion table (``bvh_pose_message``)",
     )
+    translation: Literal["none", "feet"] = Field("none", description=TRANSLATION_DESCRIPTION)
 
 
 class StartMessage(BaseModel):
@@ -195,22 +200,27 @@ def encode_binary(index: int, seq: int, samples: np.ndarray) -> bytes:
     return HEADER.pack(index, len(samples), seq) + np.asarray(samples, dtype="<f4").tobytes()
 
 
-POSE_BLOCK = struct.Struct("<HHII")  # kind (1: pose), segments, first_frame, frames
+POSE_BLOCK = struct.Struct("<HHII")  # kind (1: pose, 2: pose and translation), segments, first_frame, frames
 POSE_BLOCK_KIND = 1
+POSE_BLOCK_KIND_TRANSLATED = 2
 
 
 def encode_pose_block(message: dict) -> bytes:
     """A ``pose`` message as a binary pose block (the module docstring has the layout)."""
     q = np.asarray(message["q_world_segment"], dtype="<f4")
     p = np.asarray(message["joint_positions_m"], dtype="<f4")
-    header = POSE_BLOCK.pack(POSE_BLOCK_KIND, q.shape[1], message["first_frame"], message["frames"])
-    return header + q.tobytes() + p.tobytes()
+    root = message.get("root_position_m")
+    kind = POSE_BLOCK_KIND if root is None else POSE_BLOCK_KIND_TRANSLATED
+    header = POSE_BLOCK.pack(kind, q.shape[1], message["first_frame"], message["frames"])
+    tail = b"" if root is None else np.asarray(root, dtype="<f4").tobytes()
+    return header + q.tobytes() + p.tobytes() + tail
 
 
 def bvh_pose_message(message: dict, body: Body) -> dict:
     """A ``pose`` message as the lines of a BVH file's motion table (``bvh_started``'s joints and channels)."""
     R = matrix_from_quat(np.asarray(message["q_world_segment"], dtype=np.float64))
-    rows = bvh_motion_text(body_bvh(R, body, MODEL_RATE_HZ).motion)
+    root = message.get("root_position_m")
+    rows = bvh_motion_text(body_bvh(R, body, MODEL_RATE_HZ, None if root is None else np.asarray(root)).motion)
     return {"type": "pose", "first_frame": message["first_frame"], "frames": message["frames"], "bvh_motion": rows}
 
 
@@ -224,12 +234,18 @@ def bvh_started(body: Body) -> dict:
 def decode_pose_block(data: bytes) -> dict:
     """The client side of ``encode_pose_block``: the ``pose`` message it holds, with numpy arrays."""
     kind, segments, first_frame, frames = POSE_BLOCK.unpack_from(data)
-    if kind != POSE_BLOCK_KIND or len(data) != POSE_BLOCK.size + 28 * frames * segments:
+    translated = kind == POSE_BLOCK_KIND_TRANSLATED
+    size = POSE_BLOCK.size + 28 * frames * segments + (12 * frames if translated else 0)
+    if kind not in (POSE_BLOCK_KIND, POSE_BLOCK_KIND_TRANSLATED) or len(data) != size:
         raise ValueError(f"not a pose block: kind {kind}, {len(data)} bytes for {frames} frames × {segments} segments")
     values = np.frombuffer(data, dtype="<f4", offset=POSE_BLOCK.size)
     q = values[: 4 * frames * segments].reshape(frames, segments, 4)
-    p = values[4 * frames * segments :].reshape(frames, segments, 3)
-    return {"type": "pose", "first_frame": first_frame, "frames": frames, "q_world_segment": q, "joint_positions_m": p}
+    p = values[4 * frames * segments : 7 * frames * segments].reshape(frames, segments, 3)
+    message = {"type": "pose", "first_frame": first_frame, "frames": frames, "q_world_segment": q}
+    message["joint_positions_m"] = p
+    if translated:
+        message["root_position_m"] = values[7 * frames * segments :].reshape(frames, 3)
+    return message
 
 
 def check_samples(samples: np.ndarray, max_samples: int, where: str, width: int = 6) -> None:

@@ -467,6 +467,13 @@ EXAMPLE_POSE_IMU = {
 }
 
 
+TRANSLATION_DESCRIPTION = (
+    "`feet`: also where the pelvis is (`root_position_m`): the foot on the ground holds still and the pelvis "
+    "accelerometer tells flight from stance (TransPose 2021's supporting-foot rule; a level floor assumed); `none` "
+    "(default): the pose about a pelvis kept in place"
+)
+
+
 class PoseImuRequest(BaseModel):
     model_config = REQUEST | ConfigDict(json_schema_extra={"examples": [EXAMPLE_POSE_IMU]})
     sample_rate_hz: float = Field(
@@ -489,6 +496,7 @@ class PoseImuRequest(BaseModel):
         None, description="a loaded pose model's name; default: the offline model for these sensors"
     )
     body_height_m: float | None = Field(None, ge=0.5, le=2.5, description="scale the default body to this height")
+    translation: Literal["none", "feet"] = Field("none", description=TRANSLATION_DESCRIPTION)
 
 
 class SegmentTrack(BaseModel):
@@ -526,6 +534,12 @@ class PoseImuResponse(BaseModel):
     body_height_m: float
     q_segment_sensor: dict[str, list[float]] = Field(description="the calibration used, per sensor_id")
     segments: dict[str, SegmentTrack]
+    root_position_m: list[list[float]] | None = Field(
+        None,
+        description="with `translation` `feet`: the pelvis origin per frame in the sensors' world (z up, metres): "
+        "x, y from where it stood at the first frame, z its height above the floor (the level of the first frame's "
+        "lowest foot point); a joint's position in the world is this plus its `joint_position_m`",
+    )
     warnings: list[str] = Field(
         default_factory=list,
         description="a sensor whose readings look implausible for the declared units (over 2 s windows: gravity far "

@@ -173,6 +173,7 @@ class Session:
             opts.still_pose,
             tuple(opts.pelvis_back_axis),
             opts.body_height_m,
+            opts.translation == "feet",
         )
         self.aligner = FrameAligner(len(self.streams), 10)
         self.run_i2s = opts.calibration == "assignment"
@@ -649,5 +650,6 @@ def _pose_started(session: Session) -> dict | None:
         "hand_over": session.hand_over_when if live.method == "assignment" else None,
         "still_frames": live.still_frames if live.method == "still_pose" else 0,
         "output": session.pose_output,
+        "translation": "none" if live.tracker is None else "feet",
         "body_height_m": round(live.body.height_m, 3),
     } | (bvh_started(live.body) if session.pose_output == "bvh" else {})

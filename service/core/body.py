@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from service.core.bvh import Bvh, rotations_bvh
 from service.core.kinematics import C_PROJECT_BVH, GlobalPoses
+from service.core.translation import Feet
 
 # Canonical segments in tree order (a parent precedes its children); Xsens MVN names (L5 lower spine, T8 upper).
 BODY_SEGMENTS: tuple[str, ...] = (
@@ -665,19 +666,33 @@ def clip_body(motion: BodyMotion) -> Body:
     return Body(off)
 
 
-def body_bvh(R_world_segment: np.ndarray, body: Body, sample_rate_hz: float) -> Bvh:
+def feet_of(body: Body) -> Feet:
+    """The body's feet for its translation (``service.core.translation``): the ankles are the feet's origins, the
+    balls the toes', and the ankle stands over the ball by their height difference in the neutral stance."""
+    rest = body.forward(np.broadcast_to(np.eye(3), (1, len(body.segments), 3, 3)))[0]
+    ankles = (body.segments.index("LeftFoot"), body.segments.index("RightFoot"))
+    balls = (body.segments.index("LeftToe"), body.segments.index("RightToe"))
+    height = float(np.mean([rest[a, 2] - rest[b, 2] for a, b in zip(ankles, balls, strict=True)]))
+    return Feet(ankles, balls, max(height, 0.0))
+
+
+def body_bvh(R_world_segment: np.ndarray, body: Body, sample_rate_hz: float, root_m: np.ndarray | None = None) -> Bvh:
     """Orientations ``(T, S, 3, 3)`` of the body's segments as a BVH clip that other tools open
     (``service.core.bvh.rotations_bvh``): one joint per segment (``BODY_SEGMENTS``' names and tree), its OFFSET the
     body's bone in centimetres. The world is the format's usual one, Y up (``service.core.kinematics.C_PROJECT_BVH``:
     the answers' x, y, z are the file's Z, X, Y), with the heading of the world the orientations are given in; each
     joint's frame is its segment's frame in those axes, so all angles 0 is the neutral stance, facing +Z. The root
-    stands still at the neutral pelvis height above the lowest segment origin (the toes), since the answers carry no
-    translation; a leaf segment (head, hands, toes) ends half the length of the bone into it further on."""
+    moves along ``root_m`` ``(T, 3)`` (the answers' translation, ``service.core.translation``), or without one
+    stands still at the neutral pelvis height above the lowest segment origin (the toes); a leaf segment (head,
+    hands, toes) ends half the length of the bone into it further on."""
     C = C_PROJECT_BVH  # project = C @ bvh
     R = np.einsum("ji,tsjk,kl->tsil", C, R_world_segment, C)  # each frame's axes in the BVH world
     offsets_cm = body.offsets_m @ C * 100.0  # C.T @ offset per segment
-    rest = body.forward(np.broadcast_to(np.eye(3), (1, len(body.segments), 3, 3)))[0]
-    root_cm = np.array([0.0, -rest[:, 2].min() * 100.0, 0.0])
+    if root_m is None:
+        rest = body.forward(np.broadcast_to(np.eye(3), (1, len(body.segments), 3, 3)))[0]
+        root_cm = np.array([0.0, -rest[:, 2].min() * 100.0, 0.0])
+    else:
+        root_cm = np.asarray(root_m) @ C * 100.0  # C.T @ position per frame
     leaves = sorted(set(range(len(body.segments))) - set(PARENT_INDEX))
     ends = {k: 0.5 * offsets_cm[k] for k in leaves}
     return rotations_bvh(body.segments, PARENT_INDEX, offsets_cm, R, root_cm, 1.0 / sample_rate_hz, ends)

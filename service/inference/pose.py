@@ -12,8 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, segment_origins
+from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, feet_of, segment_origins
 from service.core.rotations import quat_from_matrix
+from service.core.translation import RootTracker, advance_bodies
+from service.core.windowing import MODEL_RATE_HZ
 from service.inference.registry import LoadedModel
 
 Predictor = Callable[[np.ndarray], np.ndarray]  # features (T, F) → R_root_segment (T, S_out, 3, 3)
@@ -214,6 +216,7 @@ class LivePose:
         still_pose: str = "npose",
         back_axis: tuple[float, float, float] = (0.0, 0.0, 1.0),
         height_m: float | None = None,
+        translation: bool = False,
     ) -> None:
         if not model.spec.streaming:
             raise ValueError(f"{model.name} is an offline model; live sessions need a streaming one")
@@ -224,6 +227,8 @@ class LivePose:
         self.state = model.new_state()
         self.still: list[np.ndarray] = []
         self.history = np.zeros((0, len(model.sensor_index), 3, 3))  # segment readings awaiting their answer
+        self.pelvis_acc = np.zeros((0, 3))  # and the pelvis's free acceleration in those frames
+        self.tracker = RootTracker(feet_of(self.body), MODEL_RATE_HZ) if translation else None
         self.inputs = 0  # frames fed to the network
         self.first_frame = 0  # stream frame index of the first frame fed to the network
 
@@ -314,11 +319,14 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
     L = model.spec.look_ahead_frames
     answered: list[tuple[int, int, int]] = []  # (session, first network frame answered, frames answered)
     R_out, R_sensors, offsets = [], [], []
+    tracked: list[tuple[int, np.ndarray]] = []  # (index into answered, the pelvis's free acceleration)
     for i, live in enumerate(lives):
         live.state = states[i]
         if live.inputs == 0:
             live.first_frame = first_frames[i]
         live.history = np.concatenate([live.history, R_w_seg[bounds[i] : bounds[i + 1]]])
+        if live.tracker is not None:
+            live.pelvis_acc = np.concatenate([live.pelvis_acc, a_w[bounds[i] : bounds[i + 1], 0]])
         answered_from = max(0, live.inputs - L)
         live.inputs += counts[i]
         n = max(0, live.inputs - L) - answered_from
@@ -328,15 +336,28 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
         R_out.append(outs[i][len(outs[i]) - n :])
         R_sensors.append(live.history[:n])
         live.history = live.history[n:]
+        if live.tracker is not None:
+            tracked.append((len(answered) - 1, live.pelvis_acc[:n]))
+            live.pelvis_acc = live.pelvis_acc[n:]
         offsets.append(np.broadcast_to(live.body.offsets_m, (n, *live.body.offsets_m.shape)))
     results: list[dict | None] = [None] * len(lives)
     if not answered:
         return results
     R_world = whole_body(np.concatenate(R_sensors), np.concatenate(R_out), model.sensor_index, model.output_index)
     q_world = np.round(quat_from_matrix(R_world), 5)
-    positions = np.round(segment_origins(R_world, np.concatenate(offsets)), 4)
-    row = 0
-    for i, answered_from, n in answered:
+    exact = segment_origins(R_world, np.concatenate(offsets))
+    positions = np.round(exact, 4)
+    rows = np.cumsum([0, *(n for _, _, n in answered)])
+    roots: dict[int, np.ndarray] = {}
+    if tracked:
+        moved = advance_bodies(
+            [lives[answered[a][0]].tracker for a, _ in tracked],
+            [exact[rows[a] : rows[a + 1]] for a, _ in tracked],
+            [acc for _, acc in tracked],
+        )
+        roots = {a: np.round(p, 4) for (a, _), (p, _) in zip(tracked, moved, strict=True)}
+    for a, (i, answered_from, n) in enumerate(answered):
+        row = rows[a]
         results[i] = {
             "type": "pose",
             "first_frame": lives[i].first_frame + answered_from,
@@ -344,5 +365,6 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
             "q_world_segment": np.ascontiguousarray(q_world[row : row + n]),  # orjson serialises C order only
             "joint_positions_m": np.ascontiguousarray(positions[row : row + n]),
         }
-        row += n
+        if a in roots:
+            results[i]["root_position_m"] = roots[a]
     return results

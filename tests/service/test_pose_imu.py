@@ -894,3 +894,72 @@ def test_pose_sessions_are_refused_while_the_answers_of_the_last_second_rise(cli
             ws.send_text(i2s_start)
             assert json.loads(ws.receive_text())["type"] == "started"
             ws.send_text(json.dumps({"type": "stop"}))
+
+
+def _window_error(root: np.ndarray, truth: np.ndarray, n: int = 60) -> tuple[float, float]:
+    """Mean distance between the answer's and the truth's pelvis displacement over every ``n``-frame window, and the
+    mean distance the pelvis travels in one (what a pelvis kept in place would miss by)."""
+    d_truth = truth[n:] - truth[:-n]
+    return float(np.linalg.norm(root[n:] - root[:-n] - d_truth, axis=-1).mean()), float(
+        np.linalg.norm(d_truth, axis=-1).mean()
+    )
+
+
+def test_rest_pose_with_translation_follows_the_walker_in_json_and_in_the_bvh_file(
+    server: str, walk, tmp_path: Path
+) -> None:
+    """``translation: feet`` on a held-out walk: the pelvis moves with the walker (its displacement over each second
+    within half of what a pelvis kept in place misses), the same path is the BVH file's root, and without it the
+    answer carries none."""
+    motion, raw = walk
+    request = _body(raw, SIX_SENSORS) | {"translation": "feet"}
+    answer = httpx.post(f"{server}/v1/pose/imu", json=request, timeout=60).json()
+    root = np.array(answer["root_position_m"])
+    assert root.shape == (motion.n_frames, 3)
+    Rz = Rotation.from_rotvec([0.0, 0.0, raw.heading_rad]).as_matrix()
+    error, travelled = _window_error(root, motion.origin_m[:, 0] @ Rz.T)
+    print(f"REST walk translation: {error * 100:.1f} cm per second against {travelled * 100:.1f} cm travelled")
+    assert travelled > 0.8 and error < 0.5 * travelled
+    assert 0.7 < np.median(root[:, 2]) < 1.2  # the pelvis height above the floor
+    plain = httpx.post(f"{server}/v1/pose/imu", json=_body(raw, SIX_SENSORS), timeout=60).json()
+    assert plain["root_position_m"] is None and plain["segments"] == answer["segments"]
+    r = httpx.post(f"{server}/v1/pose/imu", params={"format": "bvh"}, json=request, timeout=60)
+    assert r.status_code == 200, r.text
+    (tmp_path / "walk.bvh").write_text(r.text)
+    poses = forward_kinematics(read_bvh(tmp_path / "walk.bvh"), 0.01, "y")
+    np.testing.assert_allclose(poses.positions_m[:, 0], root, atol=1e-3)
+    bad = httpx.post(f"{server}/v1/pose/imu", json=_body(raw, SIX_SENSORS) | {"translation": "gps"}, timeout=60)
+    assert bad.status_code == 422 and "feet" in bad.text and "gps" in bad.text
+
+
+def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_rule_does(server: str, walk, pose_models) -> None:
+    """``"translation": "feet"`` on the stream: each pose message carries the pelvis per frame, the same as the rule
+    gives offline on the streaming model's answer; binary pose blocks carry it too (kind 2)."""
+    from service.core.body import feet_of
+    from service.core.translation import RootTracker
+    from service.inference.pose import whole_body
+
+    motion, raw = walk
+    n = min(480, motion.n_frames) // 8 * 8
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    packets = [(s.lower(), f, _rows(raw, k)[f : f + 8]) for f in range(0, n, 8) for k, s in enumerate(SIX_SENSORS)]
+    url = server.replace("http", "ws") + "/v1/stream"
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "translation": "feet"}}
+    messages, code, reason = asyncio.run(_stream(url, start, packets))
+    assert code == 1000, reason
+    assert messages[0]["pose"]["translation"] == "feet"
+    poses = [m for m in messages if m["type"] == "pose"]
+    root_live = np.concatenate([np.array(p["root_position_m"]) for p in poses])
+    assert root_live.shape == (n - 5, 3)
+    model = pose_models["pose_full6_stream"]
+    R_w_seg, a_w = segment_readings(raw.q_world_sensor[:n], raw.acc_mps2[:n], raw.q_segment_sensor)
+    R_world = whole_body(R_w_seg, model.predict(pose_features(R_w_seg, a_w)), model.sensor_index, model.output_index)
+    root_off, _ = RootTracker(feet_of(model.body), 60.0).advance(model.body.forward(R_world), a_w[:, 0])
+    np.testing.assert_allclose(root_live, root_off[: n - 5], atol=2e-3)
+    binary, code, reason = asyncio.run(_stream(url, {**start, "pose": {**start["pose"], "output": "binary"}}, packets))
+    assert code == 1000, reason
+    blocks = [m for m in binary if m["type"] == "pose"]  # decoded by _stream
+    np.testing.assert_allclose(np.concatenate([b["root_position_m"] for b in blocks]), root_live, atol=1e-4)

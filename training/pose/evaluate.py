@@ -14,7 +14,12 @@ sensors' segments as measured, the others the measured pelvis times the model's 
 - ``jpe_cm``: mean distance of the segment origins after forward kinematics with the clip's own skeleton
   (``body.clip_body``), root-aligned (Vlutters 2016 §IV-E; TransPose's joint position error);
 - ``jitter_mps3``: mean magnitude of the third time derivative of the predicted joint positions (TransPose), and
-  ``jitter_true_mps3`` of the truth for reference.
+  ``jitter_true_mps3`` of the truth for reference;
+- ``trans_1s_cm``, ``trans_5s_cm``: the body's translation (``service.core.translation``, the service's rule on the
+  answer and the simulated pelvis accelerometer): over every window of 1 s (5 s), the distance between the
+  predicted and the true displacement of the pelvis, averaged over the windows (TransPose 2021 plots the same
+  distance against the distance walked); ``trans_truth_1s_cm`` the rule on the true pose (what the rule itself
+  costs), ``trans_still_1s_cm`` a pelvis kept in place (the mean distance the pelvis travels in 1 s).
 """
 
 from __future__ import annotations
@@ -26,7 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from service.core.body import BODY_SEGMENTS, clip_body
+from service.core.body import BODY_SEGMENTS, Body, clip_body, feet_of
+from service.core.calibration import ACC_SCALE_MPS2
+from service.core.translation import RootTracker
 from service.inference.pose import whole_body
 from training.pose.data import MotionClip
 from training.pose.simulate import Session
@@ -45,6 +52,10 @@ METRICS = (
     "jpe_cm",
     "jitter_mps3",
     "jitter_true_mps3",
+    "trans_1s_cm",
+    "trans_5s_cm",
+    "trans_truth_1s_cm",
+    "trans_still_1s_cm",
 )
 
 
@@ -97,6 +108,7 @@ def clip_metrics(
         "jitter_mps3": jitter(p_pred),
         "jitter_true_mps3": jitter(p_true),
     }
+    metrics |= translation_metrics(body, R_pred, R_true, pelvis_free_acc(session), p_root_true(clip, Rz), rate)
     per_segment = {BODY_SEGMENTS[k]: float(err[:, k].mean()) for k in covered}
     constant = {
         BODY_SEGMENTS[k]: float(
@@ -105,6 +117,41 @@ def clip_metrics(
         for k in covered
     }
     return ClipResult(clip.path, clip.activity, clip.group, clip.motion.n_frames, metrics, per_segment, constant)
+
+
+def pelvis_free_acc(session: Session) -> np.ndarray:
+    """The simulated pelvis sensor's free acceleration in the world ``(T, 3)``, as the service computes it
+    (``calibration.segment_readings``), read back from the features (the root's own acceleration, eq. 3)."""
+    own = session.features[:, 3:6].astype(np.float64) * ACC_SCALE_MPS2
+    return np.einsum("tij,tj->ti", session.R_world_sensor_segment[:, 0], own)
+
+
+def p_root_true(clip: MotionClip, Rz: np.ndarray) -> np.ndarray:
+    """The clip's pelvis positions ``(T, 3)`` in the session's world (turned by its heading)."""
+    return clip.motion.origin_m[:, 0] @ Rz.T
+
+
+def translation_metrics(
+    body: Body, R_pred: np.ndarray, R_true: np.ndarray, acc: np.ndarray, root_true: np.ndarray, rate: float
+) -> dict[str, float]:
+    """``trans_*`` of the module docstring for one clip (NaN where the clip is shorter than the window)."""
+
+    def track(R: np.ndarray) -> np.ndarray:
+        return RootTracker(feet_of(body), rate).advance(body.forward(R), acc)[0]
+
+    def error(p: np.ndarray, seconds: float) -> float:
+        n = int(round(seconds * rate))
+        if len(p) <= n:
+            return float("nan")
+        return float(np.linalg.norm((p[n:] - p[:-n]) - (root_true[n:] - root_true[:-n]), axis=-1).mean() * 100.0)
+
+    p_pred = track(R_pred)
+    return {
+        "trans_1s_cm": error(p_pred, 1.0),
+        "trans_5s_cm": error(p_pred, 5.0),
+        "trans_truth_1s_cm": error(track(R_true), 1.0),
+        "trans_still_1s_cm": error(np.zeros_like(root_true), 1.0),
+    }
 
 
 def evaluate_clips(

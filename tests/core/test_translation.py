@@ -1,0 +1,106 @@
+"""The body's translation (``service.core.translation``): a walker whose feet stand still moves as it walks, a throw
+follows gravity, the answer turns with the world, a block answers as its pieces do, and on a real CMU walk the
+rule on the true pose follows the pelvis."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service.core.body import BODY_SEGMENTS, clip_body, feet_of
+from service.core.calibration import segment_readings
+from service.core.translation import Feet, RootTracker
+from service.core.units import GRAVITY_MPS2
+
+RATE = 60.0
+ANKLES = (BODY_SEGMENTS.index("LeftFoot"), BODY_SEGMENTS.index("RightFoot"))
+BALLS = (BODY_SEGMENTS.index("LeftToe"), BODY_SEGMENTS.index("RightToe"))
+FEET = Feet(ANKLES, BALLS, 0.08)
+PELVIS_HEIGHT_M = 0.9
+
+
+def _walker(seconds: float, speed: float, heading_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Joint positions relative to the pelvis ``(T, 21, 3)`` of a walker at ``speed`` along its heading, and its
+    pelvis in the world: each foot stands flat on the floor for 0.5 s, then swings forward at twice the speed in
+    an arc 10 cm high, the feet in turn (the other joints stay at the pelvis)."""
+    t = np.arange(int(seconds * RATE)) / RATE
+    pelvis = np.column_stack([speed * t, np.zeros_like(t), np.full_like(t, PELVIS_HEIGHT_M)])
+    joints = np.zeros((len(t), len(BODY_SEGMENTS), 3))
+    for side, y in ((0, 0.1), (1, -0.1)):
+        phase = (t + 0.5 * side) % 1.0  # stance in [0, 0.5), swing in [0.5, 1)
+        start = t - phase  # when this stance began
+        swing = np.clip((phase - 0.5) / 0.5, 0.0, 1.0)
+        x = speed * (start + 0.25) + swing * speed  # under the pelvis mid-stance; a stride per second
+        ball = np.column_stack([x, np.full_like(t, y), 0.1 * np.sin(np.pi * swing)])
+        joints[:, BALLS[side]] = ball - pelvis
+        joints[:, ANKLES[side]] = ball + np.array([-0.15, 0.0, 0.08]) - pelvis
+    turn = Rotation.from_euler("z", heading_deg, degrees=True).as_matrix()
+    return joints @ turn.T, pelvis @ turn.T
+
+
+def test_a_walker_whose_standing_foot_holds_still_moves_as_it_walks() -> None:
+    joints, pelvis = _walker(4.0, 1.2)
+    root, carried = RootTracker(FEET, RATE).advance(joints, np.zeros((len(joints), 3)))
+    np.testing.assert_allclose(root[:, 2], PELVIS_HEIGHT_M, atol=1e-9)  # the floor at the first frame's feet
+    np.testing.assert_allclose(root[:, :2] - root[0, :2], pelvis[:, :2] - pelvis[0, :2], atol=0.03)
+    assert (carried >= 0).all()
+
+
+def test_in_flight_the_pelvis_keeps_its_speed_and_falls() -> None:
+    joints, pelvis = _walker(2.0, 1.5)
+    acc = np.zeros((len(joints), 3))
+    acc[-12:, 2] = -GRAVITY_MPS2  # the last 0.2 s in free fall: the pelvis sensor reads no specific force
+    tracker = RootTracker(FEET, RATE)
+    root, carried = tracker.advance(joints, acc)
+    assert (carried[-12:] == -1).all() and (carried[:-12] >= 0).all()
+    s = np.arange(1, 13) / RATE
+    np.testing.assert_allclose(root[-12:, 2], PELVIS_HEIGHT_M - 0.5 * GRAVITY_MPS2 * s**2, atol=1e-6)
+    np.testing.assert_allclose(np.diff(root[-13:, 0]) * RATE, 1.5, atol=0.05)
+
+
+def test_the_translation_turns_with_the_world() -> None:
+    joints, _ = _walker(3.0, 1.0)
+    turned, _ = _walker(3.0, 1.0, heading_deg=40.0)
+    acc = np.zeros((len(joints), 3))
+    root = RootTracker(FEET, RATE).advance(joints, acc)[0]
+    root_turned = RootTracker(FEET, RATE).advance(turned, acc)[0]
+    Rz = Rotation.from_euler("z", 40.0, degrees=True).as_matrix()
+    np.testing.assert_allclose(root_turned, root @ Rz.T, atol=1e-9)
+
+
+def test_a_block_answers_as_its_pieces_do() -> None:
+    rng = np.random.default_rng(3)
+    joints = rng.normal(scale=0.3, size=(300, len(BODY_SEGMENTS), 3))
+    acc = rng.normal(scale=6.0, size=(300, 3))  # free fall now and then
+    whole, carried = RootTracker(FEET, RATE).advance(joints, acc)
+    tracker, pieces = RootTracker(FEET, RATE), []
+    for start in range(0, 300, 7):
+        pieces.append(tracker.advance(joints[start : start + 7], acc[start : start + 7]))
+    np.testing.assert_array_equal(whole, np.concatenate([p for p, _ in pieces]))
+    np.testing.assert_array_equal(carried, np.concatenate([c for _, c in pieces]))
+    assert (carried == -1).any() and (carried >= 0).any()
+
+
+@pytest.mark.needs_data
+def test_on_a_real_walk_the_rule_on_the_true_pose_follows_the_pelvis(data_dir: Path) -> None:
+    """CMU 07_01 on the canonical body, its simulated pelvis sensor: the pelvis displacement over every 1 s window
+    is within 15 % of the distance walked in it."""
+    from training.pose.data import load_motion
+    from training.pose.simulate import simulate_sensors
+
+    motion = load_motion(data_dir / "mocap/cmu_iclone/07_01.bvh", "cmu_iclone")
+    raw = simulate_sensors(motion, ["Pelvis"], np.random.default_rng(0))
+    _, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
+    Rz = Rotation.from_rotvec([0.0, 0.0, raw.heading_rad]).as_matrix()
+    R = np.einsum("ij,tsjk->tsik", Rz, motion.R_world_segment)
+    body = clip_body(motion)
+    root, _ = RootTracker(feet_of(body), RATE).advance(body.forward(R), a_w[:, 0])
+    truth = motion.origin_m[:, 0] @ Rz.T
+    n = int(RATE)
+    error = np.linalg.norm((root[n:] - root[:-n]) - (truth[n:] - truth[:-n]), axis=-1).mean()
+    walked = np.linalg.norm(truth[n:] - truth[:-n], axis=-1).mean()
+    print(f"07_01: {error * 100:.1f} cm per 1 s window, walked {walked * 100:.1f} cm")
+    assert walked > 0.8 and error < 0.15 * walked

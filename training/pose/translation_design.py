@@ -1,0 +1,75 @@
+"""The design set of the body's translation rule (``service.core.translation``): training-side clips only.
+
+The rule has three constants (the flight threshold, the contact band, the inertial share). They were chosen on
+clips of the people a pose model trains on, never on the validation or held-out people: per activity, a fixed
+random draw of clips (seed 0), the model's own answer on one simulated session per clip (seed 7), and the rule on
+the true pose beside it. ``python -m training.cli pose-translation-design`` prints the table docs/pose.md quotes;
+its options run the rule with other constants.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from service.core.body import BODY_SEGMENTS, clip_body
+from service.inference.pose import PoseModel, whole_body
+from service.inference.registry import load_model
+from training.pose.config import PoseConfig
+from training.pose.data import MotionClip
+from training.pose.evaluate import p_root_true, pelvis_free_acc, translation_metrics
+from training.pose.train import fixed_sessions
+
+DESIGN_SEED = 7
+# (activity, clips drawn, shortest clip in frames); "run" twice: Bandai-Namco's long runs (most at 1.4 m/s, little
+# flight) and its short fast ones (2.5-4 m/s, as the held-out runs)
+DESIGN_SETS = (
+    ("walk", 6, 400),
+    ("walk_turn", 6, 400),
+    ("walk_backward", 6, 400),
+    ("run", 6, 400),
+    ("run", 12, 120),
+    ("jump", 6, 400),
+    ("wave", 6, 400),
+)
+
+
+def _mean(values: list[float]) -> float:
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
+def design_clips(train: list[MotionClip]) -> list[tuple[str, list[MotionClip]]]:
+    """Per design set, its clips: a fixed draw from the training side's clips of that activity and length."""
+    rng = np.random.default_rng(0)
+    out = []
+    for activity, count, shortest in DESIGN_SETS:
+        pool = [c for c in train if c.activity == activity and c.motion.n_frames > shortest]
+        picked = [pool[k] for k in rng.permutation(len(pool))[:count]]
+        out.append((f"{activity} (> {shortest} frames)", picked))
+    return out
+
+
+def design_table(model_dir: Path, train: list[MotionClip]) -> dict[str, dict[str, float]]:
+    """Per design set, the mean ``trans_*`` metrics (``training.pose.evaluate``) with the model's answer."""
+    model = PoseModel(load_model(model_dir, 2))
+    cfg = PoseConfig(name=model.name, sensors=model.spec.sensors, output_segments=model.spec.output_segments)
+    sensors = [BODY_SEGMENTS.index(s) for s in cfg.sensors]
+    outputs = [BODY_SEGMENTS.index(s) for s in cfg.outputs]
+    table = {}
+    for name, clips in design_clips(train):
+        rows = defaultdict(list)
+        for clip, s in zip(clips, fixed_sessions(clips, cfg, DESIGN_SEED), strict=True):
+            R_pred = whole_body(s.R_world_sensor_segment, model.predict(s.features), sensors, outputs)
+            Rz = Rotation.from_rotvec([0.0, 0.0, s.heading_rad]).as_matrix()
+            R_true = np.einsum("ij,tsjk->tsik", Rz, clip.motion.R_world_segment)
+            m = translation_metrics(
+                clip_body(clip.motion), R_pred, R_true, pelvis_free_acc(s), p_root_true(clip, Rz), 60.0
+            )
+            for k, v in m.items():
+                rows[k].append(v)
+        table[name] = {k: _mean(v) for k, v in rows.items()} | {"clips": float(len(clips))}
+    return table
