@@ -73,11 +73,11 @@ def _request(n: int) -> dict:
     }
 
 
-def bench_rest(base: str, repeats: int) -> dict:
+def bench_rest(base: str, repeats: int, translation: str = "none") -> dict:
     out = {}
     with httpx.Client(timeout=120) as c:
         for seconds in (2, 30):
-            body = json.dumps(_request(60 * seconds)).encode()
+            body = json.dumps(_request(60 * seconds) | {"translation": translation}).encode()
             for _ in range(3):
                 c.post(
                     base + "/v1/pose/imu", content=body, headers={"content-type": "application/json"}
@@ -95,7 +95,14 @@ def bench_rest(base: str, repeats: int) -> dict:
 
 
 async def _stream(
-    url: str, seconds: float, packet: int, mode: str, lat: list[float], counts: list[int], start_at: float
+    url: str,
+    seconds: float,
+    packet: int,
+    mode: str,
+    lat: list[float],
+    counts: list[int],
+    start_at: float,
+    translation: str = "none",
 ) -> None:
     frames, binary = mode.startswith("frame"), mode.endswith("binary")
     n = int(seconds * 60)
@@ -105,7 +112,7 @@ async def _stream(
     await asyncio.sleep(max(0.0, start_at - time.perf_counter()))
     async with websockets.connect(url, max_size=None, ping_interval=None) as ws:
         sensors = [{"sensor_id": s, "segment": s, "q_segment_sensor": [1.0, 0.0, 0.0, 0.0]} for s in SIX]
-        pose = {"calibration": "declared", "output": "binary" if binary else "json"}
+        pose = {"calibration": "declared", "output": "binary" if binary else "json", "translation": translation}
         await ws.send(json.dumps({"type": "start", "sensors": sensors, "pose": pose}))
         await ws.recv()  # started
 
@@ -156,14 +163,16 @@ def _pose_batch_totals(base: str) -> tuple[float, float, float]:
     )
 
 
-async def bench_streams(base: str, n: int, seconds: float, packet: int, mode: str, ramp_s: float) -> dict:
+async def bench_streams(
+    base: str, n: int, seconds: float, packet: int, mode: str, ramp_s: float, translation: str = "none"
+) -> dict:
     url = base.replace("http", "ws") + "/v1/stream"
     before = _pose_batch_totals(base)
     lat: list[float] = []
     counts = [0]
     start_at = time.perf_counter() + 1.0
     # clients connect one after another over ramp_s seconds, as independent users would, at random phases
-    tasks = [_stream(url, seconds, packet, mode, lat, counts, start_at + k * ramp_s / n) for k in range(n)]
+    tasks = [_stream(url, seconds, packet, mode, lat, counts, start_at + k * ramp_s / n, translation) for k in range(n)]
     loop_shares: list[float] = []
 
     async def watch() -> None:  # the service's event loop, once a second
@@ -227,6 +236,9 @@ def main() -> None:
         default=sorted(MODES),
         help="; ".join(f"{k}: {v}" for k, v in MODES.items()),
     )
+    ap.add_argument(
+        "--translation", choices=["none", "feet"], default="none", help="the pose answers' translation (REST, streams)"
+    )
     ap.add_argument("--out", type=Path, default=RESULTS / "pose.json", help="where the results go")
     args = ap.parse_args()
     proc, base = start_service(REPO / "onnx_models")
@@ -235,13 +247,14 @@ def main() -> None:
         out = {
             "command": "python -m benchmarks.bench_pose "
             f"--streams {' '.join(map(str, args.streams))} --seconds {args.seconds} --packet {args.packet} "
-            f"--repeats {args.repeats} --ramp {args.ramp} --modes {' '.join(args.modes)}",
+            f"--repeats {args.repeats} --ramp {args.ramp} --modes {' '.join(args.modes)} "
+            f"--translation {args.translation}",
             "machine": platform.processor() or platform.machine(),
             "served": served,
-            **bench_rest(base, args.repeats),
+            **bench_rest(base, args.repeats, args.translation),
         }
         out["streams"] = [
-            asyncio.run(bench_streams(base, n, args.seconds, args.packet, mode, args.ramp))
+            asyncio.run(bench_streams(base, n, args.seconds, args.packet, mode, args.ramp, args.translation))
             for mode in args.modes
             for n in args.streams
         ]

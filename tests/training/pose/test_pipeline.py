@@ -193,6 +193,9 @@ def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
     assert [Path(c["clip"]).name for c in report["clips"]] == ["07_01.bvh", "07_02.bvh"]
     assert 0.0 < report["overall"]["all"]["angle_all_deg"] < 180.0 and report["overall"]["all"]["jpe_cm"] > 0.0
     assert set(report["activity"]) == {"walks"}
+    # the body's translation: on the true pose the rule follows these walks far better than a pelvis kept in place
+    walks = report["overall"]["all"]
+    assert walks["trans_truth_1s_cm"] < 0.3 * walks["trans_still_1s_cm"] and walks["trans_1s_cm"] > 0.0
     # per segment, the error and its constant part per clip; where the errors are small (the sensors' own segments,
     # whatever this tiny network answers) the rotation mean's angle is at most the mean angle, up to its slack
     assert len(report["segments"]) == 21
