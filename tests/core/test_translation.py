@@ -104,3 +104,24 @@ def test_on_a_real_walk_the_rule_on_the_true_pose_follows_the_pelvis(data_dir: P
     walked = np.linalg.norm(truth[n:] - truth[:-n], axis=-1).mean()
     print(f"07_01: {error * 100:.1f} cm per 1 s window, walked {walked * 100:.1f} cm")
     assert walked > 0.8 and error < 0.15 * walked
+
+
+def test_bodies_moved_together_move_as_each_alone() -> None:
+    """A live batch: bodies of different sizes, one with no frame this time, one on its first call."""
+    from service.core.translation import advance_bodies
+
+    rng = np.random.default_rng(5)
+    feet = [Feet(ANKLES, BALLS, h) for h in (0.06, 0.08, 0.1)]
+    blocks = [
+        [(rng.normal(scale=0.3, size=(n, len(BODY_SEGMENTS), 3)), rng.normal(scale=6.0, size=(n, 3))) for n in counts]
+        for counts in ((5, 0, 3), (2, 4, 1), (0, 6, 2))
+    ]
+    together = [RootTracker(f, RATE) for f in feet]
+    alone = [RootTracker(f, RATE) for f in feet]
+    for call in range(3):
+        moved = advance_bodies(together, [b[call][0] for b in blocks], [b[call][1] for b in blocks])
+        for k in range(3):
+            expected = alone[k].advance(*blocks[k][call])
+            np.testing.assert_array_equal(moved[k][0], expected[0])
+            np.testing.assert_array_equal(moved[k][1], expected[1])
+            assert moved[k][0].shape == (len(blocks[k][call][0]), 3)
