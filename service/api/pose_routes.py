@@ -204,35 +204,41 @@ def unit_check(body: PoseImuRequest, r: Readings) -> list[str]:
 
 @dataclass(frozen=True)
 class BodyPose:
-    """Every segment's orientation ``(T, 21, 3, 3)`` in the sensors' world frame, the body it is drawn on, and
-    with translation the pelvis positions ``(T, 3)``."""
-
-    R_world: np.ndarray
-    body: Body
-    root_m: np.ndarray | None
+    R_world: np.ndarray  # (T, 21, 3, 3) every segment's orientation in the sensors' world frame
+    body: Body  # the body it is drawn on
+    root_m: np.ndarray | None  # (T, 3) the pelvis positions, with translation
 
 
-def body_pose(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, body: PoseImuRequest) -> BodyPose:
+def body_pose(
+    model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height_m: float | None, translation: str
+) -> BodyPose:
+    """The model's pose on the default body (or one of ``height_m``), with the body's translation when asked
+    (``service.core.translation``, from the pelvis sensor's free acceleration)."""
     R_w_seg, a_w = segment_readings(r.q_world_sensor, r.acc_mps2, q_seg_sensor)
     R_out = model.predict(pose_features(R_w_seg, a_w))
     R_world = whole_body(R_w_seg, R_out, model.sensor_index, model.output_index)
-    drawn = model.body.scaled(body.body_height_m) if body.body_height_m else model.body
-    if body.translation == "none":
-        return BodyPose(R_world, drawn, None)
-    tracker = RootTracker(feet_of(drawn), MODEL_RATE_HZ)
-    return BodyPose(R_world, drawn, tracker.advance(drawn.forward(R_world), a_w[:, 0])[0])
+    body = model.body.scaled(height_m) if height_m else model.body
+    if translation == "none":
+        return BodyPose(R_world, body, None)
+    tracker = RootTracker(feet_of(body), MODEL_RATE_HZ)
+    return BodyPose(R_world, body, tracker.advance(body.forward(R_world), a_w[:, 0])[0])
 
 
-def pose_bvh(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, body: PoseImuRequest) -> str:
+def pose_bvh(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height_m: float | None, translation: str) -> str:
     """The pose as the text of a BVH file (``service.core.body.body_bvh``)."""
-    pose = body_pose(model, r, q_seg_sensor, body)
+    pose = body_pose(model, r, q_seg_sensor, height_m, translation)
     return format_bvh(body_bvh(pose.R_world, pose.body, MODEL_RATE_HZ, pose.root_m))
 
 
 def pose_response(
-    model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, body: PoseImuRequest, warnings: list[str]
+    model: PoseModel,
+    r: Readings,
+    q_seg_sensor: np.ndarray,
+    height_m: float | None,
+    translation: str,
+    warnings: list[str],
 ) -> PoseImuResponse:
-    pose = body_pose(model, r, q_seg_sensor, body)
+    pose = body_pose(model, r, q_seg_sensor, height_m, translation)
     R_world = pose.R_world
     answer = pose_answer(R_world, pose.body)
     covered = set(covered_segments(model))
@@ -269,7 +275,8 @@ def pose_response(
         "the segment each sensor is on, and a calibration: `declared` alignments (no pose needed, e.g. from "
         "/v1/imu/assign) or the frame span of a still N-pose/T-pose in this request. Returns per frame (60 Hz) and "
         "segment the global and parent-relative quaternions and joint positions of the default body (or of "
-        "`body_height_m`). The model is the offline one whose sensors match, or the one `model` names. With "
+        "`body_height_m`); with `translation` `feet` also where the pelvis is per frame (`root_position_m`). The "
+        "model is the offline one whose sensors match, or the one `model` names. With "
         "`format=bvh` the same pose comes as a BVH file (one joint per segment, centimetres, Y up) for Blender, "
         "MotionBuilder or OpenSim; its model and warnings in the headers `X-Pose-Model` and `X-Pose-Warnings`."
     ),
@@ -302,8 +309,10 @@ async def pose_from_imu(
     warnings = unit_check(body, readings)
     runner = request.app.state.runner
     if format == "bvh":
-        text = await runner.run_call(pose_bvh, model, readings, q_seg_sensor, body)
+        text = await runner.run_call(pose_bvh, model, readings, q_seg_sensor, body.body_height_m, body.translation)
         version = model.loaded.manifest.version
         return file_answer(text, f"{model.name}.bvh", "Pose", model.name, version, warnings)
-    answer = await runner.run_call(pose_response, model, readings, q_seg_sensor, body, warnings)
+    answer = await runner.run_call(
+        pose_response, model, readings, q_seg_sensor, body.body_height_m, body.translation, warnings
+    )
     return Response(answer.model_dump_json(), media_type="application/json")

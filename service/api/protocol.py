@@ -33,8 +33,9 @@ Server → client
   declared sessions are calibrated at the start, still-pose sessions after a still span, assignment sessions when
   the assignment is sure of the model's segments) · pose (from the streaming model, as frames complete: first_frame,
   frames, q_world_segment and joint_positions_m per frame in "started"'s pose.segments order; each frame answers
-  look_ahead_frames late; with "pose": {"translation": "feet"} also root_position_m, the pelvis per frame as
-  /v1/pose/imu gives it) · warning (pose-only sessions: once per sensor, when the first 2 s of body frames
+  look_ahead_frames late; with "pose": {"translation": "feet"} also root_position_m, the pelvis per frame by
+  /v1/pose/imu's rule, run over the frames this stream answers, from its first answered frame; "started" says
+  pose.translation) · warning (pose-only sessions: once per sensor, when the first 2 s of body frames
   read implausibly for its declared units).
   With "pose": {"output": "binary"} each pose message is a binary pose block instead (little-endian): uint16 1,
   uint16 S segments, uint32 first_frame, uint32 frames, then frames × S × 4 float32 q_world_segment (w x y z) and
@@ -241,8 +242,13 @@ def decode_pose_block(data: bytes) -> dict:
     values = np.frombuffer(data, dtype="<f4", offset=POSE_BLOCK.size)
     q = values[: 4 * frames * segments].reshape(frames, segments, 4)
     p = values[4 * frames * segments : 7 * frames * segments].reshape(frames, segments, 3)
-    message = {"type": "pose", "first_frame": first_frame, "frames": frames, "q_world_segment": q}
-    message["joint_positions_m"] = p
+    message = {
+        "type": "pose",
+        "first_frame": first_frame,
+        "frames": frames,
+        "q_world_segment": q,
+        "joint_positions_m": p,
+    }
     if translated:
         message["root_position_m"] = values[7 * frames * segments :].reshape(frames, 3)
     return message

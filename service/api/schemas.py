@@ -522,6 +522,7 @@ EXAMPLE_POSE_IMU_RESPONSE = {
     "body_height_m": 1.7,
     "q_segment_sensor": {"pelvis": [1.0, 0.0, 0.0, 0.0]},
     "segments": {"Pelvis": _EXAMPLE_TRACK},
+    "root_position_m": None,
 }
 
 

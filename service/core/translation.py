@@ -15,8 +15,10 @@ over the ball of the foot in the neutral stance) and its ball (the toe joint). T
 within ``CONTACT_BAND_M`` of the lowest; the chosen one holds still, so the pelvis moves by minus that point's
 motion relative to the pelvis, averaged half and half with the inertial prediction (a complementary filter that
 smooths the predicted legs' jitter). The floor is level at height 0 where the first frame's lowest point stands;
-on the ground the pelvis height is the supporting point's height below it. Otherwise the pelvis moves as its
-accelerometer says (in flight, a throw under gravity).
+on the ground the lowest point stands on it, which sets the pelvis height (the vertical velocity is blended the
+same way, so that a throw starts from a smooth one). Otherwise the pelvis moves as its accelerometer says (in
+flight, a throw under gravity). A body starts at rest: a session that starts moving (an assignment hand-over
+mid-walk) reads too little speed for its first frames, about five on the ground.
 
 Known limits: the floor is flat (stairs, slopes and a seat read as the feet's level), a foot that slides moves
 the body the other way, and error in the predicted legs accumulates as drift (docs/pose.md, "Translation").
@@ -86,9 +88,9 @@ def advance_bodies(
     feet = trackers[0].feet  # every body's segments are named alike; the ankle heights differ with its size
     ankle_height = np.repeat([tr.feet.ankle_height_m for tr in trackers], counts)
     points = contact_points(np.concatenate(joints_m), feet.ankles, feet.balls, ankle_height)
-    for tr, b in zip(trackers, bounds[:-1], strict=True):
-        if tr.points is None and len(points) > b:  # a body's first frame stands on the floor where it is
-            tr.points = points[b]
+    for tr, b, n in zip(trackers, bounds[:-1], counts, strict=True):
+        if tr.points is None and n:  # a body's first frame stands on the floor where it is
+            tr.points = points[b].copy()
             tr.root = [0.0, 0.0, -float(points[b, :, 2].min())]
     before = np.concatenate([points[:1], points[:-1]])
     last = [tr.points for tr, n in zip(trackers, counts, strict=True) if n]
@@ -106,7 +108,7 @@ def advance_bodies(
     for tr, a, b in zip(trackers, bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
         if a < b:
             _track(tr, rate, implied[a:b], heights[a:b], ground[a:b], steps[a:b], out, carried)
-            tr.points = points[b - 1]
+            tr.points = points[b - 1].copy()
     out_a, carried_a = np.array(out).reshape(-1, 3), np.array(carried, dtype=int)
     return [(out_a[a:b], carried_a[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
@@ -122,9 +124,19 @@ def contact_points(
     return np.stack([heels[:, 0], balls_[:, 0], heels[:, 1], balls_[:, 1]], axis=1)
 
 
-def _track(tr: RootTracker, rate: float, implied, heights, ground, steps, out: list, carried: list) -> None:
+def _track(
+    tr: RootTracker,
+    rate: float,
+    implied: list[list[list[float]]],
+    heights: list[list[float]],
+    ground: list[bool],
+    steps: list[list[float]],
+    out: list[list[float]],
+    carried: list[int],
+) -> None:
     """One body's frames in order, appended to ``out`` and ``carried`` (Python floats: each frame's choice depends
-    on the velocity before it)."""
+    on the velocity before it). Per frame: ``implied`` the pelvis velocity if each point held still, ``heights`` the
+    points' heights, ``ground`` whether a foot carries the body, ``steps`` the accelerometer's change of velocity."""
     (x, y, z), (vx, vy, vz) = tr.root, tr.velocity
     for t in range(len(heights)):
         px, py, pz = vx + steps[t][0], vy + steps[t][1], vz + steps[t][2]  # the inertial prediction
@@ -136,11 +148,12 @@ def _track(tr: RootTracker, rate: float, implied, heights, ground, steps, out: l
                 (k for k in range(4) if h[k] <= low),
                 key=lambda k: math.hypot(implied[t][k][0] - px, implied[t][k][1] - py),
             )
-        if j >= 0:
+        if j >= 0:  # the chosen point moves the pelvis along the floor; the lowest one stands on it
             vx = INERTIAL_SHARE * px + (1.0 - INERTIAL_SHARE) * implied[t][j][0]
             vy = INERTIAL_SHARE * py + (1.0 - INERTIAL_SHARE) * implied[t][j][1]
-            vz, z = (-heights[t][j] - z) * rate, -heights[t][j]
-            x, y = x + vx / rate, y + vy / rate
+            z_floor = -min(heights[t])
+            vz = INERTIAL_SHARE * pz + (1.0 - INERTIAL_SHARE) * (z_floor - z) * rate
+            x, y, z = x + vx / rate, y + vy / rate, z_floor
         else:  # a throw: exact for the acceleration held over the frame
             x, y, z = x + 0.5 * (vx + px) / rate, y + 0.5 * (vy + py) / rate, z + 0.5 * (vz + pz) / rate
             vx, vy, vz = px, py, pz

@@ -963,3 +963,26 @@ def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_rule_does(ser
     assert code == 1000, reason
     blocks = [m for m in binary if m["type"] == "pose"]  # decoded by _stream
     np.testing.assert_allclose(np.concatenate([b["root_position_m"] for b in blocks]), root_live, atol=1e-4)
+
+
+def test_pose_blocks_with_and_without_translation_read_back_and_a_cut_block_is_refused() -> None:
+    from service.api.protocol import encode_pose_block
+
+    rng = np.random.default_rng(2)
+    message = {
+        "type": "pose",
+        "first_frame": 7,
+        "frames": 3,
+        "q_world_segment": rng.normal(size=(3, 21, 4)),
+        "joint_positions_m": rng.normal(size=(3, 21, 3)),
+    }
+    for extra in ({}, {"root_position_m": rng.normal(size=(3, 3))}):
+        block = encode_pose_block(message | extra)
+        assert len(block) == 12 + 28 * 3 * 21 + (12 * 3 if extra else 0)
+        back = decode_pose_block(block)
+        assert back["first_frame"] == 7 and back["frames"] == 3 and ("root_position_m" in back) == bool(extra)
+        for key, value in (message | extra).items():
+            if isinstance(value, np.ndarray):
+                np.testing.assert_allclose(back[key], value, rtol=1e-6)
+        with pytest.raises(ValueError, match="not a pose block"):
+            decode_pose_block(block[:-4])

@@ -24,16 +24,16 @@ from training.pose.evaluate import p_root_true, pelvis_free_acc, translation_met
 from training.pose.train import fixed_sessions
 
 DESIGN_SEED = 7
-# (activity, clips drawn, shortest clip in frames); "run" twice: Bandai-Namco's long runs (most at 1.4 m/s, little
-# flight) and its short fast ones (2.5-4 m/s, as the held-out runs)
+# (activity, clips drawn, frames: more than, at most); "run" twice: Bandai-Namco's long runs (most at 1.4 m/s,
+# little flight) and its short ones (most at 2.5-4 m/s, as fast as the held-out runs)
 DESIGN_SETS = (
-    ("walk", 6, 400),
-    ("walk_turn", 6, 400),
-    ("walk_backward", 6, 400),
-    ("run", 6, 400),
-    ("run", 12, 120),
-    ("jump", 6, 400),
-    ("wave", 6, 400),
+    ("walk", 6, 400, None),
+    ("walk_turn", 6, 400, None),
+    ("walk_backward", 6, 400, None),
+    ("run", 6, 400, None),
+    ("run", 12, 120, 400),
+    ("jump", 6, 400, None),
+    ("wave", 6, 400, None),
 )
 
 
@@ -46,10 +46,15 @@ def design_clips(train: list[MotionClip]) -> list[tuple[str, list[MotionClip]]]:
     """Per design set, its clips: a fixed draw from the training side's clips of that activity and length."""
     rng = np.random.default_rng(0)
     out = []
-    for activity, count, shortest in DESIGN_SETS:
-        pool = [c for c in train if c.activity == activity and c.motion.n_frames > shortest]
+    for activity, count, shortest, longest in DESIGN_SETS:
+        pool = [
+            c
+            for c in train
+            if c.activity == activity and shortest < c.motion.n_frames <= (longest or c.motion.n_frames)
+        ]
         picked = [pool[k] for k in rng.permutation(len(pool))[:count]]
-        out.append((f"{activity} (> {shortest} frames)", picked))
+        frames = f"> {shortest}" if longest is None else f"{shortest + 1}-{longest}"
+        out.append((f"{activity} ({frames} frames)", picked))
     return out
 
 
