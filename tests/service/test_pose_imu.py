@@ -382,6 +382,16 @@ def _rows(raw, k: int) -> np.ndarray:
     return np.concatenate([raw.acc_mps2[:, k], raw.gyr_rads[:, k], raw.q_world_sensor[:, k]], axis=1)
 
 
+def _declared_six(raw, n: int) -> tuple[list[dict], list]:
+    """The six sensors declared with their alignments, and their first ``n`` frames as JSON packets of 8 samples."""
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    packets = [(s.lower(), f, _rows(raw, k)[f : f + 8]) for f in range(0, n, 8) for k, s in enumerate(SIX_SENSORS)]
+    return sensors, packets
+
+
 def test_the_stream_answers_pose_as_the_streaming_model_does_offline(server: str, walk, pose_models) -> None:
     motion, raw = walk
     sensors = [
@@ -455,11 +465,7 @@ def test_a_live_bvh_stream_makes_the_file_of_the_json_stream_s_pose(server: str,
     them reads back (BVH reader, forward kinematics) to the same segment orientations as the JSON stream's."""
     motion, raw = walk
     n = min(240, motion.n_frames) // 8 * 8
-    sensors = [
-        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
-        for k, s in enumerate(SIX_SENSORS)
-    ]
-    packets = [(s.lower(), f, _rows(raw, k)[f : f + 8]) for f in range(0, n, 8) for k, s in enumerate(SIX_SENSORS)]
+    sensors, packets = _declared_six(raw, n)
     url = server.replace("http", "ws") + "/v1/stream"
     start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "body_height_m": 1.8}}
     reference, code, reason = asyncio.run(_stream(url, start, packets))
@@ -941,11 +947,7 @@ def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_rule_does(ser
 
     motion, raw = walk
     n = min(480, motion.n_frames) // 8 * 8
-    sensors = [
-        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
-        for k, s in enumerate(SIX_SENSORS)
-    ]
-    packets = [(s.lower(), f, _rows(raw, k)[f : f + 8]) for f in range(0, n, 8) for k, s in enumerate(SIX_SENSORS)]
+    sensors, packets = _declared_six(raw, n)
     url = server.replace("http", "ws") + "/v1/stream"
     start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "translation": "feet"}}
     messages, code, reason = asyncio.run(_stream(url, start, packets))
