@@ -88,8 +88,9 @@ def advance_bodies(
     feet = trackers[0].feet  # every body's segments are named alike; the ankle heights differ with its size
     ankle_height = np.repeat([tr.feet.ankle_height_m for tr in trackers], counts)
     points = contact_points(np.concatenate(joints_m), feet.ankles, feet.balls, ankle_height)
-    for tr, b, n in zip(trackers, bounds[:-1], counts, strict=True):
-        if tr.points is None and n:  # a body's first frame stands on the floor where it is
+    starting = [tr.points is None and n > 0 for tr, n in zip(trackers, counts, strict=True)]
+    for tr, b, start in zip(trackers, bounds[:-1], starting, strict=True):
+        if start:  # a body's first frame stands on the floor where it is, at rest
             tr.points = points[b].copy()
             tr.root = [0.0, 0.0, -float(points[b, :, 2].min())]
     before = np.concatenate([points[:1], points[:-1]])
@@ -105,10 +106,15 @@ def advance_bodies(
     steps = (acc / rate).tolist()
     out: list[list[float]] = []
     carried: list[int] = []
-    for tr, a, b in zip(trackers, bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
-        if a < b:
-            _track(tr, rate, implied[a:b], heights[a:b], ground[a:b], steps[a:b], out, carried)
-            tr.points = points[b - 1].copy()
+    for tr, a, b, start in zip(trackers, bounds[:-1].tolist(), bounds[1:].tolist(), starting, strict=True):
+        if a == b:
+            continue
+        if start:  # the first frame is the origin
+            out.append(list(tr.root))
+            carried.append(int(np.argmin(heights[a])) if ground[a] else -1)
+        a += int(start)
+        _track(tr, rate, implied[a:b], heights[a:b], ground[a:b], steps[a:b], out, carried)
+        tr.points = points[b - 1].copy()
     out_a, carried_a = np.array(out).reshape(-1, 3), np.array(carried, dtype=int)
     return [(out_a[a:b], carried_a[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
