@@ -22,7 +22,8 @@ mid-walk) reads too little speed for its first frames, about five on the ground.
 
 Known limits: the floor is flat (stairs, slopes and a seat read as the feet's level), a foot that slides moves
 the body the other way, and error in the predicted legs accumulates as drift (docs/pose.md, "Translation").
-The constants were set on training-side clips (docs/pose.md), never on the held-out people.
+The constants were set on training-side clips, not read off the held-out people (docs/pose.md says what those
+were scored with while the rule was built).
 """
 
 from __future__ import annotations
@@ -37,11 +38,11 @@ from service.core.units import GRAVITY_MPS2
 # Below this specific force at the pelvis (a fraction of g) no foot is taken to carry the body: flight, and the
 # end of a push-off (set on the design set, docs/pose.md "Translation": 0.4 g, free fall only, read twice the
 # error on fast runs; 0.9 g a little less than 0.8 g there, but leaves more frames to the accelerometer alone,
-# whose simulated readings are cleaner than a real sensor's)
+# whose real errors change within a session where the simulation's do not)
 FLIGHT_SPECIFIC_FORCE_G = 0.8
 # Contact candidates: points at most this far above the lowest one.
 CONTACT_BAND_M = 0.03
-# The share of the inertial prediction in each ground frame's horizontal velocity.
+# The share of the inertial prediction in each ground frame's velocity.
 INERTIAL_SHARE = 0.5
 
 
