@@ -638,6 +638,10 @@ class Body:
         """Segment origins ``(T, S, 3)`` from orientations ``(T, S, 3, 3)``; the root at ``root_m`` or 0."""
         return segment_origins(R_world_segment, self.offsets_m, root_m)
 
+    def neutral_joints(self) -> np.ndarray:
+        """Segment origins ``(S, 3)`` of the neutral stance (every segment frame = identity), the pelvis at 0."""
+        return self.forward(np.broadcast_to(np.eye(3), (1, len(self.segments), 3, 3)))[0]
+
     @property
     def height_m(self) -> float:
         return standing_height(self)
@@ -669,7 +673,7 @@ def clip_body(motion: BodyMotion) -> Body:
 def feet_of(body: Body) -> Feet:
     """The body's feet for its translation (``service.core.translation``): the ankles are the feet's origins, the
     balls the toes', and the ankle stands over the ball by their height difference in the neutral stance."""
-    rest = body.forward(np.broadcast_to(np.eye(3), (1, len(body.segments), 3, 3)))[0]
+    rest = body.neutral_joints()
     ankles = (body.segments.index("LeftFoot"), body.segments.index("RightFoot"))
     balls = (body.segments.index("LeftToe"), body.segments.index("RightToe"))
     height = float(np.mean([rest[a, 2] - rest[b, 2] for a, b in zip(ankles, balls, strict=True)]))
@@ -689,8 +693,7 @@ def body_bvh(R_world_segment: np.ndarray, body: Body, sample_rate_hz: float, roo
     R = np.einsum("ji,tsjk,kl->tsil", C, R_world_segment, C)  # each frame's axes in the BVH world
     offsets_cm = body.offsets_m @ C * 100.0  # C.T @ offset per segment
     if root_m is None:
-        rest = body.forward(np.broadcast_to(np.eye(3), (1, len(body.segments), 3, 3)))[0]
-        root_cm = np.array([0.0, -rest[:, 2].min() * 100.0, 0.0])
+        root_cm = np.array([0.0, -body.neutral_joints()[:, 2].min() * 100.0, 0.0])
     else:
         root_cm = np.asarray(root_m) @ C * 100.0  # C.T @ position per frame
     leaves = sorted(set(range(len(body.segments))) - set(PARENT_INDEX))
@@ -701,7 +704,7 @@ def body_bvh(R_world_segment: np.ndarray, body: Body, sample_rate_hz: float, roo
 def standing_height(body: Body) -> float:
     """Height of the neutral pose (every segment frame = identity): head origin above the lowest toe origin,
     plus a head length of 0.12 of that span (anthropometric ratio, assumed)."""
-    p = body.forward(np.broadcast_to(np.eye(3), (1, len(BODY_SEGMENTS), 3, 3)))[0]
+    p = body.neutral_joints()
     span = p[BODY_SEGMENTS.index("Head"), 2] - p[:, 2].min()
     return float(span * 1.12)
 

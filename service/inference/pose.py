@@ -319,7 +319,7 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
     L = model.spec.look_ahead_frames
     answered: list[tuple[int, int, int]] = []  # (session, first network frame answered, frames answered)
     R_out, R_sensors, offsets = [], [], []
-    tracked: list[tuple[int, np.ndarray]] = []  # (index into answered, the pelvis's free acceleration)
+    tracked: list[tuple[int, RootTracker, np.ndarray]] = []  # (index into answered, tracker, pelvis free acc)
     for i, live in enumerate(lives):
         live.state = states[i]
         if live.inputs == 0:
@@ -337,7 +337,7 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
         R_sensors.append(live.history[:n])
         live.history = live.history[n:]
         if live.tracker is not None:
-            tracked.append((len(answered) - 1, live.pelvis_acc[:n]))
+            tracked.append((len(answered) - 1, live.tracker, live.pelvis_acc[:n]))
             live.pelvis_acc = live.pelvis_acc[n:]
         offsets.append(np.broadcast_to(live.body.offsets_m, (n, *live.body.offsets_m.shape)))
     results: list[dict | None] = [None] * len(lives)
@@ -351,11 +351,11 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
     roots: dict[int, np.ndarray] = {}
     if tracked:
         moved = advance_bodies(
-            [lives[answered[a][0]].tracker for a, _ in tracked],
-            [exact[rows[a] : rows[a + 1]] for a, _ in tracked],
-            [acc for _, acc in tracked],
+            [tracker for _, tracker, _ in tracked],
+            [exact[rows[a] : rows[a + 1]] for a, _, _ in tracked],
+            [acc for _, _, acc in tracked],
         )
-        roots = {a: np.round(p, 4) for (a, _), (p, _) in zip(tracked, moved, strict=True)}
+        roots = {a: np.round(p, 4) for (a, _, _), (p, _) in zip(tracked, moved, strict=True)}
     for a, (i, answered_from, n) in enumerate(answered):
         row = rows[a]
         results[i] = {

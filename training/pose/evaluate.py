@@ -108,7 +108,8 @@ def clip_metrics(
         "jitter_mps3": jitter(p_pred),
         "jitter_true_mps3": jitter(p_true),
     }
-    metrics |= translation_metrics(body, R_pred, R_true, pelvis_free_acc(session), p_root_true(clip, Rz), rate)
+    root_true = clip.motion.origin_m[:, 0] @ Rz.T  # the pelvis in the session's world
+    metrics |= translation_metrics(body, R_pred, R_true, pelvis_free_acc(session), root_true, rate)
     per_segment = {BODY_SEGMENTS[k]: float(err[:, k].mean()) for k in covered}
     constant = {
         BODY_SEGMENTS[k]: float(
@@ -124,11 +125,6 @@ def pelvis_free_acc(session: Session) -> np.ndarray:
     (``calibration.segment_readings``), read back from the features (the root's own acceleration, eq. 3)."""
     own = session.features[:, 3:6].astype(np.float64) * ACC_SCALE_MPS2
     return np.einsum("tij,tj->ti", session.R_world_sensor_segment[:, 0], own)
-
-
-def p_root_true(clip: MotionClip, Rz: np.ndarray) -> np.ndarray:
-    """The clip's pelvis positions ``(T, 3)`` in the session's world (turned by its heading)."""
-    return clip.motion.origin_m[:, 0] @ Rz.T
 
 
 def translation_metrics(

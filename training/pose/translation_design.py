@@ -9,18 +9,15 @@ its options run the rule with other constants.
 
 from __future__ import annotations
 
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from service.core.body import BODY_SEGMENTS, clip_body
-from service.inference.pose import PoseModel, whole_body
+from service.inference.pose import PoseModel
 from service.inference.registry import load_model
 from training.pose.config import PoseConfig
 from training.pose.data import MotionClip
-from training.pose.evaluate import p_root_true, pelvis_free_acc, translation_metrics
+from training.pose.evaluate import evaluate_clips
 from training.pose.train import fixed_sessions
 
 DESIGN_SEED = 7
@@ -59,22 +56,13 @@ def design_clips(train: list[MotionClip]) -> list[tuple[str, list[MotionClip]]]:
 
 
 def design_table(model_dir: Path, train: list[MotionClip]) -> dict[str, dict[str, float]]:
-    """Per design set, the mean ``trans_*`` metrics (``training.pose.evaluate``) with the model's answer."""
+    """Per design set, the mean ``trans_*`` metrics of ``training.pose.evaluate`` with the model's answer."""
     model = PoseModel(load_model(model_dir, 2))
     cfg = PoseConfig(name=model.name, sensors=model.spec.sensors, output_segments=model.spec.output_segments)
-    sensors = [BODY_SEGMENTS.index(s) for s in cfg.sensors]
-    outputs = [BODY_SEGMENTS.index(s) for s in cfg.outputs]
     table = {}
     for name, clips in design_clips(train):
-        rows = defaultdict(list)
-        for clip, s in zip(clips, fixed_sessions(clips, cfg, DESIGN_SEED), strict=True):
-            R_pred = whole_body(s.R_world_sensor_segment, model.predict(s.features), sensors, outputs)
-            Rz = Rotation.from_rotvec([0.0, 0.0, s.heading_rad]).as_matrix()
-            R_true = np.einsum("ij,tsjk->tsik", Rz, clip.motion.R_world_segment)
-            m = translation_metrics(
-                clip_body(clip.motion), R_pred, R_true, pelvis_free_acc(s), p_root_true(clip, Rz), 60.0
-            )
-            for k, v in m.items():
-                rows[k].append(v)
-        table[name] = {k: _mean(v) for k, v in rows.items()} | {"clips": float(len(clips))}
+        sessions = fixed_sessions(clips, cfg, DESIGN_SEED)
+        results = evaluate_clips(model.predict, clips, sessions, cfg.sensors, cfg.outputs)
+        keys = [k for k in results[0].metrics if k.startswith("trans_")] if results else []
+        table[name] = {k: _mean([r.metrics[k] for r in results]) for k in keys} | {"clips": float(len(clips))}
     return table
