@@ -2,10 +2,10 @@
 fine-tuning from any release, on a fresh clone whose restored runs carry no checkpoints), and assemble an
 ``AssignmentEnsemble`` from shipped members.
 
-The TorchScript exporter folds each BatchNorm into its Conv and stores the recurrent weights in ONNX gate order:
-GRU (z, r, h) where torch uses (r, z, n), LSTM (i, o, f, c) where torch uses (i, f, g, o), one LSTM node per
-layer. The state dict is rebuilt accordingly (BatchNorm set to the identity, so the fused convolutions carry the
-whole affine map), and the result must reproduce the model's ``golden.npz`` before it is used.
+The TorchScript exporter folds each BatchNorm into its Conv and stores the recurrent weights in ONNX gate order
+(``training.onnx_weights``). The state dict is rebuilt accordingly (BatchNorm set to the identity, so the fused
+convolutions carry the whole affine map), and the result must reproduce the model's ``golden.npz`` before it is
+used.
 """
 
 from __future__ import annotations
@@ -20,15 +20,7 @@ from torch import nn
 
 from service.core.manifest import read_manifest
 from training.i2s.models import AlignmentNet, AssignmentEnsemble, AssignmentNet
-
-# Gate blocks along axis 0: where each torch gate sits in the ONNX layout (torch order, ONNX positions).
-_GRU_GATES = (1, 0, 2)  # ONNX (z, r, h) → torch (r, z, n)
-_LSTM_GATES = (0, 2, 3, 1)  # ONNX (i, o, f, c) → torch (i, f, g, o)
-
-
-def _reorder_gates(w: np.ndarray, hidden: int, order: tuple[int, ...]) -> np.ndarray:
-    """ONNX gate blocks along axis 0 → torch's order (``_GRU_GATES``, ``_LSTM_GATES``)."""
-    return np.concatenate([w[g * hidden : (g + 1) * hidden] for g in order])
+from training.onnx_weights import GRU_GATES, LSTM_GATES, recurrent_state
 
 
 def state_from_onnx(onnx_path: Path, net: AssignmentNet | AlignmentNet) -> dict[str, torch.Tensor]:
@@ -52,17 +44,12 @@ def state_from_onnx(onnx_path: Path, net: AssignmentNet | AlignmentNet) -> dict[
         state[f"{bn}.bias"] = torch.zeros_like(state[f"{bn}.bias"])
         state[f"{bn}.running_mean"] = torch.zeros_like(state[f"{bn}.running_mean"])
         state[f"{bn}.running_var"] = torch.full_like(state[f"{bn}.running_var"], 1.0 - eps)
-    op, order = ("GRU", _GRU_GATES) if isinstance(net.rnn, torch.nn.GRU) else ("LSTM", _LSTM_GATES)
+    op, order = ("GRU", GRU_GATES) if isinstance(net.rnn, torch.nn.GRU) else ("LSTM", LSTM_GATES)
     layers = [n for n in model.graph.node if n.op_type == op]
     if len(layers) < net.rnn.num_layers or len(layers) % net.rnn.num_layers:
         raise ValueError(f"expected {net.rnn.num_layers} {op} node(s) per pass, the ONNX graph has {len(layers)}")
-    hidden, gates = net.rnn.hidden_size, len(order)
     for layer, node in enumerate(layers[: net.rnn.num_layers]):
-        W, R, B = (inits[name][0] for name in node.input[1:4])
-        state[f"rnn.weight_ih_l{layer}"] = torch.from_numpy(_reorder_gates(W, hidden, order))
-        state[f"rnn.weight_hh_l{layer}"] = torch.from_numpy(_reorder_gates(R, hidden, order))
-        state[f"rnn.bias_ih_l{layer}"] = torch.from_numpy(_reorder_gates(B[: gates * hidden], hidden, order))
-        state[f"rnn.bias_hh_l{layer}"] = torch.from_numpy(_reorder_gates(B[gates * hidden :], hidden, order))
+        state |= recurrent_state(node, inits, layer, net.rnn.hidden_size, order)
     head = next(name[: -len("weight")] for name in inits if name.endswith("head.weight"))
     state["head.weight"] = torch.from_numpy(inits[f"{head}weight"].copy())
     state["head.bias"] = torch.from_numpy(inits[f"{head}bias"].copy())
