@@ -28,6 +28,25 @@ class PoseSelectionConfig(Strict):
     optimise: bool = True
 
 
+class PoseOwnDataConfig(Strict):
+    """A user's own motion capture beside (or instead of) the data directory's (``training.pose.pipeline.own_clips``):
+    BVH files (plain or .gz) in one folder per person, ``<path>/<person>/…/*.bvh``; a file's activity is the name
+    of the folder it lies in, where that is below the person's. A person's sessions can be split by folders too
+    (``<path>/p01_monday``, ``<path>/p01_friday``): the split is by these first-level folders."""
+
+    path: str
+    # a skeleton none of the known families (CMU, iClone, Bandai-Namco) fits needs one (docs/pose.md)
+    mapping: str | None = None
+    # first-level folders whose clips choose the epoch and the registry's champion instead of the data directory's
+    # validation subjects (none: the data directory's choose), and folders held out and reported beside its
+    # held-out subjects; every other folder trains
+    val_people: list[str] = Field(default_factory=list)
+    test_people: list[str] = Field(default_factory=list)
+    # share of the drawn training sequences from these clips (the rest from the data directory's, as configured);
+    # 1.0: these clips only
+    share: float = Field(0.5, gt=0.0, le=1.0)
+
+
 class PoseDataConfig(Strict):
     # Held-out subjects (never trained on, reported as the test set) and validation subjects (early stopping and
     # every choice between variants). Splits are by subject; Bandai-Namco names no actors and stays in training.
@@ -55,6 +74,8 @@ class PoseDataConfig(Strict):
     # and activities, ``training.pose.data.seen_split``) is kept out of training and scored as "seen people" (their
     # test set is 20,000 frames of their own four people's walking, running and basketball); 0: off
     seen_share: float = Field(0.0, ge=0.0, le=0.5)
+    # the user's own motion capture (``PoseOwnDataConfig``); None: the data directory's clips only
+    own: PoseOwnDataConfig | None = None
 
 
 class PoseModelConfig(Strict):
@@ -96,6 +117,10 @@ class PoseTrainConfig(Strict):
     # and each of them also run on the mirror image of the input, its answer mirrored back (our addition; the
     # sensors and outputs must come in left/right pairs); with it one run is enough
     ensemble_mirror: bool = False
+    # Start from a shipped single-network file of this recipe (onnx_models/<name>/<version>: its weights and its
+    # feature standardisation; ``training.pose.warmstart``) instead of at random: fine-tuning, e.g. on ``data.own``.
+    # Its validation figure is epoch 0's, so a run that never beats it returns it unchanged.
+    init_from_onnx: str | None = None
 
 
 class PoseConfig(Strict):
@@ -123,6 +148,11 @@ class PoseConfig(Strict):
                 "train.ensemble_of assembles two or more offline (bilstm) networks (one with train.ensemble_mirror); "
                 f"got {len(self.train.ensemble_of)} of kind {self.model.kind}"
             )
+        if self.train.init_from_onnx and self.train.ensemble_of:
+            raise ValueError("train.init_from_onnx starts one network's training; train.ensemble_of trains none")
+        own = self.data.own
+        if own and set(own.val_people) & set(own.test_people):
+            raise ValueError(f"data.own: {sorted(set(own.val_people) & set(own.test_people))} both validate and test")
         if self.train.ensemble_mirror and self.train.ensemble_of is None:
             raise ValueError("train.ensemble_mirror mirrors the networks of train.ensemble_of; name them")
         if self.train.sequence_frames <= 2 * self.train.context_frames:

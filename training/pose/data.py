@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 MOTION_VERSION = "5"  # 2: upright trunk frames for L5 and T8; 3: one set of segment offsets per rig; 4: from walks;
 # 5: feet level in flat stance
 MODEL_RATE_HZ = 60.0
+OWN_SOURCE = "own"  # a user's own motion capture (``data.own``)
 
 
 @dataclass(frozen=True)

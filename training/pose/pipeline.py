@@ -11,7 +11,7 @@ import functools
 import json
 import logging
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import mlflow
@@ -23,7 +23,7 @@ from mlflow.tracking import MlflowClient
 
 from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, clip_body
 from service.core.calibration import features_per_frame
-from service.core.manifest import Evaluation, sha256_file
+from service.core.manifest import Evaluation, read_manifest, sha256_file
 from service.inference.pose import PoseModel, whole_body
 from service.inference.registry import load_model
 from training.config import flatten
@@ -38,6 +38,7 @@ from training.plots import (
 from training.pose.config import PoseConfig, is_streaming, served_chunks
 from training.pose.data import (
     MODEL_RATE_HZ,
+    OWN_SOURCE,
     MotionClip,
     build_motions,
     dataset_digest,
@@ -61,6 +62,7 @@ from training.pose.placement import CANDIDATES, search_placement
 from training.pose.selection import Selection, select, selected_clips
 from training.pose.simulate import Session
 from training.pose.train import PoseTrainResult, build_net, fixed_sessions, torch_predictor, train_pose
+from training.pose.warmstart import warm_start_from_shipped
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
@@ -92,6 +94,14 @@ def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: in
     if d.seen_share > 0:
         train, seen = seen_split(train, d.seen_share)
         log.info("seen people: %d training clips held back", len(seen))
+    if d.own is not None:
+        own_train, own_val, own_test = own_clips(cfg, data_dir, cache_dir)
+        log.info(
+            "own motion capture: %d train, %d validation, %d test clips", len(own_train), len(own_val), len(own_test)
+        )
+        train = own_train if d.own.share == 1.0 else train + own_train
+        val = own_val or val  # the user's people choose where they are named
+        test = test + own_test
     if d.selection is None:
         return PoseData(train, val, test, seen=seen)
     s = d.selection
@@ -109,6 +119,63 @@ def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: in
     selection = select(rest, reference, unit, s.eta0, cfg.train.sequence_frames, s.weights, s.optimise)
     # Zheng et al. 2021 §5.1: the selected data and the reference data are trained on
     return PoseData(reference + selected_clips(rest, selection.runs), val, test, selection, seen)
+
+
+def own_clips(
+    cfg: PoseConfig, data_dir: Path, cache_dir: Path
+) -> tuple[list[MotionClip], list[MotionClip], list[MotionClip]]:
+    """``data.own``'s clips as (train, validation, test) by their first-level folders (``PoseOwnDataConfig``), on
+    the canonical body in the config's segment frames: a skeleton of one of the data directory's rigs gets that
+    rig's frames, any other frames fitted on its own walks (``user_clips``). A file that cannot be read is left out
+    with its reason; a folder named for validation or test that holds none raises."""
+    own = cfg.data.own
+    assert own is not None
+    root = Path(own.path)
+    if not root.is_dir():
+        raise ValueError(f"data.own.path {str(root)!r} is not a folder")
+    people = sorted(p for p in root.iterdir() if p.is_dir())
+    if not people:
+        raise ValueError(f"data.own.path {str(root)!r} holds no folders: put each person's BVH files in one")
+    names = [p.name for p in people]
+    missing = sorted(set(own.val_people + own.test_people) - set(names))
+    if missing:
+        raise ValueError(f"data.own names {missing}, which are not folders of {str(root)!r} (it has {names})")
+    mapping = Path(own.mapping) if own.mapping else None
+    clips = user_clips(people, mapping, cfg.data.limb_twist, data_dir, cache_dir, trunk_axes=cfg.data.trunk_axes)
+    parts: dict[str, list[MotionClip]] = {"train": [], "val": [], "test": []}
+    for c in clips:
+        inner = Path(c.path).relative_to(root).parts
+        person = inner[0]
+        activity = inner[-2] if len(inner) > 2 else "unlabelled"
+        part = "val" if person in own.val_people else "test" if person in own.test_people else "train"
+        parts[part].append(replace(c, source=OWN_SOURCE, subject=person, activity=activity))
+    for part, folders in (("val", own.val_people), ("test", own.test_people)):
+        empty = sorted(set(folders) - {c.subject for c in parts[part]})
+        if empty:
+            raise ValueError(f"data.own: {empty} hold no clip that could be read")
+    if not parts["train"]:
+        raise ValueError(f"data.own: no clip of {str(root)!r} is left to train on (every folder validates or tests)")
+    return parts["train"], parts["val"], parts["test"]
+
+
+def own_tested(cfg: PoseConfig) -> bool:
+    return cfg.data.own is not None and bool(cfg.data.own.test_people)
+
+
+def own_summary(cfg: PoseConfig, data: PoseData) -> dict:
+    """What a model trained on ``data.own`` says of it in its manifest."""
+    own = cfg.data.own
+    assert own is not None
+    trained = [c for c in data.train if c.source == OWN_SOURCE]
+    return {
+        "train_people": sorted({c.subject for c in trained}),
+        "train_clips": len(trained),
+        "train_frames_60hz": int(sum(c.motion.n_frames for c in trained)),
+        "share_of_draws": own.share,
+        "validation_people": own.val_people,
+        "test_people": own.test_people,
+        "mapping": Path(own.mapping).name if own.mapping else None,
+    }
 
 
 def default_body(clips: list[MotionClip]) -> Body:
@@ -197,6 +264,18 @@ def assembled(cfg: PoseConfig) -> PoseTrainResult:
     return PoseTrainResult(PoseEnsemble(members, mirror).eval(), stopped="assembled")
 
 
+def _log_epoch(epoch: int, row: dict[str, float]) -> None:
+    """One epoch's figures on the learning curves (a warm start's epoch 0 has only its validation angle)."""
+    names = {
+        "train_loss": "train_loss",
+        # comparable across recipes with and without the joint-position term
+        "train_rotation_loss": "train_rotation_loss",
+        "val_angle_deg": "val_angle_deg_epoch",
+        "lr": "lr",
+    }
+    mlflow.log_metrics({metric: row[key] for key, metric in names.items() if key in row}, step=epoch)
+
+
 def _judging(data: PoseData, cfg: PoseConfig, val_sessions: list[Session]) -> list[Session]:
     """The validation sessions that choose the epoch: a model for one scenario is judged on that scenario's
     validation clips (its reference activities), where the validation subjects have any."""
@@ -261,24 +340,16 @@ def run_pose_experiment(
         _log_datasets(data, data_dir)
         if data.selection is not None:
             _log_selection(data.selection, cfg, tmp)
+        init_state = None
+        if cfg.train.init_from_onnx:  # fine-tuning a shipped file (training.pose.warmstart)
+            mlflow.set_tag("init_from_onnx", cfg.train.init_from_onnx)
+            init_state = warm_start_from_shipped(
+                Path(cfg.train.init_from_onnx), cfg, build_net(cfg, features_per_frame(len(cfg.sensors)))
+            )
         result: PoseTrainResult = (
             assembled(cfg)
             if cfg.train.ensemble_of
-            else train_pose(
-                cfg,
-                data.train,
-                _judging(data, cfg, val_sessions),
-                on_epoch=lambda e, row: mlflow.log_metrics(
-                    {
-                        "train_loss": row["train_loss"],
-                        # comparable across recipes with and without the joint-position term
-                        "train_rotation_loss": row["train_rotation_loss"],
-                        "val_angle_deg_epoch": row["val_angle_deg"],
-                        "lr": row["lr"],
-                    },
-                    step=e,
-                ),
-            )
+            else train_pose(cfg, data.train, _judging(data, cfg, val_sessions), _log_epoch, init_state)
         )
         net = result.net
         mlflow.log_metrics(
@@ -359,6 +430,11 @@ def run_pose_experiment(
             training_data["ensemble_of"] = cfg.train.ensemble_of
             if cfg.train.ensemble_mirror:
                 training_data["ensemble_mirror"] = True
+        if cfg.train.init_from_onnx:  # fine-tuned from a shipped file
+            shipped_from = read_manifest(Path(cfg.train.init_from_onnx) / "manifest.json")
+            training_data["init_from"] = f"{shipped_from.name} {shipped_from.version}"
+        if cfg.data.own is not None:  # the user's own motion capture (folder names, not paths)
+            training_data["own"] = own_summary(cfg, data)
         if cfg.data.seen_share:  # trained without a share of the training clips
             training_data["seen_share"] = cfg.data.seen_share
         if data.selection is not None:  # a model for one scenario (Zheng et al. 2021 §5)
@@ -372,9 +448,9 @@ def run_pose_experiment(
         evaluation = evaluation_record(
             HELD_OUT,
             f"python -m training.cli evaluate-pose --model onnx_models/{cfg.name}/{version}",
-            f"CMU subjects {', '.join(cfg.data.test_subjects)} and the li2018 run clips, never trained on or "
-            "chosen by; "
-            "one simulated session per clip (seed 2)",
+            f"CMU subjects {', '.join(cfg.data.test_subjects)} and the li2018 run clips"
+            + (f", and the own folders {', '.join(cfg.data.own.test_people)}" if own_tested(cfg) else "")
+            + ", never trained on or chosen by; one simulated session per clip (seed 2)",
             test_summary,
         )
         manifest = build_pose_manifest(

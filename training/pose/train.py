@@ -26,7 +26,7 @@ from service.core.body import BODY_SEGMENTS, PARENT_INDEX, clip_body
 from service.inference.pose import run_chunked
 from training.data.catalog import is_bandai_namco
 from training.pose.config import PoseConfig, served_chunks
-from training.pose.data import MotionClip, mirrored
+from training.pose.data import OWN_SOURCE, MotionClip, mirrored
 from training.pose.models import PoseNet, anchor_sensors
 from training.pose.simulate import SensorNoise, Session, root_relative_targets, simulate_session
 
@@ -54,9 +54,21 @@ def fixed_sessions(clips: list[MotionClip], cfg: PoseConfig, seed: int) -> list[
     return [session_of(c, cfg, np.random.default_rng([seed, int(c.digest[:12], 16)])) for c in clips]
 
 
-def clip_weights(clips: list[MotionClip], cap_frames: int, bandai_share: float | None = None) -> np.ndarray:
+def clip_weights(
+    clips: list[MotionClip], cap_frames: int, bandai_share: float | None = None, own_share: float | None = None
+) -> np.ndarray:
     """How often each clip is drawn: by its frames, less for activities beyond ``cap_frames``; with
-    ``bandai_share``, Bandai-Namco's clips together get that share of the draws and the others the rest."""
+    ``bandai_share``, Bandai-Namco's clips together get that share of the draws and the others the rest; with
+    ``own_share``, the user's own clips (``data.own``) that share, the data directory's the rest (weighed among
+    themselves as without them)."""
+    own = np.array([c.source == OWN_SOURCE for c in clips])
+    if own_share is not None and own.any() and not own.all():
+        w = np.zeros(len(clips))
+        w[~own] = (1.0 - own_share) * clip_weights(
+            [c for c, o in zip(clips, own, strict=True) if not o], cap_frames, bandai_share
+        )
+        w[own] = own_share * clip_weights([c for c, o in zip(clips, own, strict=True) if o], cap_frames)
+        return w
     frames = Counter()
     for c in clips:
         frames[c.activity] += c.motion.n_frames
@@ -189,7 +201,11 @@ def train_pose(
     train_clips: list[MotionClip],
     val_sessions: list[Session],
     on_epoch: Callable[[int, dict[str, float]], None] | None = None,
+    init_state: dict[str, torch.Tensor] | None = None,
 ) -> PoseTrainResult:
+    """The network of the best validation epoch. ``init_state``: a warm start's weights and feature
+    standardisation (``training.pose.warmstart``); its own validation figure is then epoch 0's (``on_epoch`` gets
+    it, without training figures), and a run that never beats it returns it unchanged."""
     t0 = time.time()
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.train.threads)
@@ -198,17 +214,26 @@ def train_pose(
         val_sessions[0].features.shape[1] if val_sessions else session_of(train_clips[0], cfg, rng).features.shape[1]
     )
     net = build_net(cfg, n_features)
-    net.set_normalisation(*feature_stats(train_clips, cfg, rng))
+    if init_state is None:
+        net.set_normalisation(*feature_stats(train_clips, cfg, rng))
+    else:
+        net.load_state_dict(init_state)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.train.lr)
     sched = (
         torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.train.max_epochs, eta_min=cfg.train.lr * cfg.train.lr_floor)
         if cfg.train.lr_schedule == "cosine"
         else None
     )
-    weights = clip_weights(train_clips, cfg.data.activity_cap_frames, cfg.data.bandai_share)
+    own_share = cfg.data.own.share if cfg.data.own else None
+    weights = clip_weights(train_clips, cfg.data.activity_cap_frames, cfg.data.bandai_share, own_share)
     output_index = [BODY_SEGMENTS.index(s) for s in cfg.outputs]
     result = PoseTrainResult(net)
     best_state, bad = copy.deepcopy(net.state_dict()), 0
+    if init_state is not None:
+        result.best_val_deg = validation_angle(net, val_sessions, served_chunks(cfg))
+        log.info("%s warm start: validation %.2f°", cfg.name, result.best_val_deg)
+        if on_epoch:
+            on_epoch(0, {"val_angle_deg": result.best_val_deg})
     L, W = cfg.model.look_ahead, cfg.train.sequence_frames
     for epoch in range(1, cfg.train.max_epochs + 1):
         net.train()

@@ -161,6 +161,83 @@ def test_the_streaming_model_frame_by_frame_equals_its_offline_evaluation(shippe
     np.testing.assert_allclose(live, offline, atol=1e-5)
 
 
+def lab_mapping() -> dict:
+    """The iClone rig's mapping with its joints renamed: a skeleton family the job does not know."""
+    built_in = SKELETON_MAPPINGS["cmu_iclone"]
+    rename = lambda j: None if j is None else j.replace("CC_Base_", "Lab_")  # noqa: E731
+    return {
+        "name": "a_lab_rig",
+        "metres_per_unit": built_in.metres_per_unit,
+        "hips": [rename(j) for j in built_in.hips],
+        "segments": {s: {"joint": rename(j), "distal": rename(d)} for s, (j, d) in built_in.segments.items()},
+    }
+
+
+def test_a_shipped_model_fine_tuned_on_own_motion_capture_of_an_unknown_rig(
+    shipped: dict[str, dict], data_dir: Path, canonical_cache: Path, tmp_path: Path
+) -> None:
+    """``data.own`` (a folder per person, a mapping file) beside the data directory's clips, from the shipped
+    file's weights (``train.init_from_onnx``): the own validation person chooses, starting from the shipped
+    network's own figure on them (epoch 0); the own test person is reported; the manifest says what it trained on."""
+    own = tmp_path / "lab"
+    layout = {"ann/walk": ["07_01", "07_02"], "ann/turns": ["07_05"], "bob": ["07_03"], "cid/walk": ["07_04"]}
+    for folder, names in layout.items():
+        (own / folder).mkdir(parents=True)
+        for name in names:
+            text = (data_dir / "mocap/cmu_iclone" / f"{name}.bvh").read_text().replace("CC_Base_", "Lab_")
+            (own / folder / f"{name}.bvh").write_text(text)
+    (tmp_path / "rig.json").write_text(json.dumps(lab_mapping()))
+    start = Path(shipped["tiny_full6"]["shipped"])
+    cfg = PoseConfig.model_validate(
+        {
+            "name": "tiny_full6_lab",
+            "model": {"kind": "bilstm", "hidden": 16, "layers": 1},
+            "data": {
+                **TINY["data"],
+                "own": {
+                    "path": str(own),
+                    "mapping": str(tmp_path / "rig.json"),
+                    "val_people": ["bob"],
+                    "test_people": ["cid"],
+                    "share": 0.5,
+                },
+            },
+            "train": {**TINY["train"], "max_epochs": 1, "init_from_onnx": str(start)},
+            "tracking": {"experiment": "test-pose"},
+        }
+    )
+    result = run_pose_experiment(cfg, data_dir, canonical_cache, tmp_path / "models", "0.0.1", workers=2)
+    assert set(result["val"]["subject"]) == {"bob"}
+    assert {"cid", "cmu_07"} <= set(result["test"]["subject"])
+    assert set(result["test"]["activity"]) >= {"walk"}
+    m = read_manifest(Path(result["shipped"]) / "manifest.json")
+    assert m.training_data["init_from"] == "tiny_full6 0.0.1"
+    assert m.training_data["own"] | {"train_frames_60hz": 0} == {
+        "train_people": ["ann"],
+        "train_clips": 3,
+        "train_frames_60hz": 0,
+        "share_of_draws": 0.5,
+        "validation_people": ["bob"],
+        "test_people": ["cid"],
+        "mapping": "rig.json",
+    }
+    assert "own" in m.training_data["sources"] and "cid" in m.evaluations[0].data
+    # epoch 0 is the shipped network's validation figure on the own validation person (not on cmu_03)
+    from service.core.calibration import features_per_frame
+    from training.pose.config import served_chunks
+    from training.pose.pipeline import VAL_SEED, own_clips
+    from training.pose.train import build_net, fixed_sessions, validation_angle
+    from training.pose.warmstart import warm_start_from_shipped
+
+    _, val, _ = own_clips(cfg, data_dir, canonical_cache)
+    net = build_net(cfg, features_per_frame(len(cfg.sensors)))
+    net.load_state_dict(warm_start_from_shipped(start, cfg, net))
+    expected = validation_angle(net, fixed_sessions(val, cfg, VAL_SEED), served_chunks(cfg))
+    history = MlflowClient().get_metric_history(result["run_id"], "val_angle_deg_epoch")
+    assert [h.step for h in sorted(history, key=lambda h: h.step)] == [0, 1]
+    assert next(h.value for h in history if h.step == 0) == pytest.approx(expected, abs=1e-4)
+
+
 def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
     shipped: dict[str, dict], data_dir: Path, tmp_path: Path
 ) -> None:
@@ -170,15 +247,7 @@ def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
     for name in ("07_01.bvh", "07_02.bvh"):
         text = (data_dir / "mocap/cmu_iclone" / name).read_text().replace("CC_Base_", "Lab_")
         (clips / name).write_text(text)
-    built_in = SKELETON_MAPPINGS["cmu_iclone"]
-    rename = lambda j: None if j is None else j.replace("CC_Base_", "Lab_")  # noqa: E731
-    mapping = {
-        "name": "a_lab_rig",
-        "metres_per_unit": built_in.metres_per_unit,
-        "hips": [rename(j) for j in built_in.hips],
-        "segments": {s: {"joint": rename(j), "distal": rename(d)} for s, (j, d) in built_in.segments.items()},
-    }
-    (tmp_path / "rig.json").write_text(json.dumps(mapping))
+    (tmp_path / "rig.json").write_text(json.dumps(lab_mapping()))
     model = shipped["tiny_full6"]["shipped"]
     base = [sys.executable, "-m", "training.cli", "evaluate-pose", str(clips), "--model", model]
     done = subprocess.run(

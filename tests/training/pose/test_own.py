@@ -1,0 +1,60 @@
+"""A user's own motion capture in pose training (``data.own``): how it is split, drawn and refused."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from service.core.body import BodyMotion
+from training.pose.config import PoseConfig
+from training.pose.data import OWN_SOURCE, MotionClip
+from training.pose.pipeline import own_clips
+from training.pose.train import clip_weights
+
+
+def clip(source: str, activity: str, frames: int) -> MotionClip:
+    z = np.zeros((frames, 21, 3))
+    motion = BodyMotion(np.broadcast_to(np.eye(3), (frames, 21, 3, 3)), z, z, 60.0)
+    return MotionClip(f"{source}/{activity}/{frames}", source, "", activity, motion, "0" * 20)
+
+
+def test_own_clips_get_their_share_of_the_draws_and_the_rest_are_weighed_as_without_them() -> None:
+    theirs = [clip("bandai_namco_1", "walk", 600), clip("cmu_iclone", "walk", 200), clip("cmu_iclone", "run", 100)]
+    own = [clip(OWN_SOURCE, "walk", 300), clip(OWN_SOURCE, "stairs", 100)]
+    w = clip_weights(theirs + own, 72_000, bandai_share=0.25, own_share=0.3)
+    assert w.sum() == pytest.approx(1.0)
+    assert w[3:].sum() == pytest.approx(0.3) and w[3] == pytest.approx(0.3 * 0.75)
+    np.testing.assert_allclose(w[:3], 0.7 * clip_weights(theirs, 72_000, bandai_share=0.25))
+    # own clips only (share 1.0 drops the data directory's training clips before they are weighed)
+    np.testing.assert_allclose(clip_weights(own, 72_000, own_share=1.0), [0.75, 0.25])
+
+
+def test_a_config_that_validates_and_tests_on_one_person_or_fine_tunes_an_average_is_refused() -> None:
+    own = {"path": "lab", "val_people": ["ann", "bob"], "test_people": ["bob"]}
+    with pytest.raises(ValidationError, match="bob"):
+        PoseConfig.model_validate({"name": "x", "data": {"own": own}})
+    with pytest.raises(ValidationError, match="init_from_onnx"):
+        PoseConfig.model_validate(
+            {"name": "x", "train": {"init_from_onnx": "onnx_models/x/1.0.0", "ensemble_of": ["a", "b"]}}
+        )
+    with pytest.raises(ValidationError, match="share"):
+        PoseConfig.model_validate({"name": "x", "data": {"own": {"path": "lab", "share": 0.0}}})
+
+
+def test_an_own_folder_that_is_not_laid_out_per_person_says_what_it_has(tmp_path: Path) -> None:
+    def attempt(**own) -> str:
+        cfg = PoseConfig.model_validate({"name": "x", "data": {"own": own}})
+        with pytest.raises(ValueError) as err:
+            own_clips(cfg, tmp_path, tmp_path / "cache")
+        return str(err.value)
+
+    assert "is not a folder" in attempt(path=str(tmp_path / "absent"))
+    (tmp_path / "lab").mkdir()
+    (tmp_path / "lab" / "walk.bvh").write_text("HIERARCHY")
+    assert "holds no folders" in attempt(path=str(tmp_path / "lab"))
+    (tmp_path / "lab" / "ann").mkdir()
+    said = attempt(path=str(tmp_path / "lab"), val_people=["anne"])
+    assert "anne" in said and "['ann']" in said
