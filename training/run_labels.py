@@ -59,6 +59,8 @@ def run_title(params: Mapping[str, str], tags: Mapping[str, str], shipped: list[
     real = _listed(params.get("data.real_train_recordings"))
     if real and "real_loso_held_out" not in tags:  # a fold trains on every other person's
         parts.append(f"+ {len(real)} real recordings")
+    if _own(params):  # a pose run on the user's own motion capture (data.own)
+        parts.append("+ own mocap")
     start = _start(params, tags)
     if start:
         parts.append(f"from {start}")
@@ -80,6 +82,8 @@ def run_description(params: Mapping[str, str], tags: Mapping[str, str], shipped:
     real = _listed(params.get("data.real_train_recordings"))
     if real:
         words.append(f", fine-tuned on {len(real)} real recordings")
+    if own := _own(params):
+        words.append(f", trained also on own motion capture ({own})")
     if start := _start(params, tags):
         words.append(f", warm start from {start}")
     if teacher := _teacher(params):
@@ -134,6 +138,12 @@ def _start(params: Mapping[str, str], tags: Mapping[str, str]) -> str:
     if tags.get("init_from_run"):
         return f"run {tags['init_from_run'][:8]}"
     return ""
+
+
+def _own(params: Mapping[str, str]) -> str:
+    """The folder of a pose run's own motion capture (``data.own.path``: its last part), or ""."""
+    path = params.get("data.own.path")
+    return path.rstrip("/").rsplit("/", 1)[-1] if path and path != "None" else ""
 
 
 def _teacher(params: Mapping[str, str]) -> str:
