@@ -83,7 +83,8 @@ def run_description(params: Mapping[str, str], tags: Mapping[str, str], shipped:
     if real:
         words.append(f", fine-tuned on {len(real)} real recordings")
     if own := _own(params):
-        words.append(f", trained also on own motion capture ({own})")
+        also = "" if params.get("data.own.share") == "1.0" else "also "
+        words.append(f", trained {also}on own motion capture ({own})")
     if start := _start(params, tags):
         words.append(f", warm start from {start}")
     if teacher := _teacher(params):

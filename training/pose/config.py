@@ -153,6 +153,10 @@ class PoseConfig(Strict):
         own = self.data.own
         if own and set(own.val_people) & set(own.test_people):
             raise ValueError(f"data.own: {sorted(set(own.val_people) & set(own.test_people))} both validate and test")
+        if own and own.share == 1.0 and self.data.seen_share:
+            raise ValueError(
+                "data.seen_share holds back the data directory's training clips; data.own.share 1.0 trains on none"
+            )
         if self.train.ensemble_mirror and self.train.ensemble_of is None:
             raise ValueError("train.ensemble_mirror mirrors the networks of train.ensemble_of; name them")
         if self.train.sequence_frames <= 2 * self.train.context_frames:

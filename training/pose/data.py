@@ -331,8 +331,12 @@ POSE_EVALUATION = "served-chunks"
 
 
 def pose_evaluation_digest(val_clips: list[MotionClip]) -> str:
-    """The registry's ``eval_digest`` of a pose validation figure: the clips and how they were scored."""
-    return f"{dataset_digest(val_clips)}|{POSE_EVALUATION}"
+    """The registry's ``eval_digest`` of a pose validation figure: the clips and how they were scored. A user's own
+    clip (``data.own``) is named by its file, which says nothing of the segment frames it was read in (a mapping
+    file, the motion version): its first frame's segment rotations stand for them."""
+    own = [c for c in val_clips if c.source == OWN_SOURCE]
+    frames = hashlib.sha256(b"".join(np.round(c.motion.R_world_segment[0], 4).tobytes() for c in own)).hexdigest()[:8]
+    return f"{dataset_digest(val_clips)}|{POSE_EVALUATION}" + (f"|own {frames}" if own else "")
 
 
 def trains_on_bandai(clips: list[MotionClip]) -> bool:

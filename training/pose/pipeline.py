@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import os
 import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -72,6 +73,7 @@ log = logging.getLogger(__name__)
 VAL_SEED, TEST_SEED, BASELINE_SEED = 1, 2, 3
 SELECTION_METRIC = "val_angle_unsensed_deg"
 HELD_OUT = "held-out subjects (simulated sensors)"
+OWN_HELD_OUT = "own held-out people (simulated sensors)"
 
 
 @dataclass(frozen=True)
@@ -82,6 +84,8 @@ class PoseData:
     selection: Selection | None = None  # with ``data.selection``: how ``train`` was chosen
     # with ``data.seen_share``: training clips held back (Zheng et al. 2021 §7's protocol)
     seen: list[MotionClip] = field(default_factory=list)
+    # with ``data.own.test_people``: the user's held-out people, scored apart from the data directory's
+    own_test: list[MotionClip] = field(default_factory=list)
 
 
 def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: int = 2) -> PoseData:
@@ -94,16 +98,15 @@ def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: in
     if d.seen_share > 0:
         train, seen = seen_split(train, d.seen_share)
         log.info("seen people: %d training clips held back", len(seen))
+    own_test: list[MotionClip] = []
     if d.own is not None:
         own_train, own_val, own_test = own_clips(cfg, data_dir, cache_dir)
         log.info(
             "own motion capture: %d train, %d validation, %d test clips", len(own_train), len(own_val), len(own_test)
         )
-        train = own_train if d.own.share == 1.0 else train + own_train
-        val = own_val or val  # the user's people choose where they are named
-        test = test + own_test
+        train, val = with_own(train, val, own_train, own_val, d.own.share)
     if d.selection is None:
-        return PoseData(train, val, test, seen=seen)
+        return PoseData(train, val, test, seen=seen, own_test=own_test)
     s = d.selection
     is_ref = [
         c.activity in s.reference_activities and (s.reference_sources is None or c.source in s.reference_sources)
@@ -118,7 +121,20 @@ def load_pose_data(cfg: PoseConfig, data_dir: Path, cache_dir: Path, workers: in
     unit = max(1, round(s.unit_s * MODEL_RATE_HZ))
     selection = select(rest, reference, unit, s.eta0, cfg.train.sequence_frames, s.weights, s.optimise)
     # Zheng et al. 2021 §5.1: the selected data and the reference data are trained on
-    return PoseData(reference + selected_clips(rest, selection.runs), val, test, selection, seen)
+    return PoseData(reference + selected_clips(rest, selection.runs), val, test, selection, seen, own_test)
+
+
+def with_own(
+    train: list[MotionClip],
+    val: list[MotionClip],
+    own_train: list[MotionClip],
+    own_val: list[MotionClip],
+    share: float,
+) -> tuple[list[MotionClip], list[MotionClip]]:
+    """The training and validation clips with the user's own: their training clips beside the data directory's
+    (instead of them with ``share`` 1.0, as they would draw nothing), their validation people instead of its
+    validation subjects where any are named (a model for the user's people is judged on them)."""
+    return (own_train if share == 1.0 else train + own_train), (own_val or val)
 
 
 def own_clips(
@@ -136,6 +152,11 @@ def own_clips(
     people = sorted(p for p in root.iterdir() if p.is_dir())
     if not people:
         raise ValueError(f"data.own.path {str(root)!r} holds no folders: put each person's BVH files in one")
+    loose = sorted(p.name for p in root.iterdir() if p.is_file() and p.name.endswith((".bvh", ".bvh.gz")))
+    if loose:
+        log.warning(
+            "data.own: %d BVH files lie in no person's folder of %s and are left out: %s", len(loose), root, loose
+        )
     names = [p.name for p in people]
     missing = sorted(set(own.val_people + own.test_people) - set(names))
     if missing:
@@ -158,8 +179,13 @@ def own_clips(
     return parts["train"], parts["val"], parts["test"]
 
 
-def own_tested(cfg: PoseConfig) -> bool:
-    return cfg.data.own is not None and bool(cfg.data.own.test_people)
+def carries_bandai(cfg: PoseConfig, clips: list[MotionClip]) -> bool:
+    """Whether a model trained on ``clips`` carries Bandai-Namco's CC BY-NC 4.0 licence: its own clips, or the
+    shipped file it starts from (``train.init_from_onnx``: a fine-tune of a Bandai-trained network is one too)."""
+    if trains_on_bandai(clips):
+        return True
+    start = cfg.train.init_from_onnx
+    return bool(start and read_manifest(Path(start) / "manifest.json").training_data.get("bandai_namco"))
 
 
 def own_summary(cfg: PoseConfig, data: PoseData) -> dict:
@@ -180,7 +206,8 @@ def own_summary(cfg: PoseConfig, data: PoseData) -> dict:
 
 def default_body(clips: list[MotionClip]) -> Body:
     """The served default skeleton: the median bone vectors of the CMU training clips (real people's proportions;
-    Bandai-Namco shares one retargeted rig)."""
+    Bandai-Namco shares one retargeted rig); of all training clips where none is CMU's (a model trained on one's
+    own clips alone, ``data.own.share`` 1.0: its people's body)."""
     cmu = [c for c in clips if c.source.startswith("cmu")] or clips
     return Body(np.median(np.stack([clip_body(c.motion).offsets_m for c in cmu]), axis=0))
 
@@ -333,7 +360,7 @@ def run_pose_experiment(
                 "mlflow.note.content": f"{cfg.model.kind} ({cfg.model.representation}) from {len(cfg.sensors)} IMUs "
                 f"({', '.join(cfg.sensors)}) to {len(cfg.outputs)} segments; look-ahead {cfg.model.look_ahead} frames. "
                 "Validation subjects choose, held-out subjects are reported.",
-                "trains_on_bandai_namco": str(trains_on_bandai(data.train)),
+                "trains_on_bandai_namco": str(carries_bandai(cfg, data.train)),
             }
         )
         mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
@@ -380,6 +407,11 @@ def run_pose_experiment(
             mlflow.log_metrics(flat_metrics(seen, "seen"))
             for a, v in sorted(seen["activity"].items()):
                 log.info("seen people, %s: %.2f° over all segments", a, v["angle_all_deg"])
+        own_test_summary = None
+        if data.own_test:  # the user's held-out people, apart from the data directory's
+            own_sessions = fixed_sessions(data.own_test, cfg, TEST_SEED)
+            own_test_summary = summarise(evaluate_clips(predict, data.own_test, own_sessions, cfg.sensors, cfg.outputs))
+            mlflow.log_metrics(flat_metrics(own_test_summary, "test_own"))
         seg = per_segment_mean(test_results)
         mlflow.log_artifact(
             str(
@@ -420,7 +452,7 @@ def run_pose_experiment(
             # the segment frames it answers in (evaluate-pose scores in the same)
             "limb_twist": cfg.data.limb_twist,
             "trunk_axes": cfg.data.trunk_axes,
-            "bandai_namco": trains_on_bandai(data.train),
+            "bandai_namco": carries_bandai(cfg, data.train),
             "train_wall_time_s": round(result.wall_s, 1),
             "best_epoch": result.best_epoch,
             "epochs_run": len(result.history),
@@ -448,11 +480,23 @@ def run_pose_experiment(
         evaluation = evaluation_record(
             HELD_OUT,
             f"python -m training.cli evaluate-pose --model onnx_models/{cfg.name}/{version}",
-            f"CMU subjects {', '.join(cfg.data.test_subjects)} and the li2018 run clips"
-            + (f", and the own folders {', '.join(cfg.data.own.test_people)}" if own_tested(cfg) else "")
-            + ", never trained on or chosen by; one simulated session per clip (seed 2)",
+            f"CMU subjects {', '.join(cfg.data.test_subjects)} and the li2018 run clips, never trained on or "
+            "chosen by; one simulated session per clip (seed 2)",
             test_summary,
         )
+        evaluations = [evaluation]
+        if own_test_summary is not None:
+            assert cfg.data.own is not None
+            evaluations.append(
+                evaluation_record(
+                    OWN_HELD_OUT,
+                    f"python -m training.cli evaluate-pose <data.own.path>/<folder> --model onnx_models/{cfg.name}/"
+                    f"{version}",
+                    f"the own folders {', '.join(cfg.data.own.test_people)} (data.own), never trained on or chosen "
+                    "by; one simulated session per clip (seed 2)",
+                    own_test_summary,
+                )
+            )
         manifest = build_pose_manifest(
             cfg,
             net,
@@ -460,7 +504,7 @@ def run_pose_experiment(
             sha256_file(onnx_path),
             body,
             training_data,
-            [evaluation],
+            evaluations,
             {"run_id": run.info.run_id, "experiment_id": run.info.experiment_id},
         )
         proto = onnx.load(str(onnx_path))
@@ -487,6 +531,7 @@ def run_pose_experiment(
         return {
             "run_id": run.info.run_id,
             "test": test_summary,
+            "test_own": own_test_summary,
             "mean_pose": baseline,
             "val": val_summary,
             "shipped": str(shipped) if shipped else None,
@@ -585,7 +630,7 @@ def user_clips(
     mapping = load_mapping(mapping_file) if mapping_file else None
     files, walks = [], []
     for p in paths:
-        found = sorted(q for q in p.rglob("*") if q.name.endswith((".bvh", ".bvh.gz"))) if p.is_dir() else [p]
+        found = bvh_files(p) if p.is_dir() else [p]
         files += found
         # a walk: a folder (below the one given) or file name that says so
         walks += [q for q in found if "walk" in (str(q.relative_to(p)) if p.is_dir() else q.name).lower()]
@@ -640,6 +685,15 @@ def user_clips(
 
 
 MIN_USER_SECONDS = 0.5  # a user's clip shorter than this is left out: too short to simulate sensors on
+
+
+def bvh_files(folder: Path) -> list[Path]:
+    """The BVH files (plain or .gz) in ``folder`` and below it, through linked folders too (``Path.rglob`` does
+    not follow them before Python 3.13)."""
+    found = []
+    for root, _, names in os.walk(folder, followlinks=True):
+        found += [Path(root) / n for n in names if n.endswith((".bvh", ".bvh.gz"))]
+    return sorted(found)
 
 
 def _skeleton(path: Path) -> str:

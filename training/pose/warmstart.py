@@ -90,5 +90,8 @@ def warm_start_from_shipped(model_dir: Path, cfg: PoseConfig, net: PoseNet) -> d
         got = golden_pair(probe, golden["features"][0], cfg)["expected"]
         err = float(np.max(np.abs(got - golden["expected"])))
     if err > GOLDEN_ATOL:
-        raise ValueError(f"weights rebuilt from {model_dir} differ from its golden output by {err:.2e} > {GOLDEN_ATOL}")
+        raise ValueError(
+            f"weights rebuilt from {model_dir} differ from its golden output by {err:.2e} > {GOLDEN_ATOL}: the config "
+            "differs from the file's recipe where its manifest does not say (model.anchored, model.representation)"
+        )
     return state

@@ -11,7 +11,7 @@ from pydantic import ValidationError
 from service.core.body import BodyMotion
 from training.pose.config import PoseConfig
 from training.pose.data import OWN_SOURCE, MotionClip
-from training.pose.pipeline import own_clips
+from training.pose.pipeline import bvh_files, carries_bandai, own_clips, with_own
 from training.pose.train import clip_weights
 
 
@@ -58,3 +58,35 @@ def test_an_own_folder_that_is_not_laid_out_per_person_says_what_it_has(tmp_path
     (tmp_path / "lab" / "ann").mkdir()
     said = attempt(path=str(tmp_path / "lab"), val_people=["anne"])
     assert "anne" in said and "['ann']" in said
+
+
+def test_own_clips_alone_replace_the_data_directorys_and_own_validation_people_judge() -> None:
+    theirs, their_val = [clip("cmu_iclone", "walk", 200)], [clip("cmu_iclone", "walk", 100)]
+    own, own_val = [clip(OWN_SOURCE, "walk", 300)], [clip(OWN_SOURCE, "walk", 150)]
+    assert with_own(theirs, their_val, own, own_val, 0.5) == (theirs + own, own_val)
+    assert with_own(theirs, their_val, own, own_val, 1.0) == (own, own_val)
+    assert with_own(theirs, their_val, own, [], 0.5) == (theirs + own, their_val)
+    with pytest.raises(ValidationError, match="seen_share"):
+        PoseConfig.model_validate({"name": "x", "data": {"seen_share": 0.1, "own": {"path": "lab", "share": 1.0}}})
+
+
+def test_a_fine_tune_of_a_bandai_namco_network_carries_its_licence_whatever_it_trains_on() -> None:
+    shipped = Path(__file__).resolve().parents[3] / "onnx_models/pose_full6_stream/4.0.0"
+    own_only = [clip(OWN_SOURCE, "walk", 300)]
+    assert not carries_bandai(PoseConfig(name="x"), own_only)
+    assert carries_bandai(PoseConfig(name="x"), [*own_only, clip("bandai_namco_1", "walk", 300)])
+    cfg = PoseConfig.model_validate({"name": "x", "train": {"init_from_onnx": str(shipped)}})
+    assert carries_bandai(cfg, own_only)
+
+
+def test_bvh_files_are_found_through_linked_folders(tmp_path: Path) -> None:
+    (tmp_path / "elsewhere" / "walk").mkdir(parents=True)
+    (tmp_path / "elsewhere" / "walk" / "a.bvh.gz").write_bytes(b"")
+    (tmp_path / "elsewhere" / "notes.txt").write_text("")
+    (tmp_path / "ann").mkdir()
+    (tmp_path / "ann" / "b.bvh").write_text("")
+    (tmp_path / "ann" / "linked").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    assert [p.relative_to(tmp_path) for p in bvh_files(tmp_path / "ann")] == [
+        Path("ann/b.bvh"),
+        Path("ann/linked/walk/a.bvh.gz"),
+    ]
