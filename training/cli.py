@@ -172,13 +172,21 @@ def register(
 
 @app.command()
 def export(run_id: str, out_root: Path = typer.Option(Path("onnx_models")), version: str | None = None) -> None:
-    """Copy a run's ONNX model into onnx_models/<name>/<version>/ with manifest.json and golden.npz."""
+    """Copy an I2S run's ONNX model into onnx_models/<name>/<version>/ with manifest.json and golden.npz."""
     import mlflow
+    from mlflow.tracking import MlflowClient
 
     from training.i2s.ship import export_run
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
+    task = MlflowClient().get_run(run_id).data.tags.get("task", "")
+    if task in ("imu_pose", "flex_pose"):  # pose and flex runs write their files when they train
+        raise typer.BadParameter(
+            f"run {run_id} is an {task} run: its files are written when it trains (--ship --version X); its registered "
+            "model is served from the registry as it is (WEARMOCAP_REGISTRY_MODELS, docs/service.md)",
+            param_hint="RUN_ID",
+        )
     typer.echo(str(export_run(run_id, out_root, version)))
 
 

@@ -293,6 +293,20 @@ def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
     assert "--mapping" in " ".join((unmapped.stdout + unmapped.stderr).split())
 
 
+def test_export_refuses_a_pose_run_and_says_how_its_files_are_written(shipped: dict[str, dict]) -> None:
+    """``export`` copies I2S runs' files; a pose run's are written when it trains."""
+    run_id = shipped["tiny_full6"]["run_id"]
+    done = subprocess.run(
+        [sys.executable, "-m", "training.cli", "export", run_id, "--out-root", "/nonexistent"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=120,
+    )
+    said = " ".join((done.stdout + done.stderr).split())
+    assert done.returncode != 0 and "imu_pose" in said and "--ship" in said
+
+
 def test_evaluate_pose_scores_the_validation_subjects_on_the_sessions_training_judged_by(
     shipped: dict[str, dict], data_dir: Path, canonical_cache: Path
 ) -> None:
