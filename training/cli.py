@@ -642,6 +642,8 @@ def evaluate_pose(
     segment-angle error, SIP error, joint-position error and jitter (per activity and subject too)."""
     import json
 
+    import numpy as np
+
     from service.core.manifest import read_manifest, write_manifest
     from training.pose.evaluate import per_segment_mean
     from training.pose.pipeline import (
@@ -712,9 +714,10 @@ def evaluate_pose(
                 f"{kind} {key:22s} all {m['angle_all_deg']:6.2f}°  unsensed {m['angle_unsensed_deg']:6.2f}°  "
                 f"SIP {m['sip_deg']:6.2f}°  JPE {m['jpe_cm']:5.2f} cm  jitter {m['jitter_mps3']:7.1f} m/s³"
             )
+            five = "n/a (no clip lasts 5 s)" if np.isnan(m["trans_5s_cm"]) else f"{m['trans_5s_cm']:5.1f} cm"
             typer.echo(
-                f"{'':{len(kind) + 23}s} translation error over 1 s {m['trans_1s_cm']:5.1f} cm, over 5 s "
-                f"{m['trans_5s_cm']:5.1f} cm (on the true pose {m['trans_truth_1s_cm']:5.1f} cm, pelvis kept in place "
+                f"{'':{len(kind) + 23}s} translation error over 1 s {m['trans_1s_cm']:5.1f} cm, over 5 s {five} "
+                f"(on the true pose {m['trans_truth_1s_cm']:5.1f} cm, pelvis kept in place "
                 f"{m['trans_still_1s_cm']:5.1f} cm)"
             )
     m = summary["overall"]["all"]
