@@ -38,7 +38,7 @@ class PoseOwnDataConfig(Strict):
     # a skeleton none of the known families (CMU, iClone, Bandai-Namco) fits needs one (docs/pose.md)
     mapping: str | None = None
     # first-level folders whose clips choose the epoch and the registry's champion instead of the data directory's
-    # validation subjects (none: the data directory's choose), and folders held out and reported beside its
+    # validation subjects (none: the data directory's choose), and folders held out and reported apart from its
     # held-out subjects; every other folder trains
     val_people: list[str] = Field(default_factory=list)
     test_people: list[str] = Field(default_factory=list)

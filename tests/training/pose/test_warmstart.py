@@ -19,6 +19,14 @@ from training.pose.warmstart import warm_start_from_shipped
 MODELS = Path(__file__).resolve().parents[3] / "onnx_models"
 
 
+def recipe(model_dir: Path, **changes) -> PoseConfig:
+    """The config of a shipped file's recipe as far as its weights go (sensors, outputs, frames, network)."""
+    m = read_manifest(model_dir / "manifest.json")
+    model = {**architecture(model_dir), "look_ahead": m.pose.look_ahead_frames if m.pose.streaming else 0}
+    base = {**shipped_config(m).model_dump(), "output_segments": m.pose.output_segments, "model": model}
+    return PoseConfig.model_validate(base | changes)
+
+
 def architecture(model_dir: Path) -> dict:
     """The network of a shipped file ("bilstm hidden 128 x 2"; an average's: "mean of 2 × bilstm hidden …")."""
     text = read_manifest(model_dir / "manifest.json").pose.architecture.split("×")[-1]
@@ -34,13 +42,7 @@ def test_a_shipped_file_comes_back_as_the_network_that_answers_like_it(model: st
     model_dir = MODELS / model
     m = read_manifest(model_dir / "manifest.json")
     a = architecture(model_dir)
-    cfg = PoseConfig.model_validate(
-        {
-            **shipped_config(m).model_dump(),
-            "output_segments": m.pose.output_segments,
-            "model": {**a, "look_ahead": m.pose.look_ahead_frames if m.pose.streaming else 0},
-        }
-    )
+    cfg = recipe(model_dir)
     net = build_net(cfg, features_per_frame(len(cfg.sensors)))
     net.load_state_dict(warm_start_from_shipped(model_dir, cfg, net))
     net.eval()
@@ -61,12 +63,11 @@ def test_a_shipped_file_comes_back_as_the_network_that_answers_like_it(model: st
 
 def test_a_file_of_another_recipe_or_an_average_of_networks_is_refused_with_what_differs() -> None:
     lower3 = MODELS / "pose_lower3/3.0.0"
-    m = read_manifest(lower3 / "manifest.json")
-    base = {**shipped_config(m).model_dump(), "output_segments": m.pose.output_segments}
+    base = recipe(lower3).model_dump()
     a = architecture(lower3)
 
     def attempt(model_dir: Path, **changes) -> str:
-        cfg = PoseConfig.model_validate({**base, "model": a} | changes)
+        cfg = PoseConfig.model_validate(base | changes)
         with pytest.raises(ValueError) as err:
             warm_start_from_shipped(model_dir, cfg, build_net(cfg, features_per_frame(len(cfg.sensors))))
         return str(err.value)
