@@ -32,6 +32,7 @@ from service.inference.pose_batcher import LivePoseBatcher
 from service.inference.registry import load_model_report, load_registry_models
 from service.inference.runner import ModelRunner
 from service.inference.session_batcher import SessionBatcher
+from service.inference.velocity import VelocityModel
 from service.settings import Settings, get_settings, parse_pins
 
 log = logging.getLogger(__name__)
@@ -58,6 +59,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.models = report.models
         app.state.pose_models = {
             name: PoseModel(m) for name, m in app.state.models.items() if m.manifest.task == "imu_pose"
+        }
+        app.state.velocity_models = {
+            name: VelocityModel(m) for name, m in app.state.models.items() if m.manifest.task == "imu_pose_velocity"
         }
         app.state.flex_models = {
             name: FlexModel(m) for name, m in app.state.models.items() if m.manifest.task == "flex_pose"
@@ -120,6 +124,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.models = {}
     app.state.pose_models = {}
+    app.state.velocity_models = {}
     app.state.flex_models = {}
     app.state.confidence = None
     app.state.streams = StreamAdmission(

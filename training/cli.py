@@ -1,7 +1,7 @@
 """``wearmocap-train``: thin typer commands over the training library (I2S: simulate, train, register, export,
 evaluate; pose: pose-train, evaluate-pose, pose-placement, pose-rig-hinges, pose-rig-pairs,
-pose-translation-design; flex: flex-train, evaluate-flex, capacitive-train, evaluate-capacitive; snapshot-export /
-snapshot-restore, ui).
+pose-translation-design, pose-velocity-train; flex: flex-train, evaluate-flex, capacitive-train,
+evaluate-capacitive; snapshot-export / snapshot-restore, ui).
 Run ``python -m training.cli --help``.
 """
 
@@ -451,6 +451,33 @@ def pose_train(
         )
 
 
+@app.command("pose-velocity-train")
+def pose_velocity_train(
+    config: Path = typer.Argument(Path("training/configs/pose_full6_velocity.yaml"), help="a velocity config"),
+    data_dir: Path | None = DataDir,
+    cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
+    overrides: list[str] = Override,
+    ship: bool = typer.Option(False, help="ship it under onnx_models/<name>/<version> if it beats the rule"),
+    version: str | None = typer.Option(None, help="the shipped version (default 0.0.0+<run id>)"),
+    models_dir: Path = typer.Option(Path("onnx_models")),
+) -> None:
+    """Train the learned pelvis velocity of a pose model's sensors (``translation: learned``; TransPose 2021's
+    fallback branch), choose its share on the ground on the validation subjects, score the held-out subjects
+    against the supporting-foot rule, export, log to MLflow and register it."""
+    from training.pose.config import load_velocity_config
+    from training.pose.velocity import run_velocity_experiment
+
+    vcfg = load_velocity_config(config, overrides)
+    out = run_velocity_experiment(vcfg, resolve_data_dir(data_dir), cache_dir, models_dir if ship else None, version)
+    typer.echo(f"run_id={out['run_id']} share={out['share']:g} shipped={out['shipped']}")
+    key = f"share_{out['share']:g}"
+    for activity, m in sorted(out["test"].items()):
+        typer.echo(
+            f"{activity:14s} held out, 1 s: rule {m['rule']:6.1f} cm  with the learned velocity {m[key]:6.1f} cm  "
+            f"velocity alone {m['velocity']:6.1f} cm  kept in place {m['still']:6.1f} cm"
+        )
+
+
 @app.command("pose-placement")
 def pose_placement(
     config: Path = typer.Argument(Path("training/configs/pose_full6.yaml"), help="a pose config: its training clips"),
@@ -637,6 +664,11 @@ def evaluate_pose(
         "that the registry compares later runs with the file as served (versions tagged by runs before served-chunk "
         "evaluation were scored on whole clips)",
     ),
+    velocity_model: Path | None = typer.Option(
+        None,
+        help="a shipped velocity model of the same sensors (onnx_models/pose_full6_velocity/<version>): also score "
+        "the translation with it (translation: learned) beside the rule",
+    ),
 ) -> None:
     """Score a shipped pose model on mocap: simulate its sensors on the clips and report per clip and overall
     segment-angle error, SIP error, joint-position error and jitter (per activity and subject too)."""
@@ -676,6 +708,9 @@ def evaluate_pose(
         data = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir)
         clips = data.val if validation else data.test
     results, summary = evaluate_shipped_pose(model, clips, VAL_SEED if validation else TEST_SEED)
+    learned = None
+    if velocity_model is not None:
+        learned = _learned_translation(model, velocity_model, clips, VAL_SEED if validation else TEST_SEED)
     if tag:
         from training.pose.data import pose_evaluation_digest
         from training.pose.evaluate import flat_metrics
@@ -700,7 +735,8 @@ def evaluate_pose(
     if as_json:
         per_clip = [{"clip": r.path, "frames": r.frames, **r.metrics} for r in results]
         segments = {s: {"angle_deg": error[s], "constant_per_clip_deg": constant[s]} for s in error}
-        typer.echo(json.dumps({"clips": per_clip, **summary, "segments": segments, "skipped": skipped}, indent=1))
+        report = {"clips": per_clip, **summary, "segments": segments, "skipped": skipped}
+        typer.echo(json.dumps(report | ({"translation_learned": learned} if learned else {}), indent=1))
         return
     for left_out in skipped:
         typer.echo(f"left out {left_out['clip']}: {left_out['reason']}")
@@ -725,6 +761,32 @@ def evaluate_pose(
         f"overall all {m['angle_all_deg']:.2f}°, unsensed {m['angle_unsensed_deg']:.2f}°, JPE {m['jpe_cm']:.2f} cm, "
         f"translation over 1 s {m['trans_1s_cm']:.1f} cm (pelvis kept in place {m['trans_still_1s_cm']:.1f} cm)"
     )
+    if learned is not None:
+        typer.echo(f"translation over 1 s with {velocity_model} (cm): the rule, the rule with the learned velocity")
+        for activity, row in sorted(learned.items()):
+            typer.echo(f"  {activity:14s} rule {row['rule']:6.1f}  learned {row['learned']:6.1f}")
+
+
+def _learned_translation(model: Path, velocity_model: Path, clips: list, seed: int) -> dict[str, dict[str, float]]:
+    """Per activity, the translation error over 1 s with the rule and with the velocity model's share of its
+    velocity (``translation: learned``), on the sessions the pose figures were scored on."""
+    from service.inference.pose import PoseModel
+    from service.inference.registry import load_model
+    from service.inference.velocity import VelocityModel
+    from training.pose.config import PoseConfig
+    from training.pose.train import fixed_sessions
+    from training.pose.velocity import learned_velocities, translation_cases, translation_errors
+
+    pose = PoseModel(load_model(model, 2))
+    velocity = VelocityModel(load_model(velocity_model, 2))
+    if velocity.spec.sensors != pose.spec.sensors:
+        raise typer.BadParameter(f"{velocity_model} reads {velocity.spec.sensors}, {model} {pose.spec.sensors}")
+    cfg = PoseConfig(name=pose.name, sensors=pose.spec.sensors, output_segments=pose.spec.output_segments)
+    cases = translation_cases(clips, fixed_sessions(clips, cfg, seed), pose)
+    share = velocity.spec.learned_share
+    errors = translation_errors(cases, learned_velocities(velocity.predict, cases), [share])
+    key = f"share_{share:g}"
+    return {a: {"rule": r["rule"], "learned": r[key], "clips": r["clips"]} for a, r in errors.items()}
 
 
 FLEX_TABLE5 = ["bilstm", "transformer", "fcn", "tcn", "bilstm_c", "bilstm_m", "bilstm_cm"]

@@ -293,3 +293,44 @@ def reliability_png(
     bx.set_ylabel(what[1])
     fig.tight_layout()
     return _save(fig, path)
+
+
+def velocity_learning_curve_png(history: list[dict[str, float]], path: Path) -> Path:
+    """The velocity network's training loss and its validation displacement error per epoch."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    epochs = [h["epoch"] for h in history]
+    ax.plot(epochs, [h["train_loss"] for h in history], label="train loss (accumulated displacement)", color="C0")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("train loss")
+    ax2 = ax.twinx()
+    val = [h["val_velocity_1s_cm"] for h in history]
+    ax2.plot(epochs, val, label="validation, velocity alone (cm per 1 s)", color="C1")
+    ax2.set_ylabel("validation displacement error (cm per 1 s)")
+    fig.legend(loc="upper right")
+    ax.set_title("learned pelvis velocity")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def translation_bars_png(errors: dict[str, dict[str, float]], share: float, path: Path) -> Path:
+    """Per activity, the pelvis displacement error over 1 s: the rule, the rule with the learned velocity, the
+    learned velocity alone and a pelvis kept in place."""
+    activities = sorted(errors)
+    series = [
+        ("rule", "supporting-foot rule"),
+        (f"share_{share:g}", f"rule + learned velocity ({share:g})"),
+        ("velocity", "learned velocity alone (horizontal)"),
+        ("still", "pelvis kept in place"),
+    ]
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.2 * len(activities)), 4))
+    width = 0.8 / len(series)
+    for k, (key, label) in enumerate(series):
+        ax.bar(
+            np.arange(len(activities)) + k * width, [errors[a].get(key, np.nan) for a in activities], width, label=label
+        )
+    ax.set_xticks(np.arange(len(activities)) + 0.4 - width / 2, activities)
+    ax.set_ylabel("pelvis displacement error (cm per 1 s)")
+    ax.set_title("held-out subjects")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)

@@ -36,6 +36,7 @@ from service.inference.pose import (
     whole_body,
 )
 from service.inference.predict import InputError
+from service.inference.velocity import VelocityModel, velocity_model_for, world_velocity
 from service.settings import Settings
 
 router = APIRouter(route_class=_Route)
@@ -210,23 +211,57 @@ class BodyPose:
 
 
 def body_pose(
-    model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height_m: float | None, translation: str
+    model: PoseModel,
+    r: Readings,
+    q_seg_sensor: np.ndarray,
+    height_m: float | None,
+    translation: str,
+    velocity: VelocityModel | None = None,
 ) -> BodyPose:
     """The model's pose on the default body (or one of ``height_m``), with the body's translation when asked
-    (``service.core.translation``, from the pelvis sensor's free acceleration)."""
+    (``service.core.translation``, from the pelvis sensor's free acceleration, and with ``translation`` learned
+    from ``velocity``'s pelvis velocity)."""
     R_w_seg, a_w = segment_readings(r.q_world_sensor, r.acc_mps2, q_seg_sensor)
-    R_out = model.predict(pose_features(R_w_seg, a_w))
+    features = pose_features(R_w_seg, a_w)
+    R_out = model.predict(features)
     R_world = whole_body(R_w_seg, R_out, model.sensor_index, model.output_index)
     body = model.body.scaled(height_m) if height_m else model.body
     if translation == "none":
         return BodyPose(R_world, body, None)
+    if translation == "learned" and velocity is not None:
+        tracker = RootTracker(feet_of(body), MODEL_RATE_HZ, learned_share=velocity.spec.learned_share)
+        learned = world_velocity(R_w_seg[:, 0], velocity.predict(features))
+        return BodyPose(R_world, body, tracker.advance(body.forward(R_world), a_w[:, 0], learned)[0])
     tracker = RootTracker(feet_of(body), MODEL_RATE_HZ)
     return BodyPose(R_world, body, tracker.advance(body.forward(R_world), a_w[:, 0])[0])
 
 
-def pose_bvh(model: PoseModel, r: Readings, q_seg_sensor: np.ndarray, height_m: float | None, translation: str) -> str:
+def velocity_for(request: Request, model: PoseModel, translation: str) -> VelocityModel | None:
+    """The velocity model ``translation`` learned needs: the one of the pose model's sensors, else 422."""
+    if translation != "learned":
+        return None
+    models: dict[str, VelocityModel] = request.app.state.velocity_models
+    velocity = velocity_model_for(models, model.spec.sensors)
+    if velocity is None:
+        loaded = {name: m.spec.sensors for name, m in sorted(models.items())} or "none"
+        raise HTTPException(
+            422,
+            f"translation: 'learned' needs a velocity model for the sensors {model.spec.sensors} of {model.name}; "
+            f"loaded velocity models: {loaded}; 'feet' moves the body without one",
+        )
+    return velocity
+
+
+def pose_bvh(
+    model: PoseModel,
+    r: Readings,
+    q_seg_sensor: np.ndarray,
+    height_m: float | None,
+    translation: str,
+    velocity: VelocityModel | None = None,
+) -> str:
     """The pose as the text of a BVH file (``service.core.body.body_bvh``)."""
-    pose = body_pose(model, r, q_seg_sensor, height_m, translation)
+    pose = body_pose(model, r, q_seg_sensor, height_m, translation, velocity)
     return format_bvh(body_bvh(pose.R_world, pose.body, MODEL_RATE_HZ, pose.root_m))
 
 
@@ -237,8 +272,9 @@ def pose_response(
     height_m: float | None,
     translation: str,
     warnings: list[str],
+    velocity: VelocityModel | None = None,
 ) -> PoseImuResponse:
-    pose = body_pose(model, r, q_seg_sensor, height_m, translation)
+    pose = body_pose(model, r, q_seg_sensor, height_m, translation, velocity)
     R_world = pose.R_world
     answer = pose_answer(R_world, pose.body)
     covered = set(covered_segments(model))
@@ -275,8 +311,8 @@ def pose_response(
         "the segment each sensor is on, and a calibration: `declared` alignments (no pose needed, e.g. from "
         "/v1/imu/assign) or the frame span of a still N-pose/T-pose in this request. Returns per frame (60 Hz) and "
         "segment the global and parent-relative quaternions and joint positions of the default body (or of "
-        "`body_height_m`); with `translation` `feet` also where the pelvis is per frame (`root_position_m`). The "
-        "model is the offline one whose sensors match, or the one `model` names. With "
+        "`body_height_m`); with `translation` `feet` or `learned` also where the pelvis is per frame "
+        "(`root_position_m`). The model is the offline one whose sensors match, or the one `model` names. With "
         "`format=bvh` the same pose comes as a BVH file (one joint per segment, centimetres, Y up) for Blender, "
         "MotionBuilder or OpenSim; its model and warnings in the headers `X-Pose-Model` and `X-Pose-Warnings`."
     ),
@@ -307,12 +343,15 @@ async def pose_from_imu(
     readings = read_sensors(body, model)
     q_seg_sensor = calibrate(body, model, readings)
     warnings = unit_check(body, readings)
+    velocity = velocity_for(request, model, body.translation)
     runner = request.app.state.runner
     if format == "bvh":
-        text = await runner.run_call(pose_bvh, model, readings, q_seg_sensor, body.body_height_m, body.translation)
+        text = await runner.run_call(
+            pose_bvh, model, readings, q_seg_sensor, body.body_height_m, body.translation, velocity
+        )
         version = model.loaded.manifest.version
         return file_answer(text, f"{model.name}.bvh", "Pose", model.name, version, warnings)
     answer = await runner.run_call(
-        pose_response, model, readings, q_seg_sensor, body.body_height_m, body.translation, warnings
+        pose_response, model, readings, q_seg_sensor, body.body_height_m, body.translation, warnings, velocity
     )
     return Response(answer.model_dump_json(), media_type="application/json")

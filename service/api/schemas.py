@@ -473,6 +473,13 @@ TRANSLATION_DESCRIPTION = (
     "(default): the pose about a pelvis kept in place"
 )
 
+REST_TRANSLATION_DESCRIPTION = (
+    TRANSLATION_DESCRIPTION
+    + "; `learned`: the same rule with a learned pelvis velocity (TransPose 2021's fallback branch) in the "
+    "accelerometer's place along the floor, where a velocity model for the request's sensors is loaded (GET "
+    "/v1/models: task imu_pose_velocity)"
+)
+
 
 class PoseImuRequest(BaseModel):
     model_config = REQUEST | ConfigDict(json_schema_extra={"examples": [EXAMPLE_POSE_IMU]})
@@ -496,7 +503,7 @@ class PoseImuRequest(BaseModel):
         None, description="a loaded pose model's name; default: the offline model for these sensors"
     )
     body_height_m: float | None = Field(None, ge=0.5, le=2.5, description="scale the default body to this height")
-    translation: Literal["none", "feet"] = Field("none", description=TRANSLATION_DESCRIPTION)
+    translation: Literal["none", "feet", "learned"] = Field("none", description=REST_TRANSLATION_DESCRIPTION)
 
 
 class SegmentTrack(BaseModel):
@@ -537,9 +544,9 @@ class PoseImuResponse(BaseModel):
     segments: dict[str, SegmentTrack]
     root_position_m: list[list[float]] | None = Field(
         None,
-        description="with `translation` `feet`: the pelvis origin per frame in the sensors' world (z up, metres): "
-        "x, y from where it stood at the first frame, z its height above the floor (the level of the first frame's "
-        "lowest foot point); a joint's position in the world is this plus its `joint_position_m`",
+        description="with `translation` `feet` or `learned`: the pelvis origin per frame in the sensors' world (z up, "
+        "metres): x, y from where it stood at the first frame, z its height above the floor (the level of the first "
+        "frame's lowest foot point); a joint's position in the world is this plus its `joint_position_m`",
     )
     warnings: list[str] = Field(
         default_factory=list,

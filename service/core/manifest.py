@@ -58,6 +58,26 @@ class PoseSpec(BaseModel):
     body_height_m: float
 
 
+class VelocitySpec(BaseModel):
+    """What an ``imu_pose_velocity`` model needs and gives (the fallback velocity of TransPose, Yi et al. 2021 §3.3;
+    ``training.pose.velocity``). The input is the pose features (``service.core.calibration.pose_features``) of
+    ``sensors`` in that order, with the LSTM state ``h``/``c`` of shape ``(layers, batch, hidden)``; the output
+    ``(batch, frames, 3)`` the pelvis velocity in the pelvis frame (m/s), each frame ``look_ahead_frames`` late.
+    ``service.core.translation`` moves the body with it, ``learned_share`` of it on the ground (the share chosen on
+    the validation subjects with the pose model ``chosen_with``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    sensors: list[str]
+    feature_version: str
+    acc_scale_mps2: float
+    architecture: str
+    look_ahead_frames: int = Field(ge=0)
+    state_layers: int = Field(ge=1)
+    state_hidden: int = Field(ge=1)
+    learned_share: float = Field(ge=0.0, le=1.0)
+    chosen_with: str
+
+
 class ReadoutCheckSpec(BaseModel):
     """The read-out failure rule of a model's sensors (``service.core.flex.ReadoutCheck``): a reading off its
     channel's median over the first ``reference_s`` seconds by more than ``max_deviation`` of it has failed."""
@@ -131,7 +151,7 @@ class Manifest(BaseModel):
     # i2s_*: Zimmermann et al. 2018. imu_pose (sparse IMUs, Zheng et al. 2021) and flex_pose (flex sensors, Chen et al.
     # 2024) are served by the generic pose routes from what the manifest declares: input channels, rate, window, value
     # range, joints.
-    task: Literal["i2s_assignment", "i2s_alignment", "imu_pose", "flex_pose"]
+    task: Literal["i2s_assignment", "i2s_alignment", "imu_pose", "imu_pose_velocity", "flex_pose"]
     version: str
     created_utc: str
     inputs: list[TensorSpec]
@@ -143,6 +163,7 @@ class Manifest(BaseModel):
         "quaternion_per_segment",
         "joint_angles_deg",
         "rotation_matrix_per_segment",
+        "velocity_mps",
     ]
     sample_rate_hz: float
     window_samples: int
@@ -159,6 +180,7 @@ class Manifest(BaseModel):
     )
     quaternion_convention: str | None = None
     pose: PoseSpec | None = None
+    velocity: VelocitySpec | None = None
     flex: FlexSpec | None = None
     confidence: ConfidenceSpec | None = None
     sha256: str
@@ -175,6 +197,8 @@ class Manifest(BaseModel):
         outputs from it alone."""
         if self.task == "imu_pose":
             return self._imu_pose_contract()
+        if self.task == "imu_pose_velocity":
+            return self._velocity_contract()
         if self.task != "flex_pose":
             return self
         if self.output_kind != "joint_angles_deg":
@@ -216,6 +240,29 @@ class Manifest(BaseModel):
             raise ValueError(f"an imu_pose model gives rotations of shape {expected_out}, got {self.outputs[0].shape}")
         if p.streaming and (len(self.inputs) != 3 or len(self.outputs) != 3 or not p.state_layers):
             raise ValueError("a streaming imu_pose model takes (features, h, c) and returns (rotations, h, c)")
+        return self
+
+    def _velocity_contract(self) -> Manifest:
+        from service.core.body import BODY_SEGMENTS
+        from service.core.calibration import FEATURE_VERSION, features_per_frame
+
+        v = self.velocity
+        if v is None or self.output_kind != "velocity_mps":
+            raise ValueError("an imu_pose_velocity model needs a 'velocity' section and output_kind velocity_mps")
+        if not v.sensors or v.sensors[0] != "Pelvis" or set(v.sensors) - set(BODY_SEGMENTS):
+            raise ValueError(f"imu_pose_velocity: sensors start with Pelvis and are of {list(BODY_SEGMENTS)}")
+        if v.feature_version != FEATURE_VERSION:
+            raise ValueError(
+                f"imu_pose_velocity: features {v.feature_version!r}, this service computes {FEATURE_VERSION!r}"
+            )
+        state = [v.state_layers, "batch", v.state_hidden]
+        expected_in = [["batch", "frames", features_per_frame(len(v.sensors))], state, state]
+        expected_out = [["batch", "frames", 3], state, state]
+        if [t.shape for t in self.inputs] != expected_in or [t.shape for t in self.outputs] != expected_out:
+            raise ValueError(
+                f"an imu_pose_velocity model takes (features, h0, c0) of shapes {expected_in} and returns "
+                f"(velocity, h, c) of shapes {expected_out}"
+            )
         return self
 
 

@@ -63,22 +63,34 @@ class RootTracker:
 
     feet: Feet
     sample_rate_hz: float
+    # with a learned pelvis velocity: its share in each ground frame's horizontal velocity, the rest the chosen
+    # point's (the velocity model's manifest gives the share chosen for it on validation subjects)
+    learned_share: float = 0.5
     points: np.ndarray | None = field(default=None, repr=False)  # (4, 3) the last frame's contact points
     root: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0], repr=False)  # the last frame's pelvis
     velocity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0], repr=False)  # m/s
 
-    def advance(self, joints_m: np.ndarray, free_acc_pelvis_mps2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def advance(
+        self, joints_m: np.ndarray, free_acc_pelvis_mps2: np.ndarray, learned_mps: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Pelvis positions ``(T, 3)`` in the world the joints are given in (metres; x, y from the first frame's
         pelvis, z above the floor), and which point carries the body per frame (0 left heel, 1 left ball, 2 right
         heel, 3 right ball; -1 none: flight).
 
         joints_m: ``(T, S, 3)`` joint positions relative to the pelvis, world axes, z up; free_acc_pelvis_mps2:
-        ``(T, 3)`` the pelvis's acceleration in the world without gravity (``calibration.segment_readings``)."""
-        return advance_bodies([self], [joints_m], [free_acc_pelvis_mps2])[0]
+        ``(T, 3)`` the pelvis's acceleration in the world without gravity (``calibration.segment_readings``);
+        learned_mps: ``(T, 3)`` a learned pelvis velocity in the world (``training.pose.velocity``), which then
+        takes the accelerometer's place along the floor: in flight alone, on the ground ``learned_share`` of it
+        with the chosen point's; the height is the rule's either way."""
+        learned = None if learned_mps is None else [learned_mps]
+        return advance_bodies([self], [joints_m], [free_acc_pelvis_mps2], learned)[0]
 
 
 def advance_bodies(
-    trackers: list[RootTracker], joints_m: list[np.ndarray], free_acc_pelvis_mps2: list[np.ndarray]
+    trackers: list[RootTracker],
+    joints_m: list[np.ndarray],
+    free_acc_pelvis_mps2: list[np.ndarray],
+    learned_mps: list[np.ndarray] | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """``RootTracker.advance`` for several bodies (of one sample rate) at once: the array work of all their frames
     in one pass, so that a service with many live sessions pays numpy's per-call cost once per batch."""
@@ -105,6 +117,7 @@ def advance_bodies(
     specific_force = np.linalg.norm(acc + np.array([0.0, 0.0, GRAVITY_MPS2]), axis=-1)
     ground = (specific_force >= FLIGHT_SPECIFIC_FORCE_G * GRAVITY_MPS2).tolist()
     steps = (acc / rate).tolist()
+    learned = None if learned_mps is None else np.concatenate(learned_mps).tolist()
     out: list[list[float]] = []
     carried: list[int] = []
     for tr, a, b, start in zip(trackers, bounds[:-1].tolist(), bounds[1:].tolist(), starting, strict=True):
@@ -114,7 +127,7 @@ def advance_bodies(
             out.append(list(tr.root))
             carried.append(int(np.argmin(heights[a])) if ground[a] else -1)
         a += int(start)
-        _track(tr, rate, implied[a:b], heights[a:b], ground[a:b], steps[a:b], out, carried)
+        _track(tr, rate, implied[a:b], heights[a:b], ground[a:b], steps[a:b], out, carried, learned and learned[a:b])
         tr.points = points[b - 1].copy()
     out_a, carried_a = np.array(out).reshape(-1, 3), np.array(carried, dtype=int)
     return [(out_a[a:b], carried_a[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
@@ -140,13 +153,18 @@ def _track(
     steps: list[list[float]],
     out: list[list[float]],
     carried: list[int],
+    learned: list[list[float]] | None = None,
 ) -> None:
     """One body's frames in order, appended to ``out`` and ``carried`` (Python floats: each frame's choice depends
     on the velocity before it). Per frame: ``implied`` the pelvis velocity if each point held still, ``heights`` the
-    points' heights, ``ground`` whether a foot carries the body, ``steps`` the accelerometer's change of velocity."""
+    points' heights, ``ground`` whether a foot carries the body, ``steps`` the accelerometer's change of velocity,
+    ``learned`` a learned velocity (then the prediction along the floor, and ``learned_share`` of its velocity)."""
     (x, y, z), (vx, vy, vz) = tr.root, tr.velocity
+    share = INERTIAL_SHARE if learned is None else tr.learned_share
     for t in range(len(heights)):
         px, py, pz = vx + steps[t][0], vy + steps[t][1], vz + steps[t][2]  # the inertial prediction
+        if learned is not None:
+            px, py = learned[t][0], learned[t][1]
         j = -1
         if ground[t]:
             h = heights[t]
@@ -156,8 +174,8 @@ def _track(
                 key=lambda k: math.hypot(implied[t][k][0] - px, implied[t][k][1] - py),
             )
         if j >= 0:  # the chosen point moves the pelvis along the floor; the lowest one stands on it
-            vx = INERTIAL_SHARE * px + (1.0 - INERTIAL_SHARE) * implied[t][j][0]
-            vy = INERTIAL_SHARE * py + (1.0 - INERTIAL_SHARE) * implied[t][j][1]
+            vx = share * px + (1.0 - share) * implied[t][j][0]
+            vy = share * py + (1.0 - share) * implied[t][j][1]
             z_floor = -min(heights[t])
             vz = INERTIAL_SHARE * pz + (1.0 - INERTIAL_SHARE) * (z_floor - z) * rate
             x, y, z = x + vx / rate, y + vy / rate, z_floor

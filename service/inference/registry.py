@@ -18,7 +18,7 @@ import onnxruntime as ort
 from service.core.manifest import Manifest, read_manifest, sha256_file
 
 log = logging.getLogger(__name__)
-POSE_TASKS = ("imu_pose", "flex_pose")
+POSE_TASKS = ("imu_pose", "imu_pose_velocity", "flex_pose")
 
 
 class ModelMismatch(ValueError):
@@ -105,7 +105,7 @@ class LoadReport:
 
 def load_models(root: Path, threads: int, pins: dict[str, str] | None = None) -> dict[str, LoadedModel]:
     """Newest valid version of every model below ``root`` (or the version ``pins`` names), keyed by task (pose
-    models, imu_pose and flex_pose, by name)."""
+    models, imu_pose, imu_pose_velocity and flex_pose, by name)."""
     return load_model_report(root, threads, pins).models
 
 

@@ -122,3 +122,37 @@ def test_bodies_moved_together_move_as_each_alone() -> None:
             np.testing.assert_array_equal(moved[k][0], expected[0])
             np.testing.assert_array_equal(moved[k][1], expected[1])
             assert moved[k][0].shape == (len(blocks[k][call][0]), 3)
+
+
+def test_a_learned_velocity_moves_the_body_along_the_floor_by_its_share() -> None:
+    """With a learned velocity: alone (share 1) the pelvis moves by it whatever the feet do, at share 0 as the
+    feet say; the height is the feet's either way; in flight the learned velocity carries it along the floor."""
+    joints, pelvis = _walker(3.0, 1.2)
+    acc = np.zeros((len(joints), 3))
+    learned = np.tile([0.5, -0.2, 0.3], (len(joints), 1))  # not what the feet say, and a vertical part
+    alone, _ = RootTracker(FEET, RATE, learned_share=1.0).advance(joints, acc, learned)
+    np.testing.assert_allclose(np.diff(alone[:, :2], axis=0) * RATE, learned[1:, :2], atol=1e-9)
+    np.testing.assert_allclose(alone[:, 2], PELVIS_HEIGHT_M, atol=1e-9)  # the feet keep it on the floor
+    feet_only, _ = RootTracker(FEET, RATE, learned_share=0.0).advance(joints, acc, learned)
+    np.testing.assert_allclose(feet_only[:, :2] - feet_only[0, :2], pelvis[:, :2] - pelvis[0, :2], atol=0.03)
+    half, _ = RootTracker(FEET, RATE, learned_share=0.5).advance(joints, acc, learned)
+    np.testing.assert_allclose(half[:, :2], 0.5 * (alone[:, :2] + feet_only[:, :2]), atol=1e-9)
+    acc[-12:, 2] = -GRAVITY_MPS2  # flight: the learned velocity along the floor, gravity on the height
+    flying, carried = RootTracker(FEET, RATE, learned_share=0.0).advance(joints, acc, learned)
+    assert (carried[-12:] == -1).all()
+    np.testing.assert_allclose(np.diff(flying[-12:, :2], axis=0) * RATE, learned[-11:, :2], atol=1e-9)
+    assert np.all(np.diff(flying[-12:, 2]) < 0)
+
+
+def test_a_block_with_a_learned_velocity_answers_as_its_pieces_do() -> None:
+    rng = np.random.default_rng(4)
+    joints = rng.normal(scale=0.3, size=(200, len(BODY_SEGMENTS), 3))
+    acc = rng.normal(scale=6.0, size=(200, 3))
+    learned = rng.normal(size=(200, 3))
+    whole, carried = RootTracker(FEET, RATE, learned_share=0.25).advance(joints, acc, learned)
+    tracker, pieces = RootTracker(FEET, RATE, learned_share=0.25), []
+    for start in range(0, 200, 9):
+        s = slice(start, start + 9)
+        pieces.append(tracker.advance(joints[s], acc[s], learned[s]))
+    np.testing.assert_array_equal(whole, np.concatenate([p for p, _ in pieces]))
+    np.testing.assert_array_equal(carried, np.concatenate([c for _, c in pieces]))

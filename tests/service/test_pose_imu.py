@@ -949,6 +949,42 @@ def test_rest_pose_with_translation_follows_the_walker_in_json_and_in_the_bvh_fi
     assert bad.status_code == 422 and "feet" in bad.text and "gps" in bad.text
 
 
+def test_rest_pose_with_the_learned_velocity_moves_the_walker_as_its_model_says(server: str, walk) -> None:
+    """``translation: learned`` on a held-out walk through a real server: the pelvis path is the rule's with the
+    shipped velocity model's answer (its share from its manifest) computed here from the same readings, it follows
+    the walker, and a placement without a velocity model is refused with what is loaded."""
+    from service.core.body import feet_of
+    from service.core.translation import RootTracker
+    from service.inference.pose import whole_body
+    from service.inference.velocity import VelocityModel, velocity_model_for, world_velocity
+
+    motion, raw = walk
+    answer = httpx.post(f"{server}/v1/pose/imu", json=_body(raw, SIX_SENSORS) | {"translation": "learned"}, timeout=60)
+    assert answer.status_code == 200, answer.text
+    root = np.array(answer.json()["root_position_m"])
+    loaded = load_models(MODELS, 1)
+    velocity = velocity_model_for(
+        {n: VelocityModel(m) for n, m in loaded.items() if m.manifest.task == "imu_pose_velocity"}, SIX_SENSORS
+    )
+    assert velocity is not None
+    model = PoseModel(loaded[answer.json()["model"]["name"]])
+    R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
+    features = pose_features(R_w_seg, a_w)
+    R_world = whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index)
+    tracker = RootTracker(feet_of(model.body), 60.0, learned_share=velocity.spec.learned_share)
+    learned = world_velocity(R_w_seg[:, 0], velocity.predict(features))
+    expected, _ = tracker.advance(model.body.forward(R_world), a_w[:, 0], learned)
+    np.testing.assert_allclose(root, expected, atol=2e-4)  # the answer's 4 decimals
+    Rz = Rotation.from_rotvec([0.0, 0.0, raw.heading_rad]).as_matrix()
+    error, travelled = _window_error(root, motion.origin_m[:, 0] @ Rz.T)
+    print(f"REST walk, learned translation: {error * 100:.1f} cm per second against {travelled * 100:.1f} cm")
+    assert travelled > 0.8 and error < 0.5 * travelled
+    lower = httpx.post(f"{server}/v1/pose/imu", json=_body(raw, LOWER) | {"translation": "learned"}, timeout=60)
+    assert lower.status_code == 422, lower.text
+    assert "needs a velocity model for the sensors ['Pelvis', 'LeftLowerLeg', 'RightLowerLeg']" in lower.text
+    assert "pose_full6_velocity" in lower.text and "'feet'" in lower.text
+
+
 def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_rule_does(server: str, walk, pose_models) -> None:
     """``"translation": "feet"`` on the stream: each pose message carries the pelvis per frame, the same as the rule
     gives offline on the streaming model's answer; binary pose blocks carry it too (kind 2)."""

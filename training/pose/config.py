@@ -189,3 +189,27 @@ def served_chunks(cfg: PoseConfig) -> tuple[int, int] | None:
     """(window, context) frames of the chunks an offline model is served in (its manifest's ``window_frames`` and
     ``context_frames``; ``service.inference.pose.run_chunked``); None for a streaming model."""
     return None if is_streaming(cfg) else (cfg.train.sequence_frames, cfg.train.context_frames)
+
+
+class PoseVelocityConfig(Strict):
+    """A learned pelvis velocity for a shipped pose model's sensors (``training/pose/velocity.py``): its data split
+    and sensors are ``pose_config``'s; the share it gets on the ground is chosen with ``pose_model``'s answers on
+    the validation subjects."""
+
+    name: str
+    seed: int = 0
+    pose_config: str
+    pose_model: str
+    hidden: int = 256
+    layers: int = 2
+    look_ahead: int = Field(5, ge=0, le=30)  # TransPose 2021's online mode: 5 frames, 83 ms at 60 Hz
+    max_epochs: int = 16
+    sequences_per_epoch: int = 1024
+    lr: float = 1e-3
+    patience: int = 6
+    shares: list[float] = Field(default_factory=lambda: [0.25, 0.5, 0.75, 1.0])
+    tracking: TrackingConfig = Field(default_factory=lambda: TrackingConfig(experiment="pose"))
+
+
+def load_velocity_config(path: str | Path, overrides: list[str] | None = None) -> PoseVelocityConfig:
+    return PoseVelocityConfig.model_validate(read_yaml(path, overrides))

@@ -334,3 +334,48 @@ def test_evaluate_pose_scores_the_validation_subjects_on_the_sessions_training_j
     assert float(version.tags["eval_val_angle_unsensed_deg"]) == pytest.approx(val, abs=1e-3)
     refused = subprocess.run([*base, *where, "--tag"], capture_output=True, text=True, cwd=REPO)
     assert refused.returncode != 0 and "--validation" in " ".join((refused.stdout + refused.stderr).split())
+
+
+def test_a_learned_velocity_is_trained_for_a_shipped_model_chosen_on_validation_and_shipped_only_if_it_helps(
+    shipped: dict[str, dict], data_dir: Path, canonical_cache: Path, tmp_path: Path
+) -> None:
+    """``pose-velocity-train`` for the tiny six-sensor model: its epoch and its share on the ground are chosen on
+    the validation subject, the held-out table holds the rule beside it, and the files ship (loadable, answering
+    as torch did) exactly when it beats the rule on validation."""
+    import yaml
+
+    from service.inference.velocity import VelocityModel
+    from training.pose.config import PoseVelocityConfig
+    from training.pose.velocity import run_velocity_experiment
+
+    pose_config = tmp_path / "tiny_full6.yaml"
+    pose_config.write_text(yaml.safe_dump({"name": "tiny_full6", "data": TINY["data"], "train": TINY["train"]}))
+    vcfg = PoseVelocityConfig(
+        name="tiny_full6_velocity",
+        pose_config=str(pose_config),
+        pose_model=shipped["tiny_full6"]["shipped"],
+        hidden=16,
+        layers=1,
+        max_epochs=2,
+        sequences_per_epoch=32,
+        shares=[0.5, 1.0],
+        tracking={"experiment": "test-pose"},
+    )
+    models = tmp_path / "onnx_models"
+    out = run_velocity_experiment(vcfg, data_dir, canonical_cache, models, "0.0.1")
+    run = MlflowClient().get_run(out["run_id"])
+    assert len(MlflowClient().get_metric_history(out["run_id"], "val_velocity_1s_cm")) == 2
+    val = {k: v for k, v in run.data.metrics.items() if k.startswith("val_trans_")}
+    assert {"val_trans_rule_1s_cm", "val_trans_share_0.5_1s_cm", "val_trans_share_1_1s_cm"} <= set(val)
+    share = out["share"]
+    shares = (val["val_trans_share_0.5_1s_cm"], val["val_trans_share_1_1s_cm"])
+    assert val[f"val_trans_share_{share:g}_1s_cm"] == min(shares)
+    assert "walk" in out["test"] and {"rule", f"share_{share:g}", "velocity", "still"} <= set(out["test"]["all"])
+    beats = val[f"val_trans_share_{share:g}_1s_cm"] < val["val_trans_rule_1s_cm"]
+    assert run.data.tags["beats_rule_on_validation"] == str(beats)
+    assert (out["shipped"] is not None) == beats == (models / "tiny_full6_velocity" / "0.0.1").is_dir()
+    if beats:
+        model = VelocityModel(load_model(out["shipped"], 1))
+        assert model.spec.learned_share == share and model.spec.sensors == SIX_SENSORS
+        with np.load(Path(out["shipped"]) / "golden.npz") as golden:
+            np.testing.assert_allclose(model.predict(golden["features"][0])[:-5], golden["expected"][0, 5:], atol=1e-4)

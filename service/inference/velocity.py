@@ -1,0 +1,42 @@
+"""Running an ``imu_pose_velocity`` model: the learned pelvis velocity that moves the body with
+``service.core.translation`` (``translation: learned``). Used by the service and by training's evaluation alike."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.inference.registry import LoadedModel
+
+
+class VelocityModel:
+    """A loaded ``imu_pose_velocity`` model with its manifest's velocity section."""
+
+    def __init__(self, loaded: LoadedModel) -> None:
+        if loaded.manifest.velocity is None:
+            raise ValueError(f"{loaded.manifest.name} is not an imu_pose_velocity model")
+        self.loaded, self.spec = loaded, loaded.manifest.velocity
+
+    @property
+    def name(self) -> str:
+        return self.loaded.manifest.name
+
+    def predict(self, features: np.ndarray) -> np.ndarray:
+        """The pelvis velocity in the pelvis frame ``(T, 3)``, m/s, of every frame of ``features`` ``(T, F)``: run
+        over the recording from a zero state with the last frame repeated for the look-ahead, as a live stream
+        that ends would answer."""
+        L = self.spec.look_ahead_frames
+        x = np.concatenate([features, np.repeat(features[-1:], L, axis=0)]) if L else features
+        state = np.zeros((self.spec.state_layers, 1, self.spec.state_hidden), np.float32)
+        v = self.loaded.session.run(None, {"features": x[None].astype(np.float32), "h0": state, "c0": state})[0]
+        return v[0, L:].astype(np.float64)
+
+
+def world_velocity(R_world_pelvis: np.ndarray, v_pelvis: np.ndarray) -> np.ndarray:
+    """Velocities in the pelvis frame ``(T, 3)`` → the world the pelvis orientations ``(T, 3, 3)`` are given in."""
+    return np.einsum("tij,tj->ti", R_world_pelvis, v_pelvis)
+
+
+def velocity_model_for(models: dict[str, VelocityModel], sensors: list[str]) -> VelocityModel | None:
+    """The velocity model that reads the pose features of ``sensors`` (the same sensors in the same order), or
+    None."""
+    return next((m for m in models.values() if m.spec.sensors == list(sensors)), None)

@@ -1,0 +1,45 @@
+"""The manifest's contract for a learned pelvis velocity (``imu_pose_velocity``): the shipped one holds, and a
+manifest that would mislead the service about its tensors is refused with what was expected. Service code only."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from service.core.manifest import Manifest, read_manifest
+
+SHIPPED = Path(__file__).resolve().parents[2] / "onnx_models" / "pose_full6_velocity"
+
+
+def _shipped() -> dict:
+    newest = max(SHIPPED.iterdir(), key=lambda d: tuple(int(p) for p in d.name.split(".")))
+    return json.loads((newest / "manifest.json").read_text())
+
+
+def test_the_shipped_velocity_manifest_holds_its_contract() -> None:
+    raw = _shipped()
+    m = Manifest.model_validate(raw)
+    assert m.task == "imu_pose_velocity" and m.velocity is not None and m.velocity.sensors[0] == "Pelvis"
+    assert 0.0 <= m.velocity.learned_share <= 1.0 and m.velocity.chosen_with.startswith("pose_full6 ")
+    assert read_manifest(next(SHIPPED.iterdir()) / "manifest.json").velocity is not None
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda m: m.pop("velocity"), "needs a 'velocity' section"),
+        (lambda m: m["outputs"][0].update(shape=["batch", "frames", 2]), "returns (velocity, h, c)"),
+        (lambda m: m["inputs"].pop(), "takes (features, h0, c0)"),
+        (lambda m: m["inputs"][0].update(shape=["batch", "frames", 60]), "takes (features, h0, c0)"),
+        (lambda m: m["velocity"].update(sensors=["Head", "Pelvis"]), "sensors start with Pelvis"),
+        (lambda m: m["velocity"].update(feature_version="pelvis_relative_v0"), "this service computes"),
+        (lambda m: m["velocity"].update(learned_share=1.5), "less than or equal to 1"),
+    ],
+)
+def test_a_velocity_manifest_that_misdescribes_its_model_is_refused(change, message: str) -> None:
+    raw = _shipped()
+    change(raw)
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        Manifest.model_validate(raw)
