@@ -181,7 +181,7 @@ def export(run_id: str, out_root: Path = typer.Option(Path("onnx_models")), vers
 
     mlflow.set_tracking_uri(default_tracking_uri())
     task = MlflowClient().get_run(run_id).data.tags.get("task", "")
-    if task in ("imu_pose", "flex_pose"):  # pose and flex runs write their files when they train
+    if task in ("imu_pose", "imu_pose_velocity", "flex_pose"):  # pose and flex runs write their files as they train
         raise typer.BadParameter(
             f"run {run_id} is an {task} run: its files are written when it trains (--ship --version X); its registered "
             "model is served from the registry as it is (WEARMOCAP_REGISTRY_MODELS, docs/service.md)",

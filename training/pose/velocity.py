@@ -54,6 +54,7 @@ from training.pose.train import _crop, _length_buckets, clip_weights, feature_st
 log = logging.getLogger(__name__)
 
 ACCUMULATED_WINDOWS = (1, 3, 9, 27)  # TransPose 2021 eq. 6: frames over which the velocity error is summed
+SELECTION_METRIC = "val_trans_learned_1s_cm"  # the registry's: the chosen share's validation figure
 
 
 class VelocityNet(nn.Module):
@@ -407,10 +408,11 @@ def run_velocity_experiment(
     """Train the velocity network on the pose config's training clips, choose its epoch on the validation
     subjects (its velocity alone) and then its share on the ground (with the pose model's answers, against the
     rule), score the held-out subjects, export, log, register; ship it if it beats the rule on validation."""
+    from training.pose.data import pose_evaluation_digest
     from training.pose.pipeline import TEST_SEED, VAL_SEED, carries_bandai, load_pose_data
     from training.run_labels import label_run
     from training.shipping import ship_files, with_registry
-    from training.tracking import log_onnx_model, register_model, setup_tracking
+    from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
 
     cfg = load_pose_config(vcfg.pose_config)
     pose = PoseModel(load_model(Path(vcfg.pose_model), cfg.train.threads))
@@ -463,6 +465,7 @@ def run_velocity_experiment(
         beats_rule = val["all"][f"share_{share:g}"] < val["all"]["rule"]
         mlflow.log_metrics({f"val_trans_{k}_1s_cm": v for k, v in val["all"].items() if k != "clips"})
         mlflow.log_params({"chosen_share": share})
+        mlflow.log_metric(SELECTION_METRIC, val["all"][f"share_{share:g}"])
         mlflow.set_tag("beats_rule_on_validation", str(beats_rule))
         log.info("validation, 1 s windows (cm):\n%s\nchosen share %g", _table(val), share)
         test = translation_errors(test_cases, learned_velocities(predict, test_cases), [share])
@@ -534,7 +537,13 @@ def run_velocity_experiment(
         )
         info = log_onnx_model(onnx.load(str(onnx_path)), golden, manifest, input_key="features")
         mlflow.set_tag("model_uri", info.model_uri)
-        registered = register_model(info.model_uri, vcfg.tracking.registered_model or vcfg.name)
+        registered_name = vcfg.tracking.registered_model or vcfg.name
+        registered = register_model(info.model_uri, registered_name)
+        # the registry's champion by the figure the share was chosen by, on the same validation sessions
+        chosen = val["all"][f"share_{share:g}"]
+        digest = f"{pose_evaluation_digest(data.val)}|{chosen_with}"
+        promoted = maybe_promote(registered_name, registered.version, SELECTION_METRIC, chosen, False, digest)
+        mlflow.set_tag("promoted_to_champion", str(promoted))
         manifest = with_registry(manifest, info, registered)
         shipped = None
         if ship_to is not None and not beats_rule:
