@@ -238,9 +238,10 @@ def main() -> None:
     )
     ap.add_argument(
         "--translation",
-        choices=["none", "feet", "learned"],
+        choices=["none", "feet", "learned", "all"],
         default="none",
-        help="the pose answers' translation (REST, streams; learned: REST only, the streams are not run)",
+        help="the pose answers' translation (REST, streams); learned: REST only, the streams are not run; all: the "
+        "REST figures of none, feet and learned side by side, no streams",
     )
     ap.add_argument("--out", type=Path, default=RESULTS / "pose.json", help="where the results go")
     args = ap.parse_args()
@@ -254,13 +255,17 @@ def main() -> None:
             f"--translation {args.translation}",
             "machine": platform.processor() or platform.machine(),
             "served": served,
-            **bench_rest(base, args.repeats, args.translation),
         }
+        if args.translation == "all":  # the cost of each translation beside the others, on one server
+            for translation in ("none", "feet", "learned"):
+                out |= {f"{k}_{translation}": v for k, v in bench_rest(base, args.repeats, translation).items()}
+        else:
+            out |= bench_rest(base, args.repeats, args.translation)
         out["streams"] = [
             asyncio.run(bench_streams(base, n, args.seconds, args.packet, mode, args.ramp, args.translation))
             for mode in args.modes
             for n in args.streams
-            if args.translation != "learned"  # the streams move the body by the rule alone
+            if args.translation in ("none", "feet")  # the streams move the body by the rule alone
         ]
     finally:
         stop(proc)

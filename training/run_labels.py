@@ -33,6 +33,7 @@ EXPERIMENTS = {
 TASKS = {
     "assignment": "I2S assignment",
     "alignment": "I2S alignment",
+    "imu_pose_velocity": "the pelvis velocity of the body's translation (TransPose 2021)",
 }
 
 

@@ -134,6 +134,8 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
     not_shipped |= {"pose_full6 v8", "pose_lower3 v6"}
     # and of the walking and mRMR models in the thorax frames (docs/pose.md, "Upper-trunk frames")
     not_shipped |= {"pose_full6_walk v3", "pose_mrmr6 v3"}
+    # the learned velocity over 16 epochs instead of 32 (docs/pose.md, "Translation")
+    not_shipped |= {"pose_full6_velocity v1"}
     assert {v for v in report.versions_without_model if v.split()[0] not in comparisons} <= not_shipped
     # a manifest's run id finds its restored run (what `evaluate` needs on a fresh clone), a run here finds itself
     assert local_run_id(manifest.mlflow["run_id"]) == by_origin[manifest.mlflow["run_id"]].info.run_id

@@ -225,7 +225,9 @@ def _clip_table(clips: list[MotionClip]) -> pd.DataFrame:
     )
 
 
-def _log_datasets(data: PoseData, data_dir: Path) -> None:
+def log_datasets(data: PoseData, data_dir: Path) -> None:
+    """The run's training, validation and held-out clips as MLflow datasets (path, source, subject, activity, frames,
+    digest per clip)."""
     for context, clips in (("train", data.train), ("validation", data.val), ("test", data.test)):
         ds = mlflow.data.from_pandas(
             _clip_table(clips), source=str(data_dir), name=f"pose-{context}-{dataset_digest(clips)}"
@@ -364,7 +366,7 @@ def run_pose_experiment(
             }
         )
         mlflow.log_params({k: str(v) for k, v in flatten(cfg.model_dump()).items()})
-        _log_datasets(data, data_dir)
+        log_datasets(data, data_dir)
         if data.selection is not None:
             _log_selection(data.selection, cfg, tmp)
         init_state = None
@@ -567,7 +569,7 @@ def run_placement_search(
                 "candidates": ",".join(CANDIDATES),
             }
         )
-        _log_datasets(data, data_dir)
+        log_datasets(data, data_dir)
         placement, mic = search_placement(data.train, n_sensors, frames, cfg.data.bandai_share, cfg.seed)
         for k, (value, gain) in enumerate(zip(placement.phi, placement.gain, strict=True), start=1):
             mlflow.log_metric("phi", value, step=k)

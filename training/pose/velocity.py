@@ -2,7 +2,7 @@
 
 TransPose moves the root by the supporting foot when its contact probability is high and otherwise by a root
 velocity that a second network regresses from the sensors (its "fallback" branch, trained with an accumulated
-loss over windows of 1, 3, 9 and 27 frames, eq. 6). Here the same kind of network reads the pose model's own
+loss over windows of 1, 3, 9 and 27 frames, §3.3). Here the same kind of network reads the pose model's own
 features (``service.core.calibration.pose_features``: pelvis-relative, so independent of heading) and answers the
 pelvis velocity in the pelvis frame; the service turns it into the world with the pelvis sensor's calibrated
 orientation. A unidirectional LSTM seeing ``look_ahead`` frames ahead (TransPose's online mode), so that the same
@@ -53,7 +53,7 @@ from training.pose.train import _crop, _length_buckets, clip_weights, feature_st
 
 log = logging.getLogger(__name__)
 
-ACCUMULATED_WINDOWS = (1, 3, 9, 27)  # TransPose 2021 eq. 6: frames over which the velocity error is summed
+ACCUMULATED_WINDOWS = (1, 3, 9, 27)  # TransPose 2021 §3.3: frames over which the velocity error is summed
 SELECTION_METRIC = "val_trans_learned_1s_cm"  # the registry's: the chosen share's validation figure
 
 
@@ -112,8 +112,9 @@ class VelocityTrainResult:
 
 
 def _accumulated_loss(pred: torch.Tensor, target: torch.Tensor, R: torch.Tensor, mask: torch.Tensor, rate: float):
-    """TransPose 2021 eq. 6: the squared error of the displacement over windows of n frames, summed over n, with
-    the per-frame errors turned into the world (``R``: world ← pelvis per frame) before they are added up."""
+    """TransPose 2021 §3.3's accumulated loss: the squared error of the displacement over every window of n frames
+    (sliding), summed over n, the per-frame errors turned into the world (``R``: world ← pelvis per frame) before
+    they are added up."""
     e = torch.einsum("btij,btj->bti", R, (pred - target) * mask[..., None]) / rate
     c = torch.cumsum(torch.nn.functional.pad(e, (0, 0, 1, 0)), dim=1)
     loss = torch.zeros(())
@@ -409,7 +410,7 @@ def run_velocity_experiment(
     subjects (its velocity alone) and then its share on the ground (with the pose model's answers, against the
     rule), score the held-out subjects, export, log, register; ship it if it beats the rule on validation."""
     from training.pose.data import pose_evaluation_digest
-    from training.pose.pipeline import TEST_SEED, VAL_SEED, carries_bandai, load_pose_data
+    from training.pose.pipeline import TEST_SEED, VAL_SEED, carries_bandai, load_pose_data, log_datasets
     from training.run_labels import label_run
     from training.shipping import ship_files, with_registry
     from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
@@ -444,6 +445,7 @@ def run_velocity_experiment(
             }
         )
         mlflow.log_params({k: str(v) for k, v in flatten(vcfg.model_dump()).items()})
+        log_datasets(data, data_dir)
 
         def on_epoch(epoch: int, row: dict[str, float]) -> None:
             mlflow.log_metrics({k: v for k, v in row.items() if k != "epoch"}, step=epoch)
@@ -454,7 +456,6 @@ def run_velocity_experiment(
             {"best_epoch": result.best_epoch, "train_wall_time_s": result.wall_s, "epochs_run": len(result.history)}
         )
         mlflow.set_tag("stopped", result.stopped)
-        label_run(MlflowClient(), run.info.run_id)
         torch.save(net.state_dict(), tmp / "model_state.pt")
         mlflow.log_artifact(str(tmp / "model_state.pt"), "checkpoint")
         mlflow.log_artifact(str(velocity_learning_curve_png(result.history, tmp / "learning_curve.png")), "plots")
@@ -467,7 +468,14 @@ def run_velocity_experiment(
         mlflow.log_params({"chosen_share": share})
         mlflow.log_metric(SELECTION_METRIC, val["all"][f"share_{share:g}"])
         mlflow.set_tag("beats_rule_on_validation", str(beats_rule))
+        rule, chosen = val["all"]["rule"], val["all"][f"share_{share:g}"]
+        mlflow.set_tag(
+            "note",
+            f"Share {share:g} on the ground, chosen with {chosen_with} on the validation subjects ({chosen:.1f} cm "
+            f"per 1 s against the rule's {rule:.1f} cm)",
+        )
         log.info("validation, 1 s windows (cm):\n%s\nchosen share %g", _table(val), share)
+        label_run(MlflowClient(), run.info.run_id)  # its name and description in the UI
         test = translation_errors(test_cases, learned_velocities(predict, test_cases), [share])
         test5 = translation_errors(test_cases, learned_velocities(predict, test_cases), [share], seconds=5.0)
         for activity, row in test.items():
