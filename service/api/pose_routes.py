@@ -228,7 +228,9 @@ def body_pose(
     body = model.body.scaled(height_m) if height_m else model.body
     if translation == "none":
         return BodyPose(R_world, body, None)
-    if translation == "learned" and velocity is not None:
+    if translation == "learned":
+        if velocity is None:
+            raise ValueError("translation 'learned' needs the velocity model of the pose model's sensors")
         tracker = RootTracker(feet_of(body), MODEL_RATE_HZ, learned_share=velocity.spec.learned_share)
         learned = world_velocity(R_w_seg[:, 0], velocity.predict(features))
         return BodyPose(R_world, body, tracker.advance(body.forward(R_world), a_w[:, 0], learned)[0])

@@ -244,16 +244,18 @@ class Manifest(BaseModel):
 
     def _velocity_contract(self) -> Manifest:
         from service.core.body import BODY_SEGMENTS
-        from service.core.calibration import FEATURE_VERSION, features_per_frame
+        from service.core.calibration import ACC_SCALE_MPS2, FEATURE_VERSION, features_per_frame
 
         v = self.velocity
         if v is None or self.output_kind != "velocity_mps":
             raise ValueError("an imu_pose_velocity model needs a 'velocity' section and output_kind velocity_mps")
         if not v.sensors or v.sensors[0] != "Pelvis" or set(v.sensors) - set(BODY_SEGMENTS):
             raise ValueError(f"imu_pose_velocity: sensors start with Pelvis and are of {list(BODY_SEGMENTS)}")
-        if v.feature_version != FEATURE_VERSION:
+        if v.feature_version != FEATURE_VERSION or v.acc_scale_mps2 != ACC_SCALE_MPS2 or self.sample_rate_hz != 60.0:
             raise ValueError(
-                f"imu_pose_velocity: features {v.feature_version!r}, this service computes {FEATURE_VERSION!r}"
+                f"imu_pose_velocity: features {v.feature_version!r} / {v.acc_scale_mps2:g} m/s^2 at "
+                f"{self.sample_rate_hz:g} Hz, this service computes {FEATURE_VERSION!r} / {ACC_SCALE_MPS2:g} m/s^2 "
+                "at 60 Hz"
             )
         state = [v.state_layers, "batch", v.state_hidden]
         expected_in = [["batch", "frames", features_per_frame(len(v.sensors))], state, state]

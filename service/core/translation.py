@@ -20,6 +20,10 @@ same way, so that a throw starts from a smooth one). Otherwise the pelvis moves 
 flight, a throw under gravity). A body starts at rest: a session that starts moving (an assignment hand-over
 mid-walk) reads too little speed for its first frames, about five on the ground.
 
+With a learned pelvis velocity (``training.pose.velocity``, TransPose's fallback network; ``translation:
+learned``) that velocity stands in for the inertial prediction along the floor: it chooses the point, it moves
+the body in flight, and on the ground it is averaged with the chosen point's velocity by ``learned_share``.
+
 Known limits: the floor is flat (stairs, slopes and a seat read as the feet's level), a foot that slides moves
 the body the other way, and error in the predicted legs accumulates as drift (docs/pose.md, "Translation").
 The constants were set on training-side clips, not read off the held-out people (docs/pose.md says what those
@@ -80,8 +84,9 @@ class RootTracker:
         joints_m: ``(T, S, 3)`` joint positions relative to the pelvis, world axes, z up; free_acc_pelvis_mps2:
         ``(T, 3)`` the pelvis's acceleration in the world without gravity (``calibration.segment_readings``);
         learned_mps: ``(T, 3)`` a learned pelvis velocity in the world (``training.pose.velocity``), which then
-        takes the accelerometer's place along the floor: in flight alone, on the ground ``learned_share`` of it
-        with the chosen point's; the height is the rule's either way."""
+        takes the accelerometer's place along the floor: in flight it alone sets the velocity (the step from the
+        last one integrated by the trapezoid rule), on the ground ``learned_share`` of it with the chosen point's,
+        and it chooses that point; the height is the rule's either way."""
         learned = None if learned_mps is None else [learned_mps]
         return advance_bodies([self], [joints_m], [free_acc_pelvis_mps2], learned)[0]
 
@@ -95,6 +100,8 @@ def advance_bodies(
     """``RootTracker.advance`` for several bodies (of one sample rate) at once: the array work of all their frames
     in one pass, so that a service with many live sessions pays numpy's per-call cost once per batch."""
     counts = [len(j) for j in joints_m]
+    if learned_mps is not None and [len(v) for v in learned_mps] != counts:
+        raise ValueError(f"a learned velocity per frame: {[len(v) for v in learned_mps]} for frames {counts}")
     bounds = np.cumsum([0, *counts])
     if not bounds[-1]:
         return [(np.zeros((0, 3)), np.zeros(0, dtype=int)) for _ in trackers]

@@ -9,13 +9,19 @@ from pathlib import Path
 import pytest
 
 from service.core.manifest import Manifest, read_manifest
+from service.inference.registry import newest_version_dir
 
 SHIPPED = Path(__file__).resolve().parents[2] / "onnx_models" / "pose_full6_velocity"
 
 
+def _newest() -> Path:
+    newest = newest_version_dir(SHIPPED.parent, SHIPPED.name)
+    assert newest is not None
+    return newest
+
+
 def _shipped() -> dict:
-    newest = max(SHIPPED.iterdir(), key=lambda d: tuple(int(p) for p in d.name.split(".")))
-    return json.loads((newest / "manifest.json").read_text())
+    return json.loads((_newest() / "manifest.json").read_text())
 
 
 def test_the_shipped_velocity_manifest_holds_its_contract() -> None:
@@ -23,7 +29,7 @@ def test_the_shipped_velocity_manifest_holds_its_contract() -> None:
     m = Manifest.model_validate(raw)
     assert m.task == "imu_pose_velocity" and m.velocity is not None and m.velocity.sensors[0] == "Pelvis"
     assert 0.0 <= m.velocity.learned_share <= 1.0 and m.velocity.chosen_with.startswith("pose_full6 ")
-    assert read_manifest(next(SHIPPED.iterdir()) / "manifest.json").velocity is not None
+    assert read_manifest(_newest() / "manifest.json").velocity is not None
 
 
 @pytest.mark.parametrize(
@@ -35,6 +41,8 @@ def test_the_shipped_velocity_manifest_holds_its_contract() -> None:
         (lambda m: m["inputs"][0].update(shape=["batch", "frames", 60]), "takes (features, h0, c0)"),
         (lambda m: m["velocity"].update(sensors=["Head", "Pelvis"]), "sensors start with Pelvis"),
         (lambda m: m["velocity"].update(feature_version="pelvis_relative_v0"), "this service computes"),
+        (lambda m: m["velocity"].update(acc_scale_mps2=9.81), "this service computes"),
+        (lambda m: m.update(sample_rate_hz=100.0), "at 60 Hz"),
         (lambda m: m["velocity"].update(learned_share=1.5), "less than or equal to 1"),
     ],
 )

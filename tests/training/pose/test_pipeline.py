@@ -337,13 +337,15 @@ def test_evaluate_pose_scores_the_validation_subjects_on_the_sessions_training_j
 
 
 def test_a_learned_velocity_is_trained_for_a_shipped_model_chosen_on_validation_and_shipped_only_if_it_helps(
-    shipped: dict[str, dict], data_dir: Path, canonical_cache: Path, tmp_path: Path
+    shipped: dict[str, dict], data_dir: Path, canonical_cache: Path, tmp_path: Path, mlflow_server: str
 ) -> None:
     """``pose-velocity-train`` for the tiny six-sensor model: its epoch and its share on the ground are chosen on
-    the validation subject, the held-out table holds the rule beside it, and the files ship (loadable, answering
-    as torch did) exactly when it beats the rule on validation."""
+    the validation subject, the held-out table holds the rule beside it, the files ship and the registry's champion
+    moves exactly when it beats the rule on validation, and the registered file answers through the service's path
+    as torch did, its output shifted by its look-ahead."""
     import yaml
 
+    from service.inference.registry import load_registry_models
     from service.inference.velocity import VelocityModel
     from training.pose.config import PoseVelocityConfig
     from training.pose.velocity import run_velocity_experiment
@@ -363,19 +365,36 @@ def test_a_learned_velocity_is_trained_for_a_shipped_model_chosen_on_validation_
     )
     models = tmp_path / "onnx_models"
     out = run_velocity_experiment(vcfg, data_dir, canonical_cache, models, "0.0.1")
-    run = MlflowClient().get_run(out["run_id"])
-    assert len(MlflowClient().get_metric_history(out["run_id"], "val_velocity_1s_cm")) == 2
+    client = MlflowClient()
+    run = client.get_run(out["run_id"])
+    assert len(client.get_metric_history(out["run_id"], "val_velocity_1s_cm")) == 2
+    assert {i.tags[0].value for i in run.inputs.dataset_inputs} == {"train", "validation", "test"}
     val = {k: v for k, v in run.data.metrics.items() if k.startswith("val_trans_")}
     assert {"val_trans_rule_1s_cm", "val_trans_share_0.5_1s_cm", "val_trans_share_1_1s_cm"} <= set(val)
     share = out["share"]
     shares = (val["val_trans_share_0.5_1s_cm"], val["val_trans_share_1_1s_cm"])
-    assert val[f"val_trans_share_{share:g}_1s_cm"] == min(shares)
+    assert val[f"val_trans_share_{share:g}_1s_cm"] == min(shares) == val["val_trans_learned_1s_cm"]
     assert "walk" in out["test"] and {"rule", f"share_{share:g}", "velocity", "still"} <= set(out["test"]["all"])
     beats = val[f"val_trans_share_{share:g}_1s_cm"] < val["val_trans_rule_1s_cm"]
     assert run.data.tags["beats_rule_on_validation"] == str(beats)
     assert (out["shipped"] is not None) == beats == (models / "tiny_full6_velocity" / "0.0.1").is_dir()
-    if beats:
-        model = VelocityModel(load_model(out["shipped"], 1))
-        assert model.spec.learned_share == share and model.spec.sensors == SIX_SENSORS
-        with np.load(Path(out["shipped"]) / "golden.npz") as golden:
-            np.testing.assert_allclose(model.predict(golden["features"][0])[:-5], golden["expected"][0, 5:], atol=1e-4)
+    assert run.data.tags["promoted_to_champion"] == str(beats)
+    aliases = client.get_registered_model("tiny_full6_velocity").aliases
+    assert ("champion" in aliases) == beats
+    # the registered file, as the service fetches it from the registry, answers as torch did
+    [version] = client.search_model_versions(f"name='tiny_full6_velocity' and run_id='{out['run_id']}'")
+    uri = f"models:/tiny_full6_velocity/{version.version}"
+    model = VelocityModel(load_registry_models(mlflow_server, [uri], tmp_path / "registry", 1)["tiny_full6_velocity"])
+    assert model.spec.learned_share == share and model.spec.sensors == SIX_SENSORS and model.spec.chosen_with
+    import mlflow
+    import torch
+
+    from training.pose.velocity import VelocityNet, predict_velocity
+
+    state = torch.load(
+        mlflow.artifacts.download_artifacts(run_id=out["run_id"], artifact_path="checkpoint/model_state.pt")
+    )
+    net = VelocityNet(state["mean"].shape[0], 16, 1, model.spec.look_ahead_frames)
+    net.load_state_dict(state)
+    features = np.random.default_rng(0).normal(size=(90, state["mean"].shape[0])).astype(np.float32)
+    np.testing.assert_allclose(model.predict(features), predict_velocity(net.eval(), features), atol=1e-4)
