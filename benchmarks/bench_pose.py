@@ -250,9 +250,13 @@ def main() -> None:
         served = {k: v["version"] for k, v in httpx.get(base + "/v1/models").json().items()}
         out = {
             "command": "python -m benchmarks.bench_pose "
-            f"--streams {' '.join(map(str, args.streams))} --seconds {args.seconds} --packet {args.packet} "
-            f"--repeats {args.repeats} --ramp {args.ramp} --modes {' '.join(args.modes)} "
-            f"--translation {args.translation}",
+            + (
+                f"--streams {' '.join(map(str, args.streams))} --seconds {args.seconds} --packet {args.packet} "
+                f"--ramp {args.ramp} --modes {' '.join(args.modes)} "
+                if args.translation in ("none", "feet")  # the others run no streams
+                else ""
+            )
+            + f"--repeats {args.repeats} --translation {args.translation}",
             "machine": platform.processor() or platform.machine(),
             "served": served,
         }
