@@ -32,22 +32,7 @@ def export_pose_onnx(net: PoseNet, cfg: PoseConfig, path: Path) -> Path:
     net = net.eval()
     x = torch.zeros(1, 16, F)
     if is_streaming(cfg):
-        h = torch.zeros(net.layers, 1, net.hidden)
-        torch.onnx.export(
-            StreamingExport(net),
-            (x, h, h.clone()),
-            str(path),
-            input_names=["features", "h0", "c0"],
-            output_names=["rotations", "h", "c"],
-            # a batch of live sessions per call (service.inference.pose_batcher), each with its own state
-            dynamic_axes={
-                "features": {0: "batch", 1: "frames"},
-                "rotations": {0: "batch", 1: "frames"},
-                **{name: {1: "batch"} for name in ("h0", "c0", "h", "c")},
-            },
-            opset_version=OPSET,
-            dynamo=False,
-        )
+        export_stateful(StreamingExport(net), x, torch.zeros(net.layers, 1, net.hidden), "rotations", path)
     else:
         torch.onnx.export(
             net,
@@ -59,6 +44,26 @@ def export_pose_onnx(net: PoseNet, cfg: PoseConfig, path: Path) -> Path:
             opset_version=OPSET,
             dynamo=False,
         )
+    return path
+
+
+def export_stateful(module: torch.nn.Module, x: torch.Tensor, h: torch.Tensor, output: str, path: Path) -> Path:
+    """A recurrent network's streaming graph: (features, h0, c0) → (``output``, h, c), the batch and frames
+    symbolic: a batch of live sessions per call (service.inference.pose_batcher), each with its own state."""
+    torch.onnx.export(
+        module,
+        (x, h, h.clone()),
+        str(path),
+        input_names=["features", "h0", "c0"],
+        output_names=[output, "h", "c"],
+        dynamic_axes={
+            "features": {0: "batch", 1: "frames"},
+            output: {0: "batch", 1: "frames"},
+            **{name: {1: "batch"} for name in ("h0", "c0", "h", "c")},
+        },
+        opset_version=OPSET,
+        dynamo=False,
+    )
     return path
 
 

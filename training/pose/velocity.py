@@ -47,7 +47,7 @@ from training.plots import translation_bars_png, velocity_learning_curve_png
 from training.pose.config import PoseConfig, PoseVelocityConfig, load_pose_config
 from training.pose.data import MODEL_RATE_HZ, MotionClip
 from training.pose.evaluate import pelvis_free_acc
-from training.pose.export import OPSET, PARITY_ATOL
+from training.pose.export import OPSET, PARITY_ATOL, export_stateful
 from training.pose.simulate import Session
 from training.pose.train import _crop, _length_buckets, clip_weights, feature_stats, fixed_sessions, session_of
 
@@ -309,23 +309,8 @@ class StreamingVelocityExport(nn.Module):
 def export_velocity_onnx(net: VelocityNet, path: Path) -> Path:
     """TorchScript exporter (native ONNX LSTM ops), the batch and frames symbolic."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    x = torch.zeros(1, 16, int(net.mean.shape[0]))
-    h = torch.zeros(net.layers, 1, net.hidden)
-    torch.onnx.export(
-        StreamingVelocityExport(net.eval()),
-        (x, h, h.clone()),
-        str(path),
-        input_names=["features", "h0", "c0"],
-        output_names=["velocity", "h", "c"],
-        dynamic_axes={
-            "features": {0: "batch", 1: "frames"},
-            "velocity": {0: "batch", 1: "frames"},
-            **{name: {1: "batch"} for name in ("h0", "c0", "h", "c")},
-        },
-        opset_version=OPSET,
-        dynamo=False,
-    )
-    return path
+    x, h = torch.zeros(1, 16, int(net.mean.shape[0])), torch.zeros(net.layers, 1, net.hidden)
+    return export_stateful(StreamingVelocityExport(net.eval()), x, h, "velocity", path)
 
 
 def build_velocity_manifest(
