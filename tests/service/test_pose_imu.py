@@ -980,9 +980,24 @@ def test_rest_pose_with_the_learned_velocity_moves_the_walker_as_its_model_says(
     print(f"REST walk, learned translation: {error * 100:.1f} cm per second against {travelled * 100:.1f} cm")
     assert travelled > 0.8 and error < 0.5 * travelled
     lower = httpx.post(f"{server}/v1/pose/imu", json=_body(raw, LOWER) | {"translation": "learned"}, timeout=60)
-    assert lower.status_code == 422, lower.text
-    assert "needs a velocity model for the sensors ['Pelvis', 'LeftLowerLeg', 'RightLowerLeg']" in lower.text
-    assert "pose_full6_velocity" in lower.text and "'feet'" in lower.text
+    assert lower.status_code == 200, lower.text  # the three-sensor placement has its own velocity model
+    root_lower = np.array(lower.json()["root_position_m"])
+    assert _window_error(root_lower, motion.origin_m[:, 0] @ Rz.T)[0] < 0.5 * travelled
+    assert not np.allclose(root_lower, root, atol=0.05)
+
+
+def test_learned_translation_without_a_velocity_model_for_the_sensors_is_refused(tmp_path: Path, walk) -> None:
+    """A service whose models directory holds the three-sensor pose model but no velocity model answers
+    ``translation: learned`` with a 422 that names the sensors, what is loaded and the rule to use instead."""
+    (tmp_path / "pose_lower3").symlink_to(MODELS / "pose_lower3")
+    _, raw = walk
+    with TestClient(create_app(Settings(models_dir=tmp_path))) as c:
+        r = c.post("/v1/pose/imu", json=_body(raw, LOWER) | {"translation": "learned"})
+        assert r.status_code == 422, r.text
+        detail = r.json()["detail"]
+        assert "needs a velocity model for the sensors ['Pelvis', 'LeftLowerLeg', 'RightLowerLeg']" in detail
+        assert "loaded velocity models: none" in detail and "'feet'" in detail
+        assert c.post("/v1/pose/imu", json=_body(raw, LOWER) | {"translation": "feet"}).status_code == 200
 
 
 def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_rule_does(server: str, walk, pose_models) -> None:
