@@ -429,10 +429,7 @@ def run_velocity_experiment(
         mlflow.set_tags(
             {
                 "task": "imu_pose_velocity",
-                "model_kind": "lstm",
-                "mlflow.note.content": f"The pelvis velocity learned from {len(cfg.sensors)} IMUs "
-                f"({', '.join(cfg.sensors)}), TransPose 2021's fallback branch; its share on the ground chosen "
-                f"with {chosen_with} on the validation subjects; held-out subjects reported.",
+                "model_kind": "lstm",  # its description in the UI: training.run_labels, once the share is chosen
                 "trains_on_bandai_namco": str(carries_bandai(cfg, data.train)),
             }
         )
