@@ -197,6 +197,7 @@ async def bench_streams(
     expected = admitted * (int(seconds * 60) - 5)
     return {
         "streams": n,
+        "translation": translation,
         "streams_admitted": admitted,
         "streams_refused_1013": len(refused),
         "first_refusal": repr(refused[0])[:200] if refused else None,
@@ -240,36 +241,30 @@ def main() -> None:
         "--translation",
         choices=["none", "feet", "learned", "all"],
         default="none",
-        help="the pose answers' translation (REST, streams); learned: REST only, the streams are not run; all: the "
-        "REST figures of none, feet and learned side by side, no streams",
+        help="the pose answers' translation (REST, streams); all: none, feet and learned side by side on one server",
     )
     ap.add_argument("--out", type=Path, default=RESULTS / "pose.json", help="where the results go")
     args = ap.parse_args()
     proc, base = start_service(REPO / "onnx_models")
     try:
         served = {k: v["version"] for k, v in httpx.get(base + "/v1/models").json().items()}
+        translations = ["none", "feet", "learned"] if args.translation == "all" else [args.translation]
         out = {
             "command": "python -m benchmarks.bench_pose "
-            + (
-                f"--streams {' '.join(map(str, args.streams))} --seconds {args.seconds} --packet {args.packet} "
-                f"--ramp {args.ramp} --modes {' '.join(args.modes)} "
-                if args.translation in ("none", "feet")  # the others run no streams
-                else ""
-            )
-            + f"--repeats {args.repeats} --translation {args.translation}",
+            f"--streams {' '.join(map(str, args.streams))} --seconds {args.seconds} --packet {args.packet} "
+            f"--ramp {args.ramp} --modes {' '.join(args.modes)} --repeats {args.repeats} "
+            f"--translation {args.translation}",
             "machine": platform.processor() or platform.machine(),
             "served": served,
         }
-        if args.translation == "all":  # the cost of each translation beside the others, on one server
-            for translation in ("none", "feet", "learned"):
-                out |= {f"{k}_{translation}": v for k, v in bench_rest(base, args.repeats, translation).items()}
-        else:
-            out |= bench_rest(base, args.repeats, args.translation)
+        for translation in translations:  # with all, each one's REST figures under keys ending in its name
+            suffix = f"_{translation}" if args.translation == "all" else ""
+            out |= {f"{k}{suffix}": v for k, v in bench_rest(base, args.repeats, translation).items()}
         out["streams"] = [
-            asyncio.run(bench_streams(base, n, args.seconds, args.packet, mode, args.ramp, args.translation))
+            asyncio.run(bench_streams(base, n, args.seconds, args.packet, mode, args.ramp, translation))
+            for translation in translations
             for mode in args.modes
             for n in args.streams
-            if args.translation in ("none", "feet")  # the streams move the body by the rule alone
         ]
     finally:
         stop(proc)

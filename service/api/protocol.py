@@ -33,10 +33,11 @@ Server → client
   declared sessions are calibrated at the start, still-pose sessions after a still span, assignment sessions when
   the assignment is sure of the model's segments) · pose (from the streaming model, as frames complete: first_frame,
   frames, q_world_segment and joint_positions_m per frame in "started"'s pose.segments order; each frame answers
-  look_ahead_frames late; with "pose": {"translation": "feet"} also root_position_m, the pelvis per frame by
-  /v1/pose/imu's rule, run over the frames this stream answers, from its first answered frame; "started" says
-  pose.translation) · warning (pose-only sessions: once per sensor, when the first 2 s of body frames
-  read implausibly for its declared units).
+  look_ahead_frames late; with "pose": {"translation": "feet" | "learned"} also root_position_m, the pelvis per
+  frame by /v1/pose/imu's rule (with "learned" and the learned pelvis velocity of the velocity model of the pose
+  model's sensors), run over the frames this stream answers, from its first answered frame; "started" says
+  pose.translation and, with "learned", pose.velocity_model) · warning (pose-only sessions: once per sensor, when
+  the first 2 s of body frames read implausibly for its declared units).
   With "pose": {"output": "binary"} each pose message is a binary pose block instead (little-endian): uint16 1,
   uint16 S segments, uint32 first_frame, uint32 frames, then frames × S × 4 float32 q_world_segment (w x y z) and
   frames × S × 3 float32 joint_positions_m: 12 + 28 × frames × S bytes (``decode_pose_block``); with translation
@@ -132,7 +133,7 @@ class PoseStreamOptions(BaseModel):
         description="pose messages as JSON, as binary pose blocks (``encode_pose_block``), or as lines of a BVH "
         "file's motion table (``bvh_pose_message``)",
     )
-    translation: Literal["none", "feet"] = Field("none", description=TRANSLATION_DESCRIPTION)
+    translation: Literal["none", "feet", "learned"] = Field("none", description=TRANSLATION_DESCRIPTION)
 
 
 class StartMessage(BaseModel):

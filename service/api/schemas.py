@@ -469,15 +469,10 @@ EXAMPLE_POSE_IMU = {
 
 TRANSLATION_DESCRIPTION = (
     "`feet`: also where the pelvis is (`root_position_m`): the foot on the ground holds still and the pelvis "
-    "accelerometer tells flight from stance (TransPose 2021's supporting-foot rule; a level floor assumed); `none` "
-    "(default): the pose about a pelvis kept in place"
-)
-
-REST_TRANSLATION_DESCRIPTION = (
-    TRANSLATION_DESCRIPTION
-    + "; `learned`: the same rule with a learned pelvis velocity (TransPose 2021's fallback branch) in the "
-    "accelerometer's place along the floor, where a velocity model for the request's sensors is loaded (GET "
-    "/v1/models: task imu_pose_velocity)"
+    "accelerometer tells flight from stance (TransPose 2021's supporting-foot rule; a level floor assumed); "
+    "`learned`: the same rule with a learned pelvis velocity (TransPose 2021's fallback branch) in the "
+    "accelerometer's place along the floor, where a velocity model for the pose model's sensors is loaded (GET "
+    "/v1/models: task imu_pose_velocity); `none` (default): the pose about a pelvis kept in place"
 )
 
 
@@ -503,7 +498,7 @@ class PoseImuRequest(BaseModel):
         None, description="a loaded pose model's name; default: the offline model for these sensors"
     )
     body_height_m: float | None = Field(None, ge=0.5, le=2.5, description="scale the default body to this height")
-    translation: Literal["none", "feet", "learned"] = Field("none", description=REST_TRANSLATION_DESCRIPTION)
+    translation: Literal["none", "feet", "learned"] = Field("none", description=TRANSLATION_DESCRIPTION)
 
 
 class SegmentTrack(BaseModel):

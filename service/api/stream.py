@@ -52,6 +52,7 @@ from service.core.stream import SensorStream
 from service.core.units import ACC_UNITS, GYR_UNITS, UNIT_CHECK_SECONDS, unit_warnings
 from service.inference.pose import LivePose, PoseModel, general_first
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
+from service.inference.velocity import VelocityModel, velocity_model_for
 
 log = logging.getLogger(__name__)
 
@@ -133,8 +134,11 @@ class Session:
         self.pose_threshold = 0.9
         self.outbox: Outbox | None = None
 
-    def start_pose(self, start: StartMessage, models: dict[str, PoseModel]) -> None:
-        """Choose the streaming model and its calibration (``PoseStreamOptions``); ProtocolError if none fits."""
+    def start_pose(
+        self, start: StartMessage, models: dict[str, PoseModel], velocity_models: dict[str, VelocityModel]
+    ) -> None:
+        """Choose the streaming model, its calibration and translation (``PoseStreamOptions``); ProtocolError if
+        none fits."""
         opts = start.pose
         segments = [s.segment for s in start.sensors]
         if opts.calibration == "assignment":
@@ -173,7 +177,8 @@ class Session:
             opts.still_pose,
             tuple(opts.pelvis_back_axis),
             opts.body_height_m,
-            opts.translation == "feet",
+            opts.translation,
+            _velocity_model(model, opts.translation, velocity_models),
         )
         self.aligner = FrameAligner(len(self.streams), 10)
         self.run_i2s = opts.calibration == "assignment"
@@ -509,8 +514,23 @@ async def _receive_start(ws: WebSocket) -> Session:
         start, settings.stream_max_pending_windows, settings.stream_alignment_windows, ws.app.state.confidence
     )
     if start.pose is not None:
-        session.start_pose(start, ws.app.state.pose_models)
+        session.start_pose(start, ws.app.state.pose_models, ws.app.state.velocity_models)
     return session
+
+
+def _velocity_model(model: PoseModel, translation: str, models: dict[str, VelocityModel]) -> VelocityModel | None:
+    """The velocity model translation 'learned' runs beside ``model``; ProtocolError if none reads its sensors."""
+    if translation != "learned":
+        return None
+    velocity = velocity_model_for(models, model.spec.sensors)
+    if velocity is None or velocity.spec.look_ahead_frames > model.spec.look_ahead_frames:
+        loaded = {name: m.spec.sensors for name, m in sorted(models.items())} or "none"
+        raise ProtocolError(
+            f"pose.translation 'learned' needs a velocity model for the sensors {model.spec.sensors} of {model.name} "
+            f"that answers within its {model.spec.look_ahead_frames} frames of look-ahead; loaded velocity models: "
+            f"{loaded}; 'feet' moves the body without one"
+        )
+    return velocity
 
 
 def _first_error(exc: ValidationError) -> str:
@@ -650,6 +670,7 @@ def _pose_started(session: Session) -> dict | None:
         "hand_over": session.hand_over_when if live.method == "assignment" else None,
         "still_frames": live.still_frames if live.method == "still_pose" else 0,
         "output": session.pose_output,
-        "translation": "none" if live.tracker is None else "feet",
+        "translation": live.translation,
+        "velocity_model": live.velocity.name if live.velocity is not None else None,
         "body_height_m": round(live.body.height_m, 3),
     } | (bvh_started(live.body) if session.pose_output == "bvh" else {})

@@ -95,13 +95,16 @@ def advance_bodies(
     trackers: list[RootTracker],
     joints_m: list[np.ndarray],
     free_acc_pelvis_mps2: list[np.ndarray],
-    learned_mps: list[np.ndarray] | None = None,
+    learned_mps: list[np.ndarray | None] | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """``RootTracker.advance`` for several bodies (of one sample rate) at once: the array work of all their frames
-    in one pass, so that a service with many live sessions pays numpy's per-call cost once per batch."""
+    in one pass, so that a service with many live sessions pays numpy's per-call cost once per batch.
+    ``learned_mps``: per body a learned velocity per frame, or None for a body moved by the rule alone."""
     counts = [len(j) for j in joints_m]
-    if learned_mps is not None and [len(v) for v in learned_mps] != counts:
-        raise ValueError(f"a learned velocity per frame: {[len(v) for v in learned_mps]} for frames {counts}")
+    learned_mps = learned_mps or [None] * len(trackers)
+    sizes = [n if v is None else len(v) for n, v in zip(counts, learned_mps, strict=True)]
+    if sizes != counts:
+        raise ValueError(f"a learned velocity per frame: {sizes} for frames {counts}")
     bounds = np.cumsum([0, *counts])
     if not bounds[-1]:
         return [(np.zeros((0, 3)), np.zeros(0, dtype=int)) for _ in trackers]
@@ -124,17 +127,19 @@ def advance_bodies(
     specific_force = np.linalg.norm(acc + np.array([0.0, 0.0, GRAVITY_MPS2]), axis=-1)
     ground = (specific_force >= FLIGHT_SPECIFIC_FORCE_G * GRAVITY_MPS2).tolist()
     steps = (acc / rate).tolist()
-    learned = None if learned_mps is None else np.concatenate(learned_mps).tolist()
     out: list[list[float]] = []
     carried: list[int] = []
-    for tr, a, b, start in zip(trackers, bounds[:-1].tolist(), bounds[1:].tolist(), starting, strict=True):
+    for tr, a, b, start, velocity in zip(
+        trackers, bounds[:-1].tolist(), bounds[1:].tolist(), starting, learned_mps, strict=True
+    ):
         if a == b:
             continue
+        learned = None if velocity is None else velocity[int(start) :].tolist()
         if start:  # the first frame is the origin
             out.append(list(tr.root))
             carried.append(int(np.argmin(heights[a])) if ground[a] else -1)
         a += int(start)
-        _track(tr, rate, implied[a:b], heights[a:b], ground[a:b], steps[a:b], out, carried, learned and learned[a:b])
+        _track(tr, rate, implied[a:b], heights[a:b], ground[a:b], steps[a:b], out, carried, learned)
         tr.points = points[b - 1].copy()
     out_a, carried_a = np.array(out).reshape(-1, 3), np.array(carried, dtype=int)
     return [(out_a[a:b], carried_a[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]

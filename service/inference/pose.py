@@ -8,7 +8,6 @@ Used by the service and by training's evaluation alike, so a shipped model is sc
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -17,6 +16,8 @@ from service.core.rotations import quat_from_matrix
 from service.core.translation import RootTracker, advance_bodies
 from service.core.windowing import MODEL_RATE_HZ
 from service.inference.registry import LoadedModel
+from service.inference.stateful import StreamState, batchable, step_many, zero_state
+from service.inference.velocity import VelocityModel, world_velocity
 
 Predictor = Callable[[np.ndarray], np.ndarray]  # features (T, F) → R_root_segment (T, S_out, 3, 3)
 
@@ -67,12 +68,6 @@ def run_chunked(
     return out
 
 
-@dataclass
-class StreamState:
-    h: np.ndarray  # (layers, 1, hidden)
-    c: np.ndarray
-
-
 class PoseModel:
     """A loaded ``imu_pose`` model with its manifest's pose section."""
 
@@ -121,8 +116,7 @@ class PoseModel:
         return self.loaded.session.run(None, {self.loaded.manifest.inputs[0].name: features.astype(np.float32)})[0]
 
     def new_state(self) -> StreamState:
-        shape = (self.spec.state_layers, 1, self.spec.state_hidden)
-        return StreamState(np.zeros(shape, np.float32), np.zeros(shape, np.float32))
+        return zero_state(self.spec.state_layers, self.spec.state_hidden)
 
     def step(self, features: np.ndarray, state: StreamState) -> tuple[np.ndarray, StreamState]:
         """Streaming: frames ``(n, F)`` → their outputs ``(n, S_out, 3, 3)`` (each for the frame
@@ -133,30 +127,13 @@ class PoseModel:
     @property
     def batchable(self) -> bool:
         """Whether the streaming graph takes several sessions in one call (its batch dimension is symbolic)."""
-        return isinstance(self.loaded.session.get_inputs()[0].shape[0], str)
+        return batchable(self.loaded.session)
 
     def step_many(
         self, features: list[np.ndarray], states: list[StreamState]
     ) -> tuple[list[np.ndarray], list[StreamState]]:
-        """``step`` for several sessions: those with the same number of frames share one call (a batch of
-        sessions, the LSTM state stacked along its batch axis) where the graph allows it."""
-        names = [i.name for i in self.loaded.session.get_inputs()]
-        ys: list[np.ndarray] = [np.empty(0)] * len(features)
-        out_states: list[StreamState] = list(states)
-        groups: dict[int, list[int]] = {}
-        for k, f in enumerate(features):
-            groups.setdefault(len(f), []).append(k)
-        for members in groups.values():
-            batches = [members] if self.batchable else [[k] for k in members]
-            for batch in batches:
-                x = np.stack([features[k] for k in batch]).astype(np.float32)
-                h = np.concatenate([states[k].h for k in batch], axis=1)
-                c = np.concatenate([states[k].c for k in batch], axis=1)
-                y, h, c = self.loaded.session.run(None, {names[0]: x, names[1]: h, names[2]: c})
-                for row, k in enumerate(batch):
-                    ys[k] = y[row]
-                    out_states[k] = StreamState(h[:, row : row + 1].copy(), c[:, row : row + 1].copy())
-        return ys, out_states
+        """``step`` for several sessions at once (``service.inference.stateful.step_many``)."""
+        return step_many(self.loaded.session, features, states)
 
 
 def general_first(models: dict[str, PoseModel]) -> list[PoseModel]:
@@ -216,10 +193,21 @@ class LivePose:
         still_pose: str = "npose",
         back_axis: tuple[float, float, float] = (0.0, 0.0, 1.0),
         height_m: float | None = None,
-        translation: bool = False,
+        translation: str = "none",
+        velocity: VelocityModel | None = None,
     ) -> None:
         if not model.spec.streaming:
             raise ValueError(f"{model.name} is an offline model; live sessions need a streaming one")
+        if (translation == "learned") != (velocity is not None):
+            raise ValueError("translation 'learned', and it alone, runs a velocity model")
+        if velocity is not None:
+            if velocity.spec.sensors != model.spec.sensors:
+                raise ValueError(f"{velocity.name} reads {velocity.spec.sensors}, {model.name} {model.spec.sensors}")
+            if velocity.spec.look_ahead_frames > model.spec.look_ahead_frames:
+                raise ValueError(
+                    f"{velocity.name} answers {velocity.spec.look_ahead_frames} frames late, after {model.name}'s "
+                    f"pose ({model.spec.look_ahead_frames})"
+                )
         self.model, self.method = model, method
         self.q_segment_sensor = q_segment_sensor
         self.still_frames, self.still_pose, self.back_axis = still_frames, still_pose, back_axis
@@ -228,7 +216,17 @@ class LivePose:
         self.still: list[np.ndarray] = []
         self.history = np.zeros((0, len(model.sensor_index), 3, 3))  # segment readings awaiting their answer
         self.pelvis_acc = np.zeros((0, 3))  # and the pelvis's free acceleration in those frames
-        self.tracker = RootTracker(feet_of(self.body), MODEL_RATE_HZ) if translation else None
+        self.translation = translation
+        self.tracker = None
+        if translation != "none":
+            self.tracker = RootTracker(feet_of(self.body), MODEL_RATE_HZ)
+            if velocity is not None:
+                self.tracker.learned_share = velocity.spec.learned_share
+        # translation learned: the velocity network's state, and its answers (pelvis frame) awaiting their pose
+        self.velocity = velocity
+        self.velocity_state = velocity.new_state() if velocity is not None else None
+        self.velocities = np.zeros((0, 3))
+        self.velocity_inputs = 0  # frames fed to the velocity network
         self.inputs = 0  # frames fed to the network
         self.first_frame = 0  # stream frame index of the first frame fed to the network
 
@@ -313,13 +311,14 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
     q_seg = np.repeat(np.stack([live.q_segment_sensor for live in lives]), counts, axis=0)
     R_w_seg, a_w = segment_readings(joined[:, :, 6:10], joined[:, :, :3], q_seg)
     features = pose_features(R_w_seg, a_w)
-    outs, states = model.step_many(
-        [features[bounds[i] : bounds[i + 1]] for i in range(len(lives))], [live.state for live in lives]
-    )
+    per_session = [features[bounds[i] : bounds[i + 1]] for i in range(len(lives))]
+    outs, states = model.step_many(per_session, [live.state for live in lives])
+    _step_velocities(lives, per_session)
     L = model.spec.look_ahead_frames
     answered: list[tuple[int, int, int]] = []  # (session, first network frame answered, frames answered)
     R_out, R_sensors, offsets = [], [], []
-    tracked: list[tuple[int, RootTracker, np.ndarray]] = []  # (index into answered, tracker, pelvis free acc)
+    # (index into answered, tracker, pelvis free acc, learned velocity in the world or None)
+    tracked: list[tuple[int, RootTracker, np.ndarray, np.ndarray | None]] = []
     for i, live in enumerate(lives):
         live.state = states[i]
         if live.inputs == 0:
@@ -335,10 +334,14 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
         answered.append((i, answered_from, n))
         R_out.append(outs[i][len(outs[i]) - n :])
         R_sensors.append(live.history[:n])
-        live.history = live.history[n:]
         if live.tracker is not None:
-            tracked.append((len(answered) - 1, live.tracker, live.pelvis_acc[:n]))
+            learned = None
+            if live.velocity is not None:  # the pelvis velocity of each answered frame, turned into the world
+                learned = world_velocity(live.history[:n, 0], live.velocities[:n])
+                live.velocities = live.velocities[n:]
+            tracked.append((len(answered) - 1, live.tracker, live.pelvis_acc[:n], learned))
             live.pelvis_acc = live.pelvis_acc[n:]
+        live.history = live.history[n:]
         offsets.append(np.broadcast_to(live.body.offsets_m, (n, *live.body.offsets_m.shape)))
     results: list[dict | None] = [None] * len(lives)
     if not answered:
@@ -351,11 +354,12 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
     roots: dict[int, np.ndarray] = {}
     if tracked:
         moved = advance_bodies(
-            [tracker for _, tracker, _ in tracked],
-            [exact[rows[a] : rows[a + 1]] for a, _, _ in tracked],
-            [acc for _, _, acc in tracked],
+            [tracker for _, tracker, _, _ in tracked],
+            [exact[rows[a] : rows[a + 1]] for a, _, _, _ in tracked],
+            [acc for _, _, acc, _ in tracked],
+            [learned for _, _, _, learned in tracked],
         )
-        roots = {a: np.round(p, 4) for (a, _, _), (p, _) in zip(tracked, moved, strict=True)}
+        roots = {a: np.round(p, 4) for (a, *_), (p, _) in zip(tracked, moved, strict=True)}
     for a, (i, answered_from, n) in enumerate(answered):
         row = rows[a]
         results[i] = {
@@ -368,3 +372,22 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
         if a in roots:
             results[i]["root_position_m"] = roots[a]
     return results
+
+
+def _step_velocities(lives: list[LivePose], features: list[np.ndarray]) -> None:
+    """The velocity networks of the sessions whose translation is learned, one call per network and frame count:
+    each session's velocities (pelvis frame) queued for the frames its pose answers next. A network ``L`` frames
+    late answers a stream's first ``L`` inputs for frames before its start; those are dropped."""
+    by_network: dict[str, list[int]] = {}
+    for i, live in enumerate(lives):
+        if live.velocity is not None:
+            by_network.setdefault(live.velocity.name, []).append(i)
+    for members in by_network.values():
+        network = lives[members[0]].velocity
+        outs, states = network.step_many([features[i] for i in members], [lives[i].velocity_state for i in members])
+        late = network.spec.look_ahead_frames
+        for i, v, state in zip(members, outs, states, strict=True):
+            live = lives[i]
+            skip = max(0, late - live.velocity_inputs)
+            live.velocity_state, live.velocity_inputs = state, live.velocity_inputs + len(v)
+            live.velocities = np.concatenate([live.velocities, v[skip:].astype(np.float64)])

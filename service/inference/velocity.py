@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.inference.registry import LoadedModel
+from service.inference.stateful import StreamState, step_many, zero_state
 
 
 class VelocityModel:
@@ -20,15 +21,24 @@ class VelocityModel:
     def name(self) -> str:
         return self.loaded.manifest.name
 
+    def new_state(self) -> StreamState:
+        return zero_state(self.spec.state_layers, self.spec.state_hidden)
+
+    def step_many(
+        self, features: list[np.ndarray], states: list[StreamState]
+    ) -> tuple[list[np.ndarray], list[StreamState]]:
+        """Live sessions' frames ``(n_k, F)`` → each one's velocities ``(n_k, 3)`` in the pelvis frame (each for the
+        frame ``look_ahead_frames`` earlier) and new state (``service.inference.stateful.step_many``)."""
+        return step_many(self.loaded.session, features, states)
+
     def predict(self, features: np.ndarray) -> np.ndarray:
         """The pelvis velocity in the pelvis frame ``(T, 3)``, m/s, of every frame of ``features`` ``(T, F)``: run
         over the recording from a zero state with the last frame repeated for the look-ahead, as a live stream
         that ends would answer."""
         L = self.spec.look_ahead_frames
         x = np.concatenate([features, np.repeat(features[-1:], L, axis=0)]) if L else features
-        state = np.zeros((self.spec.state_layers, 1, self.spec.state_hidden), np.float32)
-        v = self.loaded.session.run(None, {"features": x[None].astype(np.float32), "h0": state, "c0": state})[0]
-        return v[0, L:].astype(np.float64)
+        (v,), _ = self.step_many([x], [self.new_state()])
+        return v[L:].astype(np.float64)
 
 
 def world_velocity(R_world_pelvis: np.ndarray, v_pelvis: np.ndarray) -> np.ndarray:

@@ -104,19 +104,26 @@ def test_on_a_real_walk_the_rule_on_the_true_pose_follows_the_pelvis(data_dir: P
 
 def test_bodies_moved_together_move_as_each_alone() -> None:
     """A live batch: bodies of different sizes, some with no frame in a call, two whose first frames come late
-    (one of them before another body in the list)."""
+    (one of them before another body in the list), one moved with a learned velocity beside two without."""
     from service.core.translation import advance_bodies
 
     rng = np.random.default_rng(5)
     feet = [Feet(ANKLES, BALLS, h) for h in (0.06, 0.08, 0.1)]
     blocks = [
-        [(rng.normal(scale=0.3, size=(n, len(BODY_SEGMENTS), 3)), rng.normal(scale=6.0, size=(n, 3))) for n in counts]
-        for counts in ((5, 0, 3), (0, 4, 1), (0, 6, 2))
+        [
+            (
+                rng.normal(scale=0.3, size=(n, len(BODY_SEGMENTS), 3)),
+                rng.normal(scale=6.0, size=(n, 3)),
+                rng.normal(scale=1.5, size=(n, 3)) if learned else None,
+            )
+            for n in counts
+        ]
+        for counts, learned in (((5, 0, 3), False), ((0, 4, 1), True), ((0, 6, 2), False))
     ]
-    together = [RootTracker(f, RATE) for f in feet]
-    alone = [RootTracker(f, RATE) for f in feet]
+    together = [RootTracker(f, RATE, learned_share=0.25) for f in feet]
+    alone = [RootTracker(f, RATE, learned_share=0.25) for f in feet]
     for call in range(3):
-        moved = advance_bodies(together, [b[call][0] for b in blocks], [b[call][1] for b in blocks])
+        moved = advance_bodies(together, *([b[call][part] for b in blocks] for part in range(3)))
         for k in range(3):
             expected = alone[k].advance(*blocks[k][call])
             np.testing.assert_array_equal(moved[k][0], expected[0])

@@ -766,13 +766,23 @@ def test_a_non_unit_quaternion_on_the_stream_closes_it_after_the_accepted_frames
 
 
 def _live_sessions(model: PoseModel, seed: int) -> list:
+    """Three sessions: other heights, and translation learned, by the rule alone, and none."""
     from service.inference.pose import LivePose
+    from service.inference.velocity import VelocityModel
 
     rng = np.random.default_rng(seed)
-    heights = [None, 1.55, 1.92]
+    velocity = VelocityModel(load_models(MODELS, 1)["pose_full6_velocity"])
+    kinds = [(None, "learned", velocity), (1.55, "feet", None), (1.92, "none", None)]
     return [
-        LivePose(model, "declared", Rotation.random(6, random_state=seed + k).as_quat(scalar_first=True), height_m=h)
-        for k, h in enumerate(heights)
+        LivePose(
+            model,
+            "declared",
+            Rotation.random(6, random_state=seed + k).as_quat(scalar_first=True),
+            height_m=h,
+            translation=translation,
+            velocity=v,
+        )
+        for k, (h, translation, v) in enumerate(kinds)
     ], rng
 
 
@@ -783,9 +793,9 @@ def _frames(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def test_live_sessions_batched_together_answer_as_each_alone(pose_models: dict[str, PoseModel]) -> None:
-    """Three sessions (own alignments, own body heights, packets of different lengths) through one call per packet
-    round (``process_live``, and concurrently through the service's batcher) give each session's messages exactly
-    as running it alone does."""
+    """Three sessions (own alignments, own body heights, own translation, packets of different lengths) through one
+    call per packet round (``process_live``, and concurrently through the service's batcher) give each session's
+    messages exactly as running it alone does."""
     from service.inference.pose import process_live
     from service.inference.pose_batcher import LivePoseBatcher
     from service.inference.runner import ModelRunner
@@ -823,6 +833,9 @@ def test_live_sessions_batched_together_answer_as_each_alone(pose_models: dict[s
                     assert (a["first_frame"], a["frames"]) == (b["first_frame"], b["frames"])
                     np.testing.assert_allclose(a["q_world_segment"], b["q_world_segment"], atol=2e-5)
                     np.testing.assert_allclose(a["joint_positions_m"], b["joint_positions_m"], atol=2e-4)
+                    assert ("root_position_m" in a) == ("root_position_m" in b)
+                    if "root_position_m" in a:
+                        np.testing.assert_allclose(a["root_position_m"], b["root_position_m"], atol=2e-4)
                     answered += a["frames"]
         assert answered == sum(sum(len(f) for f in frames) for frames in rounds) - 3 * 5  # 5 frames of look-ahead
 
@@ -1027,6 +1040,68 @@ def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_rule_does(ser
     assert code == 1000, reason
     blocks = [m for m in binary if m["type"] == "pose"]  # decoded by _stream
     np.testing.assert_allclose(np.concatenate([b["root_position_m"] for b in blocks]), root_live, atol=1e-4)
+
+
+def test_a_stream_with_the_learned_velocity_moves_the_pelvis_as_the_offline_route_does(
+    server: str, walk, pose_models
+) -> None:
+    """``"translation": "learned"`` on the stream: the velocity network runs beside the pose network with its own
+    state, and each frame's pelvis is the one the rule with the learned velocity gives offline on the same
+    readings (the streaming pose model's answer, the velocity model's share); it is not the rule's alone."""
+    from service.core.body import feet_of
+    from service.core.translation import RootTracker
+    from service.inference.pose import whole_body
+    from service.inference.velocity import VelocityModel, world_velocity
+
+    motion, raw = walk
+    n = min(480, motion.n_frames) // 8 * 8
+    sensors, packets = _declared_six(raw, n)
+    url = server.replace("http", "ws") + "/v1/stream"
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "translation": "learned"}}
+    messages, code, reason = asyncio.run(_stream(url, start, packets))
+    assert code == 1000, reason
+    started = messages[0]["pose"]
+    assert started["translation"] == "learned" and started["velocity_model"] == "pose_full6_velocity"
+    root_live = np.concatenate([np.array(p["root_position_m"]) for p in messages if p["type"] == "pose"])
+    assert root_live.shape == (n - 5, 3)
+    model = pose_models["pose_full6_stream"]
+    velocity = VelocityModel(load_models(MODELS, 1)["pose_full6_velocity"])
+    R_w_seg, a_w = segment_readings(raw.q_world_sensor[:n], raw.acc_mps2[:n], raw.q_segment_sensor)
+    features = pose_features(R_w_seg, a_w)
+    joints = model.body.forward(whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index))
+    tracker = RootTracker(feet_of(model.body), 60.0, learned_share=velocity.spec.learned_share)
+    learned = world_velocity(R_w_seg[:, 0], velocity.predict(features))
+    root_off, _ = tracker.advance(joints, a_w[:, 0], learned)
+    np.testing.assert_allclose(root_live, root_off[: n - 5], atol=2e-3)
+    rule, _ = RootTracker(feet_of(model.body), 60.0).advance(joints, a_w[:, 0])
+    assert np.abs(root_live - rule[: n - 5]).max() > 0.02
+
+
+def test_a_stream_asking_for_the_learned_velocity_without_a_velocity_model_is_closed_with_why(
+    tmp_path: Path, walk
+) -> None:
+    """A service with the three-sensor streaming pose model and no velocity model closes a session that asks for
+    ``translation: learned`` at its start (1008), naming the sensors, what is loaded and the rule to use instead."""
+    from starlette.websockets import WebSocketDisconnect
+
+    for name in ("i2s_assignment", "pose_lower3_stream"):  # the stream route serves with an assignment model
+        (tmp_path / name).symlink_to(MODELS / name)
+    _, raw = walk
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[SIX_SENSORS.index(s)].tolist()}
+        for s in LOWER
+    ]
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "translation": "learned"}}
+    with TestClient(create_app(Settings(models_dir=tmp_path))) as c, c.websocket_connect("/v1/stream") as ws:
+        ws.send_json(start)
+        error = ws.receive_json()
+        with pytest.raises(WebSocketDisconnect) as exc:
+            ws.receive_json()
+    assert exc.value.code == 1008
+    assert error["type"] == "error"
+    detail = error["detail"]
+    assert "'learned' needs a velocity model for the sensors ['Pelvis', 'LeftLowerLeg', 'RightLowerLeg']" in detail
+    assert "loaded velocity models: none" in detail and "'feet'" in detail
 
 
 def test_pose_blocks_with_and_without_translation_read_back_and_a_cut_block_is_refused() -> None:
