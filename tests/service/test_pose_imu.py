@@ -1013,41 +1013,14 @@ def test_learned_translation_without_a_velocity_model_for_the_sensors_is_refused
         assert c.post("/v1/pose/imu", json=_body(raw, LOWER) | {"translation": "feet"}).status_code == 200
 
 
-def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_rule_does(server: str, walk, pose_models) -> None:
-    """``"translation": "feet"`` on the stream: each pose message carries the pelvis per frame, the same as the rule
-    gives offline on the streaming model's answer; binary pose blocks carry it too (kind 2)."""
-    from service.core.body import feet_of
-    from service.core.translation import RootTracker
-    from service.inference.pose import whole_body
-
-    motion, raw = walk
-    n = min(480, motion.n_frames) // 8 * 8
-    sensors, packets = _declared_six(raw, n)
-    url = server.replace("http", "ws") + "/v1/stream"
-    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "translation": "feet"}}
-    messages, code, reason = asyncio.run(_stream(url, start, packets))
-    assert code == 1000, reason
-    assert messages[0]["pose"]["translation"] == "feet"
-    poses = [m for m in messages if m["type"] == "pose"]
-    root_live = np.concatenate([np.array(p["root_position_m"]) for p in poses])
-    assert root_live.shape == (n - 5, 3)
-    model = pose_models["pose_full6_stream"]
-    R_w_seg, a_w = segment_readings(raw.q_world_sensor[:n], raw.acc_mps2[:n], raw.q_segment_sensor)
-    R_world = whole_body(R_w_seg, model.predict(pose_features(R_w_seg, a_w)), model.sensor_index, model.output_index)
-    root_off, _ = RootTracker(feet_of(model.body), 60.0).advance(model.body.forward(R_world), a_w[:, 0])
-    np.testing.assert_allclose(root_live, root_off[: n - 5], atol=2e-3)
-    binary, code, reason = asyncio.run(_stream(url, {**start, "pose": {**start["pose"], "output": "binary"}}, packets))
-    assert code == 1000, reason
-    blocks = [m for m in binary if m["type"] == "pose"]  # decoded by _stream
-    np.testing.assert_allclose(np.concatenate([b["root_position_m"] for b in blocks]), root_live, atol=1e-4)
-
-
-def test_a_stream_with_the_learned_velocity_moves_the_pelvis_as_the_offline_route_does(
-    server: str, walk, pose_models
+@pytest.mark.parametrize("translation", ["feet", "learned"])
+def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_route_does(
+    server: str, walk, pose_models, translation: str
 ) -> None:
-    """``"translation": "learned"`` on the stream: the velocity network runs beside the pose network with its own
-    state, and each frame's pelvis is the one the rule with the learned velocity gives offline on the same
-    readings (the streaming pose model's answer, the velocity model's share); it is not the rule's alone."""
+    """``"translation": "feet"`` or ``"learned"`` on the stream: each pose message carries the pelvis per frame, the
+    same as the rule gives offline on the streaming model's answer (with ``learned`` also the velocity model's
+    answer, run beside the pose network with its own state, and its share: not the rule's path); binary pose
+    blocks carry it too (kind 2)."""
     from service.core.body import feet_of
     from service.core.translation import RootTracker
     from service.inference.pose import whole_body
@@ -1057,24 +1030,31 @@ def test_a_stream_with_the_learned_velocity_moves_the_pelvis_as_the_offline_rout
     n = min(480, motion.n_frames) // 8 * 8
     sensors, packets = _declared_six(raw, n)
     url = server.replace("http", "ws") + "/v1/stream"
-    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "translation": "learned"}}
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "translation": translation}}
     messages, code, reason = asyncio.run(_stream(url, start, packets))
     assert code == 1000, reason
     started = messages[0]["pose"]
-    assert started["translation"] == "learned" and started["velocity_model"] == "pose_full6_velocity"
+    assert started["translation"] == translation
+    assert started["velocity_model"] == ("pose_full6_velocity" if translation == "learned" else None)
     root_live = np.concatenate([np.array(p["root_position_m"]) for p in messages if p["type"] == "pose"])
     assert root_live.shape == (n - 5, 3)
     model = pose_models["pose_full6_stream"]
-    velocity = VelocityModel(load_models(MODELS, 1)["pose_full6_velocity"])
     R_w_seg, a_w = segment_readings(raw.q_world_sensor[:n], raw.acc_mps2[:n], raw.q_segment_sensor)
     features = pose_features(R_w_seg, a_w)
     joints = model.body.forward(whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index))
-    tracker = RootTracker(feet_of(model.body), 60.0, learned_share=velocity.spec.learned_share)
-    learned = world_velocity(R_w_seg[:, 0], velocity.predict(features))
-    root_off, _ = tracker.advance(joints, a_w[:, 0], learned)
-    np.testing.assert_allclose(root_live, root_off[: n - 5], atol=2e-3)
     rule, _ = RootTracker(feet_of(model.body), 60.0).advance(joints, a_w[:, 0])
-    assert np.abs(root_live - rule[: n - 5]).max() > 0.02
+    root_off = rule
+    if translation == "learned":
+        velocity = VelocityModel(load_models(MODELS, 1)["pose_full6_velocity"])
+        tracker = RootTracker(feet_of(model.body), 60.0, learned_share=velocity.spec.learned_share)
+        learned = world_velocity(R_w_seg[:, 0], velocity.predict(features))
+        root_off, _ = tracker.advance(joints, a_w[:, 0], learned)
+        assert np.abs(root_live - rule[: n - 5]).max() > 0.02
+    np.testing.assert_allclose(root_live, root_off[: n - 5], atol=2e-3)
+    binary, code, reason = asyncio.run(_stream(url, {**start, "pose": {**start["pose"], "output": "binary"}}, packets))
+    assert code == 1000, reason
+    blocks = [m for m in binary if m["type"] == "pose"]  # decoded by _stream
+    np.testing.assert_allclose(np.concatenate([b["root_position_m"] for b in blocks]), root_live, atol=1e-4)
 
 
 def test_a_stream_asking_for_the_learned_velocity_without_a_velocity_model_is_closed_with_why(
