@@ -210,32 +210,40 @@ class BodyPose:
     root_m: np.ndarray | None  # (T, 3) the pelvis positions, with translation
 
 
-def body_pose(
-    model: PoseModel,
-    r: Readings,
-    q_seg_sensor: np.ndarray,
-    height_m: float | None,
-    translation: str,
-    velocity: VelocityModel | None = None,
-) -> BodyPose:
+@dataclass(frozen=True)
+class PoseJob:
+    """What a request's pose is made of: the model, the readings, each sensor's alignment, the body's height (None:
+    the model's default body), the translation (``none``, ``feet``, ``learned``) and, for ``learned``, the velocity
+    model."""
+
+    model: PoseModel
+    readings: Readings
+    q_seg_sensor: np.ndarray
+    height_m: float | None
+    translation: str
+    velocity: VelocityModel | None = None
+
+    def __post_init__(self) -> None:
+        if (self.translation == "learned") != (self.velocity is not None):
+            raise ValueError("translation 'learned', and it alone, runs a velocity model")
+
+
+def body_pose(job: PoseJob) -> BodyPose:
     """The model's pose on the default body (or one of ``height_m``), with the body's translation when asked
     (``service.core.translation``, from the pelvis sensor's free acceleration, and with ``translation`` learned
     from ``velocity``'s pelvis velocity)."""
-    R_w_seg, a_w = segment_readings(r.q_world_sensor, r.acc_mps2, q_seg_sensor)
+    model, r = job.model, job.readings
+    R_w_seg, a_w = segment_readings(r.q_world_sensor, r.acc_mps2, job.q_seg_sensor)
     features = pose_features(R_w_seg, a_w)
-    R_out = model.predict(features)
-    R_world = whole_body(R_w_seg, R_out, model.sensor_index, model.output_index)
-    body = model.body.scaled(height_m) if height_m else model.body
-    if translation == "none":
+    R_world = whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index)
+    body = model.body.scaled(job.height_m) if job.height_m else model.body
+    if job.translation == "none":
         return BodyPose(R_world, body, None)
-    if translation == "learned":
-        if velocity is None:
-            raise ValueError("translation 'learned' needs the velocity model of the pose model's sensors")
-        tracker = RootTracker(feet_of(body), MODEL_RATE_HZ, learned_share=velocity.spec.learned_share)
-        learned = world_velocity(R_w_seg[:, 0], velocity.predict(features))
-        return BodyPose(R_world, body, tracker.advance(body.forward(R_world), a_w[:, 0], learned)[0])
-    tracker = RootTracker(feet_of(body), MODEL_RATE_HZ)
-    return BodyPose(R_world, body, tracker.advance(body.forward(R_world), a_w[:, 0])[0])
+    tracker, learned = RootTracker(feet_of(body), MODEL_RATE_HZ), None
+    if job.velocity is not None:
+        tracker.learned_share = job.velocity.spec.learned_share
+        learned = world_velocity(R_w_seg[:, 0], job.velocity.predict(features))
+    return BodyPose(R_world, body, tracker.advance(body.forward(R_world), a_w[:, 0], learned)[0])
 
 
 def velocity_for(request: Request, model: PoseModel, translation: str) -> VelocityModel | None:
@@ -254,30 +262,15 @@ def velocity_for(request: Request, model: PoseModel, translation: str) -> Veloci
     return velocity
 
 
-def pose_bvh(
-    model: PoseModel,
-    r: Readings,
-    q_seg_sensor: np.ndarray,
-    height_m: float | None,
-    translation: str,
-    velocity: VelocityModel | None = None,
-) -> str:
+def pose_bvh(job: PoseJob) -> str:
     """The pose as the text of a BVH file (``service.core.body.body_bvh``)."""
-    pose = body_pose(model, r, q_seg_sensor, height_m, translation, velocity)
+    pose = body_pose(job)
     return format_bvh(body_bvh(pose.R_world, pose.body, MODEL_RATE_HZ, pose.root_m))
 
 
-def pose_response(
-    model: PoseModel,
-    r: Readings,
-    q_seg_sensor: np.ndarray,
-    height_m: float | None,
-    translation: str,
-    warnings: list[str],
-    velocity: VelocityModel | None = None,
-) -> PoseImuResponse:
-    pose = body_pose(model, r, q_seg_sensor, height_m, translation, velocity)
-    R_world = pose.R_world
+def pose_response(job: PoseJob, warnings: list[str]) -> PoseImuResponse:
+    pose = body_pose(job)
+    model, R_world = job.model, pose.R_world
     answer = pose_answer(R_world, pose.body)
     covered = set(covered_segments(model))
     sources = {s: "sensor" if s in model.spec.sensors else "model" if s in covered else "parent" for s in BODY_SEGMENTS}
@@ -288,7 +281,7 @@ def pose_response(
         frames=len(R_world),
         look_ahead_frames=model.spec.look_ahead_frames,
         body_height_m=round(pose.body.height_m, 3),
-        q_segment_sensor={i: rnd(q, 6) for i, q in zip(r.sensor_ids, q_seg_sensor, strict=True)},
+        q_segment_sensor={i: rnd(q, 6) for i, q in zip(job.readings.sensor_ids, job.q_seg_sensor, strict=True)},
         segments={
             s: SegmentTrack(
                 source=sources[s],
@@ -346,14 +339,11 @@ async def pose_from_imu(
     q_seg_sensor = calibrate(body, model, readings)
     warnings = unit_check(body, readings)
     velocity = velocity_for(request, model, body.translation)
+    job = PoseJob(model, readings, q_seg_sensor, body.body_height_m, body.translation, velocity)
     runner = request.app.state.runner
     if format == "bvh":
-        text = await runner.run_call(
-            pose_bvh, model, readings, q_seg_sensor, body.body_height_m, body.translation, velocity
-        )
+        text = await runner.run_call(pose_bvh, job)
         version = model.loaded.manifest.version
         return file_answer(text, f"{model.name}.bvh", "Pose", model.name, version, warnings)
-    answer = await runner.run_call(
-        pose_response, model, readings, q_seg_sensor, body.body_height_m, body.translation, warnings, velocity
-    )
+    answer = await runner.run_call(pose_response, job, warnings)
     return Response(answer.model_dump_json(), media_type="application/json")

@@ -88,6 +88,38 @@ def onnx_parity(path: Path, golden: dict[str, np.ndarray], cfg: PoseConfig, net:
     return float(np.max(np.abs(got - golden["expected"])))
 
 
+def state_specs(layers: int, hidden: int) -> tuple[list[TensorSpec], list[TensorSpec]]:
+    """A streaming graph's LSTM state: its inputs ``h0``, ``c0`` and outputs ``h``, ``c``."""
+    shape: list[int | str] = [layers, "batch", hidden]
+    text = f"LSTM state ({layers}, batch, {hidden}); zeros at the start of a recording or stream"
+    specs = [
+        [TensorSpec(name=n, shape=shape, dtype="float32", description=text) for n in names]
+        for names in (("h0", "c0"), ("h", "c"))
+    ]
+    return specs[0], specs[1]
+
+
+def pose_feature_fields(
+    sensors: list[str], training_data: dict, evaluations: list[Evaluation], mlflow_info: dict[str, str]
+) -> dict:
+    """What the manifest of every model that reads ``pose_features`` says alike (the pose and the pelvis velocity
+    networks): its readings, rate and conventions, its data (with Bandai-Namco's licence where it trained on
+    them), figures, run and exporter."""
+    return {
+        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "sample_rate_hz": MODEL_RATE_HZ,
+        "hop_samples": 1,
+        "channels": [f"{s}:{c}" for s in sensors for c in ("q_world_sensor", "acc")],
+        "units": {"acc": "m/s^2", "q_world_sensor": "unit quaternion w, x, y, z (sensor's own world frame, z up)"},
+        "quaternion_convention": "Hamilton, scalar first (w, x, y, z), unit, w >= 0",
+        "training_data": training_data | ({"licence": BANDAI_LICENCE} if training_data.get("bandai_namco") else {}),
+        "evaluations": evaluations,
+        "mlflow": mlflow_info,
+        "exporter": {"torch": torch.__version__, "onnx": onnx.__version__, "opset": OPSET, "exporter": "torchscript"},
+        "parity_atol": PARITY_ATOL,
+    }
+
+
 def build_pose_manifest(
     cfg: PoseConfig,
     net: PoseNet | PoseEnsemble,
@@ -122,25 +154,18 @@ def build_pose_manifest(
         )
     ]
     if streaming:
-        state = [net.layers, "batch", net.hidden]
-        state_desc = f"LSTM state ({net.layers}, batch, {net.hidden}); zeros at the start of a stream"
-        inputs += [TensorSpec(name=n, shape=state, dtype="float32", description=state_desc) for n in ("h0", "c0")]
-        outputs += [TensorSpec(name=n, shape=state, dtype="float32", description=state_desc) for n in ("h", "c")]
+        state_in, state_out = state_specs(net.layers, net.hidden)
+        inputs += state_in
+        outputs += state_out
     return Manifest(
         name=cfg.name,
         task=TASK,
         version=version,
-        created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         inputs=inputs,
         outputs=outputs,
         output_kind="rotation_matrix_per_segment",
-        sample_rate_hz=MODEL_RATE_HZ,
         window_samples=cfg.train.sequence_frames,
-        hop_samples=1,
-        channels=[f"{s}:{c}" for s in cfg.sensors for c in ("q_world_sensor", "acc")],
-        units={"acc": "m/s^2", "q_world_sensor": "unit quaternion w, x, y, z (sensor's own world frame, z up)"},
         classes=list(cfg.outputs),
-        quaternion_convention="Hamilton, scalar first (w, x, y, z), unit, w >= 0",
         pose=PoseSpec(
             sensors=list(cfg.sensors),
             output_segments=list(cfg.outputs),
@@ -160,11 +185,7 @@ def build_pose_manifest(
             body_height_m=round(body.height_m, 3),
         ),
         sha256=sha256,
-        training_data=training_data | ({"licence": BANDAI_LICENCE} if training_data.get("bandai_namco") else {}),
-        evaluations=evaluations,
-        mlflow=mlflow_info,
-        exporter={"torch": torch.__version__, "onnx": onnx.__version__, "opset": OPSET, "exporter": "torchscript"},
-        parity_atol=PARITY_ATOL,
+        **pose_feature_fields(cfg.sensors, training_data, evaluations, mlflow_info),
     )
 
 

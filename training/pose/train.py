@@ -188,6 +188,41 @@ class PoseTrainResult:
     stopped: str = ""
 
 
+@dataclass
+class BestEpoch:
+    """Early stopping on a validation figure, lower better: keeps the best epoch's weights of ``net`` and says when
+    to stop (``patience`` epochs without a gain, or ``time_budget_s`` spent)."""
+
+    net: torch.nn.Module
+    patience: int
+    time_budget_s: float = float("inf")
+    best: float = float("inf")  # a warm start sets its own figure here
+    best_epoch: int = 0
+    bad: int = 0  # epochs since the last gain
+    state: dict[str, torch.Tensor] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.state = copy.deepcopy(self.net.state_dict())
+
+    def record(self, epoch: int, val: float, elapsed_s: float) -> str:
+        """Take an epoch's validation figure: "" to go on, else why training stops."""
+        if val < self.best:
+            self.best, self.best_epoch, self.bad = val, epoch, 0
+            self.state = copy.deepcopy(self.net.state_dict())
+        else:
+            self.bad += 1
+        if self.bad >= self.patience:
+            return f"no validation gain for {self.bad} epochs"
+        if elapsed_s > self.time_budget_s:
+            return f"time budget {self.time_budget_s:.0f} s spent"
+        return ""
+
+    def restore(self) -> None:
+        """The best epoch's weights back into the network, in evaluation mode."""
+        self.net.load_state_dict(self.state)
+        self.net.eval()
+
+
 def feature_stats(
     clips: list[MotionClip], cfg: PoseConfig, rng: np.random.Generator
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -228,12 +263,12 @@ def train_pose(
     weights = clip_weights(train_clips, cfg.data.activity_cap_frames, cfg.data.bandai_share, own_share)
     output_index = [BODY_SEGMENTS.index(s) for s in cfg.outputs]
     result = PoseTrainResult(net)
-    best_state, bad = copy.deepcopy(net.state_dict()), 0
+    keeper = BestEpoch(net, cfg.train.patience, cfg.train.time_budget_s)
     if init_state is not None:
-        result.best_val_deg = validation_angle(net, val_sessions, served_chunks(cfg))
-        log.info("%s warm start: validation %.2f°", cfg.name, result.best_val_deg)
+        keeper.best = validation_angle(net, val_sessions, served_chunks(cfg))
+        log.info("%s warm start: validation %.2f°", cfg.name, keeper.best)
         if on_epoch:
-            on_epoch(0, {"val_angle_deg": result.best_val_deg})
+            on_epoch(0, {"val_angle_deg": keeper.best})
     L, W = cfg.model.look_ahead, cfg.train.sequence_frames
     for epoch in range(1, cfg.train.max_epochs + 1):
         net.train()
@@ -281,22 +316,13 @@ def train_pose(
         log.info("%s epoch %d: loss %.4f, validation %.2f°", cfg.name, epoch, row["train_loss"], val)
         if on_epoch:
             on_epoch(epoch, row)
-        if val < result.best_val_deg:
-            result.best_val_deg, result.best_epoch, bad = val, epoch, 0
-            best_state = copy.deepcopy(net.state_dict())
-        else:
-            bad += 1
-        if bad >= cfg.train.patience:
-            result.stopped = f"no validation gain for {bad} epochs"
-            break
-        if time.time() - t0 > cfg.train.time_budget_s:
-            result.stopped = f"time budget {cfg.train.time_budget_s:.0f} s spent"
+        result.stopped = keeper.record(epoch, val, time.time() - t0)
+        if result.stopped:
             break
     else:
         result.stopped = f"max_epochs {cfg.train.max_epochs} reached"
-    net.load_state_dict(best_state)
-    net.eval()
-    result.wall_s = time.time() - t0
+    keeper.restore()
+    result.best_val_deg, result.best_epoch, result.wall_s = keeper.best, keeper.best_epoch, time.time() - t0
     return result
 
 

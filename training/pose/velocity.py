@@ -14,8 +14,6 @@ the validation subjects (docs/pose.md, "Translation").
 
 from __future__ import annotations
 
-import copy
-import datetime as dt
 import json
 import logging
 import tempfile
@@ -42,14 +40,21 @@ from service.inference.pose import PoseModel, whole_body
 from service.inference.registry import load_model
 from service.inference.velocity import VelocityModel, world_velocity
 from training.config import flatten
-from training.data.catalog import BANDAI_LICENCE
 from training.plots import translation_bars_png, velocity_learning_curve_png
 from training.pose.config import PoseConfig, PoseVelocityConfig, load_pose_config
-from training.pose.data import MODEL_RATE_HZ, MotionClip
+from training.pose.data import MotionClip
 from training.pose.evaluate import pelvis_free_acc
-from training.pose.export import OPSET, PARITY_ATOL, export_stateful
+from training.pose.export import PARITY_ATOL, export_stateful, pose_feature_fields, state_specs
 from training.pose.simulate import Session
-from training.pose.train import _crop, _length_buckets, clip_weights, feature_stats, fixed_sessions, session_of
+from training.pose.train import (
+    BestEpoch,
+    _crop,
+    _length_buckets,
+    clip_weights,
+    feature_stats,
+    fixed_sessions,
+    session_of,
+)
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +164,7 @@ def train_velocity(
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, vcfg.max_epochs, eta_min=vcfg.lr * cfg.train.lr_floor)
     weights = clip_weights(train_clips, cfg.data.activity_cap_frames, cfg.data.bandai_share)
     result = VelocityTrainResult(net)
-    best_state, bad = copy.deepcopy(net.state_dict()), 0
+    keeper = BestEpoch(net, vcfg.patience)
     W = cfg.train.sequence_frames
     for epoch in range(1, vcfg.max_epochs + 1):
         net.train()
@@ -192,19 +197,13 @@ def train_velocity(
         log.info("%s epoch %d: loss %.4f, validation %.1f cm", vcfg.name, epoch, row["train_loss"], val)
         if on_epoch:
             on_epoch(epoch, row)
-        if val < result.best_val_cm:
-            result.best_val_cm, result.best_epoch, bad = val, epoch, 0
-            best_state = copy.deepcopy(net.state_dict())
-        else:
-            bad += 1
-        if bad >= vcfg.patience:
-            result.stopped = f"no validation gain for {bad} epochs"
+        result.stopped = keeper.record(epoch, val, time.time() - t0)
+        if result.stopped:
             break
     else:
         result.stopped = f"max_epochs {vcfg.max_epochs} reached"
-    net.load_state_dict(best_state)
-    net.eval()
-    result.wall_s = time.time() - t0
+    keeper.restore()
+    result.best_val_cm, result.best_epoch, result.wall_s = keeper.best, keeper.best_epoch, time.time() - t0
     return result
 
 
@@ -326,13 +325,11 @@ def build_velocity_manifest(
     mlflow_info: dict[str, str],
 ) -> Manifest:
     F = features_per_frame(len(sensors))
-    state = [net.layers, "batch", net.hidden]
-    state_desc = f"LSTM state ({net.layers}, batch, {net.hidden}); zeros at the start of a recording or stream"
+    state_in, state_out = state_specs(net.layers, net.hidden)
     return Manifest(
         name=vcfg.name,
         task="imu_pose_velocity",
         version=version,
-        created_utc=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         inputs=[
             TensorSpec(
                 name="features",
@@ -341,7 +338,7 @@ def build_velocity_manifest(
                 description=f"service.core.calibration.pose_features ({FEATURE_VERSION}) of the sensors in "
                 "velocity.sensors order at 60 Hz, as the pose model of those sensors takes them",
             ),
-            *(TensorSpec(name=n, shape=state, dtype="float32", description=state_desc) for n in ("h0", "c0")),
+            *state_in,
         ],
         outputs=[
             TensorSpec(
@@ -350,16 +347,11 @@ def build_velocity_manifest(
                 dtype="float32",
                 description=f"the pelvis velocity in the pelvis frame (m/s), each frame {net.look_ahead} frames late",
             ),
-            *(TensorSpec(name=n, shape=state, dtype="float32", description=state_desc) for n in ("h", "c")),
+            *state_out,
         ],
         output_kind="velocity_mps",
-        sample_rate_hz=MODEL_RATE_HZ,
         window_samples=1,
-        hop_samples=1,
-        channels=[f"{s}:{c}" for s in sensors for c in ("q_world_sensor", "acc")],
-        units={"acc": "m/s^2", "q_world_sensor": "unit quaternion w, x, y, z (sensor's own world frame, z up)"},
         classes=["vx", "vy", "vz"],
-        quaternion_convention="Hamilton, scalar first (w, x, y, z), unit, w >= 0",
         velocity=VelocitySpec(
             sensors=list(sensors),
             feature_version=FEATURE_VERSION,
@@ -372,11 +364,7 @@ def build_velocity_manifest(
             chosen_with=chosen_with,
         ),
         sha256=sha256,
-        training_data=training_data | ({"licence": BANDAI_LICENCE} if training_data.get("bandai_namco") else {}),
-        evaluations=evaluations,
-        mlflow=mlflow_info,
-        exporter={"torch": torch.__version__, "onnx": onnx.__version__, "opset": OPSET, "exporter": "torchscript"},
-        parity_atol=PARITY_ATOL,
+        **pose_feature_fields(sensors, training_data, evaluations, mlflow_info),
     )
 
 

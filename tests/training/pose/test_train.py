@@ -276,3 +276,25 @@ def test_anchored_outputs_turn_with_the_sensed_segment_next_to_them(tmp_path) ->
     assert onnx_parity(path, golden_pair(net, x[0].numpy(), cfg), cfg, net) < 1e-4
     with pytest.raises(ValueError, match="not with look_ahead"):
         load_pose_config(configs / "pose_full6_stream.yaml", ["model.anchored=true"])
+
+
+def test_the_best_epoch_s_weights_come_back_and_training_stops_after_its_patience_or_budget() -> None:
+    import torch
+
+    from training.pose.train import BestEpoch
+
+    net = torch.nn.Linear(2, 1)
+    keeper = BestEpoch(net, patience=2, time_budget_s=100.0)
+    figures = [5.0, 3.0, 4.0, 3.5]
+    reasons = []
+    for epoch, val in enumerate(figures, start=1):
+        with torch.no_grad():
+            net.weight.fill_(float(epoch))
+        reasons.append(keeper.record(epoch, val, elapsed_s=1.0))
+    assert reasons == ["", "", "", "no validation gain for 2 epochs"]
+    keeper.restore()
+    assert keeper.best == 3.0 and keeper.best_epoch == 2 and float(net.weight[0, 0]) == 2.0 and not net.training
+    late = BestEpoch(torch.nn.Linear(2, 1), patience=5, time_budget_s=10.0)
+    assert late.record(1, 1.0, elapsed_s=5.0) == "" and late.record(2, 0.5, elapsed_s=11.0) == "time budget 10 s spent"
+    warm = BestEpoch(torch.nn.Linear(2, 1), patience=1, best=2.0)  # a warm start's own figure to beat
+    assert warm.record(1, 2.5, elapsed_s=0.0) == "no validation gain for 1 epochs" and warm.best_epoch == 0
