@@ -251,7 +251,7 @@ def velocity_for(request: Request, model: PoseModel, translation: str) -> Veloci
     if translation != "learned":
         return None
     models: dict[str, VelocityModel] = request.app.state.velocity_models
-    velocity = velocity_model_for(models, model.spec.sensors)
+    velocity = velocity_model_for(models, model.spec)
     if velocity is None:
         loaded = {name: m.spec.sensors for name, m in sorted(models.items())} or "none"
         raise HTTPException(

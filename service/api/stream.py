@@ -141,6 +141,11 @@ class Session:
         none fits."""
         opts = start.pose
         segments = [s.segment for s in start.sensors]
+
+        def first(found: list[PoseModel]) -> PoseModel:  # with translation learned, one a velocity model reads
+            learned = opts.translation == "learned"
+            return min(found, key=lambda m: learned and velocity_model_for(velocity_models, m.spec) is None)
+
         if opts.calibration == "assignment":
             candidates = [m for m in general_first(models) if m.spec.streaming and set(m.spec.sensors) <= set(SEGMENTS)]
             if opts.model is not None:
@@ -150,7 +155,7 @@ class Session:
                     f"pose.calibration 'assignment' needs a streaming model whose sensors are lower-body segments "
                     f"({opts.model or 'any'}); loaded pose models: {sorted(models)}"
                 )
-            model = candidates[0]
+            model = first(candidates)
         else:
             fitting = [
                 m
@@ -164,7 +169,7 @@ class Session:
                     f"{segments}; "
                     f"the loaded ones take [{'] or ['.join(placements)}]"
                 )
-            model = fitting[0]
+            model = first(fitting)
             self.pose_order = [segments.index(seg) for seg in model.spec.sensors]
         q = None
         if opts.calibration == "declared":
@@ -522,8 +527,8 @@ def _velocity_model(model: PoseModel, translation: str, models: dict[str, Veloci
     """The velocity model translation 'learned' runs beside ``model``; ProtocolError if none reads its sensors."""
     if translation != "learned":
         return None
-    velocity = velocity_model_for(models, model.spec.sensors)
-    if velocity is None or velocity.spec.look_ahead_frames > model.spec.look_ahead_frames:
+    velocity = velocity_model_for(models, model.spec)
+    if velocity is None:
         loaded = {name: m.spec.sensors for name, m in sorted(models.items())} or "none"
         raise ProtocolError(
             f"pose.translation 'learned' needs a velocity model for the sensors {model.spec.sensors} of {model.name} "

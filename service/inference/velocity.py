@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.core.manifest import PoseSpec
 from service.inference.registry import LoadedModel
 from service.inference.stateful import StreamState, step_many, zero_state
 
@@ -46,7 +47,18 @@ def world_velocity(R_world_pelvis: np.ndarray, v_pelvis: np.ndarray) -> np.ndarr
     return np.einsum("tij,tj->ti", R_world_pelvis, v_pelvis)
 
 
-def velocity_model_for(models: dict[str, VelocityModel], sensors: list[str]) -> VelocityModel | None:
-    """The velocity model that reads the pose features of ``sensors`` (the same sensors in the same order), or
+def velocity_model_for(models: dict[str, VelocityModel], pose: PoseSpec) -> VelocityModel | None:
+    """The velocity model that reads the pose features of the pose model ``pose`` (the same sensors in the same
+    order, feature version and acceleration scale) and, for a streaming one, answers within its look-ahead; or
     None."""
-    return next((m for m in models.values() if m.spec.sensors == list(sensors)), None)
+    return next(
+        (
+            m
+            for m in models.values()
+            if m.spec.sensors == list(pose.sensors)
+            and m.spec.feature_version == pose.feature_version
+            and m.spec.acc_scale_mps2 == pose.acc_scale_mps2
+            and (not pose.streaming or m.spec.look_ahead_frames <= pose.look_ahead_frames)
+        ),
+        None,
+    )

@@ -976,11 +976,11 @@ def test_rest_pose_with_the_learned_velocity_moves_the_walker_as_its_model_says(
     assert answer.status_code == 200, answer.text
     root = np.array(answer.json()["root_position_m"])
     loaded = load_models(MODELS, 1)
-    velocity = velocity_model_for(
-        {n: VelocityModel(m) for n, m in loaded.items() if m.manifest.task == "imu_pose_velocity"}, SIX_SENSORS
-    )
-    assert velocity is not None
     model = PoseModel(loaded[answer.json()["model"]["name"]])
+    velocity = velocity_model_for(
+        {n: VelocityModel(m) for n, m in loaded.items() if m.manifest.task == "imu_pose_velocity"}, model.spec
+    )
+    assert velocity is not None and velocity.spec.sensors == SIX_SENSORS
     R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
     features = pose_features(R_w_seg, a_w)
     R_world = whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index)
@@ -1055,6 +1055,29 @@ def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_route_does(
     assert code == 1000, reason
     blocks = [m for m in binary if m["type"] == "pose"]  # decoded by _stream
     np.testing.assert_allclose(np.concatenate([b["root_position_m"] for b in blocks]), root_live, atol=1e-4)
+
+
+def test_a_velocity_model_is_chosen_only_where_it_reads_the_pose_model_s_features_in_time(pose_models) -> None:
+    """``velocity_model_for``: the same sensors in the same order, the same feature version and acceleration scale,
+    and for a streaming pose model no more look-ahead than its own."""
+    from types import SimpleNamespace
+
+    from service.inference.velocity import velocity_model_for
+
+    offline, live = pose_models["pose_full6"].spec, pose_models["pose_full6_stream"].spec
+    fits = dict(sensors=list(SIX_SENSORS), feature_version=live.feature_version, acc_scale_mps2=live.acc_scale_mps2)
+    late = SimpleNamespace(spec=SimpleNamespace(**fits, look_ahead_frames=live.look_ahead_frames + 1))
+    on_time = SimpleNamespace(spec=SimpleNamespace(**fits, look_ahead_frames=live.look_ahead_frames))
+    assert velocity_model_for({"late": late}, live) is None
+    assert velocity_model_for({"late": late}, offline) is late  # offline, the whole recording is at hand
+    assert velocity_model_for({"late": late, "on_time": on_time}, live) is on_time
+    for other in (
+        {"sensors": list(reversed(SIX_SENSORS))},
+        {"feature_version": "other"},
+        {"acc_scale_mps2": 2 * live.acc_scale_mps2},
+    ):
+        wrong = SimpleNamespace(spec=SimpleNamespace(**(fits | other), look_ahead_frames=0))
+        assert velocity_model_for({"wrong": wrong}, offline) is None
 
 
 def test_a_stream_asking_for_the_learned_velocity_without_a_velocity_model_is_closed_with_why(
