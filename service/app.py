@@ -27,12 +27,12 @@ from service.api.stream_admission import StreamAdmission, flex_batch_observer
 from service.core.assignment import ConfidenceModel
 from service.inference.batcher import MicroBatcher
 from service.inference.flex import FlexModel, probe_sessions, process_live_flex
-from service.inference.pose import PoseModel
+from service.inference.pose import PoseModel, cost_key
 from service.inference.pose_batcher import LivePoseBatcher
 from service.inference.registry import load_model_report, load_registry_models
 from service.inference.runner import ModelRunner
 from service.inference.session_batcher import SessionBatcher
-from service.inference.velocity import VelocityModel
+from service.inference.velocity import VelocityModel, velocity_model_for
 from service.settings import Settings, get_settings, parse_pins
 
 log = logging.getLogger(__name__)
@@ -91,11 +91,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         flex_batcher.on_batch = flex_batch_observer(
             app.state.streams, lambda name: flex_batcher.per_batch_s.get(name, 0)
         )
-        for name, model in app.state.pose_models.items():
-            if model.spec.streaming:
-                per_batch, per_frame = await pose_batcher.probe(model, 32 if model.batchable else 2)
-                app.state.streams.set_frame_cost(name, per_frame)
-                log.info("pose probe %s: %.2f ms per batch + %.3f ms per frame", name, 1e3 * per_batch, 1e3 * per_frame)
+        for model in app.state.pose_models.values():
+            if not model.spec.streaming:
+                continue
+            velocity = velocity_model_for(app.state.velocity_models, model.spec)
+            for beside in [None] if velocity is None else [None, velocity]:  # and with translation learned
+                per_batch, per_frame = await pose_batcher.probe(model, 32 if model.batchable else 2, velocity=beside)
+                key = cost_key(model, beside)
+                app.state.streams.set_frame_cost(key, per_frame)
+                log.info("pose probe %s: %.2f ms per batch + %.3f ms per frame", key, 1e3 * per_batch, 1e3 * per_frame)
         if settings.capacity_windows_per_s:
             batcher.set_capacity(settings.capacity_windows_per_s)
         elif "i2s_assignment" in app.state.models:

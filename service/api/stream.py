@@ -635,7 +635,7 @@ def _admit(app: FastAPI, session: Session) -> int:
     """The session's admission key; ProtocolError 1013 when it would take the streams past their capacity."""
     demand = len(session.streams) * I2S_WINDOWS_PER_SENSOR_S if session.run_i2s else 0.0
     if session.pose is not None:
-        demand += app.state.streams.model_demand(app.state.batcher, session.pose.model.name, 60.0)
+        demand += app.state.streams.model_demand(app.state.batcher, session.pose.cost_key, 60.0)
         why = app.state.streams.pose_refusal(app.state.pose_batcher)
         if why:
             app.state.metrics.streams_refused.labels("capacity").inc()

@@ -136,6 +136,10 @@ class PoseModel:
         return step_many(self.loaded.session, features, states)
 
 
+def cost_key(model: PoseModel, velocity: VelocityModel | None) -> str:
+    return model.name if velocity is None else f"{model.name}+{velocity.name}"
+
+
 def general_first(models: dict[str, PoseModel]) -> list[PoseModel]:
     """The loaded pose models, the general ones before those trained for a scenario: a request that names no model
     gets a general one where one takes its sensors."""
@@ -233,6 +237,12 @@ class LivePose:
     @property
     def calibrated(self) -> bool:
         return self.q_segment_sensor is not None
+
+    @property
+    def cost_key(self) -> str:
+        """What the session runs, as the streams' admission counts its cost per frame: the pose model, and the
+        velocity model beside it where the translation is learned."""
+        return cost_key(self.model, self.velocity)
 
     def process(self, frames: np.ndarray, first_frame: int) -> list[dict]:
         """Frames ``(m, N, 10)`` from stream frame ``first_frame`` on → ``calibration`` and ``pose`` messages."""

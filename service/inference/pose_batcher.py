@@ -18,9 +18,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from service.inference.pose import LivePose, PoseModel, process_live
+from service.inference.pose import LivePose, PoseModel, cost_key, process_live
 from service.inference.runner import ModelRunner
 from service.inference.session_batcher import BUSY_WINDOW_S, SessionBatcher
+from service.inference.velocity import VelocityModel
 
 
 class LivePoseBatcher(SessionBatcher):
@@ -66,11 +67,18 @@ class LivePoseBatcher(SessionBatcher):
         """The session's messages for its frames ``(m, N, 10)``."""
         return await self.submit(live, frames, first_frame)
 
-    async def probe(self, model: PoseModel, sessions: int = 32, packet: int = 4) -> tuple[float, float]:
-        """A streaming model's cost per batch (seconds, fixed) and per frame (``SessionBatcher.probe``): sessions
-        at rest, upright, ``packet`` frames each."""
+    async def probe(
+        self, model: PoseModel, sessions: int = 32, packet: int = 4, velocity: VelocityModel | None = None
+    ) -> tuple[float, float]:
+        """A streaming model's cost per batch (seconds, fixed) and per frame (``SessionBatcher.probe``), with the
+        learned translation's ``velocity`` model beside it where given: sessions at rest, upright, ``packet`` frames
+        each."""
         frames = np.zeros((packet, len(model.spec.sensors), 10))
         frames[:, :, 2], frames[:, :, 6] = 9.81, 1.0  # at rest, upright
         identity = np.tile([1.0, 0.0, 0.0, 0.0], (len(model.spec.sensors), 1))
-        lives = [LivePose(model, "declared", identity) for _ in range(sessions)]
-        return await super().probe(model.name, lambda n: [(live, frames, 0) for live in lives[:n]], sessions, packet)
+        translation = "none" if velocity is None else "learned"
+        lives = [
+            LivePose(model, "declared", identity, translation=translation, velocity=velocity) for _ in range(sessions)
+        ]
+        calls = lambda n: [(live, frames, 0) for live in lives[:n]]  # noqa: E731
+        return await super().probe(cost_key(model, velocity), calls, sessions, packet)

@@ -1057,6 +1057,26 @@ def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_route_does(
     np.testing.assert_allclose(np.concatenate([b["root_position_m"] for b in blocks]), root_live, atol=1e-4)
 
 
+def test_the_service_measures_what_a_live_session_with_the_learned_velocity_costs(client) -> None:
+    """At start-up each streaming pose model's cost per frame is probed alone and, where a velocity model reads its
+    features, with that model beside it: the admission counts a session by what it runs (``LivePose.cost_key``)."""
+    from service.inference.pose import LivePose
+
+    costs = client.app.state.streams.seconds_per_frame
+    for name in ("pose_full6_stream", "pose_lower3_stream", "pose_lower3_walk_stream"):
+        assert costs[name] > 0
+    assert costs["pose_full6_stream+pose_full6_velocity"] > 0
+    assert costs["pose_lower3_stream+pose_lower3_velocity"] > 0
+    models = client.app.state.pose_models
+    velocity = client.app.state.velocity_models["pose_full6_velocity"]
+    identity = np.tile([1.0, 0.0, 0.0, 0.0], (6, 1))
+    live = LivePose(models["pose_full6_stream"], "declared", identity, translation="learned", velocity=velocity)
+    assert live.cost_key == "pose_full6_stream+pose_full6_velocity"
+    assert (
+        LivePose(models["pose_full6_stream"], "declared", identity, translation="feet").cost_key == "pose_full6_stream"
+    )
+
+
 def test_a_velocity_model_is_chosen_only_where_it_reads_the_pose_model_s_features_in_time(pose_models) -> None:
     """``velocity_model_for``: the same sensors in the same order, the same feature version and acceleration scale,
     and for a streaming pose model no more look-ahead than its own."""
