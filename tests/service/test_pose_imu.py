@@ -232,6 +232,9 @@ def test_sensors_at_the_placement_search_s_six_positions_are_posed_by_its_model(
     assert angle.mean() < 30.0, angle.mean(axis=0)
     default = client.post("/v1/pose/imu", json=_body(walk[1], SIX_SENSORS, frames=slice(0, 240)))
     assert default.status_code == 200 and default.json()["model"]["name"] == "pose_full6"
+    moved = client.post("/v1/pose/imu", json=body | {"translation": "learned"})  # its own velocity model
+    assert moved.status_code == 200, moved.text
+    assert np.array(moved.json()["root_position_m"]).shape == (min(240, motion.n_frames), 3)
 
 
 def test_rest_pose_with_a_still_npose_calibration(server: str, data_dir: Path) -> None:
