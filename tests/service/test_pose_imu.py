@@ -561,9 +561,13 @@ def test_a_bad_frame_packet_closes_naming_its_sensor_after_the_earlier_answers(s
     assert code == 1003 and "of 6 sensors must be" in reason, reason
 
 
-def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str, data_dir: Path) -> None:
+@pytest.mark.parametrize("translation", ["feet", "learned"])
+def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(
+    server: str, data_dir: Path, translation: str
+) -> None:
     """MovingReality (a person after stroke on a treadmill, Xsens on lumbar, shanks and feet): no sensor's segment
-    and no alignment declared; the stream's own I2S assignment places the sensors and hands its alignments over."""
+    and no alignment declared; the stream's own I2S assignment places the sensors and hands its alignments over;
+    the body moves by the rule, or by the rule with the three-sensor velocity model."""
     sensors = read_movingreality_trial(data_dir, "pp01", "1Reg")
     rows = {s.name: resample_pose_rows(s.acc, s.gyr, s.q_world_sensor, s.rate_hz)[60 * 10 : 60 * 70] for s in sensors}
     n = min(len(r) for r in rows.values())
@@ -578,12 +582,14 @@ def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str
             "calibration": "assignment",
             "hand_over": "confidence",
             "assignment_confidence": 0.8,
-            "translation": "feet",
+            "translation": translation,
         },
     }
     url = server.replace("http", "ws") + "/v1/stream"
     messages, code, reason = asyncio.run(_stream(url, start, packets))
     assert code == 1000, reason
+    velocity_model = messages[0]["pose"]["velocity_model"]
+    assert velocity_model == ("pose_lower3_velocity" if translation == "learned" else None)
     calibrated = [m for m in messages if m["type"] == "calibration" and m["status"] == "calibrated"]
     assert calibrated, [m for m in messages if m["type"] == "assignment"][-1]
     placed = calibrated[0]["segments"]
@@ -595,7 +601,8 @@ def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(server: str
     root = np.concatenate([np.array(p["root_position_m"]) for p in poses])
     assert np.allclose(root[0, :2], 0.0) and 0.6 < root[0, 2] < 1.3
     speed = np.linalg.norm(root[-1, :2] - root[0, :2]) / (len(root) / 60.0)
-    print(f"MovingReality pp01 on the treadmill: the answer's pelvis moves at {speed:.2f} m/s")
+    print(f"MovingReality pp01 on the treadmill ({translation}): the answer's pelvis moves at {speed:.2f} m/s")
+    assert speed < 3.0  # a walk, not a runaway integration
     q = np.concatenate([np.array(p["q_world_segment"]) for p in poses])
     R = matrix_from_quat(q)
     thigh, shank = BODY_SEGMENTS.index("LeftUpperLeg"), BODY_SEGMENTS.index("LeftLowerLeg")
