@@ -58,7 +58,15 @@ def log_onnx_model(
         input_example=golden[input_key][:1] if input_example else None,
         save_as_external_data=False,
         metadata={MLMODEL_METADATA_KEY: manifest.model_dump(mode="json")},
+        # what MLflow would infer by importing the model in a subprocess (about 2 s per model, most of a restore)
+        pip_requirements=onnx_model_requirements(),
     )
+
+
+def onnx_model_requirements() -> list[str]:
+    """A logged ONNX model's pip requirements, pinned to this environment's versions: what MLflow's inference finds
+    when it loads such a model (mlflow, numpy, onnx, onnxruntime)."""
+    return [f"mlflow=={mlflow.__version__}", f"numpy=={np.__version__}", *mlflow.onnx.get_default_pip_requirements()]
 
 
 def maybe_promote(
