@@ -9,11 +9,13 @@ from pathlib import Path
 import mlflow
 import numpy as np
 import onnx
-from mlflow.models import infer_signature
+from mlflow.models import ModelSignature, infer_signature
 from mlflow.models.model import ModelInfo
 from mlflow.tracking import MlflowClient
+from mlflow.types import Schema
+from mlflow.types import TensorSpec as MlflowTensorSpec
 
-from service.core.manifest import MLMODEL_METADATA_KEY, Manifest
+from service.core.manifest import MLMODEL_METADATA_KEY, Manifest, TensorSpec
 from training.run_labels import describe_experiment
 
 log = logging.getLogger(__name__)
@@ -46,20 +48,36 @@ def log_onnx_model(
 ) -> ModelInfo:
     """Log the active run's ONNX model with its signature and, with ``input_example``, an input example (from the
     golden pair, keyed by the model's first input: ``imu`` for the I2S models, ``features`` for pose, ``counts`` for
-    flex). The manifest rides in the MLmodel metadata, so the service can serve the model straight from the
-    registry."""
+    flex; a streaming graph's state inputs, ``h0`` and ``c0``, as the zeros a stream starts from). The manifest rides
+    in the MLmodel metadata, so the service can serve the model straight from the registry."""
     input_key = input_key or manifest.inputs[0].name
+    example: np.ndarray | dict[str, np.ndarray] = golden[input_key][:1]
+    signature = infer_signature(golden[input_key], golden["expected"])
+    if len(manifest.inputs) > 1:  # a streaming graph: MLflow takes its several inputs by name, as the manifest has them
+        state = {s.name: np.zeros([1 if d == "batch" else d for d in s.shape], np.float32) for s in manifest.inputs[1:]}
+        example = {input_key: example, **state}
+        signature = ModelSignature(_schema(manifest.inputs), _schema(manifest.outputs))
     return mlflow.onnx.log_model(
         onnx_model=proto,
         name="model",
-        signature=infer_signature(golden[input_key], golden["expected"]),
+        signature=signature,
         # MLflow runs the model on its input example to check it (seconds per model): a restore, logging files
         # whose outputs their golden pair fixes, leaves the example out (the signature stays)
-        input_example=golden[input_key][:1] if input_example else None,
+        input_example=example if input_example else None,
         save_as_external_data=False,
         metadata={MLMODEL_METADATA_KEY: manifest.model_dump(mode="json")},
         # what MLflow would infer by importing the model in a subprocess (about 2 s per model, most of a restore)
         pip_requirements=onnx_model_requirements(),
+    )
+
+
+def _schema(specs: list[TensorSpec]) -> Schema:
+    """MLflow's tensor schema of a manifest's inputs or outputs: named, their symbolic dimensions variable."""
+    return Schema(
+        [
+            MlflowTensorSpec(np.dtype(s.dtype), tuple(d if isinstance(d, int) else -1 for d in s.shape), s.name)
+            for s in specs
+        ]
     )
 
 
