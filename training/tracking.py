@@ -54,7 +54,11 @@ def log_onnx_model(
     example: np.ndarray | dict[str, np.ndarray] = golden[input_key][:1]
     signature = infer_signature(golden[input_key], golden["expected"])
     if len(manifest.inputs) > 1:  # a streaming graph: MLflow takes its several inputs by name, as the manifest has them
-        state = {s.name: np.zeros([1 if d == "batch" else d for d in s.shape], np.float32) for s in manifest.inputs[1:]}
+        state = {
+            s.name: np.zeros([1 if d == "batch" else d for d in s.shape], np.float32)
+            for s in manifest.inputs
+            if s.name != input_key
+        }
         example = {input_key: example, **state}
         signature = ModelSignature(_schema(manifest.inputs), _schema(manifest.outputs))
     return mlflow.onnx.log_model(

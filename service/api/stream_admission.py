@@ -62,7 +62,8 @@ class StreamAdmission:
         self.pose_latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # the live pose answers' alone
         self.flex_latencies: deque[tuple[float, float]] = deque(maxlen=4096)  # the live flex answers' alone
         self.demand: dict[int, float] = {}  # session → windows/s
-        self.seconds_per_frame: dict[str, float] = {}  # pose or flex model name → seconds per frame (one worker)
+        # flex model name, or live pose session's cost key (``LivePose.cost_key``) → seconds per frame (one worker)
+        self.seconds_per_frame: dict[str, float] = {}
         self.ids = itertools.count()
         self.lags: deque[tuple[float, float]] = deque(maxlen=1024)  # (monotonic time, seconds late)
         self.loop_cpu: deque[tuple[float, float]] = deque(maxlen=1024)  # (monotonic time, loop thread's CPU s)

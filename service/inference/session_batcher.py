@@ -101,7 +101,10 @@ class SessionBatcher:
             self.in_flight -= 1
             self._dispatch()
         name = jobs[0].live.model.name
-        self.batches.append((time.monotonic(), seconds, self.per_batch_s.get(name, 0.0)))
+        # the batch's fixed part: the dearest of what its sessions run (a live pose session's pose model, and its
+        # velocity model beside it: ``LivePose.cost_key``), as probed
+        fixed = max(self.per_batch_s.get(getattr(job.live, "cost_key", name), 0.0) for job in jobs)
+        self.batches.append((time.monotonic(), seconds, fixed))
         if self.on_batch:
             self.on_batch(name, calls, seconds)
         for job, answer in zip(jobs, answers, strict=True):

@@ -1087,6 +1087,33 @@ def test_the_service_measures_what_a_live_session_with_the_learned_velocity_cost
     )
 
 
+def test_a_batch_with_a_learned_session_counts_the_velocity_network_s_fixed_part(pose_models) -> None:
+    """The pose worker's busy share is projected per session from its batches less their fixed part: a batch that
+    runs the velocity network too has the fixed part probed for both networks, one without has the pose model's."""
+    from service.inference.pose import LivePose
+    from service.inference.pose_batcher import LivePoseBatcher
+    from service.inference.runner import ModelRunner
+    from service.inference.velocity import VelocityModel
+
+    model = pose_models["pose_full6_stream"]
+    velocity = VelocityModel(load_models(MODELS, 1)["pose_full6_velocity"])
+    identity = np.tile([1.0, 0.0, 0.0, 0.0], (6, 1))
+    rule = LivePose(model, "declared", identity, translation="feet")
+    learned = LivePose(model, "declared", identity, translation="learned", velocity=velocity)
+    frames = _frames(np.random.default_rng(4), 8)
+
+    async def run() -> list[float]:
+        batcher = LivePoseBatcher(ModelRunner({}, threads=1, chunk=1), workers=1)
+        batcher.per_batch_s = {rule.cost_key: 0.001, learned.cost_key: 0.005}
+        fixed = []
+        for sessions in ([rule, learned], [rule]):
+            await asyncio.gather(*(batcher.process(live, frames, 0) for live in sessions))
+            fixed.append(batcher.batches[-1][2])
+        return fixed
+
+    assert asyncio.run(run()) == [0.005, 0.001]
+
+
 def test_a_velocity_model_is_chosen_only_where_it_reads_the_pose_model_s_features_in_time(pose_models) -> None:
     """``velocity_model_for``: the same sensors in the same order, the same feature version and acceleration scale,
     and for a streaming pose model no more look-ahead than its own."""
