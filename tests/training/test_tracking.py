@@ -21,6 +21,7 @@ def store(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     mlflow.set_tracking_uri(default_tracking_uri())
+    mlflow.set_experiment("tracking")  # not the active experiment of an earlier test's store
 
 
 def test_a_streaming_graph_is_logged_with_its_state_inputs_and_answers_several_sessions(store) -> None:
