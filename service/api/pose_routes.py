@@ -36,7 +36,7 @@ from service.inference.pose import (
     whole_body,
 )
 from service.inference.predict import InputError
-from service.inference.velocity import VelocityModel, velocity_model_for, world_velocity
+from service.inference.velocity import VelocityModel, learned_velocity_model, world_velocity
 from service.settings import Settings
 
 router = APIRouter(route_class=_Route)
@@ -247,19 +247,11 @@ def body_pose(job: PoseJob) -> BodyPose:
 
 
 def velocity_for(request: Request, model: PoseModel, translation: str) -> VelocityModel | None:
-    """The velocity model ``translation`` learned needs: the one of the pose model's sensors, else 422."""
-    if translation != "learned":
-        return None
-    models: dict[str, VelocityModel] = request.app.state.velocity_models
-    velocity = velocity_model_for(models, model.spec)
-    if velocity is None:
-        loaded = {name: m.spec.sensors for name, m in sorted(models.items())} or "none"
-        raise HTTPException(
-            422,
-            f"translation: 'learned' needs a velocity model for the sensors {model.spec.sensors} of {model.name}; "
-            f"loaded velocity models: {loaded}; 'feet' moves the body without one",
-        )
-    return velocity
+    """The velocity model ``translation`` learned needs (``learned_velocity_model``), else 422."""
+    try:
+        return learned_velocity_model(request.app.state.velocity_models, model.spec, model.name, translation)
+    except LookupError as exc:
+        raise HTTPException(422, f"translation: {exc}") from None
 
 
 def pose_bvh(job: PoseJob) -> str:

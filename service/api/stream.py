@@ -52,7 +52,7 @@ from service.core.stream import SensorStream
 from service.core.units import ACC_UNITS, GYR_UNITS, UNIT_CHECK_SECONDS, unit_warnings
 from service.inference.pose import LivePose, PoseModel, general_first
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
-from service.inference.velocity import VelocityModel, velocity_model_for
+from service.inference.velocity import VelocityModel, learned_velocity_model, velocity_model_for
 
 log = logging.getLogger(__name__)
 
@@ -524,18 +524,12 @@ async def _receive_start(ws: WebSocket) -> Session:
 
 
 def _velocity_model(model: PoseModel, translation: str, models: dict[str, VelocityModel]) -> VelocityModel | None:
-    """The velocity model translation 'learned' runs beside ``model``; ProtocolError if none reads its sensors."""
-    if translation != "learned":
-        return None
-    velocity = velocity_model_for(models, model.spec)
-    if velocity is None:
-        loaded = {name: m.spec.sensors for name, m in sorted(models.items())} or "none"
-        raise ProtocolError(
-            f"pose.translation 'learned' needs a velocity model for the sensors {model.spec.sensors} of {model.name} "
-            f"that answers within its {model.spec.look_ahead_frames} frames of look-ahead; loaded velocity models: "
-            f"{loaded}; 'feet' moves the body without one"
-        )
-    return velocity
+    """The velocity model translation 'learned' runs beside ``model`` (``learned_velocity_model``); ProtocolError if
+    none reads its features."""
+    try:
+        return learned_velocity_model(models, model.spec, model.name, translation)
+    except LookupError as exc:
+        raise ProtocolError(f"pose.translation {exc}") from None
 
 
 def _first_error(exc: ValidationError) -> str:

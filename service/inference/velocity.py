@@ -62,3 +62,21 @@ def velocity_model_for(models: dict[str, VelocityModel], pose: PoseSpec) -> Velo
         ),
         None,
     )
+
+
+def learned_velocity_model(
+    models: dict[str, VelocityModel], pose: PoseSpec, pose_name: str, translation: str
+) -> VelocityModel | None:
+    """The velocity model that translation ``learned`` runs beside the pose model ``pose_name`` (None for the other
+    translations); LookupError, saying what is loaded and what to use instead, where none reads its features."""
+    if translation != "learned":
+        return None
+    velocity = velocity_model_for(models, pose)
+    if velocity is None:
+        loaded = {name: m.spec.sensors for name, m in sorted(models.items())} or "none"
+        within = f" that answers within its {pose.look_ahead_frames} frames of look-ahead" if pose.streaming else ""
+        raise LookupError(
+            f"'learned' needs a velocity model for the sensors {pose.sensors} of {pose_name}{within}; loaded velocity "
+            f"models: {loaded}; 'feet' moves the body without one"
+        )
+    return velocity
