@@ -615,6 +615,11 @@ def pose_real_check(
         None, help="a shipped lower-body pose model (default: the newest under onnx_models/pose_lower3)"
     ),
     data_dir: Path | None = DataDir,
+    pelvis_heading: str = typer.Option(
+        "legs",
+        help="'legs': the pelvis's alignment turned to the legs' heading, as the service's assignment "
+        "calibration does; 'alignment': as the I2S alignment gives it",
+    ),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """A lower-body pose model on real recordings (capacitive subject, MovingReality): its thighs, feet and knee
@@ -627,9 +632,12 @@ def pose_real_check(
 
     alignment = load_models(Path("onnx_models"), 2)["i2s_alignment"]
     model = newest_shipped(model, "pose_lower3")
-    results = real_pose_check(resolve_data_dir(data_dir), PoseModel(load_model(model, 2)), alignment)
+    if pelvis_heading not in ("legs", "alignment"):
+        raise typer.BadParameter(f"--pelvis-heading: 'legs' or 'alignment', got {pelvis_heading!r}")
+    results = real_pose_check(resolve_data_dir(data_dir), PoseModel(load_model(model, 2)), alignment, pelvis_heading)
     summary = {
         "alignment_model": alignment.manifest.version,
+        "pelvis_heading": pelvis_heading,
         "capacitive_sub01": pooled(results, "capacitive"),
         "movingreality": pooled(results, "movingreality"),
     }
@@ -640,6 +648,7 @@ def pose_real_check(
         typer.echo(f"{name:32s} " + "  ".join(f"{k} {v:.2f}" for k, v in r.items() if k != "frames"))
     for name in ("capacitive_sub01", "movingreality"):
         typer.echo(f"pooled {name}: " + "  ".join(f"{k} {v:.2f}" for k, v in summary[name].items()))
+    typer.echo(f"pelvis heading: {pelvis_heading}")
 
 
 @app.command("evaluate-pose")

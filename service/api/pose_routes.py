@@ -15,6 +15,7 @@ from service.core.bvh import format_bvh
 from service.core.calibration import (
     CalibrationError,
     is_still,
+    pelvis_heading_from_legs,
     pose_features,
     segment_readings,
     still_pose_calibration,
@@ -149,7 +150,18 @@ def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
 
 
 def calibrate(body: PoseImuRequest, model: PoseModel, r: Readings) -> np.ndarray:
-    """``q_segment_sensor`` (N, 4) in the model's sensor order, by the request's method."""
+    """``q_segment_sensor`` (N, 4) in the model's sensor order, by the request's method, the pelvis's turned to the
+    legs' heading where asked (``calibration.pelvis_heading``)."""
+    q = _calibrate_by_method(body, model, r)
+    if body.calibration.pelvis_heading == "legs":
+        try:
+            q, _ = pelvis_heading_from_legs(r.q_world_sensor, q, model.spec.sensors)
+        except CalibrationError as exc:
+            raise InputError(f"calibration.pelvis_heading: {exc}") from None
+    return q
+
+
+def _calibrate_by_method(body: PoseImuRequest, model: PoseModel, r: Readings) -> np.ndarray:
     cal = body.calibration
     order = {s.segment: (k, s) for k, s in enumerate(body.sensors)}
     if cal.method == "declared":

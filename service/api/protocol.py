@@ -65,6 +65,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from service.api.schemas import (
     CANDIDATE_SEGMENTS_DESCRIPTION,
+    PELVIS_HEADING_DESCRIPTION,
     TRANSLATION_DESCRIPTION,
     WORN_SEGMENTS_DESCRIPTION,
     AccUnit,
@@ -134,6 +135,7 @@ class PoseStreamOptions(BaseModel):
         "file's motion table (``bvh_pose_message``)",
     )
     translation: Literal["none", "feet", "learned"] = Field("none", description=TRANSLATION_DESCRIPTION)
+    pelvis_heading: Literal["alignment", "legs"] | None = Field(None, description=PELVIS_HEADING_DESCRIPTION)
 
 
 class StartMessage(BaseModel):

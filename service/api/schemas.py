@@ -431,6 +431,15 @@ class PoseSensor(BaseModel):
     )
 
 
+PELVIS_HEADING_DESCRIPTION = (
+    "`legs`: the pelvis's alignment turned about the vertical so that it faces where the leg sensors' segments face "
+    "on average (over the request; on a stream over the frames so far), for alignments found from a walk "
+    "(`/v1/imu/assign`), whose pelvis heading can be tens of degrees off on real people; needs a sensor on a thigh, "
+    "shank or foot and assumes the legs point where the pelvis does (walking, standing). `alignment`: the pelvis's "
+    "alignment as calibrated. Default `alignment`; streams with calibration `assignment` default to `legs`"
+)
+
+
 class PoseCalibration(BaseModel):
     """How sensor readings become segment readings. ``declared``: each sensor's ``q_segment_sensor``, no pose
     needed. ``still_pose``: frames [start, stop) of this request are a still N-pose (arms hanging) or T-pose (arms
@@ -448,6 +457,7 @@ class PoseCalibration(BaseModel):
         "and the span lasts at least 0.5 s with every sensor still and reading gravity",
     )
     pelvis_back_axis: Vector3 = Field(default_factory=lambda: [0.0, 0.0, 1.0])
+    pelvis_heading: Literal["alignment", "legs"] = Field("alignment", description=PELVIS_HEADING_DESCRIPTION)
 
 
 EXAMPLE_POSE_IMU = {

@@ -45,6 +45,7 @@ from service.core.assignment import (
     turns_about_vertical,
 )
 from service.core.body import BODY_SEGMENTS
+from service.core.calibration import LEG_SEGMENTS
 from service.core.pose_stream import AlignResult, FrameAligner, StreamLagError
 from service.core.rotations import canonical_quat
 from service.core.segments import SEGMENTS, segment_indices, segment_names
@@ -171,6 +172,12 @@ class Session:
                 )
             model = first(fitting)
             self.pose_order = [segments.index(seg) for seg in model.spec.sensors]
+        pelvis_heading = opts.pelvis_heading or ("legs" if opts.calibration == "assignment" else "alignment")
+        if pelvis_heading == "legs" and not LEG_SEGMENTS & set(model.spec.sensors):
+            raise ProtocolError(
+                f"pose.pelvis_heading 'legs' needs a sensor on a thigh, shank or foot; {model.name} reads "
+                f"{model.spec.sensors}"
+            )
         q = None
         if opts.calibration == "declared":
             q = canonical_quat(np.array([start.sensors[k].q_segment_sensor for k in self.pose_order], dtype=np.float64))
@@ -184,6 +191,7 @@ class Session:
             opts.body_height_m,
             opts.translation,
             _velocity_model(model, opts.translation, velocity_models),
+            pelvis_heading,
         )
         self.aligner = FrameAligner(len(self.streams), 10)
         self.run_i2s = opts.calibration == "assignment"
@@ -671,5 +679,6 @@ def _pose_started(session: Session) -> dict | None:
         "output": session.pose_output,
         "translation": live.translation,
         "velocity_model": live.velocity.name if live.velocity is not None else None,
+        "pelvis_heading": live.pelvis_heading,
         "body_height_m": round(live.body.height_m, 3),
     } | (bvh_started(live.body) if session.pose_output == "bvh" else {})

@@ -81,6 +81,60 @@ def pose_features(R_world_segment: np.ndarray, acc_world_mps2: np.ndarray, root:
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
+# The pelvis's heading from the legs (our addition). An alignment from ``/v1/imu/assign`` (Zimmermann et al.
+# 2018's network and its functional axes) is found from each sensor's own walk: the leg segments' forward axes are
+# pinned by their swing about the knee's hinge, the pelvis's only by how its sway and steps read, and on real people
+# it comes out turned about the vertical by tens of degrees to a half turn (on MovingReality's treadmill walks after
+# stroke, 58-177° on 5 of 16 trials; docs/pose.md, "The pelvis's heading from the legs"). A turn of the pelvis about
+# the vertical turns every pelvis-relative feature (eq. 2-3), so the pose reads legs swinging sideways. In walking
+# the pelvis faces where the legs swing: this turns the pelvis's alignment about its own z (the vertical, upright)
+# to the mean heading of the leg segments' forward (x) axes. Each frame's horizontal forward axes are complex numbers
+# h = x + iy; conj(h_pelvis) · h_leg, summed over legs and frames, weighs each frame by how level both axes are.
+LEG_SEGMENTS = frozenset(f"{side}{part}" for side in ("Left", "Right") for part in ("UpperLeg", "LowerLeg", "Foot"))
+
+
+def legs_heading_sum(R_world_segment: np.ndarray, segments: Sequence[str], root: int = 0) -> np.ndarray:
+    """``(T, N, 3, 3)`` segment orientations in the model's sensor order → ``(T,)`` complex: per frame the sum over
+    the leg segments (``LEG_SEGMENTS``) of conj(h_root) · h_leg; the angle of its sum over frames is the legs' mean
+    heading relative to the root's. Zero where no leg segment is among ``segments``."""
+    legs = [k for k, s in enumerate(segments) if s in LEG_SEGMENTS]
+    x = R_world_segment[..., :2, 0]  # (T, N, 2): each segment's x axis in the world, horizontal part
+    h = x[..., 0] + 1j * x[..., 1]
+    return (np.conj(h[:, root : root + 1]) * h[:, legs]).sum(axis=1)
+
+
+def turn_about_z(R_world_segment: np.ndarray, angle_rad: np.ndarray) -> np.ndarray:
+    """``(T, 3, 3)`` orientations turned about their own z by ``(T,)`` angles: R · Rz(angle)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    Rz = np.zeros((len(c), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    return R_world_segment @ Rz
+
+
+def pelvis_heading_from_legs(
+    q_world_sensor: np.ndarray, q_segment_sensor: np.ndarray, segments: Sequence[str], root: int = 0
+) -> tuple[np.ndarray, float]:
+    """Alignments ``(N, 4)`` with the root's turned about its z to the legs' mean heading over the frames of
+    ``q_world_sensor`` ``(T, N, 4)`` (``legs_heading_sum``), and that turn in degrees (positive: anticlockwise
+    seen from above)."""
+    if not any(s in LEG_SEGMENTS for s in segments):
+        raise CalibrationError(
+            f"the pelvis's heading from the legs needs a sensor on a thigh, shank or foot; the sensors are on "
+            f"{list(segments)}"
+        )
+    R_w_seg = matrix_from_quat(q_world_sensor) @ np.swapaxes(matrix_from_quat(q_segment_sensor), -1, -2)
+    total = legs_heading_sum(R_w_seg, segments, root).sum()
+    if abs(total) < 1e-9:
+        raise CalibrationError("the pelvis's heading from the legs: no frame has a level pelvis and leg forward axis")
+    angle = float(np.angle(total))
+    R_seg_sensor = matrix_from_quat(q_segment_sensor[root])
+    c, s = np.cos(angle), np.sin(angle)
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = np.array(q_segment_sensor, dtype=np.float64, copy=True)
+    out[root] = quat_from_matrix(Rz.T @ R_seg_sensor)  # R_W_seg' = R_W_sensor R_seg_sensorᵀ Rz
+    return out, float(np.degrees(angle))
+
+
 def is_still(
     gyr_rads: np.ndarray | None, acc_sensor_mps2: np.ndarray, names: Sequence[str] | None = None
 ) -> tuple[bool, str]:

@@ -12,6 +12,16 @@ from collections.abc import Callable
 import numpy as np
 
 from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, feet_of, segment_origins
+from service.core.calibration import (
+    LEG_SEGMENTS,
+    CalibrationError,
+    is_still,
+    legs_heading_sum,
+    pose_features,
+    segment_readings,
+    still_pose_calibration,
+    turn_about_z,
+)
 from service.core.rotations import quat_from_matrix
 from service.core.translation import RootTracker, advance_bodies
 from service.core.windowing import MODEL_RATE_HZ
@@ -199,6 +209,7 @@ class LivePose:
         height_m: float | None = None,
         translation: str = "none",
         velocity: VelocityModel | None = None,
+        pelvis_heading: str = "alignment",
     ) -> None:
         if not model.spec.streaming:
             raise ValueError(f"{model.name} is an offline model; live sessions need a streaming one")
@@ -212,8 +223,14 @@ class LivePose:
                     f"{velocity.name} answers {velocity.spec.look_ahead_frames} frames late, after {model.name}'s "
                     f"pose ({model.spec.look_ahead_frames})"
                 )
+        if pelvis_heading == "legs" and not LEG_SEGMENTS & set(model.spec.sensors):
+            raise ValueError(f"pelvis_heading 'legs': {model.name} reads no leg sensor ({model.spec.sensors})")
         self.model, self.method = model, method
         self.q_segment_sensor = q_segment_sensor
+        # pelvis_heading 'legs': the running sum of the legs' heading against the pelvis's (``legs_heading_sum``)
+        # over the calibrated frames so far; each frame's pelvis is turned by its angle
+        self.pelvis_heading = pelvis_heading
+        self.heading_sum = 0j
         self.still_frames, self.still_pose, self.back_axis = still_frames, still_pose, back_axis
         self.body = model.body.scaled(height_m) if height_m else model.body
         self.state = model.new_state()
@@ -244,6 +261,14 @@ class LivePose:
         velocity model beside it where the translation is learned."""
         return cost_key(self.model, self.velocity)
 
+    def turn_pelvis(self, R_world_segment: np.ndarray) -> None:
+        """The next calibrated frames' segment orientations ``(m, N, 3, 3)``, the pelvis's turned in place to the
+        legs' mean heading over every frame so far (``service.core.calibration.legs_heading_sum``): a stream's
+        first frames take the estimate of the few frames before them, which settles within a stride."""
+        running = self.heading_sum + np.cumsum(legs_heading_sum(R_world_segment, self.model.spec.sensors))
+        self.heading_sum = complex(running[-1])
+        R_world_segment[:, 0] = turn_about_z(R_world_segment[:, 0], np.angle(running))
+
     def process(self, frames: np.ndarray, first_frame: int) -> list[dict]:
         """Frames ``(m, N, 10)`` from stream frame ``first_frame`` on → ``calibration`` and ``pose`` messages."""
         return process_live([(self, frames, first_frame)])[0]
@@ -260,8 +285,6 @@ class LivePose:
 
     def _collect_still(self, frames: np.ndarray, first_frame: int) -> tuple[dict | None, np.ndarray, int]:
         """Collect the still span; a message once it is judged, and the frames after it."""
-        from service.core.calibration import CalibrationError, is_still, still_pose_calibration
-
         if not self.still:
             self.still_first = first_frame
         self.still.append(frames)
@@ -312,14 +335,15 @@ def process_live(jobs: list[tuple[LivePose, np.ndarray, int]]) -> list[list[dict
 
 def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: list[int]) -> list[dict | None]:
     """Calibrated frames of sessions of one model → each session's ``pose`` message (None: no frame answered yet)."""
-    from service.core.calibration import pose_features, segment_readings
-
     model = lives[0].model
     counts = [len(f) for f in frames]
     bounds = np.cumsum([0, *counts])
     joined = np.concatenate(frames)
     q_seg = np.repeat(np.stack([live.q_segment_sensor for live in lives]), counts, axis=0)
     R_w_seg, a_w = segment_readings(joined[:, :, 6:10], joined[:, :, :3], q_seg)
+    for i, live in enumerate(lives):
+        if live.pelvis_heading == "legs":
+            live.turn_pelvis(R_w_seg[bounds[i] : bounds[i + 1]])
     features = pose_features(R_w_seg, a_w)
     per_session = [features[bounds[i] : bounds[i + 1]] for i in range(len(lives))]
     outs, states = model.step_many(per_session, [live.state for live in lives])

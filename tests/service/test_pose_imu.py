@@ -428,6 +428,67 @@ def test_the_stream_answers_pose_as_the_streaming_model_does_offline(server: str
     assert angle.max() < 0.1, angle.max()
 
 
+def _turned_pelvis(raw, deg: float) -> np.ndarray:
+    """The walk's true alignments with the pelvis's turned about its vertical by ``deg`` (as I2S can give it)."""
+    q = raw.q_segment_sensor.copy()
+    q[0] = quat_from_matrix(Rotation.from_euler("z", deg, degrees=True).as_matrix().T @ matrix_from_quat(q[0]))
+    return q
+
+
+def test_a_pelvis_turned_about_the_vertical_is_turned_back_by_the_legs_on_rest_and_stream(
+    server: str, walk, pose_models
+) -> None:
+    """Declared alignments whose pelvis is turned by 100° (the pose then reads legs swinging sideways): with
+    ``pelvis_heading: legs`` REST answers the pelvis's alignment turned back and the stream, after its first
+    second, answers near what the streaming model answers on the true alignments."""
+    motion, raw = walk
+    q_bad = _turned_pelvis(raw, 100.0)
+    request = _body(raw, SIX_SENSORS)
+    for k, sensor in enumerate(request["sensors"]):
+        sensor["q_segment_sensor"] = q_bad[k].tolist()
+    request["calibration"] = {"method": "declared", "pelvis_heading": "legs"}
+    r = httpx.post(f"{server}/v1/pose/imu", json=request, timeout=60)
+    assert r.status_code == 200, r.text
+    q_pelvis = np.array(r.json()["q_segment_sensor"]["pelvis"])
+    left = Rotation.from_matrix(matrix_from_quat(q_pelvis).T @ matrix_from_quat(raw.q_segment_sensor[0]))
+    assert np.degrees(left.magnitude()) < 10.0  # each simulated sensor's fusion has up to 5° of heading error
+
+    model = pose_models["pose_full6_stream"]
+    R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
+    from service.inference.pose import whole_body
+
+    truth = whole_body(R_w_seg, model.predict(pose_features(R_w_seg, a_w)), model.sensor_index, model.output_index)
+    packets = [
+        (s.lower(), start, _rows(raw, k)[start : start + 8])
+        for start in range(0, motion.n_frames, 8)
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": q_bad[k].tolist()} for k, s in enumerate(SIX_SENSORS)
+    ]
+    legs = np.arange(motion.n_frames - 5) >= 60
+    errors = {}
+    for heading in ("alignment", "legs"):
+        start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "pelvis_heading": heading}}
+        messages, code, reason = asyncio.run(_stream(server.replace("http", "ws") + "/v1/stream", start, packets))
+        assert code == 1000, reason
+        assert messages[0]["pose"]["pelvis_heading"] == heading
+        q_live = np.concatenate([np.array(p["q_world_segment"]) for p in messages if p["type"] == "pose"])
+        R_live = matrix_from_quat(q_live / np.linalg.norm(q_live, axis=-1, keepdims=True))
+        knees = []  # the thigh against the (sensed) shank: what the legs' pose says, whatever the pelvis's heading
+        for R in (truth[: len(R_live)], R_live):
+            thigh, shank = (
+                R[:, [BODY_SEGMENTS.index(f"{side}{part}") for side in ("Left", "Right")]]
+                for part in ("UpperLeg", "LowerLeg")
+            )
+            knees.append(np.einsum("tnji,tnjk->tnik", thigh, shank))
+        rel = np.einsum("tnji,tnjk->tnik", *knees).reshape(-1, 3, 3)
+        errors[heading] = np.degrees(Rotation.from_matrix(rel).magnitude()).reshape(-1, 2)
+    print({h: round(float(e[legs].mean()), 2) for h, e in errors.items()}, "deg from the true alignments' knees")
+    # the legs leave the pelvis within the sensors' heading errors (here 6.5°), which the model's thighs follow
+    assert errors["legs"][legs].mean() < 8.0 < 50.0 < errors["alignment"][legs].mean()
+
+
 def test_frame_packets_and_binary_pose_blocks_answer_as_the_json_stream_does(server: str, walk, pose_models) -> None:
     """A suit's receiver: all six sensors in one binary frame packet per 8 samples, pose back as binary blocks. The
     same frames are answered, with the same orientations as the per-sensor JSON stream gives."""
@@ -776,13 +837,14 @@ def test_a_non_unit_quaternion_on_the_stream_closes_it_after_the_accepted_frames
 
 
 def _live_sessions(model: PoseModel, seed: int) -> list:
-    """Three sessions: other heights, and translation learned, by the rule alone, and none."""
+    """Three sessions: other heights, and translation learned, by the rule alone, and none; the last with the
+    pelvis's heading from the legs (a running estimate)."""
     from service.inference.pose import LivePose
     from service.inference.velocity import VelocityModel
 
     rng = np.random.default_rng(seed)
     velocity = VelocityModel(load_models(MODELS, 1)["pose_full6_velocity"])
-    kinds = [(None, "learned", velocity), (1.55, "feet", None), (1.92, "none", None)]
+    kinds = [(None, "learned", velocity, "alignment"), (1.55, "feet", None, "alignment"), (1.92, "none", None, "legs")]
     return [
         LivePose(
             model,
@@ -791,8 +853,9 @@ def _live_sessions(model: PoseModel, seed: int) -> list:
             height_m=h,
             translation=translation,
             velocity=v,
+            pelvis_heading=heading,
         )
-        for k, (h, translation, v) in enumerate(kinds)
+        for k, (h, translation, v, heading) in enumerate(kinds)
     ], rng
 
 

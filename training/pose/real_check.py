@@ -18,7 +18,7 @@ import numpy as np
 
 from service.core.assignment import is_moving
 from service.core.body import BODY_SEGMENTS
-from service.core.calibration import pose_features, segment_readings
+from service.core.calibration import pelvis_heading_from_legs, pose_features, segment_readings
 from service.core.recordings import (
     CAPACITIVE_TRIALS,
     MOVINGREALITY_SEGMENTS,
@@ -50,19 +50,27 @@ def knee_flexion_deg(R_thigh: np.ndarray, R_shank: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(rel[:, 0, 2], rel[:, 2, 2]))  # flexed: the shank's z turns towards the thigh's +x
 
 
-def check_recording(sensors: dict[str, OrientedSensor], model: PoseModel, alignment: LoadedModel) -> dict[str, float]:
+def check_recording(
+    sensors: dict[str, OrientedSensor], model: PoseModel, alignment: LoadedModel, pelvis_heading: str = "legs"
+) -> dict[str, float]:
     q_ss = {seg: i2s_alignment(s, seg, alignment) for seg, s in sensors.items()}
     rows = {seg: resample_pose_rows(s.acc, s.gyr, s.q_world_sensor, s.rate_hz) for seg, s in sensors.items()}
     n = min(len(r) for r in rows.values())
+    inputs = model.spec.sensors
+    out: dict[str, float] = {"frames": float(n)}
+    if pelvis_heading == "legs":  # as the service does with these alignments: from the model's own leg sensors
+        q_in = np.stack([q_ss[s] for s in inputs])
+        turned, out["pelvis_turn_deg"] = pelvis_heading_from_legs(
+            np.stack([rows[s][:n, 6:10] for s in inputs], axis=1), q_in, inputs
+        )
+        q_ss["Pelvis"] = turned[inputs.index("Pelvis")]
     seg_R = {}
     for seg, r in rows.items():
         R_w_seg, a_w = segment_readings(r[:n, None, 6:10], r[:n, None, :3], q_ss[seg][None])
         seg_R[seg] = (R_w_seg[:, 0], a_w[:, 0])
-    inputs = model.spec.sensors
     R_in = np.stack([seg_R[s][0] for s in inputs], axis=1)
     a_in = np.stack([seg_R[s][1] for s in inputs], axis=1)
     R_pred = whole_body(R_in, model.predict(pose_features(R_in, a_in)), model.sensor_index, model.output_index)
-    out: dict[str, float] = {"frames": float(n)}
     for name in ("UpperLeg", "Foot"):
         errs = []
         for side in ("Left", "Right"):
@@ -88,17 +96,21 @@ def check_recording(sensors: dict[str, OrientedSensor], model: PoseModel, alignm
     return out
 
 
-def real_pose_check(data_dir: Path, model: PoseModel, alignment: LoadedModel) -> dict[str, dict[str, float]]:
+def real_pose_check(
+    data_dir: Path, model: PoseModel, alignment: LoadedModel, pelvis_heading: str = "legs"
+) -> dict[str, dict[str, float]]:
     results = {}
     for trial in CAPACITIVE_TRIALS:
         results[f"capacitive_sub01/{trial}"] = check_recording(
-            read_capacitive_oriented(data_dir, trial), model, alignment
+            read_capacitive_oriented(data_dir, trial), model, alignment, pelvis_heading
         )
     root = data_dir / "imu_real" / "movingreality"
     for folder in sorted(p for p in root.glob("pp*/*") if p.is_dir()):
         sensors = read_movingreality_trial(data_dir, folder.parent.name, folder.name)
         by_segment = {MOVINGREALITY_SEGMENTS[s.name]: s for s in sensors}
-        results[f"movingreality/{folder.parent.name}/{folder.name}"] = check_recording(by_segment, model, alignment)
+        results[f"movingreality/{folder.parent.name}/{folder.name}"] = check_recording(
+            by_segment, model, alignment, pelvis_heading
+        )
     return results
 
 
