@@ -84,8 +84,8 @@ def pose_features(R_world_segment: np.ndarray, acc_world_mps2: np.ndarray, root:
 # The pelvis's heading from the legs (our addition). An alignment from ``/v1/imu/assign`` (Zimmermann et al.
 # 2018's network and its functional axes) is found from each sensor's own walk: the leg segments' forward axes are
 # pinned by their swing about the knee's hinge, the pelvis's only by how its sway and steps read, and on real people
-# it comes out turned about the vertical by tens of degrees to a half turn (on MovingReality's treadmill walks after
-# stroke, 58-177° on 5 of 16 trials; docs/pose.md, "The pelvis's heading from the legs"). A turn of the pelvis about
+# it comes out turned about the vertical by tens of degrees to a half turn (docs/pose.md, Calibration: "The
+# pelvis's heading from the legs"). A turn of the pelvis about
 # the vertical turns every pelvis-relative feature (eq. 2-3), so the pose reads legs swinging sideways. In walking
 # the pelvis faces where the legs swing: this turns the pelvis's alignment about its own z (the vertical, upright)
 # to the mean heading of the leg segments' forward (x) axes. Each frame's horizontal forward axes are complex numbers
