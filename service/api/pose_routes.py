@@ -1,4 +1,5 @@
-"""``POST /v1/pose/imu``: whole-body pose from raw sensor readings, with a declared or a still-pose calibration."""
+"""``POST /v1/pose/imu``: whole-body pose from raw sensor readings, calibrated as declared, by a still pose or by
+the walk (I2S)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
 from service.api.routes import _Route, _settings, file_answer
 from service.api.schemas import PoseImuRequest, PoseImuResponse, SegmentTrack, error_responses, file_responses
+from service.core.assignment import is_moving
 from service.core.body import BODY_SEGMENTS, Body, body_bvh, feet_of
 from service.core.bvh import format_bvh
 from service.core.calibration import (
@@ -22,9 +24,10 @@ from service.core.calibration import (
 )
 from service.core.resample import resample_quats, resample_uniform
 from service.core.rotations import canonical_quat
+from service.core.segments import SEGMENTS
 from service.core.translation import RootTracker
 from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS, unit_warnings_over
-from service.core.windowing import MODEL_RATE_HZ
+from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES, sliding_windows
 from service.inference.pose import (
     MAX_POSE_FRAMES,
     MAX_POSE_IMU_RATE_HZ,
@@ -36,7 +39,7 @@ from service.inference.pose import (
     pose_answer,
     whole_body,
 )
-from service.inference.predict import InputError
+from service.inference.predict import InputError, mean_alignment
 from service.inference.velocity import VelocityModel, learned_velocity_model, world_velocity
 from service.settings import Settings
 
@@ -149,16 +152,58 @@ def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
     return Readings(q, acc, gyr, ids)
 
 
-def calibrate(body: PoseImuRequest, model: PoseModel, r: Readings) -> np.ndarray:
-    """``q_segment_sensor`` (N, 4) in the model's sensor order, by the request's method, the pelvis's turned to the
-    legs' heading where asked (``calibration.pelvis_heading``)."""
-    q = _calibrate_by_method(body, model, r)
-    if body.calibration.pelvis_heading == "legs":
+def calibrate(body: PoseImuRequest, model: PoseModel, r: Readings, found: np.ndarray | None = None) -> np.ndarray:
+    """``q_segment_sensor`` (N, 4) in the model's sensor order, by the request's method (``assignment``: ``found``,
+    from ``walk_alignments``), the pelvis's turned to the legs' heading where asked (``calibration.pelvis_heading``,
+    by default with ``assignment``)."""
+    cal = body.calibration
+    q = found if cal.method == "assignment" else _calibrate_by_method(body, model, r)
+    if q is None:
+        raise ValueError("calibration 'assignment' needs the alignments found from the walk (walk_alignments)")
+    if (cal.pelvis_heading or ("legs" if cal.method == "assignment" else "alignment")) == "legs":
         try:
             q, _ = pelvis_heading_from_legs(r.q_world_sensor, q, model.spec.sensors)
         except CalibrationError as exc:
             raise InputError(f"calibration.pelvis_heading: {exc}") from None
     return q
+
+
+async def walk_alignments(request: Request, model: PoseModel, r: Readings) -> np.ndarray:
+    """Calibration ``assignment``: each sensor's ``q_segment_sensor`` (N, 4) as ``/v1/imu/assign`` finds it for
+    the sensor's segment, the served I2S alignment model's robust mean over the sensor's moving windows."""
+    where = "calibration 'assignment'"
+    others = [s for s in model.spec.sensors if s not in SEGMENTS]
+    if others:
+        raise InputError(
+            f"{where} aligns sensors on {list(SEGMENTS)} from their walk; {model.name} also reads {others}"
+        )
+    if r.gyr_rads is None:
+        raise InputError(f"{where}: every sensor's gyr is needed (the alignment reads acc and gyr)")
+    if len(r.acc_mps2) < WINDOW_SAMPLES:
+        raise InputError(
+            f"{where}: at least {WINDOW_SAMPLES} samples at 60 Hz ({WINDOW_SAMPLES / 60.0:.2f} s) of walking are "
+            f"needed, got {len(r.acc_mps2)}"
+        )
+    if "i2s_alignment" not in request.app.state.models:
+        raise HTTPException(503, f"{where}: no I2S alignment model is loaded")
+    windows = [
+        sliding_windows(np.concatenate([r.acc_mps2[:, k], r.gyr_rads[:, k]], axis=1).astype(np.float32))
+        for k in range(len(r.sensor_ids))
+    ]
+    _, quats = await request.app.state.batcher.infer(np.concatenate(windows))
+    if quats is None:
+        raise HTTPException(503, f"{where}: no I2S alignment model is loaded")
+    out, start = [], 0
+    for k, (segment, w) in enumerate(zip(model.spec.sensors, windows, strict=True)):
+        moving = is_moving(w)
+        if not moving.any():
+            raise InputError(
+                f"{where}: sensor {r.sensor_ids[k]} ({segment}) moves in none of its {len(w)} windows; its alignment "
+                "is found from a walk"
+            )
+        out.append(mean_alignment(quats[start : start + len(w), SEGMENTS.index(segment)][moving])[0])
+        start += len(w)
+    return np.stack(out)
 
 
 def _calibrate_by_method(body: PoseImuRequest, model: PoseModel, r: Readings) -> np.ndarray:
@@ -171,7 +216,8 @@ def _calibrate_by_method(body: PoseImuRequest, model: PoseModel, r: Readings) ->
             if s.q_segment_sensor is None:
                 raise InputError(
                     f"sensors[{k}].q_segment_sensor: calibration 'declared' needs every sensor's alignment; "
-                    "give it, or use calibration method 'still_pose' with a still span"
+                    "give it, or use calibration method 'still_pose' with a still span, or 'assignment' (lower-body "
+                    "sensors: found from their walk)"
                 )
             q = np.asarray(s.q_segment_sensor, dtype=np.float64)
             if not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1.0) > QUAT_NORM_TOLERANCE:
@@ -340,7 +386,8 @@ async def pose_from_imu(
 ) -> Response:
     model = choose_model(pose_models(request), [s.segment for s in body.sensors], body.model, streaming=False)
     readings = read_sensors(body, model)
-    q_seg_sensor = calibrate(body, model, readings)
+    found = await walk_alignments(request, model, readings) if body.calibration.method == "assignment" else None
+    q_seg_sensor = calibrate(body, model, readings, found)
     warnings = unit_check(body, readings)
     velocity = velocity_for(request, model, body.translation)
     job = PoseJob(model, readings, q_seg_sensor, body.body_height_m, body.translation, velocity)

@@ -436,7 +436,7 @@ PELVIS_HEADING_DESCRIPTION = (
     "on average (over the request; on a stream over the frames so far), for alignments found from a walk "
     "(`/v1/imu/assign`), whose pelvis heading can be tens of degrees off on real people; needs a sensor on a thigh, "
     "shank or foot and assumes the legs point where the pelvis does (walking, standing). `alignment`: the pelvis's "
-    "alignment as calibrated. Default `alignment`; streams with calibration `assignment` default to `legs`"
+    "alignment as calibrated. Default: `legs` with calibration `assignment`, else `alignment`"
 )
 
 
@@ -444,10 +444,13 @@ class PoseCalibration(BaseModel):
     """How sensor readings become segment readings. ``declared``: each sensor's ``q_segment_sensor``, no pose
     needed. ``still_pose``: frames [start, stop) of this request are a still N-pose (arms hanging) or T-pose (arms
     sideways) of 2-3 s; each sensor's alignment and the body's heading are computed from it (the pelvis sensor's
-    ``pelvis_back_axis``, in its own frame, must point out of the lower back)."""
+    ``pelvis_back_axis``, in its own frame, must point out of the lower back). ``assignment``: neither; each
+    sensor's alignment is found from its own walk in this request by the served I2S alignment model, as
+    ``/v1/imu/assign`` gives it for the sensor's segment (lower-body sensors, with ``gyr``, and at least one moving
+    window of 128 samples at 60 Hz each), and the pelvis's heading from the legs."""
 
     model_config = REQUEST
-    method: Literal["declared", "still_pose"] = "declared"
+    method: Literal["declared", "still_pose", "assignment"] = "declared"
     pose: Literal["npose", "tpose"] = "npose"
     start: int = Field(0, ge=0, description="still_pose: the span's first sample")
     stop: int | None = Field(
@@ -457,7 +460,7 @@ class PoseCalibration(BaseModel):
         "and the span lasts at least 0.5 s with every sensor still and reading gravity",
     )
     pelvis_back_axis: Vector3 = Field(default_factory=lambda: [0.0, 0.0, 1.0])
-    pelvis_heading: Literal["alignment", "legs"] = Field("alignment", description=PELVIS_HEADING_DESCRIPTION)
+    pelvis_heading: Literal["alignment", "legs"] | None = Field(None, description=PELVIS_HEADING_DESCRIPTION)
 
 
 EXAMPLE_POSE_IMU = {

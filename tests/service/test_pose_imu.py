@@ -286,6 +286,55 @@ def test_rest_pose_with_a_still_npose_calibration(server: str, data_dir: Path) -
     assert r.status_code == 422 and "not still" in r.json()["detail"]
 
 
+def test_rest_pose_calibrated_by_the_walk_follows_a_real_knee(client: TestClient, data_dir: Path) -> None:
+    """The capacitive-study subject's baseline walk (Xsens on pelvis, femurs and tibias, 100 Hz), the pelvis and
+    shank sensors sent with no alignment at all (calibration ``assignment``): the answer's knee flexion follows the
+    flexion between the real thigh and shank sensors, each aligned the same way by I2S (docs/pose.md, "The
+    real-data check"). A still recording is refused with what is missing."""
+    from service.core.recordings import read_capacitive_oriented
+    from training.pose.real_check import i2s_alignment, knee_flexion_deg
+
+    sensors = read_capacitive_oriented(data_dir, "CSBaseline")
+    sent = {"Pelvis": "pelvis", "LeftLowerLeg": "shank_l", "RightLowerLeg": "shank_r"}
+    rate, rows = sensors["Pelvis"].rate_hz, slice(1000, 4000)  # 30 s of walking
+    body = {
+        "sample_rate_hz": rate,
+        "calibration": {"method": "assignment"},
+        "sensors": [
+            {
+                "sensor_id": sensor_id,
+                "segment": segment,
+                "q_world_sensor": sensors[segment].q_world_sensor[rows].tolist(),
+                "acc": sensors[segment].acc[rows].tolist(),
+                "gyr": sensors[segment].gyr[rows].tolist(),
+            }
+            for segment, sensor_id in sent.items()
+        ],
+    }
+    r = client.post("/v1/pose/imu", json=body)
+    assert r.status_code == 200, r.text
+    answer = r.json()
+    alignment = load_models(MODELS, 1)["i2s_alignment"]
+    n = answer["frames"]
+    for side in ("Left", "Right"):
+        thigh, shank = sensors[f"{side}UpperLeg"], sensors[f"{side}LowerLeg"]
+        R_ref = {}
+        for segment, sensor in ((f"{side}UpperLeg", thigh), (f"{side}LowerLeg", shank)):
+            q = resample_pose_rows(sensor.acc[rows], sensor.gyr[rows], sensor.q_world_sensor[rows], rate)[:n, 6:10]
+            R_ref[segment] = matrix_from_quat(q) @ matrix_from_quat(i2s_alignment(sensor, segment, alignment)).T
+        reference = knee_flexion_deg(R_ref[f"{side}UpperLeg"], R_ref[f"{side}LowerLeg"])
+        R_thigh = matrix_from_quat(np.array(answer["segments"][f"{side}UpperLeg"]["q_world_segment"]))
+        got = knee_flexion_deg(R_thigh, R_ref[f"{side}LowerLeg"])
+        error, corr = np.abs(got - reference).mean(), np.corrcoef(got, reference)[0, 1]
+        print(f"{side} knee from the walk's own alignments: mean error {error:.1f} deg, correlation {corr:.3f}")
+        assert corr > 0.9 and error < 10.0
+    still = {**body, "sensors": [s | {"gyr": [[0.0] * 3] * len(s["gyr"])} for s in body["sensors"]]}
+    for sensor in still["sensors"]:
+        sensor["acc"] = [[0.0, 0.0, 9.81]] * len(sensor["acc"])
+    r = client.post("/v1/pose/imu", json=still)
+    assert r.status_code == 422 and "moves in none of its" in r.json()["detail"], r.text
+
+
 def _example(client: TestClient, raw, **change) -> dict:
     body = _body(raw, LOWER, frames=slice(0, 90))
     body.update(change)
@@ -320,6 +369,21 @@ def _example(client: TestClient, raw, **change) -> dict:
             lambda b: b["sensors"][1].update(sensor_id=b["sensors"][0]["sensor_id"]),
             422,
             "sensor_id values must be unique",
+        ),
+        (  # 90 samples: shorter than one I2S window
+            lambda b: b.update(calibration={"method": "assignment"}),
+            422,
+            "at least 128 samples at 60 Hz (2.13 s) of walking are needed, got 90",
+        ),
+        (
+            lambda b: [s.pop("gyr") for s in b["sensors"]] and b.update(calibration={"method": "assignment"}),
+            422,
+            "calibration 'assignment': every sensor's gyr is needed",
+        ),
+        (
+            lambda b: b.update(calibration={"method": "assignment", "pelvis_heading": "hips"}),
+            422,
+            "calibration.pelvis_heading: Input should be 'alignment' or 'legs'",
         ),
     ],
 )
