@@ -52,9 +52,12 @@ def pose_models(request: Request) -> dict[str, PoseModel]:
     return request.app.state.pose_models
 
 
-def choose_model(models: dict[str, PoseModel], segments: list[str], name: str | None, streaming: bool) -> PoseModel:
+def choose_model(
+    models: dict[str, PoseModel], segments: list[str], name: str | None, streaming: bool, extra: bool = False
+) -> PoseModel:
     """The named model, else the one (offline unless ``streaming``) whose sensors are exactly ``segments``, a general
-    one before one trained for a scenario."""
+    one before one trained for a scenario. With ``extra`` (REST), sensors beyond a model's are allowed: without an
+    exact match, the model that reads the most of them (the rest are answered as measured)."""
     if not models:
         raise HTTPException(503, "no imu_pose model is loaded")
     if name is not None:
@@ -62,17 +65,22 @@ def choose_model(models: dict[str, PoseModel], segments: list[str], name: str | 
             raise HTTPException(422, f"model: no pose model {name!r}; loaded: {sorted(models)}")
         model = models[name]
         missing = [s for s in model.spec.sensors if s not in segments]
-        extra = [s for s in segments if s not in model.spec.sensors]
-        if missing or extra:
+        unused = [s for s in segments if s not in model.spec.sensors]
+        if missing or (unused and not extra):
             raise HTTPException(
                 422,
                 f"sensors: {name} takes sensors on {model.spec.sensors}; got {segments} "
-                f"(missing {missing}, not used {extra})",
+                f"(missing {missing}, not used {unused})",
             )
         return model
-    for model in general_first(models):
-        if sorted(model.spec.sensors) == sorted(segments) and model.spec.streaming == streaming:
+    kind = [m for m in general_first(models) if m.spec.streaming == streaming]
+    for model in kind:
+        if sorted(model.spec.sensors) == sorted(segments):
             return model
+    if extra:
+        within = [m for m in kind if set(m.spec.sensors) < set(segments)]
+        if within:
+            return max(within, key=lambda m: len(m.spec.sensors))  # the first of the largest: general first
     placements = sorted({", ".join(m.spec.sensors) for m in models.values()})
     raise HTTPException(
         422,
@@ -83,12 +91,14 @@ def choose_model(models: dict[str, PoseModel], segments: list[str], name: str | 
 
 @dataclass(frozen=True)
 class Readings:
-    """Validated raw readings in the model's sensor order at the model's rate: q (T, N, 4), acc (T, N, 3) m/s²."""
+    """Validated raw readings at the model's rate: q (T, N, 4), acc (T, N, 3) m/s², the model's sensors first in its
+    order, then the sensors it does not read (answered as measured) in the request's order, on ``segments``."""
 
     q_world_sensor: np.ndarray
     acc_mps2: np.ndarray
     gyr_rads: np.ndarray | None
     sensor_ids: list[str]
+    segments: list[str]
 
 
 def _array(rows: list[list[float]], width: int, where: str) -> np.ndarray:
@@ -123,7 +133,8 @@ def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
     if n * 60.0 / rate > MAX_POSE_FRAMES:
         raise InputError(f"at most {MAX_POSE_FRAMES} frames at 60 Hz per request, got {n} samples at {rate:g} Hz")
     qs, accs, gyrs, ids = [], [], [], []
-    for seg in model.spec.sensors:
+    order = [*model.spec.sensors, *(s.segment for s in body.sensors if s.segment not in model.spec.sensors)]
+    for seg in order:
         k, s = by_segment[seg]
         where = f"sensors[{k}]"
         q = _array(s.q_world_sensor, 4, f"{where}.q_world_sensor")
@@ -149,7 +160,7 @@ def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
         acc = resample_uniform(acc, rate, 60.0)[: len(q)]
         gyr = None if gyr is None else resample_uniform(gyr, rate, 60.0)[: len(q)]
         q = q[: len(acc)]
-    return Readings(q, acc, gyr, ids)
+    return Readings(q, acc, gyr, ids, order)
 
 
 def calibrate(body: PoseImuRequest, model: PoseModel, r: Readings, found: np.ndarray | None = None) -> np.ndarray:
@@ -162,7 +173,9 @@ def calibrate(body: PoseImuRequest, model: PoseModel, r: Readings, found: np.nda
         raise ValueError("calibration 'assignment' needs the alignments found from the walk (walk_alignments)")
     if (cal.pelvis_heading or ("legs" if cal.method == "assignment" else "alignment")) == "legs":
         try:
-            q, _ = pelvis_heading_from_legs(r.q_world_sensor, q, model.spec.sensors)
+            n = len(model.spec.sensors)
+            q = q.copy()
+            q[:n], _ = pelvis_heading_from_legs(r.q_world_sensor[:, :n], q[:n], model.spec.sensors)
         except CalibrationError as exc:
             raise InputError(f"calibration.pelvis_heading: {exc}") from None
     return q
@@ -172,11 +185,9 @@ async def walk_alignments(request: Request, model: PoseModel, r: Readings) -> np
     """Calibration ``assignment``: each sensor's ``q_segment_sensor`` (N, 4) as ``/v1/imu/assign`` finds it for
     the sensor's segment, the served I2S alignment model's robust mean over the sensor's moving windows."""
     where = "calibration 'assignment'"
-    others = [s for s in model.spec.sensors if s not in SEGMENTS]
+    others = [s for s in r.segments if s not in SEGMENTS]
     if others:
-        raise InputError(
-            f"{where} aligns sensors on {list(SEGMENTS)} from their walk; {model.name} also reads {others}"
-        )
+        raise InputError(f"{where} aligns sensors on {list(SEGMENTS)} from their walk; sensors are also on {others}")
     if r.gyr_rads is None:
         raise InputError(f"{where}: every sensor's gyr is needed (the alignment reads acc and gyr)")
     if len(r.acc_mps2) < WINDOW_SAMPLES:
@@ -194,7 +205,7 @@ async def walk_alignments(request: Request, model: PoseModel, r: Readings) -> np
     if quats is None:
         raise HTTPException(503, f"{where}: no I2S alignment model is loaded")
     out, start = [], 0
-    for k, (segment, w) in enumerate(zip(model.spec.sensors, windows, strict=True)):
+    for k, (segment, w) in enumerate(zip(r.segments, windows, strict=True)):
         moving = is_moving(w)
         if not moving.any():
             raise InputError(
@@ -211,7 +222,7 @@ def _calibrate_by_method(body: PoseImuRequest, model: PoseModel, r: Readings) ->
     order = {s.segment: (k, s) for k, s in enumerate(body.sensors)}
     if cal.method == "declared":
         out = []
-        for seg in model.spec.sensors:
+        for seg in r.segments:
             k, s = order[seg]
             if s.q_segment_sensor is None:
                 raise InputError(
@@ -235,7 +246,7 @@ def _calibrate_by_method(body: PoseImuRequest, model: PoseModel, r: Readings) ->
     if stop - start < 30:
         raise InputError(f"calibration: the still span must last at least 0.5 s, got {(stop - start) / 60.0:.2f} s")
     span = slice(start, stop)
-    still, why = is_still(None if r.gyr_rads is None else r.gyr_rads[span], r.acc_mps2[span], model.spec.sensors)
+    still, why = is_still(None if r.gyr_rads is None else r.gyr_rads[span], r.acc_mps2[span], r.segments)
     if not still:
         raise InputError(f"calibration: samples {cal.start}-{cal.stop} are not still: {why}")
     acc_norm = float(np.median(np.linalg.norm(r.acc_mps2[span], axis=-1)))
@@ -245,7 +256,7 @@ def _calibrate_by_method(body: PoseImuRequest, model: PoseModel, r: Readings) ->
             f"is acc_unit ({body.acc_unit}) right?"
         )
     try:
-        return still_pose_calibration(r.q_world_sensor[span], model.spec.sensors, cal.pose, 0, cal.pelvis_back_axis)
+        return still_pose_calibration(r.q_world_sensor[span], r.segments, cal.pose, 0, cal.pelvis_back_axis)
     except CalibrationError as exc:
         raise InputError(f"calibration: {exc}") from None
 
@@ -291,9 +302,12 @@ def body_pose(job: PoseJob) -> BodyPose:
     (``service.core.translation``, from the pelvis sensor's free acceleration, and with ``translation`` learned
     from ``velocity``'s pelvis velocity)."""
     model, r = job.model, job.readings
-    R_w_seg, a_w = segment_readings(r.q_world_sensor, r.acc_mps2, job.q_seg_sensor)
+    R_all, a_all = segment_readings(r.q_world_sensor, r.acc_mps2, job.q_seg_sensor)
+    n = len(model.spec.sensors)
+    R_w_seg, a_w = R_all[:, :n], a_all[:, :n]
     features = pose_features(R_w_seg, a_w)
-    R_world = whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index)
+    measured = ([BODY_SEGMENTS.index(s) for s in r.segments[n:]], R_all[:, n:]) if len(r.segments) > n else None
+    R_world = whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index, measured)
     body = model.body.scaled(job.height_m) if job.height_m else model.body
     if job.translation == "none":
         return BodyPose(R_world, body, None)
@@ -323,7 +337,8 @@ def pose_response(job: PoseJob, warnings: list[str]) -> PoseImuResponse:
     model, R_world = job.model, pose.R_world
     answer = pose_answer(R_world, pose.body)
     covered = set(covered_segments(model))
-    sources = {s: "sensor" if s in model.spec.sensors else "model" if s in covered else "parent" for s in BODY_SEGMENTS}
+    sensed = set(job.readings.segments)
+    sources = {s: "sensor" if s in sensed else "model" if s in covered else "parent" for s in BODY_SEGMENTS}
     rnd = lambda a, d: np.round(a, d).tolist()  # noqa: E731
     return PoseImuResponse(
         model={"name": model.name, "version": model.loaded.manifest.version},
@@ -384,7 +399,7 @@ async def pose_from_imu(
         "json", description="`json` (default): quaternions and joint positions; `bvh`: a BVH file of the pose"
     ),
 ) -> Response:
-    model = choose_model(pose_models(request), [s.segment for s in body.sensors], body.model, streaming=False)
+    model = choose_model(pose_models(request), [s.segment for s in body.sensors], body.model, False, extra=True)
     readings = read_sensors(body, model)
     found = await walk_alignments(request, model, readings) if body.calibration.method == "assignment" else None
     q_seg_sensor = calibrate(body, model, readings, found)

@@ -157,15 +157,23 @@ def general_first(models: dict[str, PoseModel]) -> list[PoseModel]:
 
 
 def whole_body(
-    R_world_sensor_segment: np.ndarray, R_root_out: np.ndarray, sensor_index: list[int], output_index: list[int]
+    R_world_sensor_segment: np.ndarray,
+    R_root_out: np.ndarray,
+    sensor_index: list[int],
+    output_index: list[int],
+    extra: tuple[list[int], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Global orientations of all ``BODY_SEGMENTS`` ``(T, 21, 3, 3)``: the sensors' segments as measured, the
-    others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D). Segments that neither a
-    sensor nor the model covers (e.g. the arms of a lower-body model) take their parent's orientation."""
+    others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D). ``extra``: sensors the
+    model does not read (segment indices, their segments' orientations ``(T, E, 3, 3)``), measured in place of the
+    model's answer. Segments that no sensor and not the model covers (e.g. the arms of a lower-body model) take
+    their parent's orientation."""
     T = R_root_out.shape[0]
     R = np.full((T, len(BODY_SEGMENTS), 3, 3), np.nan)
     R[:, sensor_index] = R_world_sensor_segment
     R[:, output_index] = np.einsum("tij,tsjk->tsik", R_world_sensor_segment[:, 0], R_root_out)
+    if extra is not None:
+        R[:, extra[0]] = extra[1]
     for k in range(1, len(BODY_SEGMENTS)):
         if np.isnan(R[0, k, 0, 0]):
             R[:, k] = R[:, PARENT_INDEX[k]]
