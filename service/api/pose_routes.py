@@ -36,6 +36,7 @@ from service.inference.pose import (
     PoseModel,
     covered_segments,
     general_first,
+    measured_segments,
     pose_answer,
     whole_body,
 )
@@ -306,8 +307,13 @@ def body_pose(job: PoseJob) -> BodyPose:
     n = len(model.spec.sensors)
     R_w_seg, a_w = R_all[:, :n], a_all[:, :n]
     features = pose_features(R_w_seg, a_w)
-    measured = ([BODY_SEGMENTS.index(s) for s in r.segments[n:]], R_all[:, n:]) if len(r.segments) > n else None
-    R_world = whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index, measured)
+    R_world = whole_body(
+        R_w_seg,
+        model.predict(features),
+        model.sensor_index,
+        model.output_index,
+        measured_segments(r.segments[n:], R_all[:, n:]),
+    )
     body = model.body.scaled(job.height_m) if job.height_m else model.body
     if job.translation == "none":
         return BodyPose(R_world, body, None)

@@ -157,12 +157,14 @@ class Session:
                     f"({opts.model or 'any'}); loaded pose models: {sorted(models)}"
                 )
             model = first(candidates)
+            measured: list[str] = []  # the assignment's other sensors join at the hand-over (``hand_over``)
         else:
-            fitting = [
-                m
-                for m in general_first(models)
-                if m.spec.streaming and sorted(m.spec.sensors) == sorted(segments) and opts.model in (None, m.name)
-            ]
+            streaming = [m for m in general_first(models) if m.spec.streaming and opts.model in (None, m.name)]
+            fitting = [m for m in streaming if sorted(m.spec.sensors) == sorted(segments)]
+            if not fitting:  # sensors beyond a model's: the models that read the most of them; the rest measured
+                within = [m for m in streaming if set(m.spec.sensors) < set(segments)]
+                most = max((len(m.spec.sensors) for m in within), default=0)
+                fitting = [m for m in within if len(m.spec.sensors) == most]
             if not fitting:
                 placements = sorted({", ".join(m.spec.sensors) for m in models.values() if m.spec.streaming})
                 raise ProtocolError(
@@ -171,7 +173,8 @@ class Session:
                     f"the loaded ones take [{'] or ['.join(placements)}]"
                 )
             model = first(fitting)
-            self.pose_order = [segments.index(seg) for seg in model.spec.sensors]
+            measured = [seg for seg in segments if seg not in model.spec.sensors]
+            self.pose_order = [segments.index(seg) for seg in [*model.spec.sensors, *measured]]
         pelvis_heading = opts.pelvis_heading or ("legs" if opts.calibration == "assignment" else "alignment")
         if pelvis_heading == "legs" and not LEG_SEGMENTS & set(model.spec.sensors):
             raise ProtocolError(
@@ -192,6 +195,7 @@ class Session:
             opts.translation,
             _velocity_model(model, opts.translation, velocity_models),
             pelvis_heading,
+            measured,
         )
         self.aligner = FrameAligner(len(self.streams), 10)
         self.run_i2s = opts.calibration == "assignment"
@@ -239,13 +243,18 @@ class Session:
         chosen = [by_segment[seg] for seg in need]
         if any(s["alignment"] is None or not self.sure_enough(s) for _, s in chosen):
             return None
-        self.pose_order = [k for k, _ in chosen]
-        live.q_segment_sensor = canonical_quat(np.array([s["alignment"]["q_segment_imu"] for _, s in chosen]))
+        # the session's other sensors placed and aligned as surely: answered as measured
+        more = [(k, s) for seg, (k, s) in by_segment.items() if seg not in need]
+        more = [(k, s) for k, s in more if s["alignment"] is not None and self.sure_enough(s)]
+        self.pose_order = [k for k, _ in chosen + more]
+        live.measure([s["segment"] for _, s in more])
+        live.q_segment_sensor = canonical_quat(np.array([s["alignment"]["q_segment_imu"] for _, s in chosen + more]))
         return {
             "type": "calibration",
             "status": "calibrated",
             "method": "assignment",
-            "segments": {s["sensor_id"]: seg for seg, (_, s) in zip(need, chosen, strict=True)},
+            "segments": {s["sensor_id"]: s["segment"] for _, s in chosen + more},
+            "measured": live.measured,
         }
 
     def submit(self, work: Work) -> None:
@@ -680,5 +689,6 @@ def _pose_started(session: Session) -> dict | None:
         "translation": live.translation,
         "velocity_model": live.velocity.name if live.velocity is not None else None,
         "pelvis_heading": live.pelvis_heading,
+        "measured": live.measured if live.method != "assignment" else None,
         "body_height_m": round(live.body.height_m, 3),
     } | (bvh_started(live.body) if session.pose_output == "bvh" else {})

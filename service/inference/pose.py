@@ -7,7 +7,7 @@ Used by the service and by training's evaluation alike, so a shipped model is sc
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -161,23 +161,34 @@ def whole_body(
     R_root_out: np.ndarray,
     sensor_index: list[int],
     output_index: list[int],
-    extra: tuple[list[int], np.ndarray] | None = None,
+    measured: np.ndarray | None = None,
 ) -> np.ndarray:
     """Global orientations of all ``BODY_SEGMENTS`` ``(T, 21, 3, 3)``: the sensors' segments as measured, the
-    others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D). ``extra``: sensors the
-    model does not read (segment indices, their segments' orientations ``(T, E, 3, 3)``), measured in place of the
-    model's answer. Segments that no sensor and not the model covers (e.g. the arms of a lower-body model) take
-    their parent's orientation."""
+    others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D). ``measured`` ``(T, 21,
+    3, 3)``: segments of sensors the model does not read, NaN elsewhere, in place of the model's answer. Segments
+    that no sensor and not the model covers (e.g. the arms of a lower-body model) take their parent's
+    orientation."""
     T = R_root_out.shape[0]
     R = np.full((T, len(BODY_SEGMENTS), 3, 3), np.nan)
     R[:, sensor_index] = R_world_sensor_segment
     R[:, output_index] = np.einsum("tij,tsjk->tsik", R_world_sensor_segment[:, 0], R_root_out)
-    if extra is not None:
-        R[:, extra[0]] = extra[1]
+    if measured is not None:
+        R = np.where(np.isnan(measured), R, measured)
     for k in range(1, len(BODY_SEGMENTS)):
-        if np.isnan(R[0, k, 0, 0]):
-            R[:, k] = R[:, PARENT_INDEX[k]]
+        empty = np.isnan(R[:, k, 0, 0])  # per frame: frames of several sessions may measure other segments
+        if empty.any():
+            R[empty, k] = R[empty, PARENT_INDEX[k]]
     return R
+
+
+def measured_segments(segments: Sequence[str], R_world_segment: np.ndarray) -> np.ndarray | None:
+    """``whole_body``'s ``measured`` ``(T, 21, 3, 3)``: the orientations ``(T, E, 3, 3)`` of sensors on
+    ``segments`` that a model does not read at their segments' places, NaN elsewhere; None where there are none."""
+    if not len(segments):
+        return None
+    out = np.full((len(R_world_segment), len(BODY_SEGMENTS), 3, 3), np.nan)
+    out[:, [BODY_SEGMENTS.index(s) for s in segments]] = R_world_segment
+    return out
 
 
 def covered_segments(model: PoseModel) -> list[str]:
@@ -203,7 +214,7 @@ class LivePose:
     answers refer to.
 
     Frames are ``(m, N, 10)``: accelerometer xyz (m/s²), gyroscope xyz (rad/s), q_world_sensor wxyz, in the model's
-    sensor order, 60 Hz.
+    sensor order, then the sensors it does not read (``measured``, answered as measured), 60 Hz.
     """
 
     def __init__(
@@ -218,6 +229,7 @@ class LivePose:
         translation: str = "none",
         velocity: VelocityModel | None = None,
         pelvis_heading: str = "alignment",
+        measured: Sequence[str] = (),
     ) -> None:
         if not model.spec.streaming:
             raise ValueError(f"{model.name} is an offline model; live sessions need a streaming one")
@@ -234,7 +246,8 @@ class LivePose:
         if pelvis_heading == "legs" and not LEG_SEGMENTS & set(model.spec.sensors):
             raise ValueError(f"pelvis_heading 'legs': {model.name} reads no leg sensor ({model.spec.sensors})")
         self.model, self.method = model, method
-        self.q_segment_sensor = q_segment_sensor
+        self.q_segment_sensor = q_segment_sensor  # (N, 4): the model's sensors, then the measured ones
+        self.measure(measured)
         # pelvis_heading 'legs': the running sum of the legs' heading against the pelvis's (``legs_heading_sum``)
         # over the calibrated frames so far; each frame's pelvis is turned by its angle
         self.pelvis_heading = pelvis_heading
@@ -262,6 +275,20 @@ class LivePose:
     @property
     def calibrated(self) -> bool:
         return self.q_segment_sensor is not None
+
+    @property
+    def segments(self) -> list[str]:
+        """The segments of the session's sensors in frame order: the model's, then the measured ones."""
+        return [*self.model.spec.sensors, *self.measured]
+
+    def measure(self, segments: Sequence[str]) -> None:
+        """Sensors on ``segments`` that the model does not read, after its own in every frame: their segments are
+        answered as measured."""
+        overlap = [s for s in segments if s in self.model.spec.sensors]
+        if overlap:
+            raise ValueError(f"{self.model.name} reads {overlap} itself")
+        self.measured = list(segments)
+        self.measured_history = np.zeros((0, len(self.measured), 3, 3))  # awaiting their answer, as ``history``
 
     @property
     def cost_key(self) -> str:
@@ -302,12 +329,12 @@ class LivePose:
         rest, rest_first = span[self.still_frames :], self.still_first + self.still_frames
         span = span[: self.still_frames]
         self.still = []
-        ok, why = is_still(span[:, :, 3:6], span[:, :, :3], self.model.spec.sensors)
+        ok, why = is_still(span[:, :, 3:6], span[:, :, :3], self.segments)
         if not ok:
             detail = f"frames {self.still_first}-{rest_first} are not still: {why}; hold the pose still"
             return {"type": "calibration", "status": "waiting", "detail": detail}, rest[:0], rest_first
         try:
-            q = still_pose_calibration(span[:, :, 6:10], self.model.spec.sensors, self.still_pose, 0, self.back_axis)
+            q = still_pose_calibration(span[:, :, 6:10], self.segments, self.still_pose, 0, self.back_axis)
         except CalibrationError as exc:
             return {"type": "calibration", "status": "waiting", "detail": str(exc)}, rest[:0], rest_first
         self.q_segment_sensor = q
@@ -316,7 +343,7 @@ class LivePose:
             "status": "calibrated",
             "method": "still_pose",
             "frames": [self.still_first, rest_first],
-            "q_segment_sensor": {s: np.round(q[k], 6) for k, s in enumerate(self.model.spec.sensors)},
+            "q_segment_sensor": {s: np.round(q[k], 6) for k, s in enumerate(self.segments)},
         }
         return message, rest, rest_first
 
@@ -344,21 +371,26 @@ def process_live(jobs: list[tuple[LivePose, np.ndarray, int]]) -> list[list[dict
 def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: list[int]) -> list[dict | None]:
     """Calibrated frames of sessions of one model → each session's ``pose`` message (None: no frame answered yet)."""
     model = lives[0].model
+    n_in = len(model.spec.sensors)
     counts = [len(f) for f in frames]
     bounds = np.cumsum([0, *counts])
-    joined = np.concatenate(frames)
-    q_seg = np.repeat(np.stack([live.q_segment_sensor for live in lives]), counts, axis=0)
+    joined = np.concatenate([f[:, :n_in] for f in frames])
+    q_seg = np.repeat(np.stack([live.q_segment_sensor[:n_in] for live in lives]), counts, axis=0)
     R_w_seg, a_w = segment_readings(joined[:, :, 6:10], joined[:, :, :3], q_seg)
     for i, live in enumerate(lives):
         if live.pelvis_heading == "legs":
             live.turn_pelvis(R_w_seg[bounds[i] : bounds[i + 1]])
+        if live.measured:  # sensors the model does not read: their segments, per session (each has its own)
+            f = frames[i][:, n_in:]
+            R_measured, _ = segment_readings(f[:, :, 6:10], f[:, :, :3], live.q_segment_sensor[n_in:])
+            live.measured_history = np.concatenate([live.measured_history, R_measured])
     features = pose_features(R_w_seg, a_w)
     per_session = [features[bounds[i] : bounds[i + 1]] for i in range(len(lives))]
     outs, states = model.step_many(per_session, [live.state for live in lives])
     _step_velocities(lives, per_session)
     L = model.spec.look_ahead_frames
     answered: list[tuple[int, int, int]] = []  # (session, first network frame answered, frames answered)
-    R_out, R_sensors, offsets = [], [], []
+    R_out, R_sensors, offsets, measured = [], [], [], []
     # (index into answered, tracker, pelvis free acc, learned velocity in the world or None)
     tracked: list[tuple[int, RootTracker, np.ndarray, np.ndarray | None]] = []
     for i, live in enumerate(lives):
@@ -376,6 +408,8 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
         answered.append((i, answered_from, n))
         R_out.append(outs[i][len(outs[i]) - n :])
         R_sensors.append(live.history[:n])
+        measured.append(measured_segments(live.measured, live.measured_history[:n]))
+        live.measured_history = live.measured_history[n:]
         if live.tracker is not None:
             learned = None
             if live.velocity is not None:  # the pelvis velocity of each answered frame, turned into the world
@@ -388,7 +422,17 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
     results: list[dict | None] = [None] * len(lives)
     if not answered:
         return results
-    R_world = whole_body(np.concatenate(R_sensors), np.concatenate(R_out), model.sensor_index, model.output_index)
+    if any(m is not None for m in measured):
+        rows = [
+            np.full((n, len(BODY_SEGMENTS), 3, 3), np.nan) if m is None else m
+            for (_, _, n), m in zip(answered, measured, strict=True)
+        ]
+        measured_all = np.concatenate(rows)
+    else:
+        measured_all = None
+    R_world = whole_body(
+        np.concatenate(R_sensors), np.concatenate(R_out), model.sensor_index, model.output_index, measured_all
+    )
     q_world = np.round(quat_from_matrix(R_world), 5)
     exact = segment_origins(R_world, np.concatenate(offsets))
     positions = np.round(exact, 4)

@@ -427,6 +427,27 @@ def test_a_sensor_on_a_segment_the_model_answers_replaces_the_answer(client: Tes
     assert errors[7].mean() < 10.0 and errors[7].mean() < errors[6].mean()
 
 
+def test_a_stream_with_a_sensor_beyond_the_model_s_says_so_and_answers_it_as_measured(server: str, walk) -> None:
+    motion, _ = walk
+    placed = [*SIX_SENSORS, "LeftUpperArm"]
+    raw = simulate_sensors(motion, placed, np.random.default_rng(5))
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
+        for k, s in enumerate(placed)
+    ]
+    rows = np.concatenate([raw.acc_mps2, raw.gyr_rads, raw.q_world_sensor], axis=2)  # (T, 7, 10)
+    packets = [encode_binary(ALL_SENSORS, f, rows[f : f + 16]) for f in range(0, 96, 16)]
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}
+    messages, code, reason = asyncio.run(_stream(server.replace("http", "ws") + "/v1/stream", start, packets))
+    assert code == 1000, reason
+    assert messages[0]["pose"]["model"] == "pose_full6_stream" and messages[0]["pose"]["measured"] == ["LeftUpperArm"]
+    q = np.concatenate([np.array(m["q_world_segment"]) for m in messages if m["type"] == "pose"])
+    sensed = matrix_from_quat(raw.q_world_sensor[: len(q), 6]) @ matrix_from_quat(raw.q_segment_sensor[6]).T
+    q_arm = q[:, BODY_SEGMENTS.index("LeftUpperArm")]
+    arm = matrix_from_quat(q_arm / np.linalg.norm(q_arm, axis=-1, keepdims=True))  # sent rounded to 5 decimals
+    assert len(q) == 96 - 5 and np.abs(arm - sensed).max() < 1e-3
+
+
 def _example(client: TestClient, raw, **change) -> dict:
     body = _body(raw, LOWER, frames=slice(0, 90))
     body.update(change)
@@ -809,8 +830,8 @@ def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(
     assert velocity_model == ("pose_lower3_velocity" if translation == "learned" else None)
     calibrated = [m for m in messages if m["type"] == "calibration" and m["status"] == "calibrated"]
     assert calibrated, [m for m in messages if m["type"] == "assignment"][-1]
-    placed = calibrated[0]["segments"]
-    assert placed == {k: v for k, v in MOVINGREALITY_SEGMENTS.items() if v in LOWER}
+    placed = calibrated[0]["segments"]  # the model's three, and the feet as measured
+    assert placed == MOVINGREALITY_SEGMENTS and calibrated[0]["measured"] == ["LeftFoot", "RightFoot"]
     poses = [m for m in messages if m["type"] == "pose"]
     assert poses and poses[0]["first_frame"] > 0  # posed from the moment the assignment was sure
     # the translation starts at the first answered frame, on the floor; on a treadmill the feet hold still on the
@@ -896,7 +917,13 @@ def test_a_real_recording_is_handed_over_once_its_sensors_are_committed(server: 
     handed = [i for i, m in enumerate(messages) if m["type"] == "calibration" and m["status"] == "calibrated"]
     assert handed, [m for m in messages if m["type"] == "assignment"][-1]
     truth = {s["sensor_id"]: s["segment"] for s in meta["imu"]["sensors"]}
-    assert messages[handed[0]]["segments"] == {k: v for k, v in truth.items() if v in LOWER}
+    handed_over = messages[handed[0]]
+    # the model's three, and the sensors committed as surely on other segments, answered as measured
+    assert {k: v for k, v in handed_over["segments"].items() if v in LOWER} == {
+        k: v for k, v in truth.items() if v in LOWER
+    }
+    assert all(truth[k] == v for k, v in handed_over["segments"].items())
+    assert handed_over["measured"] == [v for v in handed_over["segments"].values() if v not in LOWER]
     sure = [
         i
         for i, m in enumerate(messages)
@@ -1015,10 +1042,41 @@ def _live_sessions(model: PoseModel, seed: int) -> list:
     ], rng
 
 
-def _frames(rng: np.random.Generator, n: int) -> np.ndarray:
-    q = Rotation.random(n * 6, random_state=int(rng.integers(1 << 30))).as_quat(scalar_first=True).reshape(n, 6, 4)
-    acc = rng.normal(scale=3.0, size=(n, 6, 3)) + [0.0, 0.0, 9.81]
-    return np.concatenate([acc, rng.normal(size=(n, 6, 3)), q], axis=2)
+def _frames(rng: np.random.Generator, n: int, sensors: int = 6) -> np.ndarray:
+    q = Rotation.random(n * sensors, random_state=int(rng.integers(1 << 30))).as_quat(scalar_first=True)
+    acc = rng.normal(scale=3.0, size=(n, sensors, 3)) + [0.0, 0.0, 9.81]
+    return np.concatenate([acc, rng.normal(size=(n, sensors, 3)), q.reshape(n, sensors, 4)], axis=2)
+
+
+def test_a_live_session_with_a_sensor_beyond_the_model_s_answers_it_as_measured_in_a_batch(pose_models) -> None:
+    """A session with a seventh sensor (left upper arm) batched beside one without: the arm is its sensor's
+    segment, every other answer as the session's six alone give it, and the other session's as it alone gives."""
+    from service.inference.pose import LivePose, process_live
+
+    model = pose_models["pose_full6_stream"]
+    rng = np.random.default_rng(4)
+    q7 = Rotation.random(7, random_state=4).as_quat(scalar_first=True)
+    rounds = [(_frames(rng, m, 7), _frames(rng, m)) for m in (4, 9, 3)]
+    all7 = np.concatenate([f7 for f7, _ in rounds])
+    six, seven = LivePose(model, "declared", q7[:6]), LivePose(model, "declared", q7, measured=["LeftUpperArm"])
+    other, other_alone = LivePose(model, "declared", q7[:6]), LivePose(model, "declared", q7[:6])
+    arm = BODY_SEGMENTS.index("LeftUpperArm")
+    keep = [k for k in range(len(BODY_SEGMENTS)) if k != arm]
+    answered = 0
+    for f7, f6 in rounds:
+        want, want_other = six.process(f7[:, :6], 0), other_alone.process(f6, 0)
+        got, got_other = process_live([(seven, f7, 0), (other, f6, 0)])
+        assert [m["frames"] for m in want] == [m["frames"] for m in got]
+        for a, b in zip(want_other, got_other, strict=True):
+            np.testing.assert_allclose(a["q_world_segment"], b["q_world_segment"], atol=2e-5)
+        for a, b in zip(want, got, strict=True):
+            qa, qb = np.array(a["q_world_segment"]), np.array(b["q_world_segment"])
+            np.testing.assert_allclose(qa[:, keep], qb[:, keep], atol=2e-5)
+            rows = all7[b["first_frame"] : b["first_frame"] + b["frames"], 6]
+            sensed = matrix_from_quat(rows[:, 6:10]) @ matrix_from_quat(q7[6]).T
+            assert np.abs(matrix_from_quat(qb[:, arm]) - sensed).max() < 1e-4
+            answered += b["frames"]
+    assert answered == len(all7) - 5
 
 
 def test_live_sessions_batched_together_answer_as_each_alone(pose_models: dict[str, PoseModel]) -> None:
