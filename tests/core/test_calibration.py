@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.core.body import BODY_SEGMENTS
+from service.core.body import BODY_SEGMENTS, read_body_motion
 from service.core.calibration import (
     CalibrationError,
     features_per_frame,
@@ -20,8 +21,6 @@ from service.core.calibration import (
     still_pose_segment_frames,
 )
 from service.core.rotations import matrix_from_quat, quat_from_matrix
-from training.pose.data import load_motion
-from training.pose.simulate import simulate_sensors
 
 SENSORS = ["Pelvis", "Head", "LeftForeArm", "RightForeArm", "LeftLowerLeg", "RightLowerLeg"]
 
@@ -100,12 +99,16 @@ def test_the_segment_set_has_the_sensors_of_every_shipped_placement() -> None:
 
 
 @pytest.fixture(scope="module")
-def cmu_walk(data_dir: Path):
-    """Simulated sensors on a real walk (CMU subject 07), with their true alignments and a 5° fusion heading error
-    per sensor (``SensorNoise``)."""
-    return simulate_sensors(
-        load_motion(data_dir / "mocap/cmu_iclone/07_01.bvh", "cmu_iclone"), SENSORS, np.random.default_rng(2)
-    )
+def cmu_walk(data_dir: Path) -> SimpleNamespace:
+    """Sensors on a real walk (CMU subject 07): random mountings, each sensor's orientation with up to 5° of
+    fusion heading error (as the pose simulator draws it)."""
+    motion = read_body_motion(data_dir / "mocap/cmu_iclone/07_01.bvh", source="cmu_iclone")
+    rng = np.random.default_rng(2)
+    R_seg = motion.R_world_segment[:, [BODY_SEGMENTS.index(s) for s in SENSORS]]
+    R_ss = Rotation.random(len(SENSORS), random_state=rng).as_matrix()
+    heading = Rotation.from_euler("z", rng.uniform(-5.0, 5.0, (len(SENSORS), 1)), degrees=True).as_matrix()
+    R_ws = np.einsum("nij,tnjk,nkl->tnil", heading, R_seg, R_ss)
+    return SimpleNamespace(q_world_sensor=quat_from_matrix(R_ws), q_segment_sensor=quat_from_matrix(R_ss))
 
 
 @pytest.mark.parametrize("turn_deg", [0.0, 35.0, 110.0, -170.0])
