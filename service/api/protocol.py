@@ -29,15 +29,18 @@ Server → client
   each group of results) · warning (once per sensor, when its first 4 windows read implausibly for its declared units:
   the REST routes' `warnings`) · gap / late (sequence problems, in order with the results) · error (then close, after
   the results of every accepted packet).
-  Pose sessions also get: calibration ({"status": "waiting" | "calibrated", ...}: how the session calibrates;
-  declared sessions are calibrated at the start, still-pose sessions after a still span, assignment sessions when
-  the assignment is sure of the model's segments) · pose (from the streaming model, as frames complete: first_frame,
+  Pose sessions also get: calibration ({"status": "waiting" | "calibrated", ...}: how the session calibrates; declared
+  sessions are calibrated at the start, still-pose sessions after a still span, assignment sessions when the
+  assignment is sure of the model's segments, with the segments of the session's other sensors placed as surely in
+  "measured"; sensors beyond the model's are answered as measured, "started" lists them in pose.measured for declared
+  and still-pose sessions; "started" also says pose.pelvis_heading: "legs" turns the pelvis to the leg sensors'
+  heading, the default of assignment sessions) · pose (from the streaming model, as frames complete: first_frame,
   frames, q_world_segment and joint_positions_m per frame in "started"'s pose.segments order; each frame answers
-  look_ahead_frames late; with "pose": {"translation": "feet" | "learned"} also root_position_m, the pelvis per
-  frame by /v1/pose/imu's rule (with "learned" and the learned pelvis velocity of the velocity model of the pose
-  model's sensors), run over the frames this stream answers, from its first answered frame; "started" says
-  pose.translation and, with "learned", pose.velocity_model) · warning (pose-only sessions: once per sensor, when
-  the first 2 s of body frames read implausibly for its declared units).
+  look_ahead_frames late; with "pose": {"translation": "feet" | "learned"} also root_position_m, the pelvis per frame
+  by /v1/pose/imu's rule (with "learned" and the learned pelvis velocity of the velocity model of the pose model's
+  sensors), run over the frames this stream answers, from its first answered frame; "started" says pose.translation
+  and, with "learned", pose.velocity_model) · warning (pose-only sessions: once per sensor, when the first 2 s of body
+  frames read implausibly for its declared units).
   With "pose": {"output": "binary"} each pose message is a binary pose block instead (little-endian): uint16 1,
   uint16 S segments, uint32 first_frame, uint32 frames, then frames × S × 4 float32 q_world_segment (w x y z) and
   frames × S × 3 float32 joint_positions_m: 12 + 28 × frames × S bytes (``decode_pose_block``); with translation
