@@ -63,8 +63,11 @@ def walk(data_dir: Path):
     return motion, simulate_sensors(motion, SIX_SENSORS, np.random.default_rng(7))
 
 
-def _body(raw, sensors: list[str], declared: bool = True, frames: slice = slice(None)) -> dict:
-    idx = [SIX_SENSORS.index(s) for s in sensors]
+def _body(
+    raw, sensors: list[str], declared: bool = True, frames: slice = slice(None), placed: list[str] = SIX_SENSORS
+) -> dict:
+    """A REST request of ``sensors`` from simulated readings ``raw`` of sensors on ``placed``."""
+    idx = [placed.index(s) for s in sensors]
     return {
         "sample_rate_hz": 60.0,
         "sensors": [
@@ -203,19 +206,7 @@ def test_sensors_at_the_placement_search_s_six_positions_are_posed_by_its_model(
     sensors = list(read_manifest(newest_version_dir(MODELS, "pose_mrmr6") / "manifest.json").pose.sensors)
     assert sensors != SIX_SENSORS and sensors[0] == "Pelvis"
     raw = simulate_sensors(motion, sensors, np.random.default_rng(8))
-    body = {
-        "sample_rate_hz": 60.0,
-        "sensors": [
-            {
-                "sensor_id": s.lower(),
-                "segment": s,
-                "q_world_sensor": raw.q_world_sensor[:240, k].tolist(),
-                "acc": raw.acc_mps2[:240, k].tolist(),
-                "q_segment_sensor": raw.q_segment_sensor[k].tolist(),
-            }
-            for k, s in enumerate(sensors)
-        ],
-    }
+    body = _body(raw, sensors, frames=slice(0, 240), placed=sensors)
     r = client.post("/v1/pose/imu", json=body)
     assert r.status_code == 200, r.text
     answer = r.json()
@@ -395,19 +386,7 @@ def test_a_sensor_on_a_segment_the_model_answers_replaces_the_answer(client: Tes
     motion, _ = walk
     placed = [*SIX_SENSORS, "LeftUpperArm"]
     raw = simulate_sensors(motion, placed, np.random.default_rng(5))
-    body = {
-        "sample_rate_hz": 60.0,
-        "sensors": [
-            {
-                "sensor_id": s.lower(),
-                "segment": s,
-                "q_world_sensor": raw.q_world_sensor[:, k].tolist(),
-                "acc": raw.acc_mps2[:, k].tolist(),
-                "q_segment_sensor": raw.q_segment_sensor[k].tolist(),
-            }
-            for k, s in enumerate(placed)
-        ],
-    }
+    body = _body(raw, placed, placed=placed)
     arm = BODY_SEGMENTS.index("LeftUpperArm")
     errors = {}
     for sensors in (body["sensors"], body["sensors"][:-1]):
