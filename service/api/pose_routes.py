@@ -9,7 +9,7 @@ from typing import Literal
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
-from service.api.routes import _Route, _settings, file_answer
+from service.api.routes import _Route, _settings, file_answer, infer_windows
 from service.api.schemas import PoseImuRequest, PoseImuResponse, SegmentTrack, error_responses, file_responses
 from service.core.assignment import is_moving
 from service.core.body import BODY_SEGMENTS, Body, body_bvh, feet_of
@@ -27,7 +27,7 @@ from service.core.rotations import canonical_quat
 from service.core.segments import SEGMENTS
 from service.core.translation import RootTracker
 from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS, unit_warnings_over
-from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES, sliding_windows
+from service.core.windowing import HOP_SAMPLES, MODEL_RATE_HZ, WINDOW_SAMPLES, sliding_windows
 from service.inference.pose import (
     MAX_POSE_FRAMES,
     MAX_POSE_IMU_RATE_HZ,
@@ -198,11 +198,15 @@ async def walk_alignments(request: Request, model: PoseModel, r: Readings) -> np
         )
     if "i2s_alignment" not in request.app.state.models:
         raise HTTPException(503, f"{where}: no I2S alignment model is loaded")
+    # Every window of a long request would be more than the I2S routes take in one (and than a settled mean
+    # needs): the windows are spread over the request, at most an equal share of that limit per sensor.
+    per_sensor = max(1, request.app.state.settings.max_windows_per_request // len(r.sensor_ids))
+    hop = max(HOP_SAMPLES, -(-(len(r.acc_mps2) - WINDOW_SAMPLES + 1) // per_sensor))
     windows = [
-        sliding_windows(np.concatenate([r.acc_mps2[:, k], r.gyr_rads[:, k]], axis=1).astype(np.float32))
+        sliding_windows(np.concatenate([r.acc_mps2[:, k], r.gyr_rads[:, k]], axis=1).astype(np.float32), hop=hop)
         for k in range(len(r.sensor_ids))
     ]
-    _, quats = await request.app.state.batcher.infer(np.concatenate(windows))
+    _, quats, _ = await infer_windows(request, np.concatenate(windows))
     if quats is None:
         raise HTTPException(503, f"{where}: no I2S alignment model is loaded")
     out, start = [], 0
@@ -375,10 +379,12 @@ def pose_response(job: PoseJob, warnings: list[str]) -> PoseImuResponse:
     description=(
         "Raw readings per sensor (its fusion's q_world_sensor in its own z-up world frame and its accelerometer), "
         "the segment each sensor is on, and a calibration: `declared` alignments (no pose needed, e.g. from "
-        "/v1/imu/assign) or the frame span of a still N-pose/T-pose in this request. Returns per frame (60 Hz) and "
+        "/v1/imu/assign), the frame span of a still N-pose/T-pose in this request, or `assignment` (lower-body "
+        "sensors with gyr: each alignment found from the walk in this request). Returns per frame (60 Hz) and "
         "segment the global and parent-relative quaternions and joint positions of the default body (or of "
         "`body_height_m`); with `translation` `feet` or `learned` also where the pelvis is per frame "
-        "(`root_position_m`). The model is the offline one whose sensors match, or the one `model` names. With "
+        "(`root_position_m`). The model is the offline one whose sensors match, else the one that reads the most "
+        "of them (the others answered as measured, and a warning says so), or the one `model` names. With "
         "`format=bvh` the same pose comes as a BVH file (one joint per segment, centimetres, Y up) for Blender, "
         "MotionBuilder or OpenSim; its model and warnings in the headers `X-Pose-Model` and `X-Pose-Warnings`."
     ),
@@ -410,6 +416,9 @@ async def pose_from_imu(
     found = await walk_alignments(request, model, readings) if body.calibration.method == "assignment" else None
     q_seg_sensor = calibrate(body, model, readings, found)
     warnings = unit_check(body, readings)
+    measured = readings.segments[len(model.spec.sensors) :]
+    if measured:  # a misnamed segment would otherwise pass unnoticed
+        warnings.append(f"sensors on {measured} are not read by {model.name}: their segments are answered as measured")
     velocity = velocity_for(request, model, body.translation)
     job = PoseJob(model, readings, q_seg_sensor, body.body_height_m, body.translation, velocity)
     runner = request.app.state.runner

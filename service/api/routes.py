@@ -128,9 +128,10 @@ def _inputs(windows: list[ImuWindow], prefix: str) -> np.ndarray:
     )
 
 
-async def _infer(request: Request, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, dict[str, str]]:
-    """The models' rows for ``imu``, scheduled with the request's deadline; the work is dropped if the client
-    goes away while it waits (``ClientGone``)."""
+async def infer_windows(request: Request, imu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, dict[str, str]]:
+    """The I2S models' rows for ``imu``, scheduled with the request's deadline; the work is dropped if the client
+    goes away while it waits (``ClientGone``). At most ``max_windows_per_request`` windows (else 413)."""
+    _check_count(len(imu), request.app.state.settings)
     models = _models(request)
     _require(models, "i2s_assignment")
     batcher = request.app.state.batcher
@@ -198,7 +199,7 @@ def _window_results(
 async def classify_windows(body: WindowsRequest, request: Request, settings: Settings = Depends(_settings)) -> Response:
     _check_count(len(body.windows), settings)
     imu = _inputs(body.windows, "windows")
-    probs, quats, versions = await _infer(request, imu)
+    probs, quats, versions = await infer_windows(request, imu)
     segments = [segment_index(w.segment) if w.segment else None for w in body.windows]
     units = sorted({(w.acc_unit, w.gyr_unit) for w in body.windows})
     warnings = [text for acc, gyr in units for text in unit_warnings(imu, acc, gyr)] if len(units) == 1 else []
@@ -266,7 +267,7 @@ async def classify_windows_binary(
     raw = np.frombuffer(body, dtype="<f4").reshape(-1, samples_per_window, 6)
     _check_count(len(raw), settings)
     imu = windows_to_model_input(raw.astype(np.float64), sample_rate_hz, acc_unit, gyr_unit, "window {i}")
-    probs, quats, versions = await _infer(request, imu)
+    probs, quats, versions = await infer_windows(request, imu)
     segments = [segment_index(segment) if segment else None] * len(imu)
     results = _window_results(imu, probs, quats, segments)
     return _json(
@@ -287,7 +288,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
         raise HTTPException(422, f"sensor_id values must be unique, got {ids}")
     _check_count(sum(len(s.windows) for s in body.sensors), settings)
     per_sensor = [_inputs(s.windows, f"sensors[{k}].windows") for k, s in enumerate(body.sensors)]
-    probs, quats, versions = await _infer(request, np.concatenate(per_sensor))
+    probs, quats, versions = await infer_windows(request, np.concatenate(per_sensor))
     bounds = np.cumsum([0] + [len(x) for x in per_sensor])
     moving = [is_moving(x) for x in per_sensor]
     log_probs = [np.log(np.clip(probs[bounds[k] : bounds[k + 1]], 1e-12, 1.0)) for k in range(len(per_sensor))]

@@ -421,7 +421,8 @@ class PoseSensor(BaseModel):
     )
     gyr: list[Vector3] | None = Field(
         None,
-        description="angular rate x, y, z (`gyr_unit`), optional: checks stillness; as many rows as `q_world_sensor`",
+        description="angular rate x, y, z (`gyr_unit`): checks stillness, and calibration `assignment` needs it; as "
+        "many rows as `q_world_sensor`",
     )
     q_segment_sensor: Quaternion | None = Field(
         None,
@@ -434,8 +435,9 @@ class PoseSensor(BaseModel):
 PELVIS_HEADING_DESCRIPTION = (
     "`legs`: the pelvis's alignment turned about the vertical so that it faces where the leg sensors' segments face "
     "on average (over the request; on a stream over the frames so far), for alignments found from a walk "
-    "(`/v1/imu/assign`), whose pelvis heading can be tens of degrees off on real people; needs a sensor on a thigh, "
-    "shank or foot and assumes the legs point where the pelvis does (walking, standing). `alignment`: the pelvis's "
+    "(`/v1/imu/assign`), whose pelvis heading can be tens of degrees off on real people; needs the pose model to "
+    "read a thigh, shank or foot sensor and assumes the legs point where the pelvis does (walking, standing). "
+    "`alignment`: the pelvis's "
     "alignment as calibrated. Default: `legs` with calibration `assignment`, else `alignment`"
 )
 
@@ -503,8 +505,8 @@ class PoseImuRequest(BaseModel):
     sensors: list[PoseSensor] = Field(
         min_length=1,
         max_length=len(BODY_SEGMENTS),
-        description="one per segment; their segments are exactly a loaded offline pose model's sensors (GET "
-        "/v1/models: pose.sensors), or those of `model`",
+        description="one per segment; their segments are a loaded offline pose model's sensors (GET /v1/models: "
+        "pose.sensors), or those of `model`, and any others, answered as measured (`source` `sensor`)",
     )
     calibration: PoseCalibration = Field(default_factory=PoseCalibration)
     model: str | None = Field(

@@ -125,7 +125,7 @@ class Session:
         self.room.set()
         self.failure: Exception | None = None
         self.pose: LivePose | None = None
-        self.pose_order: list[int] | None = None  # stream sensor index of each of the model's sensors
+        self.pose_order: list[int] | None = None  # stream sensor index of each of the model's, then measured, sensors
         self.aligner: FrameAligner | None = None
         self.run_i2s = True
         self.width = 6  # values per sample: 10 in pose sessions

@@ -119,10 +119,12 @@ def pelvis_heading_from_legs(
     seen from above)."""
     if not any(s in LEG_SEGMENTS for s in segments):
         raise CalibrationError(
-            f"the pelvis's heading from the legs needs a sensor on a thigh, shank or foot; the sensors are on "
+            f"the pelvis's heading from the legs needs the pose to read a sensor on a thigh, shank or foot; it reads "
             f"{list(segments)}"
         )
     R_w_seg = matrix_from_quat(q_world_sensor) @ np.swapaxes(matrix_from_quat(q_segment_sensor), -1, -2)
+    if R_w_seg[:, root, 2, 2].mean() < 0.0:  # turning about its own z would then turn the heading the other way
+        raise CalibrationError("the pelvis's heading from the legs: the pelvis's z axis points down, not up")
     total = legs_heading_sum(R_w_seg, segments, root).sum()
     if abs(total) < 1e-9:
         raise CalibrationError("the pelvis's heading from the legs: no frame has a level pelvis and leg forward axis")

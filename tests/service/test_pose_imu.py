@@ -427,6 +427,36 @@ def test_a_stream_with_a_sensor_beyond_the_model_s_says_so_and_answers_it_as_mea
     assert len(q) == 96 - 5 and np.abs(arm - sensed).max() < 1e-3
 
 
+def test_rest_calibration_by_the_walk_spreads_its_windows_within_the_limit_and_needs_the_i2s_models(
+    data_dir: Path, tmp_path: Path
+) -> None:
+    """A held-out simulated walk (CMU 07_05, a slow walk the I2S alignment never trained on): the alignments found
+    from the walk are the sensors' within a few degrees, also when the service takes a third of the windows a
+    sensor has (``max_windows_per_request``: spread over the request); without the I2S models the answer is 503."""
+    import shutil
+
+    motion = load_motion(data_dir / "mocap/cmu_iclone/07_05.bvh", "cmu_iclone", skip_frames=1)
+    raw = simulate_sensors(motion, SIX_SENSORS, np.random.default_rng(9))
+    body = _body(raw, LOWER, declared=False) | {"calibration": {"method": "assignment", "pelvis_heading": "alignment"}}
+    n_windows = (motion.n_frames - 128) // 16 + 1  # 9
+    for limit in (4096, len(LOWER) * n_windows // 3):
+        with TestClient(create_app(Settings(models_dir=MODELS, max_windows_per_request=limit))) as client:
+            r = client.post("/v1/pose/imu", json=body)
+        assert r.status_code == 200, r.text
+        found = r.json()["q_segment_sensor"]
+        for k, s in enumerate(SIX_SENSORS):
+            if s in ("LeftLowerLeg", "RightLowerLeg"):
+                err = Rotation.from_matrix(
+                    matrix_from_quat(np.array(found[s.lower()])).T @ matrix_from_quat(raw.q_segment_sensor[k])
+                )
+                assert np.degrees(err.magnitude()) < 10.0, (limit, s, np.degrees(err.magnitude()))
+    shutil.copytree(newest_version_dir(MODELS, "pose_lower3"), tmp_path / "pose_lower3" / "3.0.0")
+    shutil.copytree(newest_version_dir(MODELS, "i2s_alignment"), tmp_path / "i2s_alignment" / "3.11.0")
+    with TestClient(create_app(Settings(models_dir=tmp_path))) as client:
+        r = client.post("/v1/pose/imu", json=body)
+    assert r.status_code == 503 and "i2s_assignment" in r.text, r.text
+
+
 def _example(client: TestClient, raw, **change) -> dict:
     body = _body(raw, LOWER, frames=slice(0, 90))
     body.update(change)
