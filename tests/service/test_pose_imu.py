@@ -363,6 +363,7 @@ def test_rest_pose_answers_sensors_beyond_the_model_s_as_measured(client: TestCl
     sources = {name: track["source"] for name, track in answer["segments"].items()}
     assert {name for name, source in sources.items() if source == "sensor"} == set(sensors)
     assert "model" not in sources.values()  # pose_lower3 answers the thighs and feet, here all measured
+    assert any("are not read by pose_lower3" in w and "LeftFoot" in w for w in answer["warnings"]), answer["warnings"]
     assert set(answer["q_segment_sensor"]) == {s.lower() for s in sensors}
     alignment = load_models(MODELS, 1)["i2s_alignment"]
     n = answer["frames"]
