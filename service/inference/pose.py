@@ -172,8 +172,12 @@ def whole_body(
     R = np.full((T, len(BODY_SEGMENTS), 3, 3), np.nan)
     R[:, sensor_index] = R_world_sensor_segment
     R[:, output_index] = np.einsum("tij,tsjk->tsik", R_world_sensor_segment[:, 0], R_root_out)
-    if measured is not None:
-        R = np.where(np.isnan(measured), R, measured)
+    if measured is None:
+        for k in range(1, len(BODY_SEGMENTS)):
+            if np.isnan(R[0, k, 0, 0]):
+                R[:, k] = R[:, PARENT_INDEX[k]]
+        return R
+    R = np.where(np.isnan(measured), R, measured)
     for k in range(1, len(BODY_SEGMENTS)):
         empty = np.isnan(R[:, k, 0, 0])  # per frame: frames of several sessions may measure other segments
         if empty.any():
