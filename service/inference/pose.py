@@ -300,14 +300,6 @@ class LivePose:
         velocity model beside it where the translation is learned."""
         return cost_key(self.model, self.velocity)
 
-    def turn_pelvis(self, R_world_segment: np.ndarray) -> None:
-        """The next calibrated frames' segment orientations ``(m, N, 3, 3)``, the pelvis's turned in place to the
-        legs' mean heading over every frame so far (``service.core.calibration.legs_heading_sum``): a stream's
-        first frames take the estimate of the few frames before them, which settles within a stride."""
-        running = self.heading_sum + np.cumsum(legs_heading_sum(R_world_segment, self.model.spec.sensors))
-        self.heading_sum = complex(running[-1])
-        R_world_segment[:, 0] = turn_about_z(R_world_segment[:, 0], np.angle(running))
-
     def process(self, frames: np.ndarray, first_frame: int) -> list[dict]:
         """Frames ``(m, N, 10)`` from stream frame ``first_frame`` on → ``calibration`` and ``pose`` messages."""
         return process_live([(self, frames, first_frame)])[0]
@@ -381,13 +373,8 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
     joined = np.concatenate([f[:, :n_in] for f in frames])
     q_seg = np.repeat(np.stack([live.q_segment_sensor[:n_in] for live in lives]), counts, axis=0)
     R_w_seg, a_w = segment_readings(joined[:, :, 6:10], joined[:, :, :3], q_seg)
-    for i, live in enumerate(lives):
-        if live.pelvis_heading == "legs":
-            live.turn_pelvis(R_w_seg[bounds[i] : bounds[i + 1]])
-        if live.measured:  # sensors the model does not read: their segments, per session (each has its own)
-            f = frames[i][:, n_in:]
-            R_measured, _ = segment_readings(f[:, :, 6:10], f[:, :, :3], live.q_segment_sensor[n_in:])
-            live.measured_history = np.concatenate([live.measured_history, R_measured])
+    _turn_pelvises(lives, R_w_seg, bounds)
+    _measure(lives, frames)
     features = pose_features(R_w_seg, a_w)
     per_session = [features[bounds[i] : bounds[i + 1]] for i in range(len(lives))]
     outs, states = model.step_many(per_session, [live.state for live in lives])
@@ -462,6 +449,45 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
         if a in roots:
             results[i]["root_position_m"] = roots[a]
     return results
+
+
+def _turn_pelvises(lives: list[LivePose], R_w_seg: np.ndarray, bounds: np.ndarray) -> None:
+    """The pelvis of each session with ``pelvis_heading`` legs turned in place, frame by frame, to the legs' mean
+    heading over every frame of the session so far (``service.core.calibration.legs_heading_sum``; a stream's first
+    frames take the estimate of the few frames before them, which settles within a stride); all sessions' headings
+    and turns computed together."""
+    legs = [i for i, live in enumerate(lives) if live.pelvis_heading == "legs"]
+    if not legs:
+        return
+    rows = np.concatenate([np.arange(bounds[i], bounds[i + 1]) for i in legs])
+    h = legs_heading_sum(R_w_seg[rows], lives[0].model.spec.sensors)
+    angles, start = np.empty(len(rows)), 0
+    for i in legs:
+        live, n = lives[i], bounds[i + 1] - bounds[i]
+        running = live.heading_sum + np.cumsum(h[start : start + n])
+        live.heading_sum = complex(running[-1])
+        angles[start : start + n] = np.angle(running)
+        start += n
+    R_w_seg[rows, 0] = turn_about_z(R_w_seg[rows, 0], angles)
+
+
+def _measure(lives: list[LivePose], frames: list[np.ndarray]) -> None:
+    """Each session's sensors beyond the model's (``LivePose.measured``): their segments' orientations queued
+    beside ``history``, computed in one call per number of such sensors."""
+    n_in = len(lives[0].model.spec.sensors)
+    by_count: dict[int, list[int]] = {}
+    for i, live in enumerate(lives):
+        if live.measured:
+            by_count.setdefault(len(live.measured), []).append(i)
+    for members in by_count.values():
+        f = np.concatenate([frames[i][:, n_in:] for i in members])
+        q = np.concatenate([np.repeat(lives[i].q_segment_sensor[None, n_in:], len(frames[i]), axis=0) for i in members])
+        R, _ = segment_readings(f[:, :, 6:10], f[:, :, :3], q)
+        start = 0
+        for i in members:
+            live, n = lives[i], len(frames[i])
+            live.measured_history = np.concatenate([live.measured_history, R[start : start + n]])
+            start += n
 
 
 def _step_velocities(lives: list[LivePose], features: list[np.ndarray]) -> None:
