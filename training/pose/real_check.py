@@ -115,9 +115,16 @@ def real_pose_check(
 
 
 def pooled(results: dict[str, dict[str, float]], prefix: str) -> dict[str, float]:
+    """Frame-weighted means over the recordings under ``prefix``; the pelvis's turn to the legs (a label-free check
+    of the I2S alignment's pelvis heading) as the median of its size and the recordings where it passes 45°."""
     rows = [r for k, r in results.items() if k.startswith(prefix)]
-    keys = sorted({k for r in rows for k in r if k != "frames"})
+    keys = sorted({k for r in rows for k in r if k not in ("frames", "pelvis_turn_deg")})
     w = {k: np.array([r["frames"] for r in rows if k in r]) for k in keys}
-    return {k: float(np.sum([r[k] * r["frames"] for r in rows if k in r]) / w[k].sum()) for k in keys} | {
-        "recordings": float(len(rows))
-    }
+    out = {k: float(np.sum([r[k] * r["frames"] for r in rows if k in r]) / w[k].sum()) for k in keys}
+    turns = np.abs([r["pelvis_turn_deg"] for r in rows if "pelvis_turn_deg" in r])
+    if len(turns):
+        out |= {
+            "pelvis_turn_median_abs_deg": float(np.median(turns)),
+            "pelvis_turned_over_45deg": float((turns > 45).sum()),
+        }
+    return out | {"recordings": float(len(rows))}
