@@ -13,6 +13,8 @@ Client → server
   binary frame packet, every sensor's samples of the same seq at once (what a suit's receiver delivers): sensor
   index 65535 (ALL_SENSORS), then n × S × 6 float32, the S sensors in the order of "start"   8 + 24 n S bytes
   {"type": "stop"}
+  {"type": "calibrate"}   (still-pose sessions: the person holds the still pose again, e.g. after a sensor slipped;
+                          the pose starts afresh after the new span, as at the start)
   Pose sessions add "pose": {"calibration": "declared" | "still_pose" | "assignment", ...} to "start" and each
   sensor's "segment" (and "q_segment_sensor" when declared); their samples are rows of 10 values, acc xyz, gyr xyz,
   q_world_sensor w x y z (binary: n x 10 float32), at 60 Hz (``PoseStreamOptions``).

@@ -513,6 +513,16 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
             outbox.put(handed)
 
 
+def _recalibrate(session: Session, data: dict) -> None:
+    """``{"type": "calibrate"}``: a still-pose session holds its still pose again (``LivePose.recalibrate``)."""
+    if set(data) != {"type"}:
+        raise ProtocolError(f"a 'calibrate' message has no fields but 'type'; got {sorted(data)}")
+    if session.pose is None or session.pose.method != "still_pose":
+        how = "no pose" if session.pose is None else f"pose calibration {session.pose.method!r}"
+        raise ProtocolError(f"'calibrate' restarts a still-pose calibration; this session has {how}")
+    session.pose.recalibrate()
+
+
 def _parse_text(text: str) -> dict:
     try:
         message = json.loads(text)
@@ -578,6 +588,9 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
                 continue
         else:
             data = _parse_text(message["text"])
+            if data["type"] == "calibrate":
+                _recalibrate(session, data)
+                continue
             if data["type"] == "stop":
                 await session.flush()
                 for moment in session.moment_messages(final=True):

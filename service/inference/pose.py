@@ -263,13 +263,9 @@ class LivePose:
         self.history = np.zeros((0, len(model.sensor_index), 3, 3))  # segment readings awaiting their answer
         self.pelvis_acc = np.zeros((0, 3))  # and the pelvis's free acceleration in those frames
         self.translation = translation
-        self.tracker = None
-        if translation != "none":
-            self.tracker = RootTracker(feet_of(self.body), MODEL_RATE_HZ)
-            if velocity is not None:
-                self.tracker.learned_share = velocity.spec.learned_share
         # translation learned: the velocity network's state, and its answers (pelvis frame) awaiting their pose
         self.velocity = velocity
+        self.tracker = self._new_tracker()
         self.velocity_state = velocity.new_state() if velocity is not None else None
         self.velocities = np.zeros((0, 3))
         self.velocity_inputs = 0  # frames fed to the velocity network
@@ -279,6 +275,33 @@ class LivePose:
     @property
     def calibrated(self) -> bool:
         return self.q_segment_sensor is not None
+
+    def recalibrate(self) -> None:
+        """Still-pose sessions: hold the still pose again (a sensor slipped, or drifted about the vertical). The
+        pose starts afresh after the new span, as at the start of the session: the network's state, the frames
+        awaiting their look-ahead (never answered) and the translation, which restarts at the origin."""
+        if self.method != "still_pose":
+            raise ValueError(f"a session calibrated by {self.method!r} is not recalibrated by a still pose")
+        self.q_segment_sensor, self.still = None, []
+        self.state = self.model.new_state()
+        self.history = self.history[:0]
+        self.measured_history = self.measured_history[:0]
+        self.pelvis_acc = self.pelvis_acc[:0]
+        self.heading_sum = 0j
+        self.inputs = 0
+        self.tracker = self._new_tracker()
+        if self.velocity is not None:
+            self.velocity_state = self.velocity.new_state()
+            self.velocities, self.velocity_inputs = self.velocities[:0], 0
+
+    def _new_tracker(self) -> RootTracker | None:
+        """The translation's rule from the body's first answered frame on (None: no translation)."""
+        if self.translation == "none":
+            return None
+        tracker = RootTracker(feet_of(self.body), MODEL_RATE_HZ)
+        if self.velocity is not None:
+            tracker.learned_share = self.velocity.spec.learned_share
+        return tracker
 
     @property
     def segments(self) -> list[str]:

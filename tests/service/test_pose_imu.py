@@ -538,8 +538,9 @@ def test_a_nan_reading_is_refused(client: TestClient, walk) -> None:
 
 
 async def _stream(url: str, start: dict, packets: list) -> tuple[list[dict], int, str]:
-    """Send ``start``, then each packet (``(sensor_id, seq, rows)`` as JSON, or the bytes of a binary packet), then
-    stop; every message received (binary pose blocks decoded), and the close code and reason."""
+    """Send ``start``, then each packet (``(sensor_id, seq, rows)`` as JSON, the bytes of a binary packet, or a
+    message of its own as a dict), then stop; every message received (binary pose blocks decoded), and the close
+    code and reason."""
     messages = []
     async with websockets.connect(url, max_size=None) as ws:
 
@@ -549,6 +550,9 @@ async def _stream(url: str, start: dict, packets: list) -> tuple[list[dict], int
                 for packet in packets:
                     if isinstance(packet, bytes):  # a binary packet as it goes on the wire
                         await ws.send(packet)
+                        continue
+                    if isinstance(packet, dict):  # a message of its own (e.g. "calibrate")
+                        await ws.send(json.dumps(packet))
                         continue
                     sensor_id, seq, rows = packet
                     await ws.send(
@@ -674,6 +678,59 @@ def test_a_pelvis_turned_about_the_vertical_is_turned_back_by_the_legs_on_rest_a
     print({h: round(float(e[legs].mean()), 2) for h, e in errors.items()}, "deg from the true alignments' knees")
     # the legs leave the pelvis within the sensors' heading errors (here 6.5°), which the model's thighs follow
     assert errors["legs"][legs].mean() < 8.0 < 50.0 < errors["alignment"][legs].mean()
+
+
+def test_a_live_still_pose_calibrates_the_stream_and_calibrate_holds_it_again(server: str, data_dir: Path) -> None:
+    """A stream calibrated by a still N-pose (2 s, then a walk): every mounting is found from it, and the pose starts
+    after it; a sensor slips during the walk, the client sends ``calibrate`` and the person holds the N-pose again:
+    the new mounting is found and the pose starts afresh after the second span. A declared session cannot."""
+    walk = load_motion(data_dir / "mocap/cmu_iclone/07_05.bvh", "cmu_iclone", skip_frames=1).crop(0, 152)
+    # each still block 2.4 s: the 2 s span the service takes starts on it and ends before the next jump to a walk
+    still = BodyMotion(
+        np.broadcast_to(Rotation.from_rotvec([0.0, 0.0, 0.8]).as_matrix(), (144, len(BODY_SEGMENTS), 3, 3)).copy(),
+        np.repeat(walk.origin_m[:1], 144, 0),
+        np.repeat(walk.midpoint_m[:1], 144, 0),
+        60.0,
+    )
+    parts = [still, walk, still, walk]
+    motion = BodyMotion(
+        *(np.concatenate([getattr(m, f) for m in parts]) for f in ("R_world_segment", "origin_m", "midpoint_m")), 60.0
+    )
+    raw = simulate_sensors(motion, LOWER, np.random.default_rng(3), SensorNoise(acc_sigma_mps2=0.05, offset_m=0.0))
+    slipped = Rotation.from_rotvec([0.0, 0.0, 0.6]).as_matrix()  # the left shank sensor turns on the leg
+    second = slice(296, None)  # from the second still block on
+    raw.q_world_sensor[second, 1] = quat_from_matrix(matrix_from_quat(raw.q_world_sensor[second, 1]) @ slipped)
+    for reading in (raw.acc_mps2, raw.gyr_rads):  # what it measures, in its turned frame
+        reading[second, 1] = reading[second, 1] @ slipped
+    rows = np.concatenate([raw.acc_mps2, raw.gyr_rads, raw.q_world_sensor], axis=2)
+    packets = [encode_binary(ALL_SENSORS, f, rows[f : f + 8]) for f in range(0, len(rows), 8)]
+    packets.insert(304 // 8, {"type": "calibrate"})  # a moment after the second still block begins
+    back = matrix_from_quat(raw.q_segment_sensor[0]).T @ np.array([-1.0, 0.0, 0.0])
+    start = {
+        "type": "start",
+        "sensors": [{"sensor_id": s, "segment": s} for s in LOWER],
+        "pose": {"calibration": "still_pose", "pelvis_back_axis": back.tolist()},
+    }
+    url = server.replace("http", "ws") + "/v1/stream"
+    messages, code, reason = asyncio.run(_stream(url, start, packets))
+    assert code == 1000, reason
+    calibrated = [m for m in messages if m["type"] == "calibration" and m["status"] == "calibrated"]
+    assert [m["frames"] for m in calibrated] == [[0, 120], [304, 424]]
+    truth_after = matrix_from_quat(raw.q_segment_sensor[1]) @ slipped  # R_segment_sensor of the slipped sensor
+    for m, R_true in zip(calibrated, (matrix_from_quat(raw.q_segment_sensor[1]), truth_after), strict=True):
+        got = matrix_from_quat(np.array(m["q_segment_sensor"]["LeftLowerLeg"]))
+        assert np.degrees(Rotation.from_matrix(got.T @ R_true).magnitude()) < 8.0
+    answered = sorted(
+        f for m in messages if m["type"] == "pose" for f in range(m["first_frame"], m["first_frame"] + m["frames"])
+    )
+    # the first walk answered but its last 5 frames (their look-ahead never came), the second walk likewise
+    assert answered == [*range(120, 304 - 5), *range(424, len(rows) - 5)]
+    start["pose"] = {"calibration": "declared"}
+    start["sensors"] = [
+        s | {"q_segment_sensor": raw.q_segment_sensor[k].tolist()} for k, s in enumerate(start["sensors"])
+    ]
+    messages, code, reason = asyncio.run(_stream(url, start, [packets[0], {"type": "calibrate"}]))
+    assert code == 1008 and "this session has pose calibration 'declared'" in reason, reason
 
 
 def test_frame_packets_and_binary_pose_blocks_answer_as_the_json_stream_does(server: str, walk, pose_models) -> None:
