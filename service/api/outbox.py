@@ -10,7 +10,8 @@ Every outgoing message type is bounded:
   the end of the queue);
 - ``gap`` and ``late``: a new notice for a sensor whose notice of that type is still queued is merged into it
   (``count`` notices, ``missing`` summed, the latest sequence numbers), never queued one by one;
-- ``started``, ``calibration``, ``error``: once each per session.
+- ``started``, ``error``: once each per session; ``calibration``: at most one per still span of frames received
+  (still-pose sessions) or per ``calibrate`` message, and once when the assignment hands over.
 
 Queued messages are held encoded (a string of a few hundred bytes each, or the bytes of a binary pose block; not
 a tree of Python objects).

@@ -521,6 +521,10 @@ def _recalibrate(session: Session, data: dict) -> None:
         how = "no pose" if session.pose is None else f"pose calibration {session.pose.method!r}"
         raise ProtocolError(f"'calibrate' restarts a still-pose calibration; this session has {how}")
     session.pose.recalibrate()
+    detail = (
+        f"calibrate: hold the still pose for {session.pose.still_frames / 60.0:g} s; the pose starts afresh after it"
+    )
+    session.outbox.put({"type": "calibration", "status": "waiting", "detail": detail})
 
 
 def _parse_text(text: str) -> dict:

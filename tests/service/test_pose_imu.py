@@ -716,6 +716,8 @@ def test_a_live_still_pose_calibrates_the_stream_and_calibrate_holds_it_again(se
     assert code == 1000, reason
     calibrated = [m for m in messages if m["type"] == "calibration" and m["status"] == "calibrated"]
     assert [m["frames"] for m in calibrated] == [[0, 120], [304, 424]]
+    taken = [m for m in messages if m["type"] == "calibration" and m.get("detail", "").startswith("calibrate: hold")]
+    assert len(taken) == 1 and messages.index(taken[0]) < messages.index(calibrated[1])
     truth_after = matrix_from_quat(raw.q_segment_sensor[1]) @ slipped  # R_segment_sensor of the slipped sensor
     for m, R_true in zip(calibrated, (matrix_from_quat(raw.q_segment_sensor[1]), truth_after), strict=True):
         got = matrix_from_quat(np.array(m["q_segment_sensor"]["LeftLowerLeg"]))
@@ -731,6 +733,9 @@ def test_a_live_still_pose_calibrates_the_stream_and_calibrate_holds_it_again(se
     ]
     messages, code, reason = asyncio.run(_stream(url, start, [packets[0], {"type": "calibrate"}]))
     assert code == 1008 and "this session has pose calibration 'declared'" in reason, reason
+    i2s_only = {"type": "start", "sensors": [{"sensor_id": "a"}]}
+    messages, code, reason = asyncio.run(_stream(url, i2s_only, [{"type": "calibrate"}]))
+    assert code == 1008 and "this session has no pose" in reason, reason
 
 
 def test_frame_packets_and_binary_pose_blocks_answer_as_the_json_stream_does(server: str, walk, pose_models) -> None:
