@@ -81,15 +81,15 @@ def pose_features(R_world_segment: np.ndarray, acc_world_mps2: np.ndarray, root:
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
-# The pelvis's heading from the legs (our addition). An alignment from ``/v1/imu/assign`` (Zimmermann et al.
-# 2018's network and its functional axes) is found from each sensor's own walk: the leg segments' forward axes are
-# pinned by their swing about the knee's hinge, the pelvis's only by how its sway and steps read, and on real people
-# it comes out turned about the vertical by tens of degrees to a half turn (docs/pose.md, Calibration: "The
-# pelvis's heading from the legs"). A turn of the pelvis about
-# the vertical turns every pelvis-relative feature (eq. 2-3), so the pose reads legs swinging sideways. In walking
-# the pelvis faces where the legs swing: this turns the pelvis's alignment about its own z (the vertical, upright)
-# to the mean heading of the leg segments' forward (x) axes. Each frame's horizontal forward axes are complex numbers
-# h = x + iy; conj(h_pelvis) · h_leg, summed over legs and frames, weighs each frame by how level both axes are.
+# The pelvis's heading from the legs (our addition). An alignment from ``/v1/imu/assign`` (Zimmermann et al. 2018's
+# network and its functional axes) is found from each sensor's own walk: the leg segments' forward axes are pinned by
+# their swing about the knee's hinge, the pelvis's only by how its sway and steps read, and on real people it comes
+# out turned about the vertical by tens of degrees to a half turn (docs/pose.md, Calibration: "The pelvis's heading
+# from the legs"). A turn of the pelvis about the vertical turns every pelvis-relative feature (Zheng et al. 2021 eq.
+# 2-3), so the pose reads legs swinging sideways. In walking the pelvis faces where the legs swing: this turns the
+# pelvis's alignment about its own z (the vertical, upright) to the mean heading of the leg segments' forward (x)
+# axes. Each frame's horizontal forward axes are complex numbers h = x + iy; conj(h_pelvis) · h_leg, summed over legs
+# and frames, weighs each frame by how level both axes are.
 LEG_SEGMENTS = frozenset(f"{side}{part}" for side in ("Left", "Right") for part in ("UpperLeg", "LowerLeg", "Foot"))
 
 
@@ -130,8 +130,7 @@ def pelvis_heading_from_legs(
         raise CalibrationError("the pelvis's heading from the legs: no frame has a level pelvis and leg forward axis")
     angle = float(np.angle(total))
     R_seg_sensor = matrix_from_quat(q_segment_sensor[root])
-    c, s = np.cos(angle), np.sin(angle)
-    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    Rz = turn_about_z(np.eye(3)[None], np.array([angle]))[0]
     out = np.array(q_segment_sensor, dtype=np.float64, copy=True)
     out[root] = quat_from_matrix(Rz.T @ R_seg_sensor)  # R_W_seg' = R_W_sensor R_seg_sensorᵀ Rz
     return out, float(np.degrees(angle))
