@@ -436,14 +436,14 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
     results: list[dict | None] = [None] * len(lives)
     if not answered:
         return results
+    measured_all = None  # per answered frame, the segments of sensors beyond the model's (NaN: none)
     if any(m is not None for m in measured):
-        rows = [
-            np.full((n, len(BODY_SEGMENTS), 3, 3), np.nan) if m is None else m
-            for (_, _, n), m in zip(answered, measured, strict=True)
-        ]
-        measured_all = np.concatenate(rows)
-    else:
-        measured_all = None
+        measured_all = np.concatenate(
+            [
+                np.full((n, len(BODY_SEGMENTS), 3, 3), np.nan) if m is None else m
+                for (_, _, n), m in zip(answered, measured, strict=True)
+            ]
+        )
     R_world = whole_body(
         np.concatenate(R_sensors), np.concatenate(R_out), model.sensor_index, model.output_index, measured_all
     )
