@@ -9,8 +9,15 @@ from typing import Literal
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
-from service.api.routes import _Route, _settings, file_answer, infer_windows
-from service.api.schemas import PoseImuRequest, PoseImuResponse, SegmentTrack, error_responses, file_responses
+from service.api.routes import _Route, _settings, assign_windows, file_answer, infer_windows
+from service.api.schemas import (
+    AssignResponse,
+    PoseImuRequest,
+    PoseImuResponse,
+    SegmentTrack,
+    error_responses,
+    file_responses,
+)
 from service.core.assignment import is_moving
 from service.core.body import BODY_SEGMENTS, Body, body_bvh, feet_of
 from service.core.bvh import format_bvh
@@ -114,13 +121,29 @@ def _array(rows: list[list[float]], width: int, where: str) -> np.ndarray:
 
 
 def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
+    """The request's readings, validated, at 60 Hz, in ``model``'s order (``in_model_order``)."""
+    return in_model_order(read_request(body), model)
+
+
+def in_model_order(r: Readings, model: PoseModel) -> Readings:
+    """Readings in request order (every segment known) → the model's sensors first in its order, then the others
+    in the request's."""
+    order = [*model.spec.sensors, *(seg for seg in r.segments if seg not in model.spec.sensors)]
+    idx = [r.segments.index(seg) for seg in order]
+    gyr = None if r.gyr_rads is None else r.gyr_rads[:, idx]
+    return Readings(r.q_world_sensor[:, idx], r.acc_mps2[:, idx], gyr, [r.sensor_ids[k] for k in idx], order)
+
+
+def read_request(body: PoseImuRequest) -> Readings:
+    """Every sensor's readings, validated, in contract units at 60 Hz, in the request's order; ``segments`` as
+    declared (None where a sensor's is to be found from the walk)."""
     rate = body.sample_rate_hz
     if not MIN_POSE_IMU_RATE_HZ <= rate <= MAX_POSE_IMU_RATE_HZ:
         raise InputError(
             f"sample_rate_hz must be in [{MIN_POSE_IMU_RATE_HZ:g}, {MAX_POSE_IMU_RATE_HZ:g}], got {rate:g}"
         )
-    by_segment = {s.segment: (k, s) for k, s in enumerate(body.sensors)}
-    if len(by_segment) != len(body.sensors):
+    declared = [s.segment for s in body.sensors if s.segment is not None]
+    if len(set(declared)) != len(declared):
         raise InputError(f"sensors: one sensor per segment, got segments {[s.segment for s in body.sensors]}")
     ids = [s.sensor_id for s in body.sensors]
     if len(set(ids)) != len(ids):  # the answer's calibration is keyed by sensor_id
@@ -134,9 +157,7 @@ def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
     if n * 60.0 / rate > MAX_POSE_FRAMES:
         raise InputError(f"at most {MAX_POSE_FRAMES} frames at 60 Hz per request, got {n} samples at {rate:g} Hz")
     qs, accs, gyrs, ids = [], [], [], []
-    order = [*model.spec.sensors, *(s.segment for s in body.sensors if s.segment not in model.spec.sensors)]
-    for seg in order:
-        k, s = by_segment[seg]
+    for k, s in enumerate(body.sensors):
         where = f"sensors[{k}]"
         q = _array(s.q_world_sensor, 4, f"{where}.q_world_sensor")
         norm = np.linalg.norm(q, axis=1)
@@ -161,7 +182,7 @@ def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
         acc = resample_uniform(acc, rate, 60.0)[: len(q)]
         gyr = None if gyr is None else resample_uniform(gyr, rate, 60.0)[: len(q)]
         q = q[: len(acc)]
-    return Readings(q, acc, gyr, ids, order)
+    return Readings(q, acc, gyr, ids, [s.segment for s in body.sensors])
 
 
 def calibrate(body: PoseImuRequest, model: PoseModel, r: Readings, found: np.ndarray | None = None) -> np.ndarray:
@@ -182,11 +203,15 @@ def calibrate(body: PoseImuRequest, model: PoseModel, r: Readings, found: np.nda
     return q
 
 
-async def walk_alignments(request: Request, model: PoseModel, r: Readings) -> np.ndarray:
-    """Calibration ``assignment``: each sensor's ``q_segment_sensor`` (N, 4) as ``/v1/imu/assign`` finds it for
-    the sensor's segment, the served I2S alignment model's robust mean over the sensor's moving windows."""
-    where = "calibration 'assignment'"
-    others = [s for s in r.segments if s not in SEGMENTS]
+WALK = "calibration 'assignment'"
+
+
+def walk_windows(request: Request, r: Readings) -> list[np.ndarray]:
+    """Each sensor's I2S windows ``(n, 128, 6)`` of the request's walk. Every window of a long request would be more
+    than the I2S routes take in one (and than a settled mean needs): they are spread over the request, at most an
+    equal share of that limit per sensor."""
+    where = WALK
+    others = [s for s in r.segments if s is not None and s not in SEGMENTS]
     if others:
         raise InputError(f"{where} aligns sensors on {list(SEGMENTS)} from their walk; sensors are also on {others}")
     if r.gyr_rads is None:
@@ -198,14 +223,34 @@ async def walk_alignments(request: Request, model: PoseModel, r: Readings) -> np
         )
     if "i2s_alignment" not in request.app.state.models:
         raise HTTPException(503, f"{where}: no I2S alignment model is loaded")
-    # Every window of a long request would be more than the I2S routes take in one (and than a settled mean
-    # needs): the windows are spread over the request, at most an equal share of that limit per sensor.
     per_sensor = max(1, request.app.state.settings.max_windows_per_request // len(r.sensor_ids))
     hop = max(HOP_SAMPLES, -(-(len(r.acc_mps2) - WINDOW_SAMPLES + 1) // per_sensor))
-    windows = [
+    return [
         sliding_windows(np.concatenate([r.acc_mps2[:, k], r.gyr_rads[:, k]], axis=1).astype(np.float32), hop=hop)
         for k in range(len(r.sensor_ids))
     ]
+
+
+async def place_by_walk(request: Request, r: Readings) -> tuple[Readings, np.ndarray, AssignResponse]:
+    """Calibration ``assignment`` with sensors whose segment is not declared: ``/v1/imu/assign``'s answer for the
+    request's walk (a declared segment is that sensor's only candidate) places them; the readings of the placed
+    sensors with their segments, their alignments ``(N, 4)`` in request order, and that answer."""
+    windows = walk_windows(request, r)
+    candidates = [None if s is None else [SEGMENTS.index(s)] for s in r.segments]
+    placed = await assign_windows(request, r.sensor_ids, windows, False, None, candidates)
+    keep = [k for k, s in enumerate(placed.sensors) if s.segment is not None and s.alignment is not None]
+    segments = [placed.sensors[k].segment for k in keep]
+    gyr = None if r.gyr_rads is None else r.gyr_rads[:, keep]
+    readings = Readings(r.q_world_sensor[:, keep], r.acc_mps2[:, keep], gyr, [r.sensor_ids[k] for k in keep], segments)
+    q = np.array([placed.sensors[k].alignment.q_segment_imu for k in keep])
+    return readings, q, placed
+
+
+async def walk_alignments(request: Request, model: PoseModel, r: Readings) -> np.ndarray:
+    """Calibration ``assignment``: each sensor's ``q_segment_sensor`` (N, 4) as ``/v1/imu/assign`` finds it for
+    the sensor's segment, the served I2S alignment model's robust mean over the sensor's moving windows."""
+    where = WALK
+    windows = walk_windows(request, r)
     _, quats, _ = await infer_windows(request, np.concatenate(windows))
     if quats is None:
         raise HTTPException(503, f"{where}: no I2S alignment model is loaded")
@@ -411,11 +456,31 @@ async def pose_from_imu(
         "json", description="`json` (default): quaternions and joint positions; `bvh`: a BVH file of the pose"
     ),
 ) -> Response:
-    model = choose_model(pose_models(request), [s.segment for s in body.sensors], body.model, False, extra=True)
-    readings = read_sensors(body, model)
-    found = await walk_alignments(request, model, readings) if body.calibration.method == "assignment" else None
+    everything, placed, found = read_request(body), None, None
+    unplaced = [k for k, s in enumerate(everything.segments) if s is None]
+    if unplaced and body.calibration.method != "assignment":
+        raise InputError(
+            f"sensors[{unplaced[0]}].segment: calibration {body.calibration.method!r} needs each sensor's segment; "
+            "calibration 'assignment' finds the lower-body sensors' segments from their walk"
+        )
+    if unplaced:
+        everything, q_found, placed = await place_by_walk(request, everything)
+    model = choose_model(pose_models(request), everything.segments, body.model, False, extra=True)
+    readings = in_model_order(everything, model)
+    if placed is not None:
+        found = q_found[[everything.sensor_ids.index(i) for i in readings.sensor_ids]]
+    elif body.calibration.method == "assignment":
+        found = await walk_alignments(request, model, readings)
     q_seg_sensor = calibrate(body, model, readings, found)
     warnings = unit_check(body, readings)
+    if placed is not None:
+        if placed.status != "assigned":
+            warnings.append(
+                f"the walk's assignment is {placed.status!r}: the sensors' places are a guess (see assignment)"
+            )
+        left_out = [s.sensor_id for s in placed.sensors if s.segment is None]
+        if left_out:
+            warnings.append(f"sensors {left_out} were placed on no segment by the walk's assignment and are left out")
     measured = readings.segments[len(model.spec.sensors) :]
     if measured:  # a misnamed segment would otherwise pass unnoticed
         warnings.append(f"sensors on {measured} are not read by {model.name}: their segments are answered as measured")
@@ -427,4 +492,5 @@ async def pose_from_imu(
         version = model.loaded.manifest.version
         return file_answer(text, f"{model.name}.bvh", "Pose", model.name, version, warnings)
     answer = await runner.run_call(pose_response, job, warnings)
+    answer.assignment = placed
     return Response(answer.model_dump_json(), media_type="application/json")

@@ -288,22 +288,43 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
         raise HTTPException(422, f"sensor_id values must be unique, got {ids}")
     _check_count(sum(len(s.windows) for s in body.sensors), settings)
     per_sensor = [_inputs(s.windows, f"sensors[{k}].windows") for k, s in enumerate(body.sensors)]
+    candidates = [segment_indices(s.candidate_segments) for s in body.sensors]
+    answer = await assign_windows(
+        request, ids, per_sensor, body.allow_shared, segment_indices(body.worn_segments), candidates
+    )
+    answer.warnings = [
+        f"sensors[{k}] ({sensor.sensor_id}): {text}"
+        for k, sensor in enumerate(body.sensors)
+        if len({(w.acc_unit, w.gyr_unit) for w in sensor.windows}) == 1
+        for text in unit_warnings(per_sensor[k], sensor.windows[0].acc_unit, sensor.windows[0].gyr_unit)
+    ]
+    return _json(answer)
+
+
+async def assign_windows(
+    request: Request,
+    ids: list[str],
+    per_sensor: list[np.ndarray],
+    allow_shared: bool,
+    worn: list[int] | None,
+    candidates: list[list[int] | None],
+) -> AssignResponse:
+    """``/v1/imu/assign``'s answer (without warnings) for sensors worn together, each with its windows ``(n_k,
+    128, 6)`` at 60 Hz in contract units, window k of each sensor the same moment."""
     probs, quats, versions = await infer_windows(request, np.concatenate(per_sensor))
     bounds = np.cumsum([0] + [len(x) for x in per_sensor])
     moving = [is_moving(x) for x in per_sensor]
     log_probs = [np.log(np.clip(probs[bounds[k] : bounds[k + 1]], 1e-12, 1.0)) for k in range(len(per_sensor))]
-    worn = segment_indices(body.worn_segments)
-    candidates = [segment_indices(s.candidate_segments) for s in body.sensors]
     norms = [gyro_norm(x) for x in per_sensor]  # how the sensors swing together
     weight = session_swing_weight(_confidence(request))
     joint, votes, n_moving = session_assignment(
-        log_probs, moving, body.allow_shared, worn, candidates, norms, swing_weight=weight
+        log_probs, moving, allow_shared, worn, candidates, norms, swing_weight=weight
     )
-    at_moment = window_joint_assignment(log_probs, moving, body.allow_shared, worn, candidates, norms)
+    at_moment = window_joint_assignment(log_probs, moving, allow_shared, worn, candidates, norms)
     calibrated = assignment_confidence(_confidence(request), joint, votes, n_moving)
     p_correct = calibrated.p_correct
     out = []
-    for k, sensor in enumerate(body.sensors):
+    for k, sensor_id in enumerate(ids):
         seg = int(joint.segment[k])
         alignment, spread = None, None
         if seg >= 0 and quats is not None:
@@ -313,7 +334,7 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
             alignment = Alignment(**alignment_answer(seg, q))
         out.append(
             SensorAssignment(
-                sensor_id=sensor.sensor_id,
+                sensor_id=sensor_id,
                 segment=SEGMENTS[seg] if seg >= 0 else None,
                 confidence=float(joint.confidence[k]),
                 p_correct=None if p_correct is None else float(p_correct[k]),
@@ -327,20 +348,8 @@ async def assign_sensors(body: AssignRequest, request: Request, settings: Settin
                 window_segments=[SEGMENTS[g] if g >= 0 else None for g in at_moment[k].tolist()],
             )
         )
-    warnings = [
-        f"sensors[{k}] ({sensor.sensor_id}): {text}"
-        for k, sensor in enumerate(body.sensors)
-        if len({(w.acc_unit, w.gyr_unit) for w in sensor.windows}) == 1
-        for text in unit_warnings(per_sensor[k], sensor.windows[0].acc_unit, sensor.windows[0].gyr_unit)
-    ]
-    return _json(
-        AssignResponse(
-            sensors=out,
-            p_all_correct=calibrated.p_all_correct,
-            status=calibrated.status,
-            model_versions=versions,
-            warnings=warnings,
-        )
+    return AssignResponse(
+        sensors=out, p_all_correct=calibrated.p_all_correct, status=calibrated.status, model_versions=versions
     )
 
 

@@ -406,8 +406,10 @@ class PoseSensor(BaseModel):
 
     model_config = REQUEST
     sensor_id: str = Field(min_length=1, max_length=64)
-    segment: BodySegmentName = Field(
-        description="the body segment the sensor is on (GET /v1/models: pose.sensors); one sensor per segment"
+    segment: BodySegmentName | None = Field(
+        None,
+        description="the body segment the sensor is on (GET /v1/models: pose.sensors); one sensor per segment. "
+        "Required, except with calibration `assignment`, which finds a lower-body sensor's segment from the walk",
     )
     q_world_sensor: list[Quaternion] = Field(
         min_length=2,
@@ -562,6 +564,11 @@ class PoseImuResponse(BaseModel):
         default_factory=list,
         description="a sensor whose readings look implausible for the declared units (over 2 s windows: gravity far "
         "from 9.81 m/s², a gyroscope faster than a human segment turns): the pose is given, but check the units",
+    )
+    assignment: AssignResponse | None = Field(
+        None,
+        description="calibration `assignment` with sensors whose segment was not declared: how the walk placed "
+        "them, as /v1/imu/assign answers (its `status` and each sensor's `p_correct` say how sure)",
     )
 
 

@@ -428,6 +428,43 @@ def test_a_stream_with_a_sensor_beyond_the_model_s_says_so_and_answers_it_as_mea
     assert len(q) == 96 - 5 and np.abs(arm - sensed).max() < 1e-3
 
 
+def test_rest_pose_places_sensors_whose_segment_is_not_declared_by_the_walk(client: TestClient, data_dir: Path) -> None:
+    """Seven lower-body sensors sent with no segment and no alignment (the capacitive subject's baseline walk):
+    the walk places them as /v1/imu/assign does (the answer's ``assignment``), aligns them, and the pose answers
+    with them; one declared segment is kept. Without calibration ``assignment`` a missing segment is a 422."""
+    from service.core.recordings import read_capacitive_oriented
+
+    sensors = read_capacitive_oriented(data_dir, "CSBaseline")
+    rate, rows = sensors["Pelvis"].rate_hz, slice(1000, 2500)
+    body = {
+        "sample_rate_hz": rate,
+        "calibration": {"method": "assignment"},
+        "sensors": [
+            {
+                "sensor_id": sensor.name,
+                "q_world_sensor": _unit_rows(sensor.q_world_sensor[rows]).tolist(),
+                "acc": sensor.acc[rows].tolist(),
+                "gyr": sensor.gyr[rows].tolist(),
+            }
+            | ({"segment": "Pelvis"} if segment == "Pelvis" else {})
+            for segment, sensor in sensors.items()
+        ],
+    }
+    r = client.post("/v1/pose/imu", json=body)
+    assert r.status_code == 200, r.text
+    answer = r.json()
+    truth = {sensor.name: segment for segment, sensor in sensors.items()}
+    placed = {s["sensor_id"]: s["segment"] for s in answer["assignment"]["sensors"]}
+    print("placed by the walk:", placed, answer["assignment"]["status"], answer["warnings"])
+    assert placed == truth
+    assert answer["model"]["name"] == "pose_lower3" and set(answer["q_segment_sensor"]) == set(truth)
+    assert {seg for seg, track in answer["segments"].items() if track["source"] == "sensor"} == set(sensors)
+    del body["calibration"]
+    body["sensors"][0]["q_segment_sensor"] = [1.0, 0.0, 0.0, 0.0]
+    r = client.post("/v1/pose/imu", json=body)
+    assert r.status_code == 422 and "needs each sensor's segment" in r.json()["detail"], r.text
+
+
 def test_rest_calibration_by_the_walk_spreads_its_windows_within_the_limit_and_needs_the_i2s_models(
     data_dir: Path, tmp_path: Path
 ) -> None:
