@@ -121,7 +121,8 @@ def _array(rows: list[list[float]], width: int, where: str) -> np.ndarray:
 
 
 def read_sensors(body: PoseImuRequest, model: PoseModel) -> Readings:
-    """The request's readings, validated, at 60 Hz, in ``model``'s order (``in_model_order``)."""
+    """The request's readings, validated, at 60 Hz, in ``model``'s order (``in_model_order``); every sensor's
+    segment declared."""
     return in_model_order(read_request(body), model)
 
 
@@ -238,7 +239,15 @@ async def place_by_walk(request: Request, r: Readings) -> tuple[Readings, np.nda
     windows = walk_windows(request, r)
     candidates = [None if s is None else [SEGMENTS.index(s)] for s in r.segments]
     placed = await assign_windows(request, r.sensor_ids, windows, False, None, candidates)
-    keep = [k for k, s in enumerate(placed.sensors) if s.segment is not None and s.alignment is not None]
+    if any(s.segment is not None and s.alignment is None for s in placed.sensors):
+        raise HTTPException(503, f"{WALK}: no I2S alignment model is loaded")
+    still = [s.sensor_id for s in placed.sensors if s.segment is not None and not s.moving_windows]
+    if still:
+        raise InputError(
+            f"{WALK}: sensors {still} move in none of their windows; a sensor's place and alignment are found from "
+            "a walk"
+        )
+    keep = [k for k, s in enumerate(placed.sensors) if s.segment is not None]
     segments = [placed.sensors[k].segment for k in keep]
     gyr = None if r.gyr_rads is None else r.gyr_rads[:, keep]
     readings = Readings(r.q_world_sensor[:, keep], r.acc_mps2[:, keep], gyr, [r.sensor_ids[k] for k in keep], segments)
@@ -425,7 +434,8 @@ def pose_response(job: PoseJob, warnings: list[str]) -> PoseImuResponse:
         "Raw readings per sensor (its fusion's q_world_sensor in its own z-up world frame and its accelerometer), "
         "the segment each sensor is on, and a calibration: `declared` alignments (no pose needed, e.g. from "
         "/v1/imu/assign), the frame span of a still N-pose/T-pose in this request, or `assignment` (lower-body "
-        "sensors with gyr: each alignment found from the walk in this request). Returns per frame (60 Hz) and "
+        "sensors with gyr: each alignment, and the segment of a sensor that declares none, found from the walk in "
+        "this request, the placement in the answer's `assignment`). Returns per frame (60 Hz) and "
         "segment the global and parent-relative quaternions and joint positions of the default body (or of "
         "`body_height_m`); with `translation` `feet` or `learned` also where the pelvis is per frame "
         "(`root_position_m`). The model is the offline one whose sensors match, else the one that reads the most "
@@ -465,7 +475,13 @@ async def pose_from_imu(
         )
     if unplaced:
         everything, q_found, placed = await place_by_walk(request, everything)
-    model = choose_model(pose_models(request), everything.segments, body.model, False, extra=True)
+    try:
+        model = choose_model(pose_models(request), everything.segments, body.model, False, extra=True)
+    except HTTPException as exc:
+        if placed is None or exc.status_code != 422:
+            raise
+        where = {s.sensor_id: s.segment for s in placed.sensors}
+        raise HTTPException(422, f"{exc.detail} (as the walk placed them: {where})") from None
     readings = in_model_order(everything, model)
     if placed is not None:
         found = q_found[[everything.sensor_ids.index(i) for i in readings.sensor_ids]]

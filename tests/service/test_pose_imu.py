@@ -459,6 +459,11 @@ def test_rest_pose_places_sensors_whose_segment_is_not_declared_by_the_walk(clie
     assert placed == truth
     assert answer["model"]["name"] == "pose_lower3" and set(answer["q_segment_sensor"]) == set(truth)
     assert {seg for seg, track in answer["segments"].items() if track["source"] == "sensor"} == set(sensors)
+    still = [
+        s | {"gyr": [[0.0] * 3] * len(s["gyr"]), "acc": [[0.0, 0.0, 9.81]] * len(s["acc"])} for s in body["sensors"]
+    ]
+    r = client.post("/v1/pose/imu", json=body | {"sensors": still})
+    assert r.status_code == 422 and "move in none of their windows" in r.json()["detail"], r.text
     del body["calibration"]
     body["sensors"][0]["q_segment_sensor"] = [1.0, 0.0, 0.0, 0.0]
     r = client.post("/v1/pose/imu", json=body)
