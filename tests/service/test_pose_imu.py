@@ -330,6 +330,26 @@ def _unit_rows(q: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
+def _walk_body(sensors: dict, rows: slice, ids: dict[str, str], declared: set[str]) -> dict:
+    """A calibration-``assignment`` request of real oriented sensors (segment → ``OrientedSensor``), ``ids`` their
+    sensor_ids, the segments in ``declared`` declared. A few rows of the capacitive files' foot quaternions are not
+    unit (norm up to 1.2): normalised, as a client must (the service refuses them and says which row)."""
+    return {
+        "sample_rate_hz": next(iter(sensors.values())).rate_hz,
+        "calibration": {"method": "assignment"},
+        "sensors": [
+            {
+                "sensor_id": ids[segment],
+                "q_world_sensor": _unit_rows(sensor.q_world_sensor[rows]).tolist(),
+                "acc": sensor.acc[rows].tolist(),
+                "gyr": sensor.gyr[rows].tolist(),
+            }
+            | ({"segment": segment} if segment in declared else {})
+            for segment, sensor in sensors.items()
+        ],
+    }
+
+
 def test_rest_pose_answers_sensors_beyond_the_model_s_as_measured(client: TestClient, data_dir: Path) -> None:
     """A gait lab's seven lower-body sensors (the capacitive subject: pelvis, thighs, shanks, feet), no alignment
     declared: the three-sensor model reads the pelvis and shanks, and the thighs and feet it would answer are the
@@ -339,22 +359,7 @@ def test_rest_pose_answers_sensors_beyond_the_model_s_as_measured(client: TestCl
 
     sensors = read_capacitive_oriented(data_dir, "CSBaseline")
     rate, rows = sensors["Pelvis"].rate_hz, slice(1000, 2500)
-    body = {
-        "sample_rate_hz": rate,
-        "calibration": {"method": "assignment"},
-        "sensors": [
-            {
-                "sensor_id": segment.lower(),
-                "segment": segment,
-                # a few rows of the file's foot quaternions are not unit (norm up to 1.2): normalised, as a client
-                # must (the service refuses them and says which row)
-                "q_world_sensor": _unit_rows(sensor.q_world_sensor[rows]).tolist(),
-                "acc": sensor.acc[rows].tolist(),
-                "gyr": sensor.gyr[rows].tolist(),
-            }
-            for segment, sensor in sensors.items()
-        ],
-    }
+    body = _walk_body(sensors, rows, {seg: seg.lower() for seg in sensors}, declared=set(sensors))
     assert len(body["sensors"]) == 7
     r = client.post("/v1/pose/imu", json=body)
     assert r.status_code == 200, r.text
@@ -435,21 +440,7 @@ def test_rest_pose_places_sensors_whose_segment_is_not_declared_by_the_walk(clie
     from service.core.recordings import read_capacitive_oriented
 
     sensors = read_capacitive_oriented(data_dir, "CSBaseline")
-    rate, rows = sensors["Pelvis"].rate_hz, slice(1000, 2500)
-    body = {
-        "sample_rate_hz": rate,
-        "calibration": {"method": "assignment"},
-        "sensors": [
-            {
-                "sensor_id": sensor.name,
-                "q_world_sensor": _unit_rows(sensor.q_world_sensor[rows]).tolist(),
-                "acc": sensor.acc[rows].tolist(),
-                "gyr": sensor.gyr[rows].tolist(),
-            }
-            | ({"segment": "Pelvis"} if segment == "Pelvis" else {})
-            for segment, sensor in sensors.items()
-        ],
-    }
+    body = _walk_body(sensors, slice(1000, 2500), {seg: s.name for seg, s in sensors.items()}, declared={"Pelvis"})
     r = client.post("/v1/pose/imu", json=body)
     assert r.status_code == 200, r.text
     answer = r.json()
