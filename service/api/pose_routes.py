@@ -42,6 +42,7 @@ from service.inference.pose import (
     QUAT_NORM_TOLERANCE,
     PoseModel,
     covered_segments,
+    fitting_models,
     general_first,
     measured_segments,
     pose_answer,
@@ -82,13 +83,9 @@ def choose_model(
             )
         return model
     kind = [m for m in general_first(models) if m.spec.streaming == streaming]
-    for model in kind:
-        if sorted(model.spec.sensors) == sorted(segments):
-            return model
-    if extra:
-        within = [m for m in kind if set(m.spec.sensors) < set(segments)]
-        if within:
-            return max(within, key=lambda m: len(m.spec.sensors))  # the first of the largest: general first
+    fitting = fitting_models(kind, segments)
+    if fitting and (extra or sorted(fitting[0].spec.sensors) == sorted(segments)):
+        return fitting[0]
     placements = sorted({", ".join(m.spec.sensors) for m in models.values()})
     raise HTTPException(
         422,
@@ -211,19 +208,18 @@ def walk_windows(request: Request, r: Readings) -> list[np.ndarray]:
     """Each sensor's I2S windows ``(n, 128, 6)`` of the request's walk. Every window of a long request would be more
     than the I2S routes take in one (and than a settled mean needs): they are spread over the request, at most an
     equal share of that limit per sensor."""
-    where = WALK
     others = [s for s in r.segments if s is not None and s not in SEGMENTS]
     if others:
-        raise InputError(f"{where} aligns sensors on {list(SEGMENTS)} from their walk; sensors are also on {others}")
+        raise InputError(f"{WALK} aligns sensors on {list(SEGMENTS)} from their walk; sensors are also on {others}")
     if r.gyr_rads is None:
-        raise InputError(f"{where}: every sensor's gyr is needed (the alignment reads acc and gyr)")
+        raise InputError(f"{WALK}: every sensor's gyr is needed (the alignment reads acc and gyr)")
     if len(r.acc_mps2) < WINDOW_SAMPLES:
         raise InputError(
-            f"{where}: at least {WINDOW_SAMPLES} samples at 60 Hz ({WINDOW_SAMPLES / 60.0:.2f} s) of walking are "
+            f"{WALK}: at least {WINDOW_SAMPLES} samples at 60 Hz ({WINDOW_SAMPLES / 60.0:.2f} s) of walking are "
             f"needed, got {len(r.acc_mps2)}"
         )
     if "i2s_alignment" not in request.app.state.models:
-        raise HTTPException(503, f"{where}: no I2S alignment model is loaded")
+        raise HTTPException(503, f"{WALK}: no I2S alignment model is loaded")
     per_sensor = max(1, request.app.state.settings.max_windows_per_request // len(r.sensor_ids))
     hop = max(HOP_SAMPLES, -(-(len(r.acc_mps2) - WINDOW_SAMPLES + 1) // per_sensor))
     return [
@@ -258,17 +254,16 @@ async def place_by_walk(request: Request, r: Readings) -> tuple[Readings, np.nda
 async def walk_alignments(request: Request, model: PoseModel, r: Readings) -> np.ndarray:
     """Calibration ``assignment``: each sensor's ``q_segment_sensor`` (N, 4) as ``/v1/imu/assign`` finds it for
     the sensor's segment, the served I2S alignment model's robust mean over the sensor's moving windows."""
-    where = WALK
     windows = walk_windows(request, r)
     _, quats, _ = await infer_windows(request, np.concatenate(windows))
     if quats is None:
-        raise HTTPException(503, f"{where}: no I2S alignment model is loaded")
+        raise HTTPException(503, f"{WALK}: no I2S alignment model is loaded")
     out, start = [], 0
     for k, (segment, w) in enumerate(zip(r.segments, windows, strict=True)):
         moving = is_moving(w)
         if not moving.any():
             raise InputError(
-                f"{where}: sensor {r.sensor_ids[k]} ({segment}) moves in none of its {len(w)} windows; its alignment "
+                f"{WALK}: sensor {r.sensor_ids[k]} ({segment}) moves in none of its {len(w)} windows; its alignment "
                 "is found from a walk"
             )
         out.append(mean_alignment(quats[start : start + len(w), SEGMENTS.index(segment)][moving])[0])

@@ -51,7 +51,7 @@ from service.core.rotations import canonical_quat
 from service.core.segments import SEGMENTS, segment_indices, segment_names
 from service.core.stream import SensorStream
 from service.core.units import ACC_UNITS, GYR_UNITS, UNIT_CHECK_SECONDS, unit_warnings
-from service.inference.pose import LivePose, PoseModel, general_first
+from service.inference.pose import LivePose, PoseModel, fitting_models, general_first
 from service.inference.predict import RunningAlignment, alignment_answer, window_results
 from service.inference.velocity import VelocityModel, learned_velocity_model, velocity_model_for
 
@@ -160,11 +160,7 @@ class Session:
             measured: list[str] = []  # the assignment's other sensors join at the hand-over (``hand_over``)
         else:
             streaming = [m for m in general_first(models) if m.spec.streaming and opts.model in (None, m.name)]
-            fitting = [m for m in streaming if sorted(m.spec.sensors) == sorted(segments)]
-            if not fitting:  # sensors beyond a model's: the models that read the most of them; the rest measured
-                within = [m for m in streaming if set(m.spec.sensors) < set(segments)]
-                most = max((len(m.spec.sensors) for m in within), default=0)
-                fitting = [m for m in within if len(m.spec.sensors) == most]
+            fitting = fitting_models(streaming, segments)
             if not fitting:
                 placements = sorted({", ".join(m.spec.sensors) for m in models.values() if m.spec.streaming})
                 raise ProtocolError(

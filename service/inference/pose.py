@@ -156,6 +156,17 @@ def general_first(models: dict[str, PoseModel]) -> list[PoseModel]:
     return sorted(models.values(), key=lambda m: m.scenario is not None)
 
 
+def fitting_models(models: list[PoseModel], segments: Sequence[str]) -> list[PoseModel]:
+    """Of ``models`` (in order of preference), those whose sensors are exactly ``segments``; where none is, those
+    that read the most of them (sensors beyond a model's are answered as measured)."""
+    exact = [m for m in models if sorted(m.spec.sensors) == sorted(segments)]
+    if exact:
+        return exact
+    within = [m for m in models if set(m.spec.sensors) < set(segments)]
+    most = max((len(m.spec.sensors) for m in within), default=0)
+    return [m for m in within if len(m.spec.sensors) == most]
+
+
 def whole_body(
     R_world_sensor_segment: np.ndarray,
     R_root_out: np.ndarray,
