@@ -15,7 +15,7 @@ import numpy as np
 from service.core.flex import ReadoutCheck
 from service.core.opensim import read_opensim_storage, storage_cells
 from service.core.resample import resample_timestamps, resample_uniform
-from service.core.rotations import matrix_from_quat
+from service.core.rotations import matrix_from_quat, repair_quaternions
 from service.core.segments import segment_index
 from service.core.units import to_contract_units
 from service.core.windowing import MODEL_RATE_HZ
@@ -322,13 +322,16 @@ def csv_recording(
 @dataclass(frozen=True)
 class OrientedSensor:
     """A real sensor with its own orientation output: acc (T, 3) m/s², gyr (T, 3) rad/s, q_world_sensor (T, 4)
-    w x y z in its world frame (z up), at ``rate_hz``."""
+    w x y z in its world frame (z up), unit, at ``rate_hz``; ``repaired_rows``: how many of the file's orientation
+    rows were not unit quaternions and were taken from their neighbours
+    (``service.core.rotations.repair_quaternions``)."""
 
     name: str
     acc: np.ndarray
     gyr: np.ndarray
     q_world_sensor: np.ndarray
     rate_hz: float
+    repaired_rows: int = 0
 
 
 MOVINGREALITY_SEGMENTS = {
@@ -381,7 +384,10 @@ def read_movingreality_trial(data_dir: Path, participant: str, trial: str) -> li
 def read_capacitive_oriented(data_dir: Path, trial: str, source: str = "capacitive_sub01") -> dict[str, OrientedSensor]:
     """A capacitive-study trial's IMUs with their orientations (``OpenSim_*_Orientations.sto``: quaternions w, x,
     y, z of each sensor frame in a z-up world, checked: the rotated specific force averages +9.7-9.96 m/s² up),
-    keyed by segment (``CAPACITIVE_SEGMENTS``), at 100 Hz."""
+    keyed by segment (``CAPACITIVE_SEGMENTS``), at 100 Hz. Sub01's left femur sensor has rows that are not unit
+    quaternions in every trial (5-12 % beyond 1 ± 0.1: the export interpolated across sign flips); they are
+    repaired from their neighbours (``repair_quaternions``; ``repaired_rows`` says how many), which takes spikes of
+    up to 40° out of the left knee's flexion."""
     folder = data_dir / "imu_real" / source / trial
     orient = _one_file(folder, f"OpenSim_*_{trial}_Orientations.sto")
     with _open_text(orient) as fh:
@@ -398,8 +404,9 @@ def read_capacitive_oriented(data_dir: Path, trial: str, source: str = "capaciti
         if seg is None:
             continue
         j = acc_names.index(column)
+        q_unit, repaired = repair_quaternions(q[:n, k])
         out[seg] = OrientedSensor(
-            column, acc[:n, 2 + 3 * j : 5 + 3 * j], gyr[:n, 2 + 3 * j : 5 + 3 * j], q[:n, k], rate
+            column, acc[:n, 2 + 3 * j : 5 + 3 * j], gyr[:n, 2 + 3 * j : 5 + 3 * j], q_unit, rate, int(repaired.sum())
         )
     return out
 

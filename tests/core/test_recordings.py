@@ -271,3 +271,22 @@ def test_capacitive_sleeves_are_put_in_step_with_the_xsens_sensors_by_their_boar
     )
     unmatched = capacitive_sleeve_sync(tmp_path, "CSStiffKnee", "Left")
     assert unmatched.correlation < SYNC_MIN_CORRELATION and unmatched.applied_rows == 0
+
+
+def test_the_capacitive_left_femur_rows_that_are_not_unit_quaternions_are_repaired(data_dir: Path) -> None:
+    """Sub01's left femur file has rows that are not unit quaternions (its export interpolated across sign flips),
+    which read as spikes of up to 80° per sample² in the left knee's flexion; after the repair the knee moves as
+    smoothly as the right one, whose file has none."""
+    from service.core.flex import fit_hinge, hinge_angle_deg
+    from service.core.recordings import read_capacitive_oriented
+
+    sensors = read_capacitive_oriented(data_dir, "CSStiffKnee")
+    repaired = {seg: s.repaired_rows / len(s.q_world_sensor) for seg, s in sensors.items()}
+    assert 0.03 < repaired.pop("LeftUpperLeg") < 0.15
+    assert set(repaired.values()) == {0.0}
+    roughness = {}
+    for side in ("Left", "Right"):
+        thigh, shank = (sensors[f"{side}{s}"].q_world_sensor for s in ("UpperLeg", "LowerLeg"))
+        knee = hinge_angle_deg(thigh, shank, fit_hinge(thigh, shank))
+        roughness[side] = np.abs(np.diff(knee, 2)).max()
+    assert roughness["Left"] < 2.0 * roughness["Right"] + 1.0, roughness

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -71,3 +72,36 @@ def test_error_angles_about_single_axis() -> None:
     q_pred = np.array([1.0, 0, 0, 0])
     np.testing.assert_allclose(error_angles_xyz_deg(q_true, q_pred), [[0, 0, 30]], atol=1e-9)
     np.testing.assert_allclose(geodesic_angle_deg(q_true, -q_true), [0.0], atol=1e-6)
+
+
+def test_rows_interpolated_across_a_sign_flip_are_repaired_from_their_neighbours() -> None:
+    """A turn at 180°/s sampled at 100 Hz whose export flipped the sign of q halfway and interpolated each
+    component on its own across the flip (as the capacitive study's left femur file): the rows whose norm is off
+    by more than the tolerance are taken by slerp from the good rows around them and land within a degree of the
+    true turn, where normalising them alone leaves them up to tens of degrees off; good rows are kept as given."""
+    from service.core.rotations import UNIT_QUAT_TOLERANCE, repair_quaternions
+
+    t = np.arange(200) / 100.0
+    truth = Rotation.from_rotvec(np.radians(180.0) * t[:, None] * np.array([0.0, 0.6, 0.8]))
+    q = truth.as_quat(scalar_first=True)
+    q[100:] *= -1.0  # the export's sign flip: the same rotations
+    bad = np.arange(95, 105)
+    w = (bad - 94) / 11.0
+    q[bad] = (1 - w)[:, None] * q[94] + w[:, None] * q[105]  # component-wise across the flip: norms near zero
+    q[150] = np.nan  # a dropped row
+    q[20] *= 1.05  # a row scaled within the tolerance: kept, normalised
+    off = np.abs(np.linalg.norm(q, axis=1) - 1.0)
+    assert np.nanmax(off[bad]) > 0.5  # the corruption is real
+
+    fixed, repaired = repair_quaternions(q)
+    assert set(np.flatnonzero(repaired)) == {*bad[off[bad] > UNIT_QUAT_TOLERANCE], 150}
+    np.testing.assert_allclose(np.linalg.norm(fixed, axis=1), 1.0, atol=1e-12)
+    error = np.degrees((truth.inv() * Rotation.from_quat(fixed, scalar_first=True)).magnitude())
+    assert error.max() < 1.0, error.max()
+    plain = Rotation.from_quat(np.nan_to_num(q[bad]), scalar_first=True)  # normalising only
+    assert np.degrees((truth[bad].inv() * plain).magnitude()).max() > 10.0
+    np.testing.assert_allclose(fixed[20], q[20] / np.linalg.norm(q[20]))
+    np.testing.assert_allclose(fixed[:19], q[:19], atol=1e-15)  # unit rows as given
+
+    with pytest.raises(ValueError, match="no row"):
+        repair_quaternions(np.zeros((5, 4)))
