@@ -210,7 +210,7 @@ SKELETON_MAPPINGS: dict[str, SkeletonMapping] = {
             "Shoulder": ("{s}clavicle", "{s}humerus"),
             "UpperArm": ("{s}humerus", "{s}radius"),
             "ForeArm": ("{s}radius", "{s}wrist"),
-            "Hand": ("{s}wrist", "{s}hand"),
+            "Hand": ("{s}hand", "{s}fingers"),  # the palm: lwrist's bone has no length and only twists
             "UpperLeg": ("{s}femur", "{s}tibia"),
             "LowerLeg": ("{s}tibia", "{s}foot"),
             "Foot": ("{s}foot", "{s}toes"),

@@ -224,3 +224,25 @@ def test_a_pose_as_bvh_reads_back_as_the_same_segment_frames_and_joint_positions
     p = poses.positions_m
     np.testing.assert_allclose(p - p[:, :1], body.forward(R), atol=1e-5)
     assert p[0, :, 2].min() == pytest.approx(0.0, abs=1e-5) and p[0, 0, 2] > 0.1  # upright on the lowest origin
+
+
+def test_li2018_hands_bend_at_the_wrist() -> None:
+    """In li2018's skeleton (CMU's ASF) the wrist joint's bone has no length and turns only about the forearm's
+    axis; the palm is the hand joint's bone, to the fingers. Read so, a walk's hands turn against the forearms
+    about more than one axis (the wrist's flexion and deviation, not only the twist) and their sensors sit on the
+    palm, not at the wrist."""
+    from scipy.spatial.transform import Rotation
+
+    motion = read_body_motion(
+        Path(__file__).resolve().parents[1] / "fixtures" / "cmu_02_01_walk_2s.bvh", None, "cmu_li2018"
+    )
+    for side in ("Left", "Right"):
+        forearm, hand = BODY_SEGMENTS.index(f"{side}ForeArm"), BODY_SEGMENTS.index(f"{side}Hand")
+        rel = Rotation.from_matrix(
+            np.einsum("tji,tjk->tik", motion.R_world_segment[:, forearm], motion.R_world_segment[:, hand])
+        )
+        turns = (rel.mean().inv() * rel).as_rotvec(degrees=True)
+        spread = np.linalg.svd(turns - turns.mean(0), compute_uv=False) / np.sqrt(len(turns))
+        assert spread[1] > 0.5, spread  # one axis only: 1e-15
+        palm = np.linalg.norm(motion.midpoint_m[:, hand] - motion.origin_m[:, hand], axis=1)
+        assert np.all(palm > 0.01), palm.min()

@@ -3,7 +3,7 @@
 Every BVH of the data directory (CMU li2018, iClone, raw, and both Bandai-Namco sets) is read through
 ``service.core.body`` with its family's mapping table, T-pose frames dropped, resampled to 60 Hz (slerp and cubic
 spline: Bandai-Namco is 30 fps) and stored as float32 quaternions and positions, keyed by a digest of the file's
-bytes, the rate, ``MOTION_VERSION`` and its rig's segment offsets (which the frame rules, ``limb_twist`` and
+bytes, the rate, ``MOTION_VERSION`` (or its source's entry in ``SOURCE_MOTION_VERSIONS``) and its rig's segment offsets (which the frame rules, ``limb_twist`` and
 ``trunk_axes``, decide).
 """
 
@@ -41,6 +41,10 @@ log = logging.getLogger(__name__)
 
 MOTION_VERSION = "5"  # 2: upright trunk frames for L5 and T8; 3: one set of segment offsets per rig; 4: from walks;
 # 5: feet level in flat stance
+# A source whose mapping changed since: only its clips are read again (the others keep their digests, and with them
+# their simulated sessions). cmu_li2018 6: the hand is the palm, driven by the hand joint (it was the wrist joint,
+# whose zero-length bone only twists, so li2018's hands had no wrist flexion).
+SOURCE_MOTION_VERSIONS = {"cmu_li2018": "6"}
 MODEL_RATE_HZ = 60.0
 OWN_SOURCE = "own"  # a user's own motion capture (``data.own``)
 
@@ -61,9 +65,9 @@ class MotionClip:
         return self.subject or f"{self.source}_unlabelled"
 
 
-def _digest(path: Path, offsets: np.ndarray | None = None) -> str:
+def _digest(path: Path, offsets: np.ndarray | None = None, source: str = "") -> str:
     h = hashlib.sha256(path.read_bytes())
-    h.update(f"|{MODEL_RATE_HZ}|v{MOTION_VERSION}".encode())
+    h.update(f"|{MODEL_RATE_HZ}|v{SOURCE_MOTION_VERSIONS.get(source, MOTION_VERSION)}".encode())
     if offsets is not None:
         # to 1e-5 (0.0006°) and without the sign of a zero: the offsets' noise-level entries (1e-17 to 1e-6, a third
         # of them negative zeros at 8 decimals) differ between numpy / scipy builds, and the digest names the clip
@@ -94,7 +98,8 @@ def load_motion(
 def _clip_offsets_job(args: tuple[Path, CatalogEntry, Path, str]) -> np.ndarray | None:
     data_dir, e, cache_dir, trunk_axes = args
     path = data_dir / e.path
-    cached = cache_dir / "clip_offsets" / f"{_digest(path)}{'' if trunk_axes == 'spine' else '-' + trunk_axes}.npy"
+    rule = "" if trunk_axes == "spine" else "-" + trunk_axes
+    cached = cache_dir / "clip_offsets" / f"{_digest(path, source=e.source)}{rule}.npy"
     if cached.exists():
         return np.load(cached)
     try:
@@ -214,7 +219,7 @@ def _load(path: Path) -> BodyMotion:
 def _load_or_compute(args: tuple[Path, CatalogEntry, Path, np.ndarray | None]) -> MotionClip | None:
     data_dir, e, cache_dir, offsets = args
     path = data_dir / e.path
-    digest = _digest(path, offsets)
+    digest = _digest(path, offsets, e.source)
     cached = cache_dir / f"{digest}.npz"
     if cached.exists():
         motion = _load(cached)
