@@ -84,7 +84,7 @@ def flex_storage(model: FlexModel, rows: np.ndarray) -> str:
     "same angles come as an OpenSim storage file (time, then one column per joint and component, degrees); the "
     "model and warnings in the headers `X-Flex-Model` and `X-Flex-Warnings`.",
     responses=file_responses(
-        "Flex", "flex_capacitive_knee 1.2.0\nversion=1\n...\nendheader\n...", "`mot` an OpenSim storage file"
+        "Flex", "flex_capacitive_knee 1.3.0\nversion=1\n...\nendheader\n...", "`mot` an OpenSim storage file"
     )
     | error_responses(
         400,

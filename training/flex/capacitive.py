@@ -211,6 +211,8 @@ def run_capacitive_experiment(
                 "test_jitter_deg_s3": test["jitter_deg_s3"],
                 "test_mean_flexion_mae_deg": baseline["mae_deg"],
             } | {_part_metric("test", part): float(np.abs(p - t).mean()) for part, (p, t) in traces.items()}
+            if not cfg.held_out_leg:
+                metrics |= beyond_training_range(traces, sets["train"])
         else:
             metrics |= {_part_metric("val", part): float(np.abs(p - t).mean()) for part, (p, t) in traces.items()}
         mlflow.log_metrics(metrics)
@@ -369,6 +371,28 @@ def sleeve_tables(cfg: CapacitiveConfig, sets: dict[str, WindowSet]) -> dict[str
                 "rate_hz": [cfg.rate_hz] * len(ws.clips),
             }
         )
+    return out
+
+
+def beyond_training_range(
+    traces: dict[str, tuple[np.ndarray, np.ndarray]], training: WindowSet
+) -> dict[str, float]:
+    """How a held-out trial's error splits at the training range: per leg, the samples whose reference flexion
+    lies above the most that leg bent in the training part, their share and mean absolute error, and the error of
+    the rest. A network trained on a stiff-knee gait has never seen the baseline gait's fuller flexion; this says
+    how much of its held-out error is that extrapolation (docs/flex.md)."""
+    within, beyond = [], []
+    for leg, (p, t) in traces.items():
+        side = leg.split("/")[-1]
+        top = max(float(c.angles[c.pad :].max()) for c in training.clips if c.path.split("/")[-1].startswith(side))
+        out = t > top
+        beyond.append(np.abs(p - t)[out])
+        within.append(np.abs(p - t)[~out])
+    b, w = np.concatenate(beyond), np.concatenate(within)
+    out = {"test_beyond_training_share": float(len(b) / (len(b) + len(w)))}
+    for key, errors in (("test_beyond_training_mae_deg", b), ("test_within_training_mae_deg", w)):
+        if len(errors):  # an empty part has no mean (and a manifest no NaN)
+            out[key] = float(errors.mean())
     return out
 
 

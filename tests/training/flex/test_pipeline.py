@@ -166,6 +166,7 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
     out = run_capacitive_experiment(cfg, data_dir, tmp_path, "0.0.1")
     m = out["metrics"]
     assert {"test_left_knee_mae_deg", "test_right_knee_mae_deg", "test_mae_deg", "val_mae_deg"} <= set(m)
+    assert 0.0 <= m["test_beyond_training_share"] < 1.0 and "test_within_training_mae_deg" in m
     loaded = load_model(tmp_path / "tiny_capacitive" / "0.0.1", 1)
     assert loaded.manifest.channels == list(CAPACITIVE_CHANNELS) and loaded.manifest.joints == ["Knee"]
     assert loaded.manifest.sample_rate_hz == 50.0 and loaded.manifest.value_range is None
@@ -307,3 +308,24 @@ def test_the_served_suit_model_is_scored_in_the_frames_its_manifest_names() -> N
     # it reads the counts back to resistance, so its manifest names the read-out's parts that this depends on
     assert served.flex.input_norm == "log_resistance"
     assert all("R_i 15 kΩ" in u and "G 2.3" in u for u in served.units.values())
+
+
+def test_a_held_out_trial_s_error_splits_at_the_most_each_leg_bent_in_training() -> None:
+    """Samples of a held-out trial that bend a knee further than that leg ever did in the training part are
+    counted and scored apart: the stiff-knee leg's training range is its own, not the other leg's."""
+    from types import SimpleNamespace
+
+    from training.flex.capacitive import beyond_training_range
+
+    def clip(path: str, top: float) -> SimpleNamespace:
+        return SimpleNamespace(path=path, pad=2, angles=np.r_[99.0, 99.0, np.linspace(0.0, top, 50)][:, None, None])
+
+    training = SimpleNamespace(clips=[clip("CSStiffKnee/Left", 30.0), clip("CSStiffKnee/Right", 50.0)])
+    reference = np.array([10.0, 20.0, 40.0, 60.0])  # the same four samples on each leg
+    traces = {"Left": (reference + [1.0, 1.0, 5.0, 9.0], reference), "Right": (reference + 2.0, reference)}
+    split = beyond_training_range(traces, training)
+    assert split["test_beyond_training_share"] == pytest.approx(3 / 8)  # left 40 and 60 (over 30), right 60
+    assert split["test_beyond_training_mae_deg"] == pytest.approx((5.0 + 9.0 + 2.0) / 3)
+    assert split["test_within_training_mae_deg"] == pytest.approx((1.0 + 1.0 + 2.0 + 2.0 + 2.0) / 5)
+    inside = beyond_training_range({"Left": (reference[:2] + 1.0, reference[:2])}, training)
+    assert inside == {"test_beyond_training_share": 0.0, "test_within_training_mae_deg": 1.0}
