@@ -3,9 +3,8 @@
 Every BVH of the data directory (CMU li2018, iClone, raw, and both Bandai-Namco sets) is read through
 ``service.core.body`` with its family's mapping table, T-pose frames dropped, resampled to 60 Hz (slerp and cubic
 spline: Bandai-Namco is 30 fps) and stored as float32 quaternions and positions, keyed by a digest of the file's
-bytes, the rate, ``MOTION_VERSION`` (or its source's entry in ``SOURCE_MOTION_VERSIONS``) and its rig's segment offsets (which the frame rules, ``limb_twist`` and
-``trunk_axes``, decide).
-"""
+bytes, the rate, ``MOTION_VERSION`` (or its source's entry in ``SOURCE_MOTION_VERSIONS``) and its rig's segment
+offsets (which the frame rules, ``limb_twist`` and ``trunk_axes``, decide)."""
 
 from __future__ import annotations
 
