@@ -404,7 +404,10 @@ def read_capacitive_oriented(data_dir: Path, trial: str, source: str = "capaciti
         if seg is None:
             continue
         j = acc_names.index(column)
-        q_unit, repaired = repair_quaternions(q[:n, k])
+        try:
+            q_unit, repaired = repair_quaternions(q[:n, k])
+        except ValueError as exc:
+            raise ValueError(f"{orient}: column {column}: {exc}") from exc
         out[seg] = OrientedSensor(
             column, acc[:n, 2 + 3 * j : 5 + 3 * j], gyr[:n, 2 + 3 * j : 5 + 3 * j], q_unit, rate, int(repaired.sum())
         )
