@@ -123,6 +123,10 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
         # fine-tuned on two held-out people's first takes, and its control (docs/pose.md, "On your own motion capture")
         | {"pose_full6_own_cmu", "pose_full6_more_epochs", "pose_full6_own_one_take"}
         | {"pose_full6_stream_own_cmu"}
+        # the capacitive recipe on the repaired left-knee reference (docs/flex.md), and pose_full6 on li2018's palms
+        | {f"flex_capacitive_knee_{v}repaired_s{s}" for v in ("", "reverse_") for s in (0, 1, 2)}
+        | {f"flex_capacitive_knee_repaired_leg_{leg}_s{s}" for leg in ("Left", "Right") for s in (0, 1, 2)}
+        | {"pose_full6_palm_s0", "pose_full6_palm_s1", "pose_full6_palm_mean"}
     )
     # versions of served models whose runs lost their shipping rule (the mirror-image runs, docs/flex.md, docs/pose.md)
     not_shipped = {"flex_bilstm_cm v3", "pose_lower3_stream v5", "pose_full6 v6", "pose_lower3_walk v2"}
