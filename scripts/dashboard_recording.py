@@ -36,27 +36,12 @@ CITATION = (
 )
 
 
-def unit_quats(q_wxyz: np.ndarray, tol: float = 0.1) -> np.ndarray:
-    """Orientations ``(T, 4)`` with every sample whose norm is off 1 by more than ``tol`` replaced by the last good
-    one (the first good one at the start), then normalised: Sub01's left femur sensor writes non-unit
-    quaternions in a few percent of its samples (data README), which a pose stream refuses."""
-    norm = np.linalg.norm(q_wxyz, axis=1)
-    good = np.abs(norm - 1.0) <= tol
-    if not good.any():
-        raise ValueError("no unit quaternion in this sensor's orientation output")
-    index = np.where(good, np.arange(len(q_wxyz)), 0)
-    np.maximum.accumulate(index, out=index)
-    index[: int(np.argmax(good))] = int(np.argmax(good))
-    q = q_wxyz[index]
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
 def write_recording(data_dir: Path, start_s: float, seconds: float, out: Path = OUT) -> dict:
     """Write ``recording.json`` / ``recording.bin`` / ``recording.LICENSE`` under ``out``; the metadata."""
     sensors = read_capacitive_oriented(data_dir, TRIAL, SOURCE)
     imu = []
     for s in sensors.values():
-        rows = resample_pose_rows(s.acc, s.gyr, unit_quats(s.q_world_sensor), s.rate_hz, RATE_HZ)
+        rows = resample_pose_rows(s.acc, s.gyr, s.q_world_sensor, s.rate_hz, RATE_HZ)
         imu.append(rows[int(start_s * RATE_HZ) : int((start_s + seconds) * RATE_HZ)])
     frames = min(len(r) for r in imu)
     sleeves, sleeve_rate = [], None
