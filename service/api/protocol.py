@@ -82,7 +82,7 @@ from service.api.schemas import (
 )
 from service.core.body import Body, body_bvh
 from service.core.bvh import bvh_hierarchy_text, bvh_motion_text
-from service.core.rotations import matrix_from_quat
+from service.core.rotations import UNIT_QUAT_TOLERANCE, matrix_from_quat
 from service.core.windowing import MODEL_RATE_HZ
 from service.inference.predict import MAX_ABS_READING
 
@@ -279,7 +279,7 @@ def check_samples(samples: np.ndarray, max_samples: int, where: str, width: int 
     if width == 10:
         q = samples[:, 6:10]
         norm = np.sqrt(np.einsum("ij,ij->i", q, q))
-        if np.abs(norm - 1.0).max(initial=0.0) > 0.1:
+        if np.abs(norm - 1.0).max(initial=0.0) > UNIT_QUAT_TOLERANCE:
             i = int(np.argmax(np.abs(norm - 1.0)))
             raise ProtocolError(
                 f"{where}: sample {i}'s q_world_sensor must be a unit quaternion, got norm {norm[i]:.3f}"
