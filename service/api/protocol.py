@@ -292,7 +292,8 @@ def check_frame_samples(samples: np.ndarray, max_samples: int, sensor_ids: list[
     flat = samples.reshape(-1, width)
     ok = bool(np.all(np.isfinite(flat))) and np.abs(flat).max(initial=0.0) <= MAX_ABS_READING
     if ok and width == 10:
-        ok = bool(np.all(np.abs(np.sqrt(np.einsum("ij,ij->i", flat[:, 6:10], flat[:, 6:10])) - 1.0) <= 0.1))
+        norm = np.sqrt(np.einsum("ij,ij->i", flat[:, 6:10], flat[:, 6:10]))
+        ok = bool(np.all(np.abs(norm - 1.0) <= UNIT_QUAT_TOLERANCE))
     if ok:
         return
     for k, sensor_id in enumerate(sensor_ids):

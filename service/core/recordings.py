@@ -322,9 +322,9 @@ def csv_recording(
 @dataclass(frozen=True)
 class OrientedSensor:
     """A real sensor with its own orientation output: acc (T, 3) m/s², gyr (T, 3) rad/s, q_world_sensor (T, 4)
-    w x y z in its world frame (z up), unit, at ``rate_hz``; ``repaired_rows``: how many of the file's orientation
-    rows were not unit quaternions and were taken from their neighbours
-    (``service.core.rotations.repair_quaternions``)."""
+    w x y z in its world frame (z up), at ``rate_hz``; ``repaired_rows``: how many of the file's orientation rows
+    were not unit quaternions and were taken from their neighbours (``service.core.rotations.repair_quaternions``;
+    the capacitive study's files, whose rows come out unit; MovingReality's are unit within 1e-6 as written)."""
 
     name: str
     acc: np.ndarray

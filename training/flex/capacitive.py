@@ -374,9 +374,7 @@ def sleeve_tables(cfg: CapacitiveConfig, sets: dict[str, WindowSet]) -> dict[str
     return out
 
 
-def beyond_training_range(
-    traces: dict[str, tuple[np.ndarray, np.ndarray]], training: WindowSet
-) -> dict[str, float]:
+def beyond_training_range(traces: dict[str, tuple[np.ndarray, np.ndarray]], training: WindowSet) -> dict[str, float]:
     """How a held-out trial's error splits at the training range: per leg, the samples whose reference flexion
     lies above the most that leg bent in the training part, their share and mean absolute error, and the error of
     the rest. A network trained on a stiff-knee gait has never seen the baseline gait's fuller flexion; this says

@@ -44,6 +44,12 @@ MOTION_VERSION = "5"  # 2: upright trunk frames for L5 and T8; 3: one set of seg
 # their simulated sessions). cmu_li2018 6: the hand is the palm, driven by the hand joint (it was the wrist joint,
 # whose zero-length bone only twists, so li2018's hands had no wrist flexion).
 SOURCE_MOTION_VERSIONS = {"cmu_li2018": "6"}
+# A source's entry replaces MOTION_VERSION in its digest, so each entry must stay above it: bumping MOTION_VERSION to
+# or past an entry drops that entry (every source is read again anyway), or its clips would keep stale caches.
+if any(int(v) <= int(MOTION_VERSION) for v in SOURCE_MOTION_VERSIONS.values()):
+    raise RuntimeError(
+        f"SOURCE_MOTION_VERSIONS {SOURCE_MOTION_VERSIONS} must stay above MOTION_VERSION {MOTION_VERSION}"
+    )
 MODEL_RATE_HZ = 60.0
 OWN_SOURCE = "own"  # a user's own motion capture (``data.own``)
 
