@@ -30,7 +30,7 @@ from service.core.calibration import (
     still_pose_calibration,
 )
 from service.core.resample import resample_quats, resample_uniform
-from service.core.rotations import canonical_quat
+from service.core.rotations import UNIT_QUAT_TOLERANCE, canonical_quat
 from service.core.segments import SEGMENTS
 from service.core.translation import RootTracker
 from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS, unit_warnings_over
@@ -39,7 +39,6 @@ from service.inference.pose import (
     MAX_POSE_FRAMES,
     MAX_POSE_IMU_RATE_HZ,
     MIN_POSE_IMU_RATE_HZ,
-    QUAT_NORM_TOLERANCE,
     PoseModel,
     covered_segments,
     fitting_models,
@@ -159,7 +158,7 @@ def read_request(body: PoseImuRequest) -> Readings:
         where = f"sensors[{k}]"
         q = _array(s.q_world_sensor, 4, f"{where}.q_world_sensor")
         norm = np.linalg.norm(q, axis=1)
-        off = np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE
+        off = np.abs(norm - 1.0) > UNIT_QUAT_TOLERANCE
         if off.any():
             i = int(np.argmax(off))
             raise InputError(
@@ -285,7 +284,7 @@ def _calibrate_by_method(body: PoseImuRequest, model: PoseModel, r: Readings) ->
                     "sensors: found from their walk)"
                 )
             q = np.asarray(s.q_segment_sensor, dtype=np.float64)
-            if not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1.0) > QUAT_NORM_TOLERANCE:
+            if not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1.0) > UNIT_QUAT_TOLERANCE:
                 raise InputError(f"sensors[{k}].q_segment_sensor: expected a finite unit quaternion, got {list(q)}")
             out.append(canonical_quat(q))
         return np.stack(out)

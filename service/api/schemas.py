@@ -13,10 +13,11 @@ import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool, StrictFloat, model_validator
 
 from service.core.body import BODY_SEGMENTS
+from service.core.rotations import UNIT_QUAT_TOLERANCE
 from service.core.segments import SEGMENTS
 from service.core.windowing import MODEL_RATE_HZ, WINDOW_SAMPLES
 from service.inference.flex import MAX_FLEX_RATE_HZ, MAX_FLEX_SAMPLES, MIN_FLEX_RATE_HZ
-from service.inference.pose import MAX_POSE_FRAMES, MAX_POSE_IMU_RATE_HZ, MIN_POSE_IMU_RATE_HZ, QUAT_NORM_TOLERANCE
+from service.inference.pose import MAX_POSE_FRAMES, MAX_POSE_IMU_RATE_HZ, MIN_POSE_IMU_RATE_HZ
 from service.inference.predict import MAX_ABS_READING, MAX_RATE_HZ, MIN_RATE_HZ, MIN_WINDOW_ROWS
 from service.settings import Settings
 
@@ -413,7 +414,7 @@ class PoseSensor(BaseModel):
     )
     q_world_sensor: list[Quaternion] = Field(
         min_length=2,
-        description=f"unit quaternions w, x, y, z per sample (norm within 1 ± {QUAT_NORM_TOLERANCE:g}); as many rows "
+        description=f"unit quaternions w, x, y, z per sample (norm within 1 ± {UNIT_QUAT_TOLERANCE:g}); as many rows "
         "as `acc` and as every other sensor's",
     )
     acc: list[Vector3] = Field(
@@ -429,7 +430,7 @@ class PoseSensor(BaseModel):
     q_segment_sensor: Quaternion | None = Field(
         None,
         description="declared alignment (calibration method 'declared', which needs it on every sensor): "
-        f"v_segment = R(q) v_sensor, w, x, y, z, a unit quaternion (norm within 1 ± {QUAT_NORM_TOLERANCE:g}); "
+        f"v_segment = R(q) v_sensor, w, x, y, z, a unit quaternion (norm within 1 ± {UNIT_QUAT_TOLERANCE:g}); "
         "e.g. /v1/imu/assign's alignment of a lower-body sensor",
     )
 

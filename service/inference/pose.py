@@ -22,7 +22,7 @@ from service.core.calibration import (
     still_pose_calibration,
     turn_about_z,
 )
-from service.core.rotations import UNIT_QUAT_TOLERANCE, quat_from_matrix
+from service.core.rotations import quat_from_matrix
 from service.core.translation import RootTracker, advance_bodies
 from service.core.windowing import MODEL_RATE_HZ
 from service.inference.registry import LoadedModel
@@ -36,7 +36,6 @@ MIN_POSE_IMU_RATE_HZ, MAX_POSE_IMU_RATE_HZ = 20.0, 400.0
 MAX_POSE_FRAMES = 60 * 60 * 10  # frames at 60 Hz per request
 # chunks an offline model runs in one call: a 10-minute request in groups, so its memory stays that of ~80 s
 CHUNKS_PER_CALL = 32
-QUAT_NORM_TOLERANCE = UNIT_QUAT_TOLERANCE  # |q| within 1 ± this is normalised; further off is a client error
 
 
 def chunk_plan(n_frames: int, window: int, context: int) -> list[tuple[int, int, int, int]]:
