@@ -61,6 +61,9 @@ class FlexModelConfig(Strict):
     # bilstm: Dense1, Dense2, the LSTM's hidden units per direction, Dense3, Dense4 (appendix B: 100, 512, 512,
     # 1024, 150)
     bilstm_sizes: tuple[int, int, int, int, int] = (100, 512, 512, 1024, 150)
+    # ours, not in Chen et al. 2024: a linear map from the (calibrated) readings of each step added to the network's
+    # output, so that readings beyond the trained range answer beyond it where the recurrent layer saturates
+    linear_path: bool = False
 
 
 class FlexTrainConfig(Strict):

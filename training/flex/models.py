@@ -185,6 +185,7 @@ class FlexNet(nn.Module):
             self.net = FCNNet(channels, outputs, cfg.steps)
         else:
             self.net = TCNNet(channels, outputs)
+        self.linear_path = nn.Linear(channels, outputs) if cfg.linear_path else None
 
     @property
     def answer_step(self) -> int:
@@ -202,7 +203,10 @@ class FlexNet(nn.Module):
         y = self.normalised(x)
         if self.calibration is not None:
             y = self.calibration(y)
-        p = self.net(y[:, -self.cfg.steps :])
+        y = y[:, -self.cfg.steps :]
+        p = self.net(y)
+        if self.linear_path is not None:
+            p = p + self.linear_path(y)
         return median3(p) if self.cfg.median else p
 
     def steps_deg(self, x: torch.Tensor) -> torch.Tensor:

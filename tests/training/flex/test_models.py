@@ -142,6 +142,26 @@ def test_an_ensemble_answers_the_mean_of_its_members_and_exports_with_parity(tmp
         FlexEnsemble(members[:1])
 
 
+def test_the_linear_path_adds_a_linear_map_of_each_step_that_exports_with_parity(tmp_path: Path) -> None:
+    """``model.linear_path``: with the network's own output held at zero, the answer is linear in the normalised
+    readings of the last steps, so readings twice as far from the bounds' minimum answer twice as far."""
+    torch.manual_seed(0)
+    cfg = FlexModelConfig(kind="bilstm", bilstm_sizes=(8, 8, 8, 8, 8), linear_path=True)
+    net = FlexNet(cfg, 4, 3, 3, torch.zeros(4), torch.full((4,), 4095.0), torch.zeros(9), torch.ones(9)).eval()
+    x = torch.from_numpy(np.random.default_rng(2).uniform(500, 2000, size=(3, 100, 4)).astype(np.float32))
+    with torch.no_grad():
+        for p in net.net.out.parameters():
+            p.zero_()
+        net.linear_path.bias.zero_()
+        one, two = net(x), net(2 * x)
+    assert one.abs().min() > 0
+    torch.testing.assert_close(two, 2 * one)
+    path = export_flex_onnx(net, tmp_path / "linear.onnx")
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"counts": x.numpy()})[0]
+    np.testing.assert_allclose(got, one.numpy(), atol=1e-4)
+    assert _net("bilstm", False, False).linear_path is None
+
+
 def test_only_the_last_steps_reach_the_network_without_calibration() -> None:
     """Without the calibration module the answer depends on the last ``steps`` samples only; with it, on the
     whole window (its baseline)."""
