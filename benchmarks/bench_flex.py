@@ -22,6 +22,7 @@ import httpx
 import numpy as np
 import websockets
 
+from benchmarks.machine import machine_state
 from benchmarks.servers import REPO, served_dir, start_service, stop
 from service.api.protocol import encode_binary
 from service.core.manifest import read_manifest
@@ -139,14 +140,17 @@ def main() -> None:
     ap.add_argument("--packet", type=int, default=2, help="samples per packet (2 at 20 Hz: every 100 ms)")
     ap.add_argument("--out", type=Path, default=RESULTS / "flex.json", help="where the results go")
     args = ap.parse_args()
+    start = machine_state(REPO / "onnx_models", "start")  # how fast the machine ran (benchmarks/machine.py)
     server, base = start_service(REPO / "onnx_models")
     try:
         result = {"machine": f"{platform.processor() or platform.machine()}, {__import__('os').cpu_count()} cores"}
+        result["machine_state"] = [start]
         result["models"] = MODELS
         result["rest"] = rest(base)
         result["streams"] = [asyncio.run(streams(base, n, args.seconds, args.packet)) for n in args.streams]
     finally:
         stop(server)
+    result["machine_state"].append(machine_state(REPO / "onnx_models", "end"))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1))
     print(json.dumps(result, indent=1))

@@ -31,6 +31,7 @@ import numpy as np
 import orjson
 import websockets
 
+from benchmarks.machine import machine_state
 from benchmarks.servers import REPO, start_service, stop
 from service.api.protocol import ALL_SENSORS, decode_pose_block, encode_binary
 from service.inference.pose_batcher import BUSY_WINDOW_S
@@ -245,6 +246,7 @@ def main() -> None:
     )
     ap.add_argument("--out", type=Path, default=RESULTS / "pose.json", help="where the results go")
     args = ap.parse_args()
+    start = machine_state(REPO / "onnx_models", "start")  # how fast the machine ran (benchmarks/machine.py)
     proc, base = start_service(REPO / "onnx_models")
     try:
         served = {k: v["version"] for k, v in httpx.get(base + "/v1/models").json().items()}
@@ -256,6 +258,7 @@ def main() -> None:
             f"--translation {args.translation}",
             "machine": platform.processor() or platform.machine(),
             "served": served,
+            "machine_state": [start],
         }
         for translation in translations:  # with all, each one's REST figures under keys ending in its name
             suffix = f"_{translation}" if args.translation == "all" else ""
@@ -268,6 +271,7 @@ def main() -> None:
         ]
     finally:
         stop(proc)
+    out["machine_state"].append(machine_state(REPO / "onnx_models", "end"))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")
     print(json.dumps(out, indent=1))

@@ -32,6 +32,7 @@ import onnx
 import orjson
 import websockets
 
+from benchmarks.machine import machine_state
 from benchmarks.servers import REPO, start_mlflow_serve, start_service, stop
 from service.api.protocol import encode_binary
 from service.core.manifest import read_manifest
@@ -357,7 +358,9 @@ def main() -> None:
         f"--repeats {args.repeats} --batch {args.batch} --parts {' '.join(args.parts)}"
         f" --answer-seconds {args.answer_seconds} --answer-sessions {args.answer_sessions}",
         "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
+        "machine_state": [machine_state(models, "start")],  # how fast the machine ran (benchmarks/machine.py)
     }
+    print(json.dumps(result["machine_state"][0]))
     proc, base = start_service(models)
     try:
         # what the server serves (the newest files, or the WEARMOCAP_MODEL_VERSIONS pins of this environment)
@@ -383,6 +386,8 @@ def main() -> None:
         served = models / "i2s_assignment" / result["models"]["i2s_assignment"]
         result["vs_mlflow"] = [bench_vs_mlflow(served, args.batch, args.batches)]
         print(json.dumps(result["vs_mlflow"], indent=2))
+    result["machine_state"].append(machine_state(models, "end"))
+    print(json.dumps(result["machine_state"][1]))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
 
