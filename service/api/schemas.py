@@ -521,7 +521,8 @@ class PoseImuRequest(BaseModel):
 
 class SegmentTrack(BaseModel):
     source: Literal["sensor", "model", "parent"] = Field(
-        description="sensor: the calibrated sensor; model: the network; parent: neither covers it, the parent's"
+        description="sensor: the calibrated sensor; model: the network (a thigh beside a sensed shank: that shank "
+        "turned about the knee's hinge by the network's flexion); parent: neither covers it, the parent's"
     )
     q_world_segment: list[list[float]]
     q_parent_segment: list[list[float]]

@@ -99,3 +99,57 @@ def test_a_streamed_sensors_alignment_follows_its_last_windows_for_its_segment()
     q, _ = running.mean(0)
     moved = Rotation.from_euler("xyz", [-40, 5, 90], degrees=True)  # 86° from the old mounting
     assert np.degrees((Rotation.from_quat(q, scalar_first=True).inv() * moved).magnitude()) < 3.0
+
+
+def _twist_about_y_deg(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Of rotations ``(T, 3, 3)``: the angle about y and how far the y axis itself is turned (a pure hinge: 0)."""
+    return np.degrees(np.arctan2(R[:, 0, 2], R[:, 0, 0])), np.degrees(np.arccos(np.clip(R[:, 1, 1], -1.0, 1.0)))
+
+
+def test_whole_body_makes_each_answered_thigh_a_hinge_of_its_sensed_shank() -> None:
+    from service.core.body import BODY_SEGMENTS
+    from service.inference.pose import whole_body
+
+    rng = np.random.default_rng(3)
+    T = 50
+    sensors = ["Pelvis", "LeftLowerLeg", "RightLowerLeg"]
+    outputs = ["LeftUpperLeg", "RightUpperLeg", "LeftFoot"]
+    R_sensors = Rotation.random(T * 3, random_state=4).as_matrix().reshape(T, 3, 3, 3)
+    flexion = rng.uniform(0.0, 90.0, size=T)
+    # the model's thighs, relative to the pelvis: the left an exact hinge of its shank, the right 20° off it
+    off = Rotation.from_rotvec(np.radians(20.0) * np.array([1.0, 0.0, 0.0])).as_matrix()
+    R_hinge = Rotation.from_rotvec(-np.radians(flexion)[:, None] * [0.0, 1.0, 0.0]).as_matrix()
+    thighs_world = [R_sensors[:, 1] @ R_hinge, R_sensors[:, 2] @ R_hinge @ off]
+    R_root_out = np.stack(
+        [np.einsum("tji,tjk->tik", R_sensors[:, 0], th) for th in thighs_world]
+        + [Rotation.random(T, random_state=5).as_matrix()],
+        axis=1,
+    )
+    index = [BODY_SEGMENTS.index(s) for s in sensors], [BODY_SEGMENTS.index(s) for s in outputs]
+    R = whole_body(R_sensors, R_root_out, *index)
+    left, right = BODY_SEGMENTS.index("LeftUpperLeg"), BODY_SEGMENTS.index("RightUpperLeg")
+    np.testing.assert_allclose(R[:, left], thighs_world[0], atol=1e-9)  # already a hinge: unchanged
+    for thigh, shank in ((left, 1), (right, 2)):
+        angle, tilt = _twist_about_y_deg(np.einsum("tji,tjk->tik", R_sensors[:, shank], R[:, thigh]))
+        assert np.abs(tilt).max() < 1e-4  # shank⁻¹ · thigh turns about y only (degrees; arccos near 1 is coarse)
+        np.testing.assert_allclose(angle, -flexion, atol=1e-6)  # the model's flexion is kept
+    foot = BODY_SEGMENTS.index("LeftFoot")
+    np.testing.assert_allclose(R[:, foot], np.einsum("tij,tjk->tik", R_sensors[:, 0], R_root_out[:, 2]), atol=1e-12)
+
+
+def test_whole_body_keeps_a_thigh_a_sensor_measures_and_one_with_no_sensed_shank() -> None:
+    from service.core.body import BODY_SEGMENTS
+    from service.inference.pose import whole_body
+
+    T = 20
+    R_sensors = Rotation.random(T * 2, random_state=6).as_matrix().reshape(T, 2, 3, 3)
+    R_root_out = Rotation.random(T * 2, random_state=7).as_matrix().reshape(T, 2, 3, 3)
+    sensors = [BODY_SEGMENTS.index(s) for s in ("Pelvis", "LeftLowerLeg")]
+    outputs = [BODY_SEGMENTS.index(s) for s in ("LeftUpperLeg", "RightUpperLeg")]
+    measured = np.full((T, len(BODY_SEGMENTS), 3, 3), np.nan)
+    left_thigh = Rotation.random(T, random_state=8).as_matrix()
+    measured[:, BODY_SEGMENTS.index("LeftUpperLeg")] = left_thigh
+    R = whole_body(R_sensors, R_root_out, sensors, outputs, measured)
+    np.testing.assert_allclose(R[:, BODY_SEGMENTS.index("LeftUpperLeg")], left_thigh)  # measured: as measured
+    right = np.einsum("tij,tjk->tik", R_sensors[:, 0], R_root_out[:, 1])  # no right shank sensed: the model's
+    np.testing.assert_allclose(R[:, BODY_SEGMENTS.index("RightUpperLeg")], right, atol=1e-12)

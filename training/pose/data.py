@@ -336,8 +336,9 @@ def dataset_digest(clips: list[MotionClip]) -> str:
 
 # How a pose run's validation figure is computed, part of the registry's evaluation digest: "served chunks" since
 # runs evaluate an offline model as the service runs it (training.pose.config.served_chunks); versions tagged before
-# were scored on whole clips, and ``evaluate-pose --validation --tag`` scores a shipped one again this way.
-POSE_EVALUATION = "served-chunks"
+# were scored on whole clips, and ``evaluate-pose --validation --tag`` scores a shipped one again this way; "+knee
+# hinges" since the answer's knees are hinges (``service.inference.pose.knees_as_hinges``, 2026-12-06).
+POSE_EVALUATION = "served-chunks+knee-hinges"
 
 
 def pose_evaluation_digest(val_clips: list[MotionClip]) -> str:

@@ -78,11 +78,12 @@ def clip_metrics(
     R_root_out: np.ndarray,
     sensors: Sequence[str],
     outputs: Sequence[str],
+    hinges: bool = True,
 ) -> ClipResult:
     sensor_index = [BODY_SEGMENTS.index(s) for s in sensors]
     output_index = [BODY_SEGMENTS.index(s) for s in outputs]
     covered = sorted(sensor_index + output_index)
-    R_pred = whole_body(session.R_world_sensor_segment, R_root_out, sensor_index, output_index)
+    R_pred = whole_body(session.R_world_sensor_segment, R_root_out, sensor_index, output_index, hinges=hinges)
     Rz = Rotation.from_rotvec([0.0, 0.0, session.heading_rad]).as_matrix()
     R_true = np.einsum("ij,tsjk->tsik", Rz, clip.motion.R_world_segment)
     err = geodesic_deg(R_pred, R_true)  # (T, 21)
@@ -156,8 +157,13 @@ def evaluate_clips(
     sessions: list[Session],
     sensors: Sequence[str],
     outputs: Sequence[str],
+    hinges: bool = True,
 ) -> list[ClipResult]:
-    return [clip_metrics(c, s, predict(s.features), sensors, outputs) for c, s in zip(clips, sessions, strict=True)]
+    """Each clip's figures with the answer assembled as the service assembles it (``hinges`` False: without the
+    knees made hinges, for the mean-pose baseline)."""
+    return [
+        clip_metrics(c, s, predict(s.features), sensors, outputs, hinges) for c, s in zip(clips, sessions, strict=True)
+    ]
 
 
 def summarise(results: list[ClipResult]) -> dict[str, dict[str, dict[str, float]]]:
