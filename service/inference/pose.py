@@ -89,6 +89,12 @@ class PoseModel:
         self.output_index = [BODY_SEGMENTS.index(s) for s in self.spec.output_segments]
 
     @property
+    def knee_hinges(self) -> bool:
+        """Whether its answers' knees are hinges (``knees_as_hinges``): in the frames whose limbs take their turn
+        from the knee's hinge, where that hinge is y; a model in a rig's own frames is answered as it is."""
+        return knee_hinges(self.loaded.manifest.training_data.get("limb_twist"))
+
+    @property
     def scenario(self) -> dict | None:
         """What the model was trained for when its data were selected for one scenario (``selected_for`` of its
         manifest's training data), else None: a general model."""
@@ -172,6 +178,13 @@ def fitting_models(models: list[PoseModel], segments: Sequence[str]) -> list[Pos
 KNEES = tuple((BODY_SEGMENTS.index(f"{s}UpperLeg"), BODY_SEGMENTS.index(f"{s}LowerLeg")) for s in ("Left", "Right"))
 
 
+def knee_hinges(limb_twist: str | None) -> bool:
+    """Whether a model's knees are answered as hinges: only in the segment frames whose limbs take their turn from
+    the knee's hinge (``limb_twist`` "hinge", where that hinge is the y axis; in a rig's own frames it lies up to 13°
+    off y, docs/pose.md "Part of it is the rigs' frames")."""
+    return limb_twist == "hinge"
+
+
 def knees_as_hinges(R: np.ndarray, thigh_answered: np.ndarray, shank_sensed: np.ndarray) -> np.ndarray:
     """``R`` ``(T, 21, 3, 3)`` with each thigh the model answered (``thigh_answered[t, k]``) beside a sensed shank
     (``shank_sensed[t, k]``, k the leg) replaced by that shank turned about its y axis by the flexion the model's
@@ -201,15 +214,16 @@ def whole_body(
     sensor_index: list[int],
     output_index: list[int],
     measured: np.ndarray | None = None,
-    hinges: bool = True,
+    *,
+    hinges: bool,
 ) -> np.ndarray:
     """Global orientations of all ``BODY_SEGMENTS`` ``(T, 21, 3, 3)``: the sensors' segments as measured, the
-    others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D), each knee a hinge
-    where the model answers the thigh and a sensor gives the shank (``knees_as_hinges``; ``hinges`` False: the
-    answer as it is, for the mean-pose baseline, which takes nothing from the sensors but the root's and their own
-    segments'). ``measured`` ``(T, 21, 3, 3)``: segments of sensors the model does not read, NaN elsewhere, in
-    place of the model's answer. Segments that no sensor and not the model covers (e.g. the arms of a lower-body
-    model) take their parent's orientation."""
+    others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D), each knee a hinge where
+    the model answers the thigh and a sensor gives the shank if ``hinges`` (``knees_as_hinges``; a model's
+    ``knee_hinges``: False for a model in a rig's own frames, and for the mean-pose baseline, which takes nothing
+    from the sensors but the root's and their own segments'). ``measured`` ``(T, 21, 3, 3)``: segments of sensors
+    the model does not read, NaN elsewhere, in place of the model's answer. Segments that no sensor and not the
+    model covers (e.g. the arms of a lower-body model) take their parent's orientation."""
     T = R_root_out.shape[0]
     R = np.full((T, len(BODY_SEGMENTS), 3, 3), np.nan)
     R[:, sensor_index] = R_world_sensor_segment
@@ -492,7 +506,12 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
             ]
         )
     R_world = whole_body(
-        np.concatenate(R_sensors), np.concatenate(R_out), model.sensor_index, model.output_index, measured_all
+        np.concatenate(R_sensors),
+        np.concatenate(R_out),
+        model.sensor_index,
+        model.output_index,
+        measured_all,
+        hinges=model.knee_hinges,
     )
     q_world = np.round(quat_from_matrix(R_world), 5)
     exact = segment_origins(R_world, np.concatenate(offsets))

@@ -126,7 +126,7 @@ def test_whole_body_makes_each_answered_thigh_a_hinge_of_its_sensed_shank() -> N
         axis=1,
     )
     index = [BODY_SEGMENTS.index(s) for s in sensors], [BODY_SEGMENTS.index(s) for s in outputs]
-    R = whole_body(R_sensors, R_root_out, *index)
+    R = whole_body(R_sensors, R_root_out, *index, hinges=True)
     left, right = BODY_SEGMENTS.index("LeftUpperLeg"), BODY_SEGMENTS.index("RightUpperLeg")
     np.testing.assert_allclose(R[:, left], thighs_world[0], atol=1e-9)  # already a hinge: unchanged
     for thigh, shank in ((left, 1), (right, 2)):
@@ -149,7 +149,16 @@ def test_whole_body_keeps_a_thigh_a_sensor_measures_and_one_with_no_sensed_shank
     measured = np.full((T, len(BODY_SEGMENTS), 3, 3), np.nan)
     left_thigh = Rotation.random(T, random_state=8).as_matrix()
     measured[:, BODY_SEGMENTS.index("LeftUpperLeg")] = left_thigh
-    R = whole_body(R_sensors, R_root_out, sensors, outputs, measured)
+    R = whole_body(R_sensors, R_root_out, sensors, outputs, measured, hinges=True)
     np.testing.assert_allclose(R[:, BODY_SEGMENTS.index("LeftUpperLeg")], left_thigh)  # measured: as measured
     right = np.einsum("tij,tjk->tik", R_sensors[:, 0], R_root_out[:, 1])  # no right shank sensed: the model's
     np.testing.assert_allclose(R[:, BODY_SEGMENTS.index("RightUpperLeg")], right, atol=1e-12)
+
+
+def test_only_models_in_the_hinge_frames_answer_their_knees_as_hinges() -> None:
+    from service.inference.pose import PoseModel, knee_hinges
+
+    assert knee_hinges("hinge") and not knee_hinges("rig") and not knee_hinges(None)
+    models = load_models(Path(__file__).resolve().parents[2] / "onnx_models", 1)
+    pose = [PoseModel(m) for m in models.values() if m.manifest.task == "imu_pose"]
+    assert pose and all(p.knee_hinges == (p.loaded.manifest.training_data["limb_twist"] == "hinge") for p in pose)

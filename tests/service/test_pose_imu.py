@@ -645,7 +645,13 @@ def test_the_stream_answers_pose_as_the_streaming_model_does_offline(server: str
     R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
     from service.inference.pose import whole_body
 
-    R_world = whole_body(R_w_seg, model.predict(pose_features(R_w_seg, a_w)), model.sensor_index, model.output_index)
+    R_world = whole_body(
+        R_w_seg,
+        model.predict(pose_features(R_w_seg, a_w)),
+        model.sensor_index,
+        model.output_index,
+        hinges=model.knee_hinges,
+    )
     q_off = quat_from_matrix(R_world)[: len(q_live)]
     q_live /= np.linalg.norm(q_live, axis=-1, keepdims=True)  # sent rounded to 5 decimals
     angle = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(q_live * q_off, -1)), 0, 1)))
@@ -681,7 +687,13 @@ def test_a_pelvis_turned_about_the_vertical_is_turned_back_by_the_legs_on_rest_a
     R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
     from service.inference.pose import whole_body
 
-    truth = whole_body(R_w_seg, model.predict(pose_features(R_w_seg, a_w)), model.sensor_index, model.output_index)
+    truth = whole_body(
+        R_w_seg,
+        model.predict(pose_features(R_w_seg, a_w)),
+        model.sensor_index,
+        model.output_index,
+        hinges=model.knee_hinges,
+    )
     packets = [
         (s.lower(), start, _rows(raw, k)[start : start + 8])
         for start in range(0, motion.n_frames, 8)
@@ -1376,7 +1388,9 @@ def test_rest_pose_with_the_learned_velocity_moves_the_walker_as_its_model_says(
     assert velocity is not None and velocity.spec.sensors == SIX_SENSORS
     R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
     features = pose_features(R_w_seg, a_w)
-    R_world = whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index)
+    R_world = whole_body(
+        R_w_seg, model.predict(features), model.sensor_index, model.output_index, hinges=model.knee_hinges
+    )
     tracker = RootTracker(feet_of(model.body), 60.0, learned_share=velocity.spec.learned_share)
     learned = world_velocity(R_w_seg[:, 0], velocity.predict(features))
     expected, _ = tracker.advance(model.body.forward(R_world), a_w[:, 0], learned)
@@ -1434,7 +1448,9 @@ def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_route_does(
     model = pose_models["pose_full6_stream"]
     R_w_seg, a_w = segment_readings(raw.q_world_sensor[:n], raw.acc_mps2[:n], raw.q_segment_sensor)
     features = pose_features(R_w_seg, a_w)
-    joints = model.body.forward(whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index))
+    joints = model.body.forward(
+        whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index, hinges=model.knee_hinges)
+    )
     rule, _ = RootTracker(feet_of(model.body), 60.0).advance(joints, a_w[:, 0])
     root_off = rule
     if translation == "learned":

@@ -78,7 +78,7 @@ def clip_metrics(
     R_root_out: np.ndarray,
     sensors: Sequence[str],
     outputs: Sequence[str],
-    hinges: bool = True,
+    hinges: bool,
 ) -> ClipResult:
     sensor_index = [BODY_SEGMENTS.index(s) for s in sensors]
     output_index = [BODY_SEGMENTS.index(s) for s in outputs]
@@ -157,10 +157,11 @@ def evaluate_clips(
     sessions: list[Session],
     sensors: Sequence[str],
     outputs: Sequence[str],
-    hinges: bool = True,
+    *,
+    hinges: bool,
 ) -> list[ClipResult]:
-    """Each clip's figures with the answer assembled as the service assembles it (``hinges`` False: without the
-    knees made hinges, for the mean-pose baseline)."""
+    """Each clip's figures with the answer assembled as the service assembles it: ``hinges`` as the model's
+    ``knee_hinges`` (by its frames; False for the mean-pose baseline)."""
     return [
         clip_metrics(c, s, predict(s.features), sensors, outputs, hinges) for c, s in zip(clips, sessions, strict=True)
     ]

@@ -25,7 +25,7 @@ from mlflow.tracking import MlflowClient
 from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, clip_body
 from service.core.calibration import features_per_frame
 from service.core.manifest import Evaluation, read_manifest, sha256_file
-from service.inference.pose import PoseModel, whole_body
+from service.inference.pose import PoseModel, knee_hinges, whole_body
 from service.inference.registry import load_model
 from training.config import flatten
 from training.data.catalog import mocap_entries
@@ -235,10 +235,18 @@ def log_datasets(data: PoseData, data_dir: Path) -> None:
         mlflow.log_input(ds, context=context)
 
 
+def hinged(cfg: PoseConfig) -> bool:
+    """Whether this recipe's answers have their knees as hinges (by its segment frames, as the service decides for
+    the shipped file: ``PoseModel.knee_hinges``)."""
+    return knee_hinges(cfg.data.limb_twist)
+
+
 def _snapshot(net_predict, clip: MotionClip, session: Session, cfg: PoseConfig, path: Path) -> Path:
     sensors = [BODY_SEGMENTS.index(s) for s in cfg.sensors]
     outputs = [BODY_SEGMENTS.index(s) for s in cfg.outputs]
-    R_pred = whole_body(session.R_world_sensor_segment, net_predict(session.features), sensors, outputs)
+    R_pred = whole_body(
+        session.R_world_sensor_segment, net_predict(session.features), sensors, outputs, hinges=hinged(cfg)
+    )
     from scipy.spatial.transform import Rotation
 
     Rz = Rotation.from_rotvec([0.0, 0.0, session.heading_rad]).as_matrix()
@@ -393,9 +401,11 @@ def run_pose_experiment(
             mlflow.log_artifact(str(curve), "plots")
 
         predict = torch_predictor(net, served_chunks(cfg))  # as the service runs it
-        val_summary = summarise(evaluate_clips(predict, data.val, val_sessions, cfg.sensors, cfg.outputs))
+        hinges = hinged(cfg)
+        val_results = evaluate_clips(predict, data.val, val_sessions, cfg.sensors, cfg.outputs, hinges=hinges)
+        val_summary = summarise(val_results)
         mlflow.log_metrics(flat_metrics(val_summary, "val"))
-        test_results = evaluate_clips(predict, data.test, test_sessions, cfg.sensors, cfg.outputs)
+        test_results = evaluate_clips(predict, data.test, test_sessions, cfg.sensors, cfg.outputs, hinges=hinges)
         test_summary = summarise(test_results)
         mlflow.log_metrics(flat_metrics(test_summary, "test"))
         # Vlutters 2016 §IV-F: the training set's mean pose, whatever the input
@@ -407,14 +417,16 @@ def run_pose_experiment(
         mlflow.log_metrics(flat_metrics(baseline, "test_meanpose"))
         if data.seen:  # other takes of the training people: Zheng et al. 2021 §7's test, not ours
             seen_sessions = fixed_sessions(data.seen, cfg, TEST_SEED)
-            seen = summarise(evaluate_clips(predict, data.seen, seen_sessions, cfg.sensors, cfg.outputs))
+            seen = summarise(evaluate_clips(predict, data.seen, seen_sessions, cfg.sensors, cfg.outputs, hinges=hinges))
             mlflow.log_metrics(flat_metrics(seen, "seen"))
             for a, v in sorted(seen["activity"].items()):
                 log.info("seen people, %s: %.2f° over all segments", a, v["angle_all_deg"])
         own_test_summary = None
         if data.own_test:  # the user's held-out people, apart from the data directory's
             own_sessions = fixed_sessions(data.own_test, cfg, TEST_SEED)
-            own_test_summary = summarise(evaluate_clips(predict, data.own_test, own_sessions, cfg.sensors, cfg.outputs))
+            own_test_summary = summarise(
+                evaluate_clips(predict, data.own_test, own_sessions, cfg.sensors, cfg.outputs, hinges=hinges)
+            )
             mlflow.log_metrics(flat_metrics(own_test_summary, "test_own"))
         seg = per_segment_mean(test_results)
         mlflow.log_artifact(
@@ -525,7 +537,7 @@ def run_pose_experiment(
             shipped = ship_files(ship_to, manifest, onnx_path, tmp / "golden.npz")
             served = PoseModel(load_model(shipped, 2))  # the served path: its numbers must equal torch's
             served_summary = summarise(
-                evaluate_clips(served.predict, data.test, test_sessions, cfg.sensors, cfg.outputs)
+                evaluate_clips(served.predict, data.test, test_sessions, cfg.sensors, cfg.outputs, hinges=hinges)
             )
             a = served_summary["overall"]["all"]["angle_all_deg"]
             b = test_summary["overall"]["all"]["angle_all_deg"]
@@ -809,5 +821,5 @@ def evaluate_shipped_pose(
     model = PoseModel(load_model(model_dir, 2))
     cfg = PoseConfig(name=model.name, sensors=model.spec.sensors, output_segments=model.spec.output_segments)
     sessions = fixed_sessions(clips, cfg, seed)
-    results = evaluate_clips(model.predict, clips, sessions, cfg.sensors, cfg.outputs)
+    results = evaluate_clips(model.predict, clips, sessions, cfg.sensors, cfg.outputs, hinges=model.knee_hinges)
     return results, summarise(results)

@@ -70,7 +70,9 @@ def check_recording(
         seg_R[seg] = (R_w_seg[:, 0], a_w[:, 0])
     R_in = np.stack([seg_R[s][0] for s in inputs], axis=1)
     a_in = np.stack([seg_R[s][1] for s in inputs], axis=1)
-    R_pred = whole_body(R_in, model.predict(pose_features(R_in, a_in)), model.sensor_index, model.output_index)
+    R_pred = whole_body(
+        R_in, model.predict(pose_features(R_in, a_in)), model.sensor_index, model.output_index, hinges=model.knee_hinges
+    )
     for name in ("UpperLeg", "Foot"):
         errs = []
         for side in ("Left", "Right"):

@@ -229,7 +229,9 @@ def translation_cases(clips: list[MotionClip], sessions: list[Session], pose: Po
     cases = []
     for clip, s in zip(clips, sessions, strict=True):
         body = clip_body(clip.motion)
-        R = whole_body(s.R_world_sensor_segment, pose.predict(s.features), sensor_index, output_index)
+        R = whole_body(
+            s.R_world_sensor_segment, pose.predict(s.features), sensor_index, output_index, hinges=pose.knee_hinges
+        )
         Rz = Rotation.from_rotvec([0.0, 0.0, s.heading_rad]).as_matrix()
         cases.append(
             TranslationCase(
