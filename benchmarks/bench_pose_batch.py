@@ -1,8 +1,9 @@
 """The live pose worker's cost per batch, in-process, side by side in one run: ``process_live`` over S sessions of
 the served six-sensor streaming model (declared calibration, random readings, ``--frames`` frames each), as
 sessions run plain, with the pelvis's heading from the legs (``pelvis_heading: legs``), and with one more sensor
-than the model reads (``measured``: a left upper arm). The variants are interleaved round by round so that the
-machine's drift falls on all of them alike; the median per variant is reported.
+than the model reads (``measured``: a left upper arm), and with the knees answered as the network gives them
+(``no_hinges``: what the knee hinges cost). The variants are interleaved round by round so that the machine's drift
+falls on all of them alike; the median per variant is reported.
 
     python -m benchmarks.bench_pose_batch                 -> benchmarks/results/pose_batch.json
     python -m benchmarks.bench_pose_batch --sessions 50 150 --rounds 40
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from benchmarks.machine import machine_state
 from benchmarks.servers import REPO
 from service.inference.pose import LivePose, PoseModel, process_live
 from service.inference.registry import load_models, newest_version_dir
@@ -29,11 +31,18 @@ VARIANTS = {
     "plain": {},
     "legs": {"pelvis_heading": "legs"},
     "measured": {"measured": ["LeftUpperArm"]},
+    "no_hinges": {},  # the knees answered as the network gives them, as before they were hinges (its cost)
 }
+
+
+class _NoKneeHinges(PoseModel):
+    knee_hinges = False
 
 
 def sessions(model: PoseModel, n: int, variant: str) -> list[LivePose]:
     extra = len(VARIANTS[variant].get("measured", []))
+    if variant == "no_hinges":
+        model = _NoKneeHinges(model.loaded)
     return [
         LivePose(
             model,
@@ -58,6 +67,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=30, help="interleaved rounds; the median is reported")
     parser.add_argument("--out", type=Path, default=RESULTS / "pose_batch.json")
     args = parser.parse_args()
+    start_state = machine_state(REPO / "onnx_models", "start")  # how fast the machine ran (benchmarks/machine.py)
     loaded = load_models(REPO / "onnx_models", 1)
     model = PoseModel(loaded[MODEL])
     rng = np.random.default_rng(0)
@@ -84,6 +94,7 @@ def main() -> None:
         "machine": platform.platform(),
         "time": time.strftime("%Y-%m-%d %H:%M"),
         "results": rows,
+        "machine_state": [start_state, machine_state(REPO / "onnx_models", "end")],
     }
     args.out.write_text(json.dumps(out, indent=1) + "\n")
     print(f"wrote {args.out}")
