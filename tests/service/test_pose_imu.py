@@ -641,21 +641,20 @@ def test_the_stream_answers_pose_as_the_streaming_model_does_offline(server: str
     q_live = np.concatenate([np.array(p["q_world_segment"]) for p in poses])
     assert len(q_live) == motion.n_frames - 5  # the last 5 frames wait for their look-ahead
     # offline, the same model on the same readings and calibration
-    model = pose_models["pose_full6_stream"]
-    R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
-    from service.inference.pose import whole_body
-
-    R_world = whole_body(
-        R_w_seg,
-        model.predict(pose_features(R_w_seg, a_w)),
-        model.sensor_index,
-        model.output_index,
-        hinges=model.knee_hinges,
-    )
+    R_world = _offline_pose(pose_models["pose_full6_stream"], raw)
     q_off = quat_from_matrix(R_world)[: len(q_live)]
     q_live /= np.linalg.norm(q_live, axis=-1, keepdims=True)  # sent rounded to 5 decimals
     angle = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(q_live * q_off, -1)), 0, 1)))
     assert angle.max() < 0.1, angle.max()
+
+
+def _offline_pose(model: PoseModel, raw) -> np.ndarray:
+    """``model``'s whole-body answer ``(T, 21, 3, 3)`` on the walk's readings with its true alignments, offline."""
+    from service.inference.pose import whole_body
+
+    R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
+    R_out = model.predict(pose_features(R_w_seg, a_w))
+    return whole_body(R_w_seg, R_out, model.sensor_index, model.output_index, hinges=model.knee_hinges)
 
 
 def _turned_pelvis(raw, deg: float) -> np.ndarray:
@@ -683,17 +682,7 @@ def test_a_pelvis_turned_about_the_vertical_is_turned_back_by_the_legs_on_rest_a
     left = Rotation.from_matrix(matrix_from_quat(q_pelvis).T @ matrix_from_quat(raw.q_segment_sensor[0]))
     assert np.degrees(left.magnitude()) < 10.0  # each simulated sensor's fusion has up to 5° of heading error
 
-    model = pose_models["pose_full6_stream"]
-    R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
-    from service.inference.pose import whole_body
-
-    truth = whole_body(
-        R_w_seg,
-        model.predict(pose_features(R_w_seg, a_w)),
-        model.sensor_index,
-        model.output_index,
-        hinges=model.knee_hinges,
-    )
+    truth = _offline_pose(pose_models["pose_full6_stream"], raw)
     packets = [
         (s.lower(), start, _rows(raw, k)[start : start + 8])
         for start in range(0, motion.n_frames, 8)
