@@ -33,12 +33,13 @@ def _session(model_dir: Path) -> ort.InferenceSession:
 
 
 def reference_rate(models_dir: Path) -> dict:
-    """The served I2S files alone on one core: windows per second over ``WINDOWS`` windows (the best of ``RUNS``
-    runs, so a moment's interruption does not count), and which versions ran."""
+    """The newest I2S files under ``models_dir`` alone on one core: windows per second over ``WINDOWS`` windows (the
+    best of ``RUNS`` runs, so a moment's interruption does not count), and which versions ran. Without them the
+    rate is None and ``missing`` names them: a benchmark's own results are never lost to its reference."""
     dirs = {name: newest_version_dir(models_dir, name) for name in REFERENCE_MODELS}
     missing = [name for name, d in dirs.items() if d is None]
     if missing:
-        raise SystemExit(f"the machine reference needs {missing} under {models_dir}")
+        return {"per_core_windows_per_s": None, "missing": missing}
     sessions = [_session(d) for d in dirs.values()]
     rng = np.random.default_rng(0)
     x = rng.normal(size=(WINDOWS, 128, 6)).astype(np.float32)

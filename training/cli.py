@@ -721,6 +721,7 @@ def evaluate_pose(
     if velocity_model is not None:
         learned = _learned_translation(model, velocity_model, clips, VAL_SEED if validation else TEST_SEED)
     if tag:
+        from service.inference.pose import knee_hinges
         from training.pose.data import pose_evaluation_digest
         from training.pose.evaluate import flat_metrics
         from training.pose.pipeline import SELECTION_METRIC
@@ -730,7 +731,13 @@ def evaluate_pose(
         setup_tracking("pose")
         value = flat_metrics(summary, "val")[SELECTION_METRIC]  # as the run logs it
         run_id = local_run_id(manifest.mlflow["run_id"])
-        tagged = record_evaluation(manifest.name, run_id, SELECTION_METRIC, value, pose_evaluation_digest(clips))
+        tagged = record_evaluation(
+            manifest.name,
+            run_id,
+            SELECTION_METRIC,
+            value,
+            pose_evaluation_digest(clips, knee_hinges(cfg.data.limb_twist)),
+        )
         typer.echo(f"{manifest.name} versions {tagged}: {SELECTION_METRIC} {value:.4f} (served chunks)", err=True)
     if record:
         from training.pose.pipeline import HELD_OUT, evaluation_record

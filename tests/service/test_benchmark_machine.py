@@ -5,8 +5,6 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-import pytest
-
 from benchmarks.machine import machine_state
 from benchmarks.servers import REPO, served_dir
 
@@ -21,7 +19,7 @@ def test_the_machine_state_times_the_served_i2s_files_and_names_them() -> None:
     }
 
 
-def test_the_machine_state_refuses_a_models_folder_without_the_reference_models(tmp_path: Path) -> None:
+def test_the_machine_state_says_what_is_missing_without_the_reference_models(tmp_path: Path) -> None:
     shutil.copytree(served_dir("i2s_assignment"), tmp_path / "i2s_assignment" / served_dir("i2s_assignment").name)
-    with pytest.raises(SystemExit, match="i2s_alignment"):
-        machine_state(tmp_path, "end")
+    state = machine_state(tmp_path, "end")  # at a benchmark's end: its results must still be written
+    assert state["when"] == "end" and state["per_core_windows_per_s"] is None and state["missing"] == ["i2s_alignment"]

@@ -162,3 +162,39 @@ def test_only_models_in_the_hinge_frames_answer_their_knees_as_hinges() -> None:
     models = load_models(Path(__file__).resolve().parents[2] / "onnx_models", 1)
     pose = [PoseModel(m) for m in models.values() if m.manifest.task == "imu_pose"]
     assert pose and all(p.knee_hinges == (p.loaded.manifest.training_data["limb_twist"] == "hinge") for p in pose)
+
+
+def test_a_model_in_a_rig_s_own_frames_and_the_mean_pose_keep_the_thighs_as_answered() -> None:
+    from service.core.body import BODY_SEGMENTS
+    from service.inference.pose import PoseModel, whole_body
+
+    loaded = load_models(Path(__file__).resolve().parents[2] / "onnx_models", 1)["pose_lower3"]
+    rig = loaded.manifest.model_copy(deep=True)
+    rig.training_data["limb_twist"] = "rig"
+    assert PoseModel(loaded).knee_hinges and not PoseModel(type(loaded)(rig, loaded.session, loaded.path)).knee_hinges
+    T = 10
+    R_sensors = Rotation.random(T * 2, random_state=9).as_matrix().reshape(T, 2, 3, 3)
+    R_root_out = Rotation.random(T, random_state=10).as_matrix().reshape(T, 1, 3, 3)
+    sensors = [BODY_SEGMENTS.index(s) for s in ("Pelvis", "LeftLowerLeg")]
+    outputs = [BODY_SEGMENTS.index("LeftUpperLeg")]
+    R = whole_body(R_sensors, R_root_out, sensors, outputs, hinges=False)
+    np.testing.assert_allclose(R[:, outputs[0]], np.einsum("tij,tjk->tik", R_sensors[:, 0], R_root_out[:, 0]))
+
+
+def test_a_shank_measured_on_some_frames_hinges_its_knee_on_those_frames_only() -> None:
+    """Frames of several live sessions share one call: a shank sensor beyond the model's on some of them."""
+    from service.core.body import BODY_SEGMENTS
+    from service.inference.pose import whole_body
+
+    T = 12
+    R_sensors = Rotation.random(T, random_state=11).as_matrix().reshape(T, 1, 3, 3)  # the pelvis only
+    R_root_out = Rotation.random(T, random_state=12).as_matrix().reshape(T, 1, 3, 3)
+    thigh, shank = BODY_SEGMENTS.index("RightUpperLeg"), BODY_SEGMENTS.index("RightLowerLeg")
+    measured = np.full((T, len(BODY_SEGMENTS), 3, 3), np.nan)
+    measured[: T // 2, shank] = Rotation.random(T // 2, random_state=13).as_matrix()
+    R = whole_body(R_sensors, R_root_out, [0], [thigh], measured, hinges=True)
+    answered = np.einsum("tij,tjk->tik", R_sensors[:, 0], R_root_out[:, 0])
+    np.testing.assert_allclose(R[T // 2 :, thigh], answered[T // 2 :], atol=1e-12)  # no shank there: as answered
+    M = np.einsum("tji,tjk->tik", R[: T // 2, shank], R[: T // 2, thigh])
+    assert np.abs(M[:, 1, 1] - 1.0).max() < 1e-9  # shank⁻¹ · thigh turns about y only where the shank is measured
+    assert not np.allclose(R[: T // 2, thigh], answered[: T // 2])

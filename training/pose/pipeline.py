@@ -528,7 +528,7 @@ def run_pose_experiment(
         mlflow.set_tag("model_uri", info.model_uri)
         registered = register_model(info.model_uri, cfg.registered_model)
         val_value = flat_metrics(val_summary, "val")["val_angle_unsensed_deg"]
-        digest = pose_evaluation_digest(data.val)
+        digest = pose_evaluation_digest(data.val, hinges)
         promoted = maybe_promote(cfg.registered_model, registered.version, SELECTION_METRIC, val_value, False, digest)
         mlflow.set_tag("promoted_to_champion", str(promoted))
         manifest = with_registry(manifest, info, registered)

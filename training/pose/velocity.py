@@ -528,7 +528,7 @@ def run_velocity_experiment(
         registered = register_model(info.model_uri, registered_name)
         # the registry's champion by the figure the share was chosen by, on the same validation sessions
         chosen = val["all"][f"share_{share:g}"]
-        digest = f"{pose_evaluation_digest(data.val)}|{chosen_with}"
+        digest = f"{pose_evaluation_digest(data.val, pose.knee_hinges)}|{chosen_with}"
         promoted = beats_rule and maybe_promote(
             registered_name, registered.version, SELECTION_METRIC, chosen, False, digest
         )  # a network that loses to the rule is not served from the registry either
