@@ -16,20 +16,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import onnxruntime as ort
 
-from service.inference.registry import newest_version_dir
+from service.inference.registry import load_model, newest_version_dir
 
 REFERENCE_MODELS = ("i2s_assignment", "i2s_alignment")
 WINDOWS, CHUNK, RUNS = 256, 8, 3
-
-
-def _session(model_dir: Path) -> ort.InferenceSession:
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = 1
-    options.inter_op_num_threads = 1
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    return ort.InferenceSession(str(model_dir / "model.onnx"), options, providers=["CPUExecutionProvider"])
 
 
 def reference_rate(models_dir: Path) -> dict:
@@ -40,19 +31,19 @@ def reference_rate(models_dir: Path) -> dict:
     missing = [name for name, d in dirs.items() if d is None]
     if missing:
         return {"per_core_windows_per_s": None, "missing": missing}
-    sessions = [_session(d) for d in dirs.values()]
+    models = [load_model(d, threads=1) for d in dirs.values()]  # as the service loads them, one thread each
     rng = np.random.default_rng(0)
     x = rng.normal(size=(WINDOWS, 128, 6)).astype(np.float32)
     x[..., 2] += 9.81
-    feeds = [{s.get_inputs()[0].name: x[i : i + CHUNK]} for s in sessions for i in range(0, WINDOWS, CHUNK)]
-    owners = [s for s in sessions for _ in range(0, WINDOWS, CHUNK)]
-    for s, feed in zip(owners[:2], feeds[:2], strict=True):  # warm-up
-        s.run(None, feed)
+    chunks = [x[i : i + CHUNK] for i in range(0, WINDOWS, CHUNK)]
+    for m in models:  # warm-up
+        m.run(chunks[0])
     best = float("inf")
     for _ in range(RUNS):
         start = time.perf_counter()
-        for s, feed in zip(owners, feeds, strict=True):
-            s.run(None, feed)
+        for m in models:
+            for chunk in chunks:
+                m.run(chunk)
         best = min(best, time.perf_counter() - start)
     return {
         "per_core_windows_per_s": round(WINDOWS / best, 1),

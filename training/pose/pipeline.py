@@ -235,18 +235,11 @@ def log_datasets(data: PoseData, data_dir: Path) -> None:
         mlflow.log_input(ds, context=context)
 
 
-def hinged(cfg: PoseConfig) -> bool:
-    """Whether this recipe's answers have their knees as hinges (by its segment frames, as the service decides for
-    the shipped file: ``PoseModel.knee_hinges``)."""
-    return knee_hinges(cfg.data.limb_twist)
-
-
 def _snapshot(net_predict, clip: MotionClip, session: Session, cfg: PoseConfig, path: Path) -> Path:
     sensors = [BODY_SEGMENTS.index(s) for s in cfg.sensors]
     outputs = [BODY_SEGMENTS.index(s) for s in cfg.outputs]
-    R_pred = whole_body(
-        session.R_world_sensor_segment, net_predict(session.features), sensors, outputs, hinges=hinged(cfg)
-    )
+    hinges = knee_hinges(cfg.data.limb_twist)
+    R_pred = whole_body(session.R_world_sensor_segment, net_predict(session.features), sensors, outputs, hinges=hinges)
     from scipy.spatial.transform import Rotation
 
     Rz = Rotation.from_rotvec([0.0, 0.0, session.heading_rad]).as_matrix()
@@ -401,7 +394,7 @@ def run_pose_experiment(
             mlflow.log_artifact(str(curve), "plots")
 
         predict = torch_predictor(net, served_chunks(cfg))  # as the service runs it
-        hinges = hinged(cfg)
+        hinges = knee_hinges(cfg.data.limb_twist)  # as the service answers the shipped file
         val_results = evaluate_clips(predict, data.val, val_sessions, cfg.sensors, cfg.outputs, hinges=hinges)
         val_summary = summarise(val_results)
         mlflow.log_metrics(flat_metrics(val_summary, "val"))
