@@ -23,6 +23,7 @@ import numpy as np
 import onnx
 from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param
 from mlflow.exceptions import MlflowException
+from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
 from mlflow.tracking import MlflowClient
 
 from service.core.manifest import read_manifest, sha256_file
@@ -37,6 +38,7 @@ DERIVED_VERSION_TAGS = ("original_version", "model_dir", SHIPPED_TAG)  # written
 ARCHIVE = "models"  # <snapshot>/models/<name>/<version>: shipped versions that are no longer served
 SKIPPED_ARTIFACTS = {"checkpoint"}  # torch weights: large, and the ONNX files ship in onnx_models/
 BATCH = 500  # metrics per log_batch call (its limits: 1000 metrics, 100 params, 100 tags)
+BULK_RUNS = 500  # runs per bulk history query (an SQL IN list; SQLite allows 32,766 variables)
 
 
 @dataclass
@@ -58,6 +60,7 @@ def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
     ids = [e.experiment_id for name in experiments if (e := client.get_experiment_by_name(name)) is not None]
     runs = client.search_runs(ids, "attributes.status = 'FINISHED'", max_results=10_000, order_by=["start_time ASC"])
     records, origin = [], {}
+    histories = _metric_histories(client, runs)
     for run in runs:
         rid = run.info.run_id
         origin[rid] = run.data.tags.get(RESTORED_TAG, rid)
@@ -70,10 +73,7 @@ def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
                 "end_time": run.info.end_time,
                 "params": run.data.params,
                 "tags": {k: v for k, v in run.data.tags.items() if k != "model_uri"},  # model URIs are per store
-                "metrics": {
-                    key: [[m.step, m.timestamp, m.value] for m in client.get_metric_history(rid, key)]
-                    for key in run.data.metrics
-                },
+                "metrics": {key: histories[rid, key] for key in run.data.metrics},
                 "inputs": [
                     {
                         "name": d.dataset.name,
@@ -88,9 +88,12 @@ def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
                 ],
             }
         )
-        for top in client.list_artifacts(rid):
+        # The run's artifact store directly: through ``runs:/`` URIs each download looks the run up again (8 times
+        # slower, 2026-12-07: a third of an export of 367 runs)
+        artifacts = get_artifact_repository(run.info.artifact_uri, tracking_uri=mlflow.get_tracking_uri())
+        for top in artifacts.list_artifacts():
             if top.path not in SKIPPED_ARTIFACTS:
-                client.download_artifacts(rid, top.path, str(_artifact_dir(out_dir, origin[rid])))
+                artifacts.download_artifacts(top.path, str(_artifact_dir(out_dir, origin[rid])))
     registry = {}
     for model in client.search_registered_models():
         versions = sorted(client.search_model_versions(f"name='{model.name}'"), key=lambda v: int(v.version))
@@ -112,6 +115,31 @@ def export_snapshot(out_dir: Path, experiments: list[str]) -> int:
     (out_dir / "runs.json").write_text(json.dumps(records, indent=1, sort_keys=True) + "\n")
     previous.write_text(json.dumps(registry, indent=1, sort_keys=True) + "\n")
     return len(records)
+
+
+def _metric_histories(client: MlflowClient, runs: list) -> dict[tuple[str, str], list[list]]:
+    """(run id, key) → [[step, timestamp, value], …] in the order ``get_metric_history`` gives them (timestamp,
+    step, value). A SQL store answers one query per metric key over all runs (as MLflow's own UI asks it), where
+    one per run and key took half an export of 367 runs (42,700 queries, 67 s on two cores, 2026-12-07); any other
+    store is asked one history at a time."""
+    store = client._tracking_client.store  # no public accessor; MLflow's server checks the same method this way
+    keys: dict[str, list[str]] = {}
+    for run in runs:
+        for key in run.data.metrics:
+            keys.setdefault(key, []).append(run.info.run_id)
+    out: dict[tuple[str, str], list[list]] = {}
+    for key, run_ids in keys.items():
+        if hasattr(store, "get_metric_history_bulk"):
+            for i in range(0, len(run_ids), BULK_RUNS):
+                chunk = run_ids[i : i + BULK_RUNS]
+                for rid in chunk:
+                    out[rid, key] = []
+                for m in store.get_metric_history_bulk(chunk, key, max_results=2**31 - 1):
+                    out[m.run_id, key].append([m.step, m.timestamp, m.value])
+        else:
+            for rid in run_ids:
+                out[rid, key] = [[m.step, m.timestamp, m.value] for m in client.get_metric_history(rid, key)]
+    return out
 
 
 def _original_run_id(client: MlflowClient, run_id: str) -> str:
