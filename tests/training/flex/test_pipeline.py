@@ -27,6 +27,7 @@ TINY = {
     "tracking": {"experiment": "test-flex"},
 }
 REPO = Path(__file__).resolve().parents[3]
+SMALL = [8, 16, 16, 16, 8]  # the plumbing, not the fit: a Bi-LSTM of 1/1000 of appendix B's weights, its five layers
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +37,9 @@ def flex_runs(
     models = tmp_path_factory.mktemp("onnx_models")
     cache = canonical_cache
     cfgs = [
-        FlexConfig.model_validate({"name": "tiny_flex_cm", "model": {"calibration": True, "median": True}, **TINY}),
+        FlexConfig.model_validate(
+            {"name": "tiny_flex_cm", "model": {"calibration": True, "median": True, "bilstm_sizes": SMALL}, **TINY}
+        ),
         FlexConfig.model_validate({"name": "tiny_flex_fcn", "model": {"kind": "fcn"}, **TINY}),
     ]
     data = load_flex_data(cfgs[0], data_dir, cache)
@@ -158,7 +161,7 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
     cfg = CapacitiveConfig.model_validate(
         {
             "name": "tiny_capacitive",
-            "model": {"calibration": True, "median": True, "input_norm": "window_relative"},
+            "model": {"calibration": True, "median": True, "input_norm": "window_relative", "bilstm_sizes": SMALL},
             "train": {"windows_per_epoch": 128, "max_epochs": 1},
             "tracking": {"experiment": "test-flex-capacitive"},
         }
