@@ -85,6 +85,11 @@ class FlexTrainConfig(Strict):
     # log-uniform in [1 / (1 + channel_gain), 1 + channel_gain] (ours, for sleeves whose channels modulate by
     # different amounts on another leg or person); 0: off
     channel_gain: float = Field(0.0, ge=0.0)
+    # each training window bent further: its readings and its angles scaled about the window's least-flexed sample
+    # by a factor per window, log-uniform in [1, 1 + deeper] (ours, for a knee that bends beyond what the trials
+    # trained on hold, which a recurrent network does not extrapolate to; it assumes each channel moves in proportion
+    # to the flexion over that stretch). Single-joint models only (the capacitive knee); 0: off
+    deeper: float = Field(0.0, ge=0.0)
     # networks trained from the seeds seed, seed + 1, … and answering as their mean (``FlexEnsemble``; ours): each
     # trains as one network would (time_budget_s each), chooses its own epoch on the validation part, and costs its
     # share at run time

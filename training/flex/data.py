@@ -81,6 +81,11 @@ class WindowSet:
         y = self.angles[idx[:, -steps:]]
         return x, y.reshape(len(ends), steps, -1)
 
+    def window_angles(self, ends: np.ndarray) -> np.ndarray:
+        """The targets of every sample of the windows ending at ``ends``: ``(B, window, J·3)``."""
+        idx = ends[:, None] + np.arange(-self.window, 0)[None]
+        return self.angles[idx].reshape(len(ends), self.window, -1)
+
 
 def window_set(
     clips: list[FlexClip],

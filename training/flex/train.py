@@ -63,6 +63,22 @@ def swing_about_mean(x: np.ndarray, gain: float, rng: np.random.Generator) -> np
     return (mean + factor * (x - mean)).astype(x.dtype)
 
 
+def bent_further(
+    x: np.ndarray, angles: np.ndarray, steps: int, deeper: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Windows ``(B, W, C)`` with their angles ``(B, W, 1)`` → the same strides bent further, and the targets of
+    their last ``steps`` samples: readings and angle scaled about the window's least-flexed sample by a factor per
+    window, log-uniform in [1, 1 + deeper] (``FlexTrainConfig.deeper``). A channel that moves in proportion to the
+    flexion over the window reads what a deeper stride would give it."""
+    if angles.shape[2] != 1:
+        raise ValueError(f"bending further scales one joint's flexion; these windows have {angles.shape[2]} angles")
+    factor = np.exp(rng.uniform(0.0, 1.0, size=(x.shape[0], 1, 1)) * np.log1p(deeper))
+    rows = np.arange(x.shape[0])
+    least = angles[:, :, 0].argmin(axis=1)
+    x0, a0 = x[rows, least][:, None], angles[rows, least][:, None]
+    return (x0 + factor * (x - x0)).astype(x.dtype), (a0 + factor * (angles - a0))[:, -steps:].astype(angles.dtype)
+
+
 def validation_mae(net: FlexNet | FlexEnsemble, val: WindowSet, hop: int = 2) -> float:
     pred, truth = predict_windows(torch_predictor(net), val, 0, net.latency_samples, hop)
     return float(np.abs(pred - truth).mean())
@@ -123,6 +139,8 @@ def _train_one(
             x, y = train.batch(suits[i : i + bs], ends[i : i + bs], steps)
             if cfg.train.channel_gain > 0:
                 x = swing_about_mean(x, cfg.train.channel_gain, rng)
+            if cfg.train.deeper > 0:
+                x, y = bent_further(x, train.window_angles(ends[i : i + bs]), steps, cfg.train.deeper, rng)
             x, y = torch.from_numpy(x), torch.from_numpy(y)
             target = (y - net.target_mean) / net.target_std
             loss = torch.mean((net.steps_standardised(x) - target) ** 2)  # eq. 3

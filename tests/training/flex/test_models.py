@@ -236,3 +236,24 @@ def test_channel_gain_swings_each_channel_about_its_window_mean_within_the_range
     assert factor.min() >= 0.5 - 1e-3 and factor.max() <= 2.0 + 1e-3  # log-uniform in [1/2, 2]
     assert factor.min() < 0.6 and factor.max() > 1.8 and abs(np.log(factor).mean()) < 0.05
     assert not np.allclose(factor[:, 0], factor[:, 1])  # drawn per channel
+
+
+def test_bending_further_keeps_a_proportional_channel_on_its_line_and_only_deepens_the_stride() -> None:
+    from training.flex.train import bent_further
+
+    rng = np.random.default_rng(0)
+    t = np.linspace(0.0, 4.0 * np.pi, 100)
+    angle = (20.0 + 25.0 * np.sin(t[None] + rng.uniform(0, 6, size=(256, 1)))).astype(np.float32)[..., None]
+    gain = np.array([3.0, -1.5, 0.2], np.float32)  # channels that rise, fall, barely move with flexion
+    x = (500.0 + angle * gain).astype(np.float32)
+    x2, y2 = bent_further(x, angle, 5, 0.5, rng)
+    assert x2.shape == x.shape and y2.shape == (256, 5, 1)
+    factor = (x2.max(axis=1) - x2.min(axis=1))[:, 1] / (x.max(axis=1) - x.min(axis=1))[:, 1]
+    assert factor.min() >= 1.0 - 1e-4 and factor.max() <= 1.5 + 1e-4 and factor.max() > 1.4  # in [1, 1.5]
+    # the least-flexed sample stays where it was; every reading stays on its channel's line through the new angles
+    np.testing.assert_allclose(x2.min(axis=1)[:, 0], x.min(axis=1)[:, 0], rtol=1e-5)
+    bent = angle.min(axis=1, keepdims=True) + factor[:, None, None] * (angle - angle.min(axis=1, keepdims=True))
+    np.testing.assert_allclose(y2, bent[:, -5:], rtol=1e-4)
+    np.testing.assert_allclose(x2[:, -5:], 500.0 + y2 * gain, rtol=1e-4)
+    with pytest.raises(ValueError, match="one joint's flexion"):
+        bent_further(x, np.repeat(angle, 2, axis=2), 5, 0.5, rng)
