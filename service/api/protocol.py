@@ -15,6 +15,8 @@ Client → server
   {"type": "stop"}
   {"type": "calibrate"}   (still-pose sessions: the person holds the still pose again, e.g. after a sensor slipped;
                           the pose starts afresh after the new span, as at the start)
+  {"type": "calibrate", "q_segment_sensor": {"a": [w, x, y, z], ...}}   (declared sessions: new alignments of the
+                          named sensors from the next frame all sensors complete; the pose goes on, nothing restarts)
   Pose sessions add "pose": {"calibration": "declared" | "still_pose" | "assignment", ...} to "start" and each
   sensor's "segment" (and "q_segment_sensor" when declared); their samples are rows of 10 values, acc xyz, gyr xyz,
   q_world_sensor w x y z (binary: n x 10 float32), at 60 Hz (``PoseStreamOptions``).
@@ -66,7 +68,7 @@ import struct
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from service.api.schemas import (
     CANDIDATE_SEGMENTS_DESCRIPTION,
@@ -98,6 +100,13 @@ class ProtocolError(ValueError):
         self.code = code
 
 
+def unit_quaternion(q: list[float] | None) -> list[float] | None:
+    """A declared alignment: four finite numbers of norm 1 (within ``UNIT_QUAT_TOLERANCE``, then normalised)."""
+    if q is not None and (not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1.0) > UNIT_QUAT_TOLERANCE):
+        raise ValueError(f"expected a finite unit quaternion (w, x, y, z), got {q}")
+    return q
+
+
 class StreamSensor(BaseModel):
     model_config = ConfigDict(extra="forbid")
     sensor_id: str = Field(min_length=1, max_length=128)
@@ -109,6 +118,30 @@ class StreamSensor(BaseModel):
     q_segment_sensor: list[float] | None = Field(
         None, min_length=4, max_length=4, description="pose sessions, calibration 'declared': v_segment = R(q) v_sensor"
     )
+    _unit = field_validator("q_segment_sensor")(unit_quaternion)
+
+
+class CalibrateMessage(BaseModel):
+    """``{"type": "calibrate"}``: a still-pose session holds its still pose again. With ``q_segment_sensor``: a
+    declared session's new alignments, by sensor_id, from the next frame all its sensors complete."""
+
+    model_config = ConfigDict(extra="forbid")
+    type: Literal["calibrate"]
+    q_segment_sensor: dict[str, list[float]] | None = Field(
+        None, min_length=1, description="declared sessions: sensor_id -> new v_segment = R(q) v_sensor"
+    )
+
+    @field_validator("q_segment_sensor")
+    @classmethod
+    def _units(cls, value: dict[str, list[float]] | None) -> dict[str, list[float]] | None:
+        for sensor_id, q in (value or {}).items():
+            if len(q) != 4:
+                raise ValueError(f"{sensor_id}: expected 4 numbers (w, x, y, z), got {len(q)}")
+            try:
+                unit_quaternion(q)
+            except ValueError as exc:
+                raise ValueError(f"{sensor_id}: {exc}") from None
+        return value
 
 
 class PoseStreamOptions(BaseModel):

@@ -21,6 +21,7 @@ from pydantic import ValidationError
 from service.api.outbox import Outbox, SlowConsumer, accept, close, end_session, sender, serve_watched
 from service.api.protocol import (
     ALL_SENSORS,
+    CalibrateMessage,
     ProtocolError,
     SamplesMessage,
     StartMessage,
@@ -510,17 +511,42 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
 
 
 def _recalibrate(session: Session, data: dict) -> None:
-    """``{"type": "calibrate"}``: a still-pose session holds its still pose again (``LivePose.recalibrate``)."""
-    if set(data) != {"type"}:
-        raise ProtocolError(f"a 'calibrate' message has no fields but 'type'; got {sorted(data)}")
-    if session.pose is None or session.pose.method != "still_pose":
-        how = "no pose" if session.pose is None else f"pose calibration {session.pose.method!r}"
-        raise ProtocolError(f"'calibrate' restarts a still-pose calibration; this session has {how}")
-    session.pose.recalibrate()
-    detail = (
-        f"calibrate: hold the still pose for {session.pose.still_frames / 60.0:g} s; the pose starts afresh after it"
+    """``{"type": "calibrate"}``: a still-pose session holds its still pose again (``LivePose.recalibrate``); with
+    ``q_segment_sensor``, a declared session takes new alignments from the next frame on (``LivePose.realign``)."""
+    try:
+        message = CalibrateMessage.model_validate(data)
+    except ValidationError as exc:
+        raise ProtocolError(f"invalid 'calibrate' message: {_first_error(exc)}") from None
+    pose = session.pose
+    how = "no pose" if pose is None else f"pose calibration {pose.method!r}"
+    if message.q_segment_sensor is None:
+        if pose is None or pose.method != "still_pose":
+            hint = "; send its new alignments in q_segment_sensor"
+            raise ProtocolError(
+                f"'calibrate' restarts a still-pose calibration; this session has {how}"
+                + (hint if pose is not None and pose.method == "declared" else "")
+            )
+        pose.recalibrate()
+        detail = f"calibrate: hold the still pose for {pose.still_frames / 60.0:g} s; the pose starts afresh after it"
+        session.outbox.put({"type": "calibration", "status": "waiting", "detail": detail})
+        return
+    if pose is None or pose.method != "declared":
+        raise ProtocolError(f"'calibrate' with q_segment_sensor re-aligns a declared session; this session has {how}")
+    unknown = sorted(set(message.q_segment_sensor) - set(session.index))
+    if unknown:
+        raise ProtocolError(f"calibrate: unknown sensor_id {unknown}; declared: {list(session.index)}")
+    order = session.pose_order
+    pose.realign({order.index(session.index[i]): q for i, q in message.q_segment_sensor.items()})
+    q = pose.q_segment_sensor
+    session.outbox.put(
+        {
+            "type": "calibration",
+            "status": "calibrated",
+            "method": "declared",
+            "detail": f"new alignments of {sorted(message.q_segment_sensor)} from the next frame all sensors complete",
+            "q_segment_sensor": {s: np.round(q[k], 6).tolist() for k, s in enumerate(pose.segments)},
+        }
     )
-    session.outbox.put({"type": "calibration", "status": "waiting", "detail": detail})
 
 
 def _parse_text(text: str) -> dict:

@@ -22,7 +22,7 @@ from service.core.calibration import (
     still_pose_calibration,
     turn_about_z,
 )
-from service.core.rotations import quat_from_matrix
+from service.core.rotations import canonical_quat, quat_from_matrix
 from service.core.translation import RootTracker, advance_bodies
 from service.core.windowing import MODEL_RATE_HZ
 from service.inference.registry import LoadedModel
@@ -354,6 +354,19 @@ class LivePose:
         if self.velocity is not None:
             self.velocity_state = self.velocity.new_state()
             self.velocities, self.velocity_inputs = self.velocities[:0], 0
+
+    def realign(self, q_segment_sensor: dict[int, np.ndarray]) -> None:
+        """Declared sessions: new alignments ``{sensor index (frame order): q_segment_sensor wxyz}`` from the next
+        frame on (a sensor strapped on again, or aligned anew by ``/v1/imu/assign``). Unlike a still pose nothing
+        restarts: the network keeps its state, the frames awaiting their look-ahead are answered, the translation
+        goes on; the pelvis's heading from the legs is averaged anew from the new readings."""
+        if self.method != "declared":
+            raise ValueError(f"a session calibrated by {self.method!r} does not take declared alignments")
+        q = self.q_segment_sensor.copy()
+        for k, quat in q_segment_sensor.items():
+            q[k] = canonical_quat(np.asarray(quat, dtype=np.float64))
+        self.q_segment_sensor = q
+        self.heading_sum = 0j
 
     def _new_tracker(self) -> RootTracker | None:
         """The translation's rule from the body's first answered frame on (None: no translation)."""

@@ -837,6 +837,62 @@ def test_a_live_bvh_stream_makes_the_file_of_the_json_stream_s_pose(server: str,
     np.testing.assert_allclose(poses_back.positions_m - poses_back.positions_m[:, :1], p_ref, atol=1e-3)
 
 
+def test_a_declared_stream_takes_a_slipped_sensor_s_new_alignment_and_goes_on(server: str, walk) -> None:
+    """A declared six-sensor stream: the left shank sensor turns on the leg by 34° at frame 64, and the client sends
+    its new alignment (as ``/v1/imu/assign`` would give it) with ``calibrate`` at frame 96. Every frame is answered
+    (nothing restarts); the answered shank is the one its sensor reads before the slip, 34° off until the message,
+    and the one it reads again after it. Alignments that are not unit quaternions, of sensors the session does not
+    have, or sent to a still-pose session are refused with what was expected."""
+    motion, raw = walk
+    k = SIX_SENSORS.index("LeftLowerLeg")
+    slipped = Rotation.from_rotvec([0.0, 0.0, 0.6]).as_matrix()
+    raw = simulate_sensors(motion, SIX_SENSORS, np.random.default_rng(7))
+    after = slice(64, None)
+    raw.q_world_sensor[after, k] = quat_from_matrix(matrix_from_quat(raw.q_world_sensor[after, k]) @ slipped)
+    for reading in (raw.acc_mps2, raw.gyr_rads):
+        reading[after, k] = reading[after, k] @ slipped
+    rows = np.concatenate([raw.acc_mps2, raw.gyr_rads, raw.q_world_sensor], axis=2)
+    packets: list = [encode_binary(ALL_SENSORS, f, rows[f : f + 8]) for f in range(0, motion.n_frames, 8)]
+    new = quat_from_matrix(matrix_from_quat(raw.q_segment_sensor[k]) @ slipped)
+    packets.insert(96 // 8, {"type": "calibrate", "q_segment_sensor": {"leftlowerleg": new.tolist()}})
+    sensors, _ = _declared_six(raw, 0)
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}
+    url = server.replace("http", "ws") + "/v1/stream"
+    messages, code, reason = asyncio.run(_stream(url, start, packets))
+    assert code == 1000, reason
+    [calibrated] = [m for m in messages if m["type"] == "calibration" and m["status"] == "calibrated"]
+    assert calibrated["method"] == "declared" and "leftlowerleg" in calibrated["detail"]
+    got = np.array(calibrated["q_segment_sensor"]["LeftLowerLeg"])
+    assert np.degrees(Rotation.from_matrix(matrix_from_quat(got).T @ matrix_from_quat(new)).magnitude()) < 0.01
+    poses = [m for m in messages if m["type"] == "pose"]
+    q_shank = np.concatenate([np.array(p["q_world_segment"])[:, BODY_SEGMENTS.index("LeftLowerLeg")] for p in poses])
+    assert len(q_shank) == motion.n_frames - 5  # every frame answered but the last 5 (their look-ahead never came)
+    # the shank as its sensor reads it, mounted as declared (the fixture's readings, which never slip)
+    R_true = matrix_from_quat(walk[1].q_world_sensor[: len(q_shank), k]) @ matrix_from_quat(raw.q_segment_sensor[k]).T
+    off = np.degrees(Rotation.from_matrix(np.swapaxes(matrix_from_quat(q_shank), 1, 2) @ R_true).magnitude())
+    assert off[:64].max() < 0.1 and off[96:].max() < 0.1, (off[:64].max(), off[96:].max())
+    assert np.allclose(off[64:96], 34.38, atol=0.1), off[64:96]
+
+    def refused(calibrate: dict, begin: dict = start) -> str:
+        messages, code, reason = asyncio.run(_stream(url, begin, [packets[0], calibrate]))
+        assert code == 1008, (code, reason)
+        return [m for m in messages if m["type"] == "error"][-1]["detail"]  # the close reason is cut at 120 bytes
+
+    reason = refused({"type": "calibrate", "q_segment_sensor": {"leftlowerleg": [0.0, 0.0, 0.0, 0.0]}})
+    assert "leftlowerleg: expected a finite unit quaternion" in reason, reason
+    reason = refused({"type": "calibrate", "q_segment_sensor": {"knee": [1.0, 0.0, 0.0, 0.0]}})
+    assert "unknown sensor_id ['knee']" in reason and "pelvis" in reason, reason
+    reason = refused({"type": "calibrate"})
+    assert "this session has pose calibration 'declared'" in reason and "q_segment_sensor" in reason, reason
+    still = {**start, "pose": {"calibration": "still_pose"}}
+    still["sensors"] = [{"sensor_id": s["sensor_id"], "segment": s["segment"]} for s in sensors]
+    reason = refused({"type": "calibrate", "q_segment_sensor": {"pelvis": [1.0, 0.0, 0.0, 0.0]}}, still)
+    assert "re-aligns a declared session; this session has pose calibration 'still_pose'" in reason, reason
+    bad_start = {**start, "sensors": [sensors[0] | {"q_segment_sensor": [0.0, 0.0, 0.0, 2.0]}, *sensors[1:]]}
+    messages, code, reason = asyncio.run(_stream(url, bad_start, []))
+    assert code == 1008 and "q_segment_sensor: expected a finite unit quaternion" in reason, reason
+
+
 def test_a_pose_sensor_whose_readings_do_not_fit_its_declared_units_gets_one_warning(server: str, walk) -> None:
     """As the I2S stream: the left forearm sends g while declaring m/s² and is warned once, after the first 2 s of
     body frames; the other sensors are not; every frame is still answered."""
