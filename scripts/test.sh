@@ -10,5 +10,11 @@ fi
 ruff check service training tests benchmarks
 lint-imports
 # Two workers, each test file whole on one (its module fixtures, an MLflow server or a trained job, built once):
-# 668 s against about 1,000 s in one process on two cores (2026-12-07). TEST_WORKERS=0 runs them in this process.
-python -m pytest -q -p no:cacheprovider -n "${TEST_WORKERS:-2}" --dist loadfile "$@"
+# 740 s for a clean clone on two cores against 1,114 s in one process (2026-12-07). TEST_WORKERS=0: one process.
+workers=(-n "${TEST_WORKERS:-2}" --dist loadfile)
+if ! python -c "import xdist" 2>/dev/null; then
+  echo "test.sh: pytest-xdist is missing from .venv (set up before it was needed): one process;" \
+    "'bash scripts/setup.sh' installs it" >&2
+  workers=()
+fi
+python -m pytest -q -p no:cacheprovider "${workers[@]}" "$@"

@@ -34,7 +34,8 @@ Server → client
   the REST routes' `warnings`) · gap / late (sequence problems, in order with the results) · error (then close, after
   the results of every accepted packet).
   Pose sessions also get: calibration ({"status": "waiting" | "calibrated", ...}: how the session calibrates; declared
-  sessions are calibrated at the start, still-pose sessions after a still span, assignment sessions when the
+  sessions are calibrated at the start and after each calibrate with q_segment_sensor (every sensor's alignment, by
+  segment), still-pose sessions after a still span, assignment sessions when the
   assignment is sure of the model's segments, with the segments of the session's other sensors placed as surely in
   "measured"; sensors beyond the model's are answered as measured, "started" lists them in pose.measured for declared
   and still-pose sessions; "started" also says pose.pelvis_heading: "legs" turns the pelvis to the leg sensors'

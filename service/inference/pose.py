@@ -359,14 +359,15 @@ class LivePose:
         """Declared sessions: new alignments ``{sensor index (frame order): q_segment_sensor wxyz}`` from the next
         frame on (a sensor strapped on again, or aligned anew by ``/v1/imu/assign``). Unlike a still pose nothing
         restarts: the network keeps its state, the frames awaiting their look-ahead are answered, the translation
-        goes on; the pelvis's heading from the legs is averaged anew from the new readings."""
+        goes on; the pelvis's heading from the legs is averaged anew where the pelvis or a leg sensor is re-aligned."""
         if self.method != "declared":
             raise ValueError(f"a session calibrated by {self.method!r} does not take declared alignments")
         q = self.q_segment_sensor.copy()
         for k, quat in q_segment_sensor.items():
             q[k] = canonical_quat(np.asarray(quat, dtype=np.float64))
         self.q_segment_sensor = q
-        self.heading_sum = 0j
+        if {self.segments[k] for k in q_segment_sensor} & (LEG_SEGMENTS | {"Pelvis"}) & set(self.model.spec.sensors):
+            self.heading_sum = 0j
 
     def _new_tracker(self) -> RootTracker | None:
         """The translation's rule from the body's first answered frame on (None: no translation)."""

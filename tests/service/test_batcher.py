@@ -87,7 +87,7 @@ def test_a_request_whose_wait_passes_its_deadline_is_refused_at_once_with_a_retr
         start = time.monotonic()
         with pytest.raises(Overloaded) as refused:
             await batcher.infer(_windows(1), start_by=time.monotonic() + 0.1)
-        assert time.monotonic() - start < 0.01
+        assert time.monotonic() - start < 0.05  # at once, not at the 0.1 s deadline (room for a busy machine)
         assert refused.value.retry_after_s == 1  # ceil(0.2125 - 0.1)
         # Requests admitted and still being read count for a request not parsed yet (the guard's estimate, 2.7 s
         # ahead), not for one parsed already: those reach the queue after it.

@@ -22,5 +22,6 @@ def mlflow_server(tmp_path_factory: pytest.TempPathFactory):
 @pytest.fixture(scope="session")
 def canonical_cache(tmp_path_factory: pytest.TempPathFactory):
     """One cache of mocap clips on the canonical body for the pose and flex jobs: the second module reads what
-    the first computed (training.pose.data.build_motions)."""
+    the first computed (training.pose.data.build_motions) where both run in one process (on two test workers each
+    builds its own)."""
     return tmp_path_factory.mktemp("canonical_cache")

@@ -118,6 +118,8 @@ def train_flex(
 def _train_one(
     cfg: FlexConfig, train: WindowSet, val: WindowSet, on_epoch: Callable[[int, dict], None] | None, member: int
 ) -> FlexTrainResult:
+    if cfg.train.deeper > 0 and train.angles.reshape(len(train.angles), -1).shape[1] != 1:
+        raise ValueError(f"train.deeper bends one joint's flexion further; {cfg.name} answers {cfg.joints}")
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.train.threads)
     rng = np.random.default_rng(cfg.seed)
