@@ -30,7 +30,7 @@ from service.core.calibration import (
     still_pose_calibration,
 )
 from service.core.resample import resample_quats, resample_uniform
-from service.core.rotations import UNIT_QUAT_TOLERANCE, canonical_quat
+from service.core.rotations import UNIT_QUAT_TOLERANCE, canonical_quat, is_unit_quaternion
 from service.core.segments import SEGMENTS
 from service.core.translation import RootTracker
 from service.core.units import ACC_UNITS, GRAVITY_MPS2, GYR_UNITS, unit_warnings_over
@@ -284,7 +284,7 @@ def _calibrate_by_method(body: PoseImuRequest, model: PoseModel, r: Readings) ->
                     "sensors: found from their walk)"
                 )
             q = np.asarray(s.q_segment_sensor, dtype=np.float64)
-            if not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1.0) > UNIT_QUAT_TOLERANCE:
+            if not is_unit_quaternion(q):
                 raise InputError(f"sensors[{k}].q_segment_sensor: expected a finite unit quaternion, got {list(q)}")
             out.append(canonical_quat(q))
         return np.stack(out)

@@ -85,7 +85,7 @@ from service.api.schemas import (
 )
 from service.core.body import Body, body_bvh
 from service.core.bvh import bvh_hierarchy_text, bvh_motion_text
-from service.core.rotations import UNIT_QUAT_TOLERANCE, matrix_from_quat
+from service.core.rotations import UNIT_QUAT_TOLERANCE, is_unit_quaternion, matrix_from_quat
 from service.core.windowing import MODEL_RATE_HZ
 from service.inference.predict import MAX_ABS_READING
 
@@ -103,7 +103,7 @@ class ProtocolError(ValueError):
 
 def unit_quaternion(q: list[float] | None) -> list[float] | None:
     """A declared alignment: four finite numbers of norm 1 (within ``UNIT_QUAT_TOLERANCE``, then normalised)."""
-    if q is not None and (not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1.0) > UNIT_QUAT_TOLERANCE):
+    if q is not None and not is_unit_quaternion(q):
         raise ValueError(f"expected a finite unit quaternion (w, x, y, z), got {q}")
     return q
 

@@ -103,12 +103,20 @@ def legs_heading_sum(R_world_segment: np.ndarray, segments: Sequence[str], root:
     return (np.conj(h[:, root : root + 1]) * h[:, legs]).sum(axis=1)
 
 
+def turn_about_own_axis(R_world_segment: np.ndarray, angle_rad: np.ndarray, axis: int) -> np.ndarray:
+    """``(T, 3, 3)`` orientations turned about their own axis ``axis`` (0 x, 1 y, 2 z) by ``(T,)`` angles:
+    R · R_axis(angle), right-handed."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    i, j = (axis + 1) % 3, (axis + 2) % 3  # the plane the turn moves: i → j
+    turn = np.zeros((len(c), 3, 3))
+    turn[:, axis, axis] = 1.0
+    turn[:, i, i], turn[:, i, j], turn[:, j, i], turn[:, j, j] = c, -s, s, c
+    return R_world_segment @ turn
+
+
 def turn_about_z(R_world_segment: np.ndarray, angle_rad: np.ndarray) -> np.ndarray:
     """``(T, 3, 3)`` orientations turned about their own z by ``(T,)`` angles: R · Rz(angle)."""
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    Rz = np.zeros((len(c), 3, 3))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
-    return R_world_segment @ Rz
+    return turn_about_own_axis(R_world_segment, angle_rad, 2)
 
 
 def pelvis_heading_from_legs(

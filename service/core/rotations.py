@@ -27,6 +27,12 @@ def canonical_quat(q_wxyz: np.ndarray) -> np.ndarray:
     return np.where(lead < 0.0, -q, q)
 
 
+def is_unit_quaternion(q_wxyz: np.ndarray | list[float]) -> bool:
+    """One quaternion (w, x, y, z) that reads as a unit one: finite, norm within 1 ± ``UNIT_QUAT_TOLERANCE``."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    return bool(np.isfinite(q).all() and abs(np.linalg.norm(q) - 1.0) <= UNIT_QUAT_TOLERANCE)
+
+
 def repair_quaternions(q_wxyz: np.ndarray, tolerance: float = UNIT_QUAT_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
     """A series of orientations ``(T, 4)`` (w, x, y, z) as unit quaternions, and which rows were repaired ``(T,)``.
 

@@ -20,6 +20,7 @@ from service.core.calibration import (
     pose_features,
     segment_readings,
     still_pose_calibration,
+    turn_about_own_axis,
     turn_about_z,
 )
 from service.core.rotations import canonical_quat, quat_from_matrix
@@ -199,12 +200,8 @@ def knees_as_hinges(R: np.ndarray, thigh_answered: np.ndarray, shank_sensed: np.
         M = np.einsum("tji,tjk->tik", R[use, shank], R[use, thigh])
         sin2, cos2 = M[:, 0, 2] - M[:, 2, 0], M[:, 0, 0] + M[:, 2, 2]
         ok = np.hypot(sin2, cos2) > 1e-9  # a half turn about an axis across y has no nearest twist: kept
-        angle = np.arctan2(sin2[ok], cos2[ok])
-        c, s = np.cos(angle), np.sin(angle)
-        R_y = np.zeros((len(angle), 3, 3))
-        R_y[:, 0, 0], R_y[:, 0, 2], R_y[:, 1, 1], R_y[:, 2, 0], R_y[:, 2, 2] = c, s, 1.0, -s, c
         rows = np.flatnonzero(use)[ok]
-        R[rows, thigh] = np.einsum("tij,tjk->tik", R[rows, shank], R_y)
+        R[rows, thigh] = turn_about_own_axis(R[rows, shank], np.arctan2(sin2[ok], cos2[ok]), 1)
     return R
 
 
