@@ -100,14 +100,20 @@ def run_description(params: Mapping[str, str], tags: Mapping[str, str], shipped:
 def label_run(client: MlflowClient, run_id: str, shipped: list[str] | None = None) -> str:
     """Name and describe a run in the UI by the rule above; ``shipped``: versions it shipped as (else its tag)."""
     run = client.get_run(run_id)
-    tags = run.data.tags
+    labels = run_labels(run.data.params, run.data.tags, shipped)
+    for key, value in labels.items():
+        client.set_tag(run_id, key, value)
+    return labels[RUN_NAME_TAG]
+
+
+def run_labels(params: Mapping[str, str], tags: Mapping[str, str], shipped: list[str] | None = None) -> dict[str, str]:
+    """The tags that name and describe a run of these params and tags (``label_run``; a restore sets them when it
+    creates the run)."""
     versions = shipped if shipped is not None else [v for v in tags.get(SHIPPED_TAG, "").split(", ") if v]
-    if versions:
-        client.set_tag(run_id, SHIPPED_TAG, ", ".join(versions))
-    title = run_title(run.data.params, tags, versions)
-    client.set_tag(run_id, RUN_NAME_TAG, title)
-    client.set_tag(run_id, NOTE_TAG, run_description(run.data.params, tags, versions))
-    return title
+    labels = {SHIPPED_TAG: ", ".join(versions)} if versions else {}
+    labels[RUN_NAME_TAG] = run_title(params, tags, versions)
+    labels[NOTE_TAG] = run_description(params, tags, versions)
+    return labels
 
 
 def label_version(client: MlflowClient, name: str, version: str, shipped: list[str]) -> None:

@@ -28,7 +28,7 @@ from mlflow.tracking import MlflowClient
 
 from service.core.manifest import read_manifest, sha256_file
 from service.inference.registry import version_key
-from training.run_labels import SHIPPED_TAG, describe_experiment, label_run, label_version
+from training.run_labels import RUN_NAME_TAG, SHIPPED_TAG, describe_experiment, label_version, run_labels
 from training.tracking import log_onnx_model, setup_tracking
 
 log = logging.getLogger(__name__)
@@ -182,15 +182,29 @@ def restore_snapshot(snapshot_dir: Path, models_dir: Path) -> RestoreReport:
     restored = _restored_runs(client)
     model_dirs = shipped_model_dirs(models_dir, snapshot_dir)
     models = _shipped_float32_models(model_dirs)
+    registered = {v["run_id"] for entry in registry.values() for v in entry["versions"]}
+    shipped = _shipped_versions(model_dirs)
+    logged: dict[str, str] = {}  # original run id → the model URI logged with its restored run
+    experiments: dict[str, str] = {}  # name → id, each set up once
+    present = dict(restored)  # labelled again below: a version may have shipped since their restore
     for record in records:
         if record["run_id"] in restored:
             report.runs_present += 1
             continue
-        restored[record["run_id"]] = _restore_run(client, record, snapshot_dir)
+        if record["experiment"] not in experiments:
+            setup_tracking(record["experiment"])
+            experiments[record["experiment"]] = client.get_experiment_by_name(record["experiment"]).experiment_id
+        model_dir = models.get(record["run_id"]) if record["run_id"] in registered else None
+        versions = shipped.get(record["run_id"], [])
+        restored[record["run_id"]], model_uri = _restore_run(
+            client, record, experiments[record["experiment"]], versions, snapshot_dir, model_dir
+        )
+        if model_uri:
+            logged[record["run_id"]] = model_uri
         report.runs_restored += 1
     for name, entry in registry.items():
-        _restore_registered_model(client, name, entry, restored, models, report)
-    _label(client, restored, model_dirs)
+        _restore_registered_model(client, name, entry, restored, models, logged, report)
+    _label(client, present, shipped)
     return report
 
 
@@ -199,22 +213,33 @@ def shipped_model_dirs(models_dir: Path, snapshot_dir: Path) -> list[Path]:
     return sorted(p.parent for root in (models_dir, snapshot_dir / ARCHIVE) for p in root.glob("*/*/manifest.json"))
 
 
-def _label(client: MlflowClient, restored: dict[str, str], model_dirs: list[Path]) -> None:
-    """Name and describe the restored runs, and tag their registered versions with the versions they shipped as."""
+def _shipped_versions(model_dirs: list[Path]) -> dict[str, list[str]]:
+    """original run id → the versions it shipped as, oldest first."""
     shipped: dict[str, list[str]] = {}
     for model_dir in model_dirs:
         run_id = read_manifest(model_dir / "manifest.json").mlflow.get("run_id")
         if run_id:
             shipped.setdefault(run_id, []).append(model_dir.name)
-    for experiment in client.search_experiments():
+    return {run_id: sorted(versions, key=version_key) for run_id, versions in shipped.items()}
+
+
+def _label(client: MlflowClient, present: dict[str, str], shipped: dict[str, list[str]]) -> None:
+    """Describe the experiments, name and describe the runs restored before (this restore's were named when it made
+    them), and tag every registered version with the versions it shipped as."""
+    experiments = client.search_experiments()
+    for experiment in experiments:
         describe_experiment(client, experiment.experiment_id, experiment.name)
-    for original, rid in restored.items():
-        versions = sorted(shipped.get(original, []), key=version_key)
-        label_run(client, rid, versions)
+    ids = [e.experiment_id for e in experiments]
+    runs = {r.info.run_id: r for r in client.search_runs(ids, max_results=10_000)} if present else {}
+    for original, rid in present.items():  # as label_run does, writing only what changed
+        tags = runs[rid].data.tags
+        for key, value in run_labels(runs[rid].data.params, tags, shipped.get(original, [])).items():
+            if tags.get(key) != value:
+                client.set_tag(rid, key, value)
     for model in client.search_registered_models():
         for mv in client.search_model_versions(f"name='{model.name}'"):
             original = client.get_run(mv.run_id).data.tags.get(RESTORED_TAG, mv.run_id) if mv.run_id else ""
-            label_version(client, model.name, mv.version, sorted(shipped.get(original, []), key=version_key))
+            label_version(client, model.name, mv.version, shipped.get(original, []))
 
 
 def restore_if_empty(snapshot_dir: Path, models_dir: Path) -> RestoreReport | None:
@@ -272,22 +297,38 @@ def _shipped_float32_models(model_dirs: list[Path]) -> dict[str, Path]:
     return found
 
 
-def _restore_run(client: MlflowClient, record: dict, snapshot_dir: Path) -> str:
-    setup_tracking(record["experiment"])
-    experiment = client.get_experiment_by_name(record["experiment"])
+def _restore_run(
+    client: MlflowClient,
+    record: dict,
+    experiment_id: str,
+    shipped: list[str],
+    snapshot_dir: Path,
+    model_dir: Path | None,
+) -> tuple[str, str | None]:
+    """The restored run's id, and the URI of the model logged with it where ``model_dir`` holds its registered file.
+    It is named and described as ``label_run`` would, for the versions it ``shipped`` as.
+
+    The model is logged after the params (it takes the run's) and before the metrics: MLflow links a logged model to
+    its run's metrics of step 0 by reading every metric's history back and writing those again (a third of a
+    restore's time); logged first, the run has none yet, and the step-0 metrics are written once with the model's
+    id: the same links."""
     tags = {**record["tags"], RESTORED_TAG: record["run_id"], "restored_from": "mlflow_snapshot/ (training.snapshot)"}
-    run = client.create_run(
-        experiment.experiment_id, start_time=record["start_time"], tags=tags, run_name=record["run_name"]
-    )
+    tags |= run_labels(record["params"], {**tags, RUN_NAME_TAG: record["run_name"]}, shipped)
+    run = client.create_run(experiment_id, start_time=record["start_time"], tags=tags, run_name=tags[RUN_NAME_TAG])
     rid = run.info.run_id
     params = [Param(k, v) for k, v in record["params"].items()]
+    for i in range(0, len(params), 100):  # before the model, which takes the run's params
+        client.log_batch(rid, params=params[i : i + 100])
+    model_uri = model_id = None
+    if model_dir is not None:
+        model_uri, model_id = _log_shipped_model(rid, model_dir)
     metrics = [
-        Metric(k, value, timestamp, step) for k, rows in record["metrics"].items() for step, timestamp, value in rows
+        Metric(k, value, timestamp, step, model_id=model_id if step == 0 else None)
+        for k, rows in record["metrics"].items()
+        for step, timestamp, value in rows
     ]
     for i in range(0, len(metrics), BATCH):
         client.log_batch(rid, metrics=metrics[i : i + BATCH])
-    for i in range(0, len(params), 100):
-        client.log_batch(rid, params=params[i : i + 100])
     datasets = [
         DatasetInput(
             Dataset(d["name"], d["digest"], d["source_type"], d["source"], d["schema"], d["profile"]),
@@ -301,7 +342,17 @@ def _restore_run(client: MlflowClient, record: dict, snapshot_dir: Path) -> str:
     if artifacts.is_dir():
         client.log_artifacts(rid, str(artifacts))
     client.set_terminated(rid, "FINISHED", end_time=record["end_time"])
-    return rid
+    return rid, model_uri
+
+
+def _log_shipped_model(rid: str, model_dir: Path) -> tuple[str, str]:
+    """Log the shipped ONNX file of ``model_dir`` with run ``rid`` (ending it); its URI and id."""
+    mlflow.set_experiment(experiment_id=MlflowClient().get_run(rid).info.experiment_id)  # runs of several experiments
+    with np.load(model_dir / "golden.npz") as z, mlflow.start_run(run_id=rid):
+        manifest = read_manifest(model_dir / "manifest.json")
+        info = log_onnx_model(onnx.load(str(model_dir / "model.onnx")), dict(z), manifest, None, False)
+        mlflow.set_tag("model_uri", info.model_uri)
+    return info.model_uri, info.model_id
 
 
 def _restore_registered_model(
@@ -310,6 +361,7 @@ def _restore_registered_model(
     entry: dict,
     restored: dict[str, str],
     models: dict[str, Path],
+    logged: dict[str, str],
     report: RestoreReport,
 ) -> None:
     shippable = [v for v in entry["versions"] if v["run_id"] in models and v["run_id"] in restored]
@@ -335,15 +387,13 @@ def _restore_registered_model(
             report.versions_without_model.append(label)
             continue
         rid = restored[version["run_id"]]
-        mlflow.set_experiment(experiment_id=client.get_run(rid).info.experiment_id)  # runs of several experiments
-        with np.load(model_dir / "golden.npz") as z, mlflow.start_run(run_id=rid):
+        model_uri = logged.get(version["run_id"])
+        if model_uri is None:  # its run was restored before, without the model
             end_time = client.get_run(rid).info.end_time
-            manifest = read_manifest(model_dir / "manifest.json")
-            info = log_onnx_model(onnx.load(str(model_dir / "model.onnx")), dict(z), manifest, None, False)
-            mlflow.set_tag("model_uri", info.model_uri)
-        client.set_terminated(rid, "FINISHED", end_time=end_time)  # the original end, not now
+            model_uri = logged[version["run_id"]] = _log_shipped_model(rid, model_dir)[0]
+            client.set_terminated(rid, "FINISHED", end_time=end_time)  # the original end, not now
         tags = {**version["tags"], "original_version": version["version"], "model_dir": str(model_dir)}
-        mv = client.create_model_version(name, info.model_uri, run_id=rid, tags=tags)
+        mv = client.create_model_version(name, model_uri, run_id=rid, tags=tags)
         new_version[version["version"]] = mv.version
         report.versions_registered.append(label)
     for alias, original in entry["aliases"].items():
