@@ -9,9 +9,10 @@ if [ -z "${WEARMOCAP_DATA_DIR:-}" ]; then
 fi
 ruff check service training tests benchmarks
 lint-imports
-# Two workers, each test file whole on one (its module fixtures, an MLflow server or a trained job, built once):
-# 740 s for a clean clone on two cores against 1,114 s in one process (2026-12-07). TEST_WORKERS=0: one process.
-workers=(-n "${TEST_WORKERS:-2}" --dist loadfile)
+# Two workers, each test file whole on one (its module fixtures, an MLflow server or a trained job, built once), the
+# longest files first (tests/conftest.py): 740 s for a clean clone on two cores against 1,114 s in one process
+# (2026-12-07; three workers were slower). TEST_WORKERS=0: one process.
+workers=(-n "${TEST_WORKERS:-2}" --dist loadfile --no-loadscope-reorder)
 if ! python -c "import xdist" 2>/dev/null; then
   echo "test.sh: pytest-xdist is missing from .venv (set up before it was needed): one process;" \
     "'bash scripts/setup.sh' installs it" >&2
