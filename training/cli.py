@@ -313,6 +313,22 @@ def real_table_command(
     typer.echo(real_table(loso_run, models, resolve_data_dir(data_dir)))
 
 
+@app.command("real-confusion")
+def real_confusion_command(
+    loso_run: str = typer.Option(..., help="a real-loso summary run"),
+    data_dir: Path | None = DataDir,
+) -> None:
+    """Markdown table: what each held-out person's sensors are taken for in a real-loso run (moving windows, each
+    window's own answer); a confusion matrix image per person is logged with the summary run."""
+    import mlflow
+
+    from training.i2s.ship import real_confusion
+    from training.tracking import default_tracking_uri
+
+    mlflow.set_tracking_uri(default_tracking_uri())
+    typer.echo(real_confusion(loso_run, resolve_data_dir(data_dir)))
+
+
 @app.command("swing-fit")
 def swing_fit_command(
     config: Path = typer.Option(Path("training/configs/i2s_assignment.yaml"), help="whose training clips to fit on"),

@@ -32,6 +32,7 @@ from training.i2s.evaluate import (
     onnx_predictor,
 )
 from training.i2s.export import OPSET, OUTPUT_NAMES, PARITY_ATOL, onnx_parity
+from training.i2s.metrics import confusion_matrix
 from training.plots import confusion_matrix_png
 from training.run_labels import record_shipped
 from training.snapshot import local_run_id
@@ -392,4 +393,49 @@ def real_table(summary_run_id: str, model_dirs: list[Path], data_dir: Path) -> s
             n, own, joint = sums.get(group, [0.0, 0.0, 0.0])
             row += f" {100 * own / n:.1f} / {100 * joint / n:.1f} % |" if n else " — |"
         lines.append(row)
+    return "\n".join(lines)
+
+
+def real_confusion(summary_run_id: str, data_dir: Path) -> str:
+    """What each held-out person's sensors are taken for: per person and pooled, the confusion of a ``real-loso``
+    run's folds on moving windows, each window's own answer (``training.i2s.calibration.fold_predictions``). One
+    confusion matrix image per person is logged with the summary run (``plots/real_confusion/<person>.png``); the
+    markdown table returned gives each segment's share right and the segment it is most often taken for."""
+    from training.i2s.calibration import fold_predictions
+
+    matrices = held_out_confusions(fold_predictions(summary_run_id, data_dir))
+    with tempfile.TemporaryDirectory() as tmp:
+        for group, cm in matrices.items():
+            confusion_matrix_png(cm, Path(tmp) / f"{group}.png", f"held out {group}, moving windows")
+        MlflowClient().log_artifacts(local_run_id(summary_run_id), tmp, "plots/real_confusion")
+    return confusion_table(matrices)
+
+
+def held_out_confusions(held_out: list) -> dict[str, np.ndarray]:
+    """Per person of ``held_out`` (``HeldOut`` recordings) and ``pooled``: counts of moving windows, rows the
+    sensor's segment, columns each window's own answer."""
+    matrices: dict[str, np.ndarray] = {}
+    for held in held_out:
+        for sensor in held.sensors:
+            answers = sensor.log_probs[sensor.moving].argmax(axis=1)
+            cm = confusion_matrix(np.full(len(answers), sensor.segment), answers)
+            for group in (held.person, "pooled"):
+                matrices[group] = matrices.get(group, 0) + cm
+    return matrices
+
+
+def confusion_table(matrices: dict[str, np.ndarray]) -> str:
+    """A markdown row per person and segment worn: its moving windows, the share right, and the segment it is most
+    often taken for (with how many windows)."""
+    lines = ["| held out | segment (moving windows) | right | most often taken for |", "| --- | --- | --- | --- |"]
+    for group in sorted(matrices, key=lambda g: (g == "pooled", g)):
+        cm = matrices[group]
+        for segment in np.flatnonzero(cm.sum(axis=1)):
+            row = cm[segment]
+            wrong = row.copy()
+            wrong[segment] = 0
+            other = int(wrong.argmax())
+            taken = f"{SEGMENTS[other]} ({wrong[other]})" if wrong[other] else "—"
+            share = 100 * row[segment] / row.sum()
+            lines.append(f"| {group} | {SEGMENTS[segment]} ({row.sum()}) | {share:.1f} % | {taken} |")
     return "\n".join(lines)

@@ -42,6 +42,7 @@ from training.i2s.calibration import (
     sessions,
     time_to_answer,
 )
+from training.i2s.ship import real_confusion
 
 K = len(SEGMENTS)
 
@@ -277,6 +278,17 @@ def test_held_out_predictions_are_kept_with_the_summary_run_and_found_by_its_ori
     back = fold_predictions(original, tmp_path / "no-data")
     assert [h.recording for h in back] == ["rec0"] and len(back[0].sensors) == len(held[0].sensors)
     np.testing.assert_allclose(back[0].sensors[2].log_probs, held[0].sensors[2].log_probs, atol=1e-6)
+
+    # what each sensor is taken for (`real-confusion`): counted from the same predictions, one image per person
+    table = real_confusion(original, tmp_path / "no-data")
+    assert {a.path for a in client.list_artifacts(summary, "plots/real_confusion")} == {
+        "plots/real_confusion/person0.png",
+        "plots/real_confusion/pooled.png",
+    }
+    for sensor in held[0].sensors:
+        answers = sensor.log_probs[sensor.moving].argmax(axis=1)
+        right = 100 * np.mean(answers == sensor.segment)
+        assert f"| person0 | {SEGMENTS[sensor.segment]} ({len(answers)}) | {right:.1f} % |" in table
 
 
 def test_a_session_calibration_that_never_reaches_the_target_is_not_served() -> None:
