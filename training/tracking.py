@@ -28,13 +28,11 @@ def default_tracking_uri() -> str:
 
 
 def setup_tracking(experiment: str) -> str:
-    """Point MLflow at the store and create the experiment with artifacts under ./mlartifacts."""
+    """Point MLflow at the store and create the experiment where it is missing, its artifacts where the store keeps
+    them (the embedded store: ``./mlruns/<experiment id>``, MLflow's default; a server: its artifact root)."""
     uri = default_tracking_uri()
     mlflow.set_tracking_uri(uri)
-    if mlflow.get_experiment_by_name(experiment) is None:
-        location = None if "MLFLOW_TRACKING_URI" in os.environ else (Path.cwd() / "mlartifacts").as_uri()
-        mlflow.create_experiment(experiment, artifact_location=location)
-    found = mlflow.set_experiment(experiment)
+    found = mlflow.set_experiment(experiment)  # creates it where missing
     describe_experiment(MlflowClient(), found.experiment_id, experiment)
     return uri
 
