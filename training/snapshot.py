@@ -182,7 +182,15 @@ def restore_snapshot(snapshot_dir: Path, models_dir: Path) -> RestoreReport:
     restored = _restored_runs(client)
     model_dirs = shipped_model_dirs(models_dir, snapshot_dir)
     models = _shipped_float32_models(model_dirs)
-    registered = {v["run_id"] for entry in registry.values() for v in entry["versions"]}
+    present_versions = {
+        (mv.name, mv.tags.get("original_version")) for mv in client.search_model_versions(max_results=10_000)
+    }
+    registered = {  # the runs of the versions this restore registers (a run of two versions: one logged model)
+        v["run_id"]
+        for name, entry in registry.items()
+        for v in entry["versions"]
+        if (name, v["version"]) not in present_versions
+    }
     shipped = _shipped_versions(model_dirs)
     logged: dict[str, str] = {}  # original run id → the model URI logged with its restored run
     experiments: dict[str, str] = {}  # name → id, each set up once
@@ -230,10 +238,12 @@ def _label(client: MlflowClient, present: dict[str, str], shipped: dict[str, lis
     for experiment in experiments:
         describe_experiment(client, experiment.experiment_id, experiment.name)
     ids = [e.experiment_id for e in experiments]
-    runs = {r.info.run_id: r for r in client.search_runs(ids, max_results=10_000)} if present else {}
+    found = client.search_runs(ids, f"tags.{RESTORED_TAG} != ''", max_results=10_000) if present else []
+    runs = {r.info.run_id: r for r in found}
     for original, rid in present.items():  # as label_run does, writing only what changed
-        tags = runs[rid].data.tags
-        for key, value in run_labels(runs[rid].data.params, tags, shipped.get(original, [])).items():
+        run = runs.get(rid) or client.get_run(rid)
+        tags = run.data.tags
+        for key, value in run_labels(run.data.params, tags, shipped.get(original, [])).items():
             if tags.get(key) != value:
                 client.set_tag(rid, key, value)
     for model in client.search_registered_models():
@@ -311,37 +321,42 @@ def _restore_run(
     The model is logged after the params (it takes the run's) and before the metrics: MLflow links a logged model to
     its run's metrics of step 0 by reading every metric's history back and writing those again (a third of a
     restore's time); logged first, the run has none yet, and the step-0 metrics are written once with the model's
-    id: the same links."""
+    id: the same links. A run registered under two names gets one logged model for both versions. A run that fails
+    half-way is deleted, so that the next restore makes it anew instead of counting it as restored."""
     tags = {**record["tags"], RESTORED_TAG: record["run_id"], "restored_from": "mlflow_snapshot/ (training.snapshot)"}
     tags |= run_labels(record["params"], {**tags, RUN_NAME_TAG: record["run_name"]}, shipped)
     run = client.create_run(experiment_id, start_time=record["start_time"], tags=tags, run_name=tags[RUN_NAME_TAG])
     rid = run.info.run_id
-    params = [Param(k, v) for k, v in record["params"].items()]
-    for i in range(0, len(params), 100):  # before the model, which takes the run's params
-        client.log_batch(rid, params=params[i : i + 100])
-    model_uri = model_id = None
-    if model_dir is not None:
-        model_uri, model_id = _log_shipped_model(rid, model_dir)
-    metrics = [
-        Metric(k, value, timestamp, step, model_id=model_id if step == 0 else None)
-        for k, rows in record["metrics"].items()
-        for step, timestamp, value in rows
-    ]
-    for i in range(0, len(metrics), BATCH):
-        client.log_batch(rid, metrics=metrics[i : i + BATCH])
-    datasets = [
-        DatasetInput(
-            Dataset(d["name"], d["digest"], d["source_type"], d["source"], d["schema"], d["profile"]),
-            [InputTag(k, v) for k, v in d["tags"].items()],
-        )
-        for d in record["inputs"]
-    ]
-    if datasets:
-        client.log_inputs(rid, datasets=datasets)
-    artifacts = snapshot_dir / "artifacts" / record["run_id"]
-    if artifacts.is_dir():
-        client.log_artifacts(rid, str(artifacts))
-    client.set_terminated(rid, "FINISHED", end_time=record["end_time"])
+    try:
+        params = [Param(k, v) for k, v in record["params"].items()]
+        for i in range(0, len(params), 100):  # before the model, which takes the run's params
+            client.log_batch(rid, params=params[i : i + 100])
+        model_uri = model_id = None
+        if model_dir is not None:
+            model_uri, model_id = _log_shipped_model(rid, model_dir)
+        metrics = [
+            Metric(k, value, timestamp, step, model_id=model_id if step == 0 else None)
+            for k, rows in record["metrics"].items()
+            for step, timestamp, value in rows
+        ]
+        for i in range(0, len(metrics), BATCH):
+            client.log_batch(rid, metrics=metrics[i : i + BATCH])
+        datasets = [
+            DatasetInput(
+                Dataset(d["name"], d["digest"], d["source_type"], d["source"], d["schema"], d["profile"]),
+                [InputTag(k, v) for k, v in d["tags"].items()],
+            )
+            for d in record["inputs"]
+        ]
+        if datasets:
+            client.log_inputs(rid, datasets=datasets)
+        artifacts = snapshot_dir / "artifacts" / record["run_id"]
+        if artifacts.is_dir():
+            client.log_artifacts(rid, str(artifacts))
+        client.set_terminated(rid, "FINISHED", end_time=record["end_time"])
+    except BaseException:
+        client.delete_run(rid)
+        raise
     return rid, model_uri
 
 

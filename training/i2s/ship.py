@@ -7,6 +7,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import logging
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -406,22 +407,27 @@ def real_confusion(summary_run_id: str, data_dir: Path) -> str:
     matrices = held_out_confusions(fold_predictions(summary_run_id, data_dir))
     with tempfile.TemporaryDirectory() as tmp:
         for group, cm in matrices.items():
-            confusion_matrix_png(cm, Path(tmp) / f"{group}.png", f"held out {group}, moving windows")
+            name = re.sub(r"[^\w.-]", "_", group)  # a person as index.csv names them, as a file name
+            confusion_matrix_png(cm, Path(tmp) / f"{name}.png", f"held out {group}, moving windows")
         MlflowClient().log_artifacts(local_run_id(summary_run_id), tmp, "plots/real_confusion")
     return confusion_table(matrices)
 
 
 def held_out_confusions(held_out: list) -> dict[str, np.ndarray]:
-    """Per person of ``held_out`` (``HeldOut`` recordings) and ``pooled``: counts of moving windows, rows the
-    sensor's segment, columns each window's own answer."""
+    """Per person of ``held_out`` (``HeldOut`` recordings), then ``pooled`` over them all: counts of moving windows,
+    rows the sensor's segment, columns each window's own answer."""
     matrices: dict[str, np.ndarray] = {}
+    pooled = np.zeros((len(SEGMENTS), len(SEGMENTS)), np.int64)
     for held in held_out:
+        person = matrices.setdefault(held.person, np.zeros_like(pooled))
         for sensor in held.sensors:
             answers = sensor.log_probs[sensor.moving].argmax(axis=1)
             cm = confusion_matrix(np.full(len(answers), sensor.segment), answers)
-            for group in (held.person, "pooled"):
-                matrices[group] = matrices.get(group, 0) + cm
-    return matrices
+            person += cm
+            pooled += cm
+    if "pooled" in matrices:
+        raise ValueError("a held-out person is named 'pooled', the name of the total over everyone")
+    return matrices | {"pooled": pooled}
 
 
 def confusion_table(matrices: dict[str, np.ndarray]) -> str:
@@ -430,6 +436,8 @@ def confusion_table(matrices: dict[str, np.ndarray]) -> str:
     lines = ["| held out | segment (moving windows) | right | most often taken for |", "| --- | --- | --- | --- |"]
     for group in sorted(matrices, key=lambda g: (g == "pooled", g)):
         cm = matrices[group]
+        if not cm.sum():
+            lines.append(f"| {group} | no moving window | — | — |")
         for segment in np.flatnonzero(cm.sum(axis=1)):
             row = cm[segment]
             wrong = row.copy()

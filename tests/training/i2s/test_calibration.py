@@ -42,7 +42,7 @@ from training.i2s.calibration import (
     sessions,
     time_to_answer,
 )
-from training.i2s.ship import real_confusion
+from training.i2s.ship import confusion_table, held_out_confusions, real_confusion
 
 K = len(SEGMENTS)
 
@@ -289,6 +289,35 @@ def test_held_out_predictions_are_kept_with_the_summary_run_and_found_by_its_ori
         answers = sensor.log_probs[sensor.moving].argmax(axis=1)
         right = 100 * np.mean(answers == sensor.segment)
         assert f"| person0 | {SEGMENTS[sensor.segment]} ({len(answers)}) | {right:.1f} % |" in table
+
+
+def test_the_confusion_counts_each_person_s_moving_windows_and_names_what_a_sensor_is_taken_for() -> None:
+    """``real-confusion``'s counts: per person over their recordings and pooled over everyone, moving windows only,
+    each window's own answer; the table names the segment each worn one is most often taken for."""
+
+    def sensor(segment: int, answers: list[int], moving: list[int]) -> SensorPrediction:
+        log_probs = np.full((len(answers), K), -10.0)
+        log_probs[np.arange(len(answers)), answers] = 0.0
+        return SensorPrediction(segment, log_probs, np.asarray(moving, bool))
+
+    pelvis, left, right = (SEGMENTS.index(n) for n in ("Pelvis", "LeftLowerLeg", "RightLowerLeg"))
+    held = [
+        HeldOut("anna", "a/1", "walk", [sensor(left, [left, right, right, left], [1, 1, 1, 0])]),
+        HeldOut("anna", "a/2", "walk", [sensor(left, [left, left], [1, 1]), sensor(pelvis, [pelvis], [0])]),
+        HeldOut("ben", "b/1", "walk", [sensor(right, [right, right, left], [1, 1, 1])]),
+    ]
+    matrices = held_out_confusions(held)
+    assert set(matrices) == {"anna", "ben", "pooled"}
+    assert (matrices["anna"][left, left], matrices["anna"][left, right], matrices["anna"].sum()) == (3, 2, 5)
+    np.testing.assert_array_equal(matrices["pooled"], matrices["anna"] + matrices["ben"])
+    table = confusion_table(matrices)
+    assert "| anna | LeftLowerLeg (5) | 60.0 % | RightLowerLeg (2) |" in table
+    assert "| ben | RightLowerLeg (3) | 66.7 % | LeftLowerLeg (1) |" in table
+    assert "| pooled | RightLowerLeg (3) | 66.7 % | LeftLowerLeg (1) |" in table
+    assert "Pelvis" not in table  # its one window is still
+    assert table.index("| anna |") < table.index("| ben |") < table.index("| pooled |")
+    with pytest.raises(ValueError, match="pooled"):
+        held_out_confusions([HeldOut("pooled", "p/1", "walk", [])])
 
 
 def test_a_session_calibration_that_never_reaches_the_target_is_not_served() -> None:
