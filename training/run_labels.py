@@ -11,6 +11,7 @@ from __future__ import annotations
 import ast
 from collections.abc import Mapping
 
+from mlflow.entities import Run
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
@@ -97,12 +98,14 @@ def run_description(params: Mapping[str, str], tags: Mapping[str, str], shipped:
     return "".join(words) + ("" if words[-1].endswith(".") else ".")
 
 
-def label_run(client: MlflowClient, run_id: str, shipped: list[str] | None = None) -> str:
-    """Name and describe a run in the UI by the rule above; ``shipped``: versions it shipped as (else its tag)."""
-    run = client.get_run(run_id)
+def label_run(client: MlflowClient, run_id: str, shipped: list[str] | None = None, run: Run | None = None) -> str:
+    """Name and describe a run in the UI by the rule above, writing the tags that change; ``shipped``: versions it
+    shipped as (else its tag); ``run``: the run as already fetched."""
+    run = run or client.get_run(run_id)
     labels = run_labels(run.data.params, run.data.tags, shipped)
     for key, value in labels.items():
-        client.set_tag(run_id, key, value)
+        if run.data.tags.get(key) != value:
+            client.set_tag(run_id, key, value)
     return labels[RUN_NAME_TAG]
 
 

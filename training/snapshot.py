@@ -28,7 +28,7 @@ from mlflow.tracking import MlflowClient
 
 from service.core.manifest import read_manifest, sha256_file
 from service.inference.registry import version_key
-from training.run_labels import RUN_NAME_TAG, SHIPPED_TAG, describe_experiment, label_version, run_labels
+from training.run_labels import RUN_NAME_TAG, SHIPPED_TAG, describe_experiment, label_run, label_version, run_labels
 from training.tracking import log_onnx_model, setup_tracking
 
 log = logging.getLogger(__name__)
@@ -240,12 +240,8 @@ def _label(client: MlflowClient, present: dict[str, str], shipped: dict[str, lis
     ids = [e.experiment_id for e in experiments]
     found = client.search_runs(ids, f"tags.{RESTORED_TAG} != ''", max_results=10_000) if present else []
     runs = {r.info.run_id: r for r in found}
-    for original, rid in present.items():  # as label_run does, writing only what changed
-        run = runs.get(rid) or client.get_run(rid)
-        tags = run.data.tags
-        for key, value in run_labels(run.data.params, tags, shipped.get(original, [])).items():
-            if tags.get(key) != value:
-                client.set_tag(rid, key, value)
+    for original, rid in present.items():
+        label_run(client, rid, shipped.get(original, []), runs.get(rid))
     for model in client.search_registered_models():
         for mv in client.search_model_versions(f"name='{model.name}'"):
             original = client.get_run(mv.run_id).data.tags.get(RESTORED_TAG, mv.run_id) if mv.run_id else ""
