@@ -31,18 +31,18 @@ VARIANTS = {
     "plain": {},
     "legs": {"pelvis_heading": "legs"},
     "measured": {"measured": ["LeftUpperArm"]},
-    "no_hinges": {},  # the knees answered as the network gives them, as before they were hinges (its cost)
+    "no_hinges": {},  # knees and elbows answered as the network gives them, as before they were constrained (the cost)
 }
 
 
-class _NoKneeHinges(PoseModel):
-    knee_hinges = False
+class _NoHingeJoints(PoseModel):
+    hinge_joints = False
 
 
 def sessions(model: PoseModel, n: int, variant: str) -> list[LivePose]:
     extra = len(VARIANTS[variant].get("measured", []))
     if variant == "no_hinges":
-        model = _NoKneeHinges(model.loaded)
+        model = _NoHingeJoints(model.loaded)
     return [
         LivePose(
             model,

@@ -737,7 +737,7 @@ def evaluate_pose(
     if velocity_model is not None:
         learned = _learned_translation(model, velocity_model, clips, VAL_SEED if validation else TEST_SEED)
     if tag:
-        from service.inference.pose import knee_hinges
+        from service.inference.pose import assembly, hinge_joints
         from training.pose.data import pose_evaluation_digest
         from training.pose.evaluate import flat_metrics
         from training.pose.pipeline import SELECTION_METRIC
@@ -752,7 +752,7 @@ def evaluate_pose(
             run_id,
             SELECTION_METRIC,
             value,
-            pose_evaluation_digest(clips, knee_hinges(cfg.data.limb_twist)),
+            pose_evaluation_digest(clips, assembly(hinge_joints(cfg.data.limb_twist), cfg.sensors, cfg.outputs)),
         )
         typer.echo(f"{manifest.name} versions {tagged}: {SELECTION_METRIC} {value:.4f} (served chunks)", err=True)
     if record:

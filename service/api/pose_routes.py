@@ -365,7 +365,7 @@ def body_pose(job: PoseJob) -> BodyPose:
         model.sensor_index,
         model.output_index,
         measured_segments(r.segments[n:], R_all[:, n:]),
-        hinges=model.knee_hinges,
+        hinges=model.hinge_joints,
     )
     body = model.body.scaled(job.height_m) if job.height_m else model.body
     if job.translation == "none":

@@ -90,10 +90,16 @@ class PoseModel:
         self.output_index = [BODY_SEGMENTS.index(s) for s in self.spec.output_segments]
 
     @property
-    def knee_hinges(self) -> bool:
-        """Whether its answers' knees are hinges (``knees_as_hinges``): in the frames whose limbs take their turn
-        from the knee's hinge, where that hinge is y; a model in a rig's own frames is answered as it is."""
-        return knee_hinges(self.loaded.manifest.training_data.get("limb_twist"))
+    def hinge_joints(self) -> bool:
+        """Whether its answers' knees are hinges and its elbows in plane (``knees_as_hinges``,
+        ``elbows_in_plane``): in the frames whose limbs take their turn from their hinges, where those hinges are
+        y; a model in a rig's own frames is answered as it is."""
+        return hinge_joints(self.loaded.manifest.training_data.get("limb_twist"))
+
+    @property
+    def assembly(self) -> str:
+        """How its answers are assembled, as evaluation digests name it (``assembly``)."""
+        return assembly(self.hinge_joints, self.spec.sensors, self.spec.output_segments)
 
     @property
     def scenario(self) -> dict | None:
@@ -174,16 +180,33 @@ def fitting_models(models: list[PoseModel], segments: Sequence[str]) -> list[Pos
 
 
 # (thigh, shank) per leg: the knee, a hinge about the segments' y axes (DESIGN.md §2 frames, the limbs' turn taken
-# from the knee's hinge). In the mocap the knee is a hinge within 0.7° in every rig (median per clip; the elbow is
-# not, 5-14° off in Bandai-Namco's rig, and a forearm sensor turns with pronation), docs/pose.md "The knee as a hinge".
+# from the knee's hinge). In the mocap the knee is a hinge within 0.7° in every rig (median per clip),
+# docs/pose.md "The knee as a hinge".
 KNEES = tuple((BODY_SEGMENTS.index(f"{s}UpperLeg"), BODY_SEGMENTS.index(f"{s}LowerLeg")) for s in ("Left", "Right"))
+# (upper arm, forearm) per side: the elbow, whose hinge is the upper arm's y in the same frames (the forearm's long
+# axis lies in the upper arm's x-z plane, behind its z: in CMU's rigs exactly, in Bandai-Namco's within 6°, over
+# training clips). Not made a hinge as the knee is: a forearm sensor turns with pronation, its long axis does not.
+ELBOWS = tuple((BODY_SEGMENTS.index(f"{s}UpperArm"), BODY_SEGMENTS.index(f"{s}ForeArm")) for s in ("Left", "Right"))
+# elbow flexion (degrees) below which the plane is too ill-defined to turn the upper arm by, and from which it is
+# turned fully (linear between; fixed before the figures were read, docs/pose.md "The elbows in plane")
+ELBOW_PLANE_FLEXION_DEG = (10.0, 30.0)
 
 
-def knee_hinges(limb_twist: str | None) -> bool:
-    """Whether a model's knees are answered as hinges: only in the segment frames whose limbs take their turn from
-    the knee's hinge (``limb_twist`` "hinge", where that hinge is the y axis; in a rig's own frames it lies up to 13°
-    off y, docs/pose.md "Part of it is the rigs' frames")."""
+def hinge_joints(limb_twist: str | None) -> bool:
+    """Whether a model's knees are answered as hinges and its elbows in plane: only in the segment frames whose limbs
+    take their turn from their hinges (``limb_twist`` "hinge", where the hinges are the y axes; in a rig's own frames
+    they lie up to 42° off y, docs/pose.md "Part of it is the rigs' frames")."""
     return limb_twist == "hinge"
+
+
+def assembly(hinges: bool, sensors: Sequence[str], outputs: Sequence[str]) -> str:
+    """How ``whole_body`` assembles a model's answer, as evaluation digests name it: "+knee-hinges" with ``hinges``,
+    and "+elbow-planes" where also an upper arm is answered beside a sensed forearm (a figure scored one way is not
+    compared with one scored another)."""
+    if not hinges:
+        return ""
+    arms = any(BODY_SEGMENTS[u] in outputs and BODY_SEGMENTS[f] in sensors for u, f in ELBOWS)
+    return "+knee-hinges" + ("+elbow-planes" if arms else "")
 
 
 def knees_as_hinges(R: np.ndarray, thigh_answered: np.ndarray, shank_sensed: np.ndarray) -> np.ndarray:
@@ -205,6 +228,27 @@ def knees_as_hinges(R: np.ndarray, thigh_answered: np.ndarray, shank_sensed: np.
     return R
 
 
+def elbows_in_plane(R: np.ndarray, upper_answered: np.ndarray, forearm_sensed: np.ndarray) -> np.ndarray:
+    """``R`` ``(T, 21, 3, 3)`` with each upper arm the model answered (``upper_answered[t, k]``) beside a sensed
+    forearm (``forearm_sensed[t, k]``, k the side) turned about its own long axis (z) so that the forearm's long axis
+    lies in its x-z plane, behind z: the elbow's hinge then runs along the upper arm's y, as in the mocap. Only the
+    forearm's long axis is read, so a forearm sensor that turns with pronation changes nothing, and the upper arm's
+    direction, with every joint position, stays the model's. The turn is weighted by the elbow's flexion: none below
+    ``ELBOW_PLANE_FLEXION_DEG[0]``, where a nearly straight arm does not define the plane, in full from the second."""
+    R = R.copy()
+    low, full = ELBOW_PLANE_FLEXION_DEG
+    for k, (upper, forearm) in enumerate(ELBOWS):
+        use = upper_answered[:, k] & forearm_sensed[:, k]
+        if not use.any():
+            continue
+        v = np.einsum("tji,tj->ti", R[use, upper], R[use, forearm, :, 2])  # the forearm's z in the upper arm's frame
+        flexion = np.degrees(np.arccos(np.clip(v[:, 2], -1.0, 1.0)))
+        weight = np.clip((flexion - low) / (full - low), 0.0, 1.0)
+        off_plane = np.angle(-(v[:, 0] + 1j * v[:, 1]))  # its azimuth about z from the upper arm's −x
+        R[use, upper] = turn_about_own_axis(R[use, upper], weight * off_plane, 2)
+    return R
+
+
 def whole_body(
     R_world_sensor_segment: np.ndarray,
     R_root_out: np.ndarray,
@@ -216,9 +260,10 @@ def whole_body(
 ) -> np.ndarray:
     """Global orientations of all ``BODY_SEGMENTS`` ``(T, 21, 3, 3)``: the sensors' segments as measured, the
     others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D), each knee a hinge where
-    the model answers the thigh and a sensor gives the shank if ``hinges`` (``knees_as_hinges``; a model's
-    ``knee_hinges``: False for a model in a rig's own frames, and for the mean-pose baseline, which takes nothing
-    from the sensors but the root's and their own segments'). ``measured`` ``(T, 21, 3, 3)``: segments of sensors
+    the model answers the thigh and a sensor gives the shank, and each elbow in plane where it answers the upper arm and
+    a sensor gives the forearm, if ``hinges`` (``knees_as_hinges``, ``elbows_in_plane``; a model's ``hinge_joints``:
+    False for a model in a rig's own frames, and for the mean-pose baseline, which takes nothing from the sensors but
+    the root's and their own segments'). ``measured`` ``(T, 21, 3, 3)``: segments of sensors
     the model does not read, NaN elsewhere, in place of the model's answer. Segments that no sensor and not the
     model covers (e.g. the arms of a lower-body model) take their parent's orientation."""
     T = R_root_out.shape[0]
@@ -236,6 +281,7 @@ def whole_body(
         sensed |= by_sensor
     if hinges:
         R = knees_as_hinges(R, answered[:, [t for t, _ in KNEES]], sensed[:, [s for _, s in KNEES]])
+        R = elbows_in_plane(R, answered[:, [u for u, _ in ELBOWS]], sensed[:, [f for _, f in ELBOWS]])
     for k in range(1, len(BODY_SEGMENTS)):
         empty = np.isnan(R[:, k, 0, 0])
         if empty.any():
@@ -522,7 +568,7 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
         model.sensor_index,
         model.output_index,
         measured_all,
-        hinges=model.knee_hinges,
+        hinges=model.hinge_joints,
     )
     q_world = np.round(quat_from_matrix(R_world), 5)
     exact = segment_origins(R_world, np.concatenate(offsets))

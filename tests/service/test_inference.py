@@ -137,6 +137,90 @@ def test_whole_body_makes_each_answered_thigh_a_hinge_of_its_sensed_shank() -> N
     np.testing.assert_allclose(R[:, foot], np.einsum("tij,tjk->tik", R_sensors[:, 0], R_root_out[:, 2]), atol=1e-12)
 
 
+def _arm_sessions(T: int, flexion_deg: np.ndarray, seed: int) -> tuple[np.ndarray, ...]:
+    """Sensors on the pelvis and both forearms, the model answering both upper arms: its answer turned about the
+    upper arm's long axis by up to 60° from the true upper arm, which the elbow's hinge (about y, the forearm's long
+    axis behind the upper arm's z as in the mocap) joins to the sensed forearm."""
+    from service.core.body import BODY_SEGMENTS
+
+    rng = np.random.default_rng(seed)
+    R_pelvis = Rotation.random(T, random_state=seed).as_matrix()
+    uppers_true = [Rotation.random(T, random_state=seed + 1 + k).as_matrix() for k in range(2)]
+    hinge = Rotation.from_rotvec(-np.radians(flexion_deg)[:, None] * [0.0, 1.0, 0.0]).as_matrix()
+    forearms = [u @ hinge for u in uppers_true]
+    twist = [Rotation.from_rotvec(np.radians(rng.uniform(-60, 60, T))[:, None] * [0.0, 0.0, 1.0]).as_matrix()]
+    answered = [uppers_true[0] @ twist[0], uppers_true[1] @ twist[0].transpose(0, 2, 1)]
+    R_sensors = np.stack([R_pelvis, *forearms], axis=1)
+    R_root_out = np.stack([np.einsum("tji,tjk->tik", R_pelvis, a) for a in answered], axis=1)
+    sensors = [BODY_SEGMENTS.index(s) for s in ("Pelvis", "LeftForeArm", "RightForeArm")]
+    outputs = [BODY_SEGMENTS.index(s) for s in ("LeftUpperArm", "RightUpperArm")]
+    return R_sensors, R_root_out, sensors, outputs, np.stack(uppers_true, axis=1)
+
+
+def test_whole_body_turns_each_answered_upper_arm_so_its_sensed_forearm_lies_in_the_elbow_s_plane() -> None:
+    from service.inference.pose import whole_body
+
+    T = 40
+    flexion = np.linspace(35.0, 140.0, T)
+    R_sensors, R_root_out, sensors, outputs, uppers_true = _arm_sessions(T, flexion, 20)
+    R = whole_body(R_sensors, R_root_out, sensors, outputs, hinges=True)
+    as_answered = whole_body(R_sensors, R_root_out, sensors, outputs, hinges=False)
+    for k, (upper, forearm) in enumerate(zip(outputs, sensors[1:], strict=True)):
+        v = np.einsum("tji,tj->ti", R[:, upper], R[:, forearm, :, 2])  # the forearm's long axis, upper arm frame
+        np.testing.assert_allclose(v[:, 1], 0.0, atol=1e-9)  # in the x-z plane: the elbow's hinge along y
+        assert (v[:, 0] < 0).all()  # behind z, as a flexed elbow in the mocap
+        np.testing.assert_allclose(np.degrees(np.arccos(v[:, 2])), flexion, atol=1e-6)  # the flexion kept
+        # turned about its own long axis only: the upper arm points where the model said, so no joint moves
+        np.testing.assert_allclose(R[:, upper, :, 2], as_answered[:, upper, :, 2], atol=1e-12)
+        np.testing.assert_allclose(R[:, upper], uppers_true[:, k], atol=1e-9)  # the twist the model missed, found
+        assert not np.allclose(as_answered[:, upper], uppers_true[:, k], atol=0.1)
+
+
+def test_a_forearm_sensor_that_turns_with_pronation_does_not_move_the_upper_arm() -> None:
+    """Only the forearm's long axis is read: a sensor near the wrist turns about it as the forearm pronates."""
+    from service.inference.pose import whole_body
+
+    T = 30
+    R_sensors, R_root_out, sensors, outputs, _ = _arm_sessions(T, np.full(T, 70.0), 30)
+    R = whole_body(R_sensors, R_root_out, sensors, outputs, hinges=True)
+    pronated = R_sensors.copy()
+    for k in (1, 2):
+        turn = Rotation.from_rotvec(np.radians(np.linspace(-80, 80, T))[:, None] * [0.0, 0.0, 1.0]).as_matrix()
+        pronated[:, k] = R_sensors[:, k] @ turn
+    R_pronated = whole_body(pronated, R_root_out, sensors, outputs, hinges=True)
+    np.testing.assert_allclose(R_pronated[:, outputs], R[:, outputs], atol=1e-9)
+
+
+def test_a_nearly_straight_elbow_keeps_the_upper_arm_as_answered_and_the_turn_grows_with_the_flexion() -> None:
+    from service.inference.pose import ELBOW_PLANE_FLEXION_DEG, whole_body
+
+    low, full = ELBOW_PLANE_FLEXION_DEG
+    flexion = np.array([0.5, low - 1.0, (low + full) / 2, full + 1.0])
+    R_sensors, R_root_out, sensors, outputs, _ = _arm_sessions(4, flexion, 40)
+    R = whole_body(R_sensors, R_root_out, sensors, outputs, hinges=True)
+    as_answered = whole_body(R_sensors, R_root_out, sensors, outputs, hinges=False)
+    upper, forearm = outputs[0], sensors[1]
+    np.testing.assert_allclose(R[:2, upper], as_answered[:2, upper], atol=1e-12)  # below the first: untouched
+
+    def off_plane(R_: np.ndarray) -> np.ndarray:
+        v = np.einsum("tji,tj->ti", R_[:, upper], R_[:, forearm, :, 2])
+        return np.degrees(np.abs(np.angle(-(v[:, 0] + 1j * v[:, 1]))))
+
+    before, after = off_plane(as_answered), off_plane(R)
+    np.testing.assert_allclose(after[2], before[2] / 2, atol=1e-6)  # half way up the ramp: half the turn
+    assert after[3] < 1e-6
+
+
+def test_the_evaluation_digest_names_the_elbows_only_where_a_model_has_them() -> None:
+    from service.inference.pose import PoseModel
+
+    models = load_models(Path(__file__).resolve().parents[2] / "onnx_models", 1)
+    pose = {name: PoseModel(m) for name, m in models.items() if m.manifest.task == "imu_pose"}
+    assert pose["pose_full6"].assembly == "+knee-hinges+elbow-planes"
+    assert pose["pose_lower3"].assembly == "+knee-hinges"
+    assert pose["pose_mrmr6"].assembly == "+knee-hinges+elbow-planes"  # its right forearm
+
+
 def test_whole_body_keeps_a_thigh_a_sensor_measures_and_one_with_no_sensed_shank() -> None:
     from service.core.body import BODY_SEGMENTS
     from service.inference.pose import whole_body
@@ -156,12 +240,12 @@ def test_whole_body_keeps_a_thigh_a_sensor_measures_and_one_with_no_sensed_shank
 
 
 def test_only_models_in_the_hinge_frames_answer_their_knees_as_hinges() -> None:
-    from service.inference.pose import PoseModel, knee_hinges
+    from service.inference.pose import PoseModel, hinge_joints
 
-    assert knee_hinges("hinge") and not knee_hinges("rig") and not knee_hinges(None)
+    assert hinge_joints("hinge") and not hinge_joints("rig") and not hinge_joints(None)
     models = load_models(Path(__file__).resolve().parents[2] / "onnx_models", 1)
     pose = [PoseModel(m) for m in models.values() if m.manifest.task == "imu_pose"]
-    assert pose and all(p.knee_hinges == (p.loaded.manifest.training_data["limb_twist"] == "hinge") for p in pose)
+    assert pose and all(p.hinge_joints == (p.loaded.manifest.training_data["limb_twist"] == "hinge") for p in pose)
 
 
 def test_a_model_in_a_rig_s_own_frames_and_the_mean_pose_keep_the_thighs_as_answered() -> None:
@@ -171,7 +255,7 @@ def test_a_model_in_a_rig_s_own_frames_and_the_mean_pose_keep_the_thighs_as_answ
     loaded = load_models(Path(__file__).resolve().parents[2] / "onnx_models", 1)["pose_lower3"]
     rig = loaded.manifest.model_copy(deep=True)
     rig.training_data["limb_twist"] = "rig"
-    assert PoseModel(loaded).knee_hinges and not PoseModel(type(loaded)(rig, loaded.session, loaded.path)).knee_hinges
+    assert PoseModel(loaded).hinge_joints and not PoseModel(type(loaded)(rig, loaded.session, loaded.path)).hinge_joints
     T = 10
     R_sensors = Rotation.random(T * 2, random_state=9).as_matrix().reshape(T, 2, 3, 3)
     R_root_out = Rotation.random(T, random_state=10).as_matrix().reshape(T, 1, 3, 3)

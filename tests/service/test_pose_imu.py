@@ -654,7 +654,7 @@ def _offline_pose(model: PoseModel, raw) -> np.ndarray:
 
     R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
     R_out = model.predict(pose_features(R_w_seg, a_w))
-    return whole_body(R_w_seg, R_out, model.sensor_index, model.output_index, hinges=model.knee_hinges)
+    return whole_body(R_w_seg, R_out, model.sensor_index, model.output_index, hinges=model.hinge_joints)
 
 
 def _turned_pelvis(raw, deg: float) -> np.ndarray:
@@ -1434,7 +1434,7 @@ def test_rest_pose_with_the_learned_velocity_moves_the_walker_as_its_model_says(
     R_w_seg, a_w = segment_readings(raw.q_world_sensor, raw.acc_mps2, raw.q_segment_sensor)
     features = pose_features(R_w_seg, a_w)
     R_world = whole_body(
-        R_w_seg, model.predict(features), model.sensor_index, model.output_index, hinges=model.knee_hinges
+        R_w_seg, model.predict(features), model.sensor_index, model.output_index, hinges=model.hinge_joints
     )
     tracker = RootTracker(feet_of(model.body), 60.0, learned_share=velocity.spec.learned_share)
     learned = world_velocity(R_w_seg[:, 0], velocity.predict(features))
@@ -1494,7 +1494,7 @@ def test_a_stream_with_translation_moves_the_pelvis_as_the_offline_route_does(
     R_w_seg, a_w = segment_readings(raw.q_world_sensor[:n], raw.acc_mps2[:n], raw.q_segment_sensor)
     features = pose_features(R_w_seg, a_w)
     joints = model.body.forward(
-        whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index, hinges=model.knee_hinges)
+        whole_body(R_w_seg, model.predict(features), model.sensor_index, model.output_index, hinges=model.hinge_joints)
     )
     rule, _ = RootTracker(feet_of(model.body), 60.0).advance(joints, a_w[:, 0])
     root_off = rule

@@ -337,18 +337,19 @@ def dataset_digest(clips: list[MotionClip]) -> str:
 # How a pose run's validation figure is computed, part of the registry's evaluation digest: "served chunks" since
 # runs evaluate an offline model as the service runs it (training.pose.config.served_chunks); versions tagged before
 # were scored on whole clips, and ``evaluate-pose --validation --tag`` scores a shipped one again this way; with
-# "+knee-hinges" where the answer's knees are hinges (``service.inference.pose.knees_as_hinges``, since 2026-12-06,
-# models in the hinge frames).
+# ``service.inference.pose.assembly``'s "+knee-hinges" where the answer's knees are hinges (since 2026-12-06, models
+# in the hinge frames) and "+elbow-planes" where its elbows are also put in plane (since 2026-12-07).
 POSE_EVALUATION = "served-chunks"
 
 
-def pose_evaluation_digest(val_clips: list[MotionClip], hinges: bool) -> str:
-    """The registry's ``eval_digest`` of a pose validation figure: the clips and how they were scored. A user's own
+def pose_evaluation_digest(val_clips: list[MotionClip], assembled: str) -> str:
+    """The registry's ``eval_digest`` of a pose validation figure: the clips and how they were scored (``assembled``:
+    how the answer was put together, ``service.inference.pose.assembly``). A user's own
     clip (``data.own``) is named by its file, which says nothing of the segment frames it was read in (a mapping
     file, the motion version): its first frame's segment rotations stand for them."""
     own = [c for c in val_clips if c.source == OWN_SOURCE]
     frames = hashlib.sha256(b"".join(np.round(c.motion.R_world_segment[0], 4).tobytes() for c in own)).hexdigest()[:8]
-    scoring = POSE_EVALUATION + ("+knee-hinges" if hinges else "")
+    scoring = POSE_EVALUATION + assembled
     return f"{dataset_digest(val_clips)}|{scoring}" + (f"|own {frames}" if own else "")
 
 

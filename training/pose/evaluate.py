@@ -161,7 +161,7 @@ def evaluate_clips(
     hinges: bool,
 ) -> list[ClipResult]:
     """Each clip's figures with the answer assembled as the service assembles it: ``hinges`` as the model's
-    ``knee_hinges`` (by its frames; False for the mean-pose baseline)."""
+    ``hinge_joints`` (by its frames; False for the mean-pose baseline)."""
     return [
         clip_metrics(c, s, predict(s.features), sensors, outputs, hinges) for c, s in zip(clips, sessions, strict=True)
     ]

@@ -25,7 +25,7 @@ from mlflow.tracking import MlflowClient
 from service.core.body import BODY_SEGMENTS, PARENT_INDEX, Body, clip_body
 from service.core.calibration import features_per_frame
 from service.core.manifest import Evaluation, read_manifest, sha256_file
-from service.inference.pose import PoseModel, knee_hinges, whole_body
+from service.inference.pose import PoseModel, assembly, hinge_joints, whole_body
 from service.inference.registry import load_model
 from training.config import flatten
 from training.data.catalog import mocap_entries
@@ -238,7 +238,7 @@ def log_datasets(data: PoseData, data_dir: Path) -> None:
 def _snapshot(net_predict, clip: MotionClip, session: Session, cfg: PoseConfig, path: Path) -> Path:
     sensors = [BODY_SEGMENTS.index(s) for s in cfg.sensors]
     outputs = [BODY_SEGMENTS.index(s) for s in cfg.outputs]
-    hinges = knee_hinges(cfg.data.limb_twist)
+    hinges = hinge_joints(cfg.data.limb_twist)
     R_pred = whole_body(session.R_world_sensor_segment, net_predict(session.features), sensors, outputs, hinges=hinges)
     from scipy.spatial.transform import Rotation
 
@@ -394,7 +394,7 @@ def run_pose_experiment(
             mlflow.log_artifact(str(curve), "plots")
 
         predict = torch_predictor(net, served_chunks(cfg))  # as the service runs it
-        hinges = knee_hinges(cfg.data.limb_twist)  # as the service answers the shipped file
+        hinges = hinge_joints(cfg.data.limb_twist)  # as the service answers the shipped file
         val_results = evaluate_clips(predict, data.val, val_sessions, cfg.sensors, cfg.outputs, hinges=hinges)
         val_summary = summarise(val_results)
         mlflow.log_metrics(flat_metrics(val_summary, "val"))
@@ -521,7 +521,7 @@ def run_pose_experiment(
         mlflow.set_tag("model_uri", info.model_uri)
         registered = register_model(info.model_uri, cfg.registered_model)
         val_value = flat_metrics(val_summary, "val")["val_angle_unsensed_deg"]
-        digest = pose_evaluation_digest(data.val, hinges)
+        digest = pose_evaluation_digest(data.val, assembly(hinges, cfg.sensors, cfg.outputs))
         promoted = maybe_promote(cfg.registered_model, registered.version, SELECTION_METRIC, val_value, False, digest)
         mlflow.set_tag("promoted_to_champion", str(promoted))
         manifest = with_registry(manifest, info, registered)
@@ -814,5 +814,5 @@ def evaluate_shipped_pose(
     model = PoseModel(load_model(model_dir, 2))
     cfg = PoseConfig(name=model.name, sensors=model.spec.sensors, output_segments=model.spec.output_segments)
     sessions = fixed_sessions(clips, cfg, seed)
-    results = evaluate_clips(model.predict, clips, sessions, cfg.sensors, cfg.outputs, hinges=model.knee_hinges)
+    results = evaluate_clips(model.predict, clips, sessions, cfg.sensors, cfg.outputs, hinges=model.hinge_joints)
     return results, summarise(results)

@@ -71,7 +71,11 @@ def check_recording(
     R_in = np.stack([seg_R[s][0] for s in inputs], axis=1)
     a_in = np.stack([seg_R[s][1] for s in inputs], axis=1)
     R_pred = whole_body(
-        R_in, model.predict(pose_features(R_in, a_in)), model.sensor_index, model.output_index, hinges=model.knee_hinges
+        R_in,
+        model.predict(pose_features(R_in, a_in)),
+        model.sensor_index,
+        model.output_index,
+        hinges=model.hinge_joints,
     )
     for name in ("UpperLeg", "Foot"):
         errs = []

@@ -62,7 +62,7 @@ def design_table(model_dir: Path, train: list[MotionClip]) -> dict[str, dict[str
     table = {}
     for name, clips in design_clips(train):
         sessions = fixed_sessions(clips, cfg, DESIGN_SEED)
-        results = evaluate_clips(model.predict, clips, sessions, cfg.sensors, cfg.outputs, hinges=model.knee_hinges)
+        results = evaluate_clips(model.predict, clips, sessions, cfg.sensors, cfg.outputs, hinges=model.hinge_joints)
         keys = [k for k in results[0].metrics if k.startswith("trans_")] if results else []
         table[name] = {k: _mean([r.metrics[k] for r in results]) for k in keys} | {"clips": float(len(clips))}
     return table

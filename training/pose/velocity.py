@@ -36,7 +36,7 @@ from service.core.body import BODY_SEGMENTS, BodyMotion, clip_body, feet_of
 from service.core.calibration import ACC_SCALE_MPS2, FEATURE_VERSION, features_per_frame
 from service.core.manifest import Evaluation, Manifest, TensorSpec, VelocitySpec, sha256_file
 from service.core.translation import Feet, RootTracker
-from service.inference.pose import PoseModel, whole_body
+from service.inference.pose import PoseModel, assembly, whole_body
 from service.inference.registry import load_model
 from service.inference.velocity import VelocityModel, world_velocity
 from training.config import flatten
@@ -230,7 +230,7 @@ def translation_cases(clips: list[MotionClip], sessions: list[Session], pose: Po
     for clip, s in zip(clips, sessions, strict=True):
         body = clip_body(clip.motion)
         R = whole_body(
-            s.R_world_sensor_segment, pose.predict(s.features), sensor_index, output_index, hinges=pose.knee_hinges
+            s.R_world_sensor_segment, pose.predict(s.features), sensor_index, output_index, hinges=pose.hinge_joints
         )
         Rz = Rotation.from_rotvec([0.0, 0.0, s.heading_rad]).as_matrix()
         cases.append(
@@ -528,7 +528,9 @@ def run_velocity_experiment(
         registered = register_model(info.model_uri, registered_name)
         # the registry's champion by the figure the share was chosen by, on the same validation sessions
         chosen = val["all"][f"share_{share:g}"]
-        digest = f"{pose_evaluation_digest(data.val, pose.knee_hinges)}|{chosen_with}"
+        # the knees only: the elbows' plane turns upper arms about their own axes, which moves no joint the
+        # translation reads
+        digest = f"{pose_evaluation_digest(data.val, assembly(pose.hinge_joints, (), ()))}|{chosen_with}"
         promoted = beats_rule and maybe_promote(
             registered_name, registered.version, SELECTION_METRIC, chosen, False, digest
         )  # a network that loses to the rule is not served from the registry either
