@@ -91,9 +91,9 @@ class PoseModel:
 
     @property
     def hinge_joints(self) -> bool:
-        """Whether its answers' knees are hinges and its elbows in plane (``knees_as_hinges``,
-        ``elbows_in_plane``): in the frames whose limbs take their turn from their hinges, where those hinges are
-        y; a model in a rig's own frames is answered as it is."""
+        """Whether its answers' knees are hinges, its elbows in plane and its wrists neutral (``whole_body``): in the
+        frames whose limbs take their turn from their hinges, where those hinges are y; a model in a rig's own frames
+        is answered as it is."""
         return hinge_joints(self.loaded.manifest.training_data.get("limb_twist"))
 
     @property
@@ -187,26 +187,37 @@ KNEES = tuple((BODY_SEGMENTS.index(f"{s}UpperLeg"), BODY_SEGMENTS.index(f"{s}Low
 # axis lies in the upper arm's x-z plane, behind its z: in CMU's rigs exactly, in Bandai-Namco's within 6°, over
 # training clips). Not made a hinge as the knee is: a forearm sensor turns with pronation, its long axis does not.
 ELBOWS = tuple((BODY_SEGMENTS.index(f"{s}UpperArm"), BODY_SEGMENTS.index(f"{s}ForeArm")) for s in ("Left", "Right"))
+# (hand, forearm) per side: the wrist. A hand's frame is fitted to its forearm's target (service.core.body, rule
+# "parent"), so the two agree over a rig's walks on average; person by person they do not (CMU's retargeted hands
+# sit 10-90° from the forearm: docs/pose.md "Neutral wrists"), and no sensor here sees the wrist's own angle.
+WRISTS = tuple((BODY_SEGMENTS.index(f"{s}Hand"), BODY_SEGMENTS.index(f"{s}ForeArm")) for s in ("Left", "Right"))
 # elbow flexion (degrees) below which the plane is too ill-defined to turn the upper arm by, and from which it is
 # turned fully (linear between; fixed before the figures were read, docs/pose.md "The elbows in plane")
 ELBOW_PLANE_FLEXION_DEG = (10.0, 30.0)
 
 
 def hinge_joints(limb_twist: str | None) -> bool:
-    """Whether a model's knees are answered as hinges and its elbows in plane: only in the segment frames whose limbs
-    take their turn from their hinges (``limb_twist`` "hinge", where the hinges are the y axes; in a rig's own frames
-    they lie up to 42° off y, docs/pose.md "Part of it is the rigs' frames")."""
+    """Whether a model's knees are answered as hinges, its elbows in plane and its wrists neutral: only in the segment
+    frames whose limbs take their turn from their hinges (``limb_twist`` "hinge", where the hinges are the y axes; in
+    a rig's own frames they lie up to 42° off y, docs/pose.md "Part of it is the rigs' frames")."""
     return limb_twist == "hinge"
 
 
 def assembly(hinges: bool, sensors: Sequence[str], outputs: Sequence[str]) -> str:
     """How ``whole_body`` assembles a model's answer, as evaluation digests name it: "+knee-hinges" with ``hinges``,
-    and "+elbow-planes" where also an upper arm is answered beside a sensed forearm (a figure scored one way is not
-    compared with one scored another)."""
+    "+elbow-planes" where also an upper arm is answered beside a sensed forearm and "+neutral-wrists" where a hand is
+    (a figure scored one way is not compared with one scored another)."""
     if not hinges:
         return ""
-    arms = any(BODY_SEGMENTS[u] in outputs and BODY_SEGMENTS[f] in sensors for u, f in ELBOWS)
-    return "+knee-hinges" + ("+elbow-planes" if arms else "")
+
+    def beside_a_forearm(joints: tuple[tuple[int, int], ...]) -> bool:
+        return any(BODY_SEGMENTS[a] in outputs and BODY_SEGMENTS[f] in sensors for a, f in joints)
+
+    return (
+        "+knee-hinges"
+        + ("+elbow-planes" if beside_a_forearm(ELBOWS) else "")
+        + ("+neutral-wrists" if beside_a_forearm(WRISTS) else "")
+    )
 
 
 def knees_as_hinges(R: np.ndarray, thigh_answered: np.ndarray, shank_sensed: np.ndarray) -> np.ndarray:
@@ -214,8 +225,7 @@ def knees_as_hinges(R: np.ndarray, thigh_answered: np.ndarray, shank_sensed: np.
     (``shank_sensed[t, k]``, k the leg) replaced by that shank turned about its y axis by the flexion the model's
     thigh implies: the rotation about y nearest to M = shank⁻¹ · thigh, the twist of its quaternion (w, x, y, z),
     whose angle 2·atan2(y, w) is atan2(M₀₂ − M₂₀, M₀₀ + M₂₂). The model then answers one angle per knee; where the
-    thigh lies and how it is turned come from the shank's sensor."""
-    R = R.copy()
+    thigh lies and how it is turned come from the shank's sensor. In place (``whole_body``'s own array); returns R."""
     for k, (thigh, shank) in enumerate(KNEES):
         use = thigh_answered[:, k] & shank_sensed[:, k]
         if not use.any():
@@ -234,8 +244,8 @@ def elbows_in_plane(R: np.ndarray, upper_answered: np.ndarray, forearm_sensed: n
     lies in its x-z plane, behind z: the elbow's hinge then runs along the upper arm's y, as in the mocap. Only the
     forearm's long axis is read, so a forearm sensor that turns with pronation changes nothing, and the upper arm's
     direction, with every joint position, stays the model's. The turn is weighted by the elbow's flexion: none below
-    ``ELBOW_PLANE_FLEXION_DEG[0]``, where a nearly straight arm does not define the plane, in full from the second."""
-    R = R.copy()
+    ``ELBOW_PLANE_FLEXION_DEG[0]``, where a nearly straight arm does not define the plane, in full from the second.
+    In place; returns R."""
     low, full = ELBOW_PLANE_FLEXION_DEG
     for k, (upper, forearm) in enumerate(ELBOWS):
         use = upper_answered[:, k] & forearm_sensed[:, k]
@@ -246,6 +256,18 @@ def elbows_in_plane(R: np.ndarray, upper_answered: np.ndarray, forearm_sensed: n
         weight = np.clip((flexion - low) / (full - low), 0.0, 1.0)
         off_plane = np.angle(-(v[:, 0] + 1j * v[:, 1]))  # its azimuth about z from the upper arm's −x
         R[use, upper] = turn_about_own_axis(R[use, upper], weight * off_plane, 2)
+    return R
+
+
+def neutral_wrists(R: np.ndarray, hand_answered: np.ndarray, forearm_sensed: np.ndarray) -> np.ndarray:
+    """``R`` ``(T, 21, 3, 3)`` with each hand the model answered (``hand_answered[t, k]``) beside a sensed forearm
+    (``forearm_sensed[t, k]``, k the side) answered as that forearm: the wrist in its neutral, where the hand's frame
+    meets the forearm's. A forearm sensor near the wrist turns with pronation, which the hand follows and the network,
+    trained on mocap forearms that do not pronate, cannot tell; the wrist's own flexion no sensor here sees. In place;
+    returns R."""
+    for k, (hand, forearm) in enumerate(WRISTS):
+        use = hand_answered[:, k] & forearm_sensed[:, k]
+        R[use, hand] = R[use, forearm]
     return R
 
 
@@ -260,8 +282,9 @@ def whole_body(
 ) -> np.ndarray:
     """Global orientations of all ``BODY_SEGMENTS`` ``(T, 21, 3, 3)``: the sensors' segments as measured, the
     others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D), each knee a hinge where
-    the model answers the thigh and a sensor gives the shank, and each elbow in plane where it answers the upper arm and
-    a sensor gives the forearm, if ``hinges`` (``knees_as_hinges``, ``elbows_in_plane``; a model's ``hinge_joints``:
+    the model answers the thigh and a sensor gives the shank, and each elbow in plane and each wrist neutral where it
+    answers the upper arm or the hand and a sensor gives the forearm, if ``hinges`` (``knees_as_hinges``,
+    ``elbows_in_plane``, ``neutral_wrists``; a model's ``hinge_joints``:
     False for a model in a rig's own frames, and for the mean-pose baseline, which takes nothing from the sensors but
     the root's and their own segments'). ``measured`` ``(T, 21, 3, 3)``: segments of sensors
     the model does not read, NaN elsewhere, in place of the model's answer. Segments that no sensor and not the
@@ -282,6 +305,7 @@ def whole_body(
     if hinges:
         R = knees_as_hinges(R, answered[:, [t for t, _ in KNEES]], sensed[:, [s for _, s in KNEES]])
         R = elbows_in_plane(R, answered[:, [u for u, _ in ELBOWS]], sensed[:, [f for _, f in ELBOWS]])
+        R = neutral_wrists(R, answered[:, [h for h, _ in WRISTS]], sensed[:, [f for _, f in WRISTS]])
     for k in range(1, len(BODY_SEGMENTS)):
         empty = np.isnan(R[:, k, 0, 0])
         if empty.any():

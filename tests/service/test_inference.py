@@ -216,9 +216,29 @@ def test_the_evaluation_digest_names_the_elbows_only_where_a_model_has_them() ->
 
     models = load_models(Path(__file__).resolve().parents[2] / "onnx_models", 1)
     pose = {name: PoseModel(m) for name, m in models.items() if m.manifest.task == "imu_pose"}
-    assert pose["pose_full6"].assembly == "+knee-hinges+elbow-planes"
+    assert pose["pose_full6"].assembly == "+knee-hinges+elbow-planes+neutral-wrists"
     assert pose["pose_lower3"].assembly == "+knee-hinges"
-    assert pose["pose_mrmr6"].assembly == "+knee-hinges+elbow-planes"  # its right forearm
+    assert pose["pose_mrmr6"].assembly == "+knee-hinges+elbow-planes+neutral-wrists"  # its right forearm
+
+
+def test_each_answered_hand_beside_a_sensed_forearm_follows_it_and_a_measured_hand_is_kept() -> None:
+    """The wrist neutral: the hand takes the forearm's orientation as sensed, pronation included."""
+    from service.core.body import BODY_SEGMENTS
+    from service.inference.pose import whole_body
+
+    T = 15
+    sensors = [BODY_SEGMENTS.index(s) for s in ("Pelvis", "LeftForeArm", "RightForeArm")]
+    outputs = [BODY_SEGMENTS.index(s) for s in ("LeftHand", "RightHand", "LeftUpperArm")]
+    R_sensors = Rotation.random(T * 3, random_state=50).as_matrix().reshape(T, 3, 3, 3)
+    R_root_out = Rotation.random(T * 3, random_state=51).as_matrix().reshape(T, 3, 3, 3)
+    measured = np.full((T, len(BODY_SEGMENTS), 3, 3), np.nan)
+    right_hand = Rotation.random(T, random_state=52).as_matrix()
+    measured[:, outputs[1]] = right_hand
+    R = whole_body(R_sensors, R_root_out, sensors, outputs, measured, hinges=True)
+    np.testing.assert_allclose(R[:, outputs[0]], R_sensors[:, 1], atol=1e-12)  # the left forearm, as sensed
+    np.testing.assert_allclose(R[:, outputs[1]], right_hand)  # a sensor on the right hand: as measured
+    as_answered = whole_body(R_sensors, R_root_out, sensors, outputs, measured, hinges=False)
+    np.testing.assert_allclose(as_answered[:, outputs[0]], np.einsum("tij,tjk->tik", R_sensors[:, 0], R_root_out[:, 0]))
 
 
 def test_whole_body_keeps_a_thigh_a_sensor_measures_and_one_with_no_sensed_shank() -> None:
