@@ -1,9 +1,10 @@
 """The live pose worker's cost per batch, in-process, side by side in one run: ``process_live`` over S sessions of
 the served six-sensor streaming model (declared calibration, random readings, ``--frames`` frames each), as
 sessions run plain, with the pelvis's heading from the legs (``pelvis_heading: legs``), and with one more sensor
-than the model reads (``measured``: a left upper arm), and with the knees answered as the network gives them
-(``no_hinges``: what the knee hinges cost). The variants are interleaved round by round so that the machine's drift
-falls on all of them alike; the median per variant is reported.
+than the model reads (``measured``: a left upper arm), and with the knees, elbows and hands answered as the network
+gives them (``no_hinges``: what the knee hinges, the elbows' plane and the neutral wrists cost). The variants are
+interleaved round by round so that the machine's drift falls on all of them alike; the median per variant is
+reported.
 
     python -m benchmarks.bench_pose_batch                 -> benchmarks/results/pose_batch.json
     python -m benchmarks.bench_pose_batch --sessions 50 150 --rounds 40
@@ -31,7 +32,7 @@ VARIANTS = {
     "plain": {},
     "legs": {"pelvis_heading": "legs"},
     "measured": {"measured": ["LeftUpperArm"]},
-    "no_hinges": {},  # knees and elbows answered as the network gives them, as before they were constrained (the cost)
+    "no_hinges": {},  # knees, elbows and hands as the network gives them, as before they were constrained (the cost)
 }
 
 

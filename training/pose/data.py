@@ -338,7 +338,8 @@ def dataset_digest(clips: list[MotionClip]) -> str:
 # runs evaluate an offline model as the service runs it (training.pose.config.served_chunks); versions tagged before
 # were scored on whole clips, and ``evaluate-pose --validation --tag`` scores a shipped one again this way; with
 # ``service.inference.pose.assembly``'s "+knee-hinges" where the answer's knees are hinges (since 2026-12-06, models
-# in the hinge frames) and "+elbow-planes" where its elbows are also put in plane (since 2026-12-07).
+# in the hinge frames), "+elbow-planes" and "+neutral-wrists" where its elbows are also put in plane and its hands
+# follow their forearms (since 2026-12-07).
 POSE_EVALUATION = "served-chunks"
 
 
