@@ -899,6 +899,11 @@ def evaluate_flex(
         help="with --validation: write the figure into the model's registry versions under the evaluation digest "
         "of this installation, so that the registry compares later runs with it",
     ),
+    record: bool = typer.Option(
+        False,
+        "--record",
+        help="write the held-out figures into the model's manifest (after a change to how it answers)",
+    ),
 ) -> None:
     """A shipped flex model (its ONNX file through onnxruntime) on the held-out subjects' simulated suits: error
     overall, per motion type and joint, jitter, and under ageing beyond the training range and a replaced sensor."""
@@ -906,11 +911,20 @@ def evaluate_flex(
 
     from service.core.flex import JOINT_COMPONENTS
     from service.inference.registry import load_model
-    from training.flex.pipeline import SELECTION_METRIC, evaluate_served, load_flex_data, shipped_config
+    from training.flex.pipeline import (
+        SELECTION_METRIC,
+        evaluate_served,
+        evaluation_digest,
+        load_flex_data,
+        shipped_config,
+    )
 
     if tag and not validation:
         raise typer.BadParameter("--tag writes the validation figure the registry compares by: give --validation")
-    loaded = load_model(newest_shipped(model, "flex_bilstm_cm"), 2)
+    if record and validation:
+        raise typer.BadParameter("--record writes held-out figures; it does not go with --validation")
+    model_dir = newest_shipped(model, "flex_bilstm_cm")
+    loaded = load_model(model_dir, 2)
     m = loaded.manifest
     if "test_subjects" not in m.training_data:
         raise typer.BadParameter(
@@ -928,7 +942,7 @@ def evaluate_flex(
 
             setup_tracking(cfg.tracking.experiment)
             run_id = local_run_id(m.mlflow["run_id"])
-            tagged = record_evaluation(m.name, run_id, SELECTION_METRIC, val["mae_deg"], data.digest_val)
+            tagged = record_evaluation(m.name, run_id, SELECTION_METRIC, val["mae_deg"], evaluation_digest(cfg, data))
             if not tagged:
                 raise typer.BadParameter(
                     f"no registered version of {m.name} comes from run {run_id} in this tracking store: nothing tagged "
@@ -946,6 +960,15 @@ def evaluate_flex(
         typer.echo(json.dumps(out, indent=1))
         return
     test = out["test"]
+    if record:
+        from service.core.manifest import write_manifest
+        from training.flex.pipeline import HELD_OUT, held_out_metrics
+
+        old = next(e for e in m.evaluations if e.name == HELD_OUT)
+        metrics = held_out_metrics(test, out["ageing"], out["replaced"])
+        metrics |= {k: v for k, v in old.metrics.items() if k not in metrics}  # the mean pose's: not the model's
+        evaluations = [old.model_copy(update={"metrics": metrics}), *(e for e in m.evaluations if e.name != HELD_OUT)]
+        write_manifest(m.model_copy(update={"evaluations": evaluations}), model_dir / "manifest.json")
     typer.echo(
         f"held-out: {test['mae_deg']:.2f}° jitter {test['jitter_deg_s3'] / 1e4:.3f}e4 °/s³; without each clip's "
         f"constant offset per angle {test['offset_free_mae_deg']:.2f}°"

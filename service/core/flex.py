@@ -58,6 +58,29 @@ FLEX_JOINTS: dict[str, FlexJoint] = {
     "RightKnee": FlexJoint("RightUpperLeg", "RightLowerLeg", 1.0, -1.0, 1.0),
 }
 
+# What the hinge frames (``limb_twist`` "hinge": each limb's turn about its long axis taken from its hinge,
+# docs/pose.md "Hinge frames") hold at zero in the mocap: the knee is a hinge about y in every rig (within 0.7°), so
+# its abduction and rotation; the forearm's long axis lies in the upper arm's x-z plane (CMU's rigs exactly,
+# Bandai-Namco's within 6°), so the elbow's abduction. The elbow's rotation, the forearm's pronation, is left: a real
+# forearm has it. A model in these frames answers them as zero (docs/flex.md "The hinges' zeros").
+HINGE_ZEROS: dict[str, tuple[str, ...]] = {
+    "LeftKnee": ("abduction", "rotation"),
+    "RightKnee": ("abduction", "rotation"),
+    "LeftElbow": ("abduction",),
+    "RightElbow": ("abduction",),
+}
+
+
+def hinge_mask(joints: list[str] | tuple[str, ...], components: list[str] | tuple[str, ...]) -> np.ndarray:
+    """``(J, C)`` float32 factors for a model's answer: 0 where ``HINGE_ZEROS`` holds the angle at zero, else 1."""
+    mask = np.ones((len(joints), len(components)), np.float32)
+    for j, joint in enumerate(joints):
+        for c, component in enumerate(components):
+            if component in HINGE_ZEROS.get(joint, ()):
+                mask[j, c] = 0.0
+    return mask
+
+
 # Four resistive strips, over both knees and both elbows (Chen et al. 2024 §3.2), in channel order.
 FLEX_SENSOR_JOINTS: tuple[str, ...] = ("LeftKnee", "RightKnee", "LeftElbow", "RightElbow")
 

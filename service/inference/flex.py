@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.flex import FlexWindow, ReadoutCheck, ReadoutFailure, block_windows
+from service.core.flex import FlexWindow, ReadoutCheck, ReadoutFailure, block_windows, hinge_mask
 from service.core.resample import resample_uniform
 from service.inference.predict import InputError
 from service.inference.registry import LoadedModel
@@ -26,6 +26,10 @@ class FlexModel:
         m = self.loaded.manifest
         if m.task != "flex_pose" or m.flex is None:
             raise ValueError(f"{m.name} is not a flex_pose model")
+        # a model in the hinge frames answers what they hold at zero as zero (service.core.flex.HINGE_ZEROS)
+        self.answer_mask = (
+            hinge_mask(m.joints, m.joint_components) if m.training_data.get("limb_twist") == "hinge" else None
+        )
 
     @property
     def name(self) -> str:
@@ -49,16 +53,15 @@ class FlexModel:
         return None if spec is None else ReadoutCheck(rate_hz, spec.reference_s, spec.max_deviation)
 
     def run_windows(self, windows: np.ndarray) -> np.ndarray:
-        """``(n, window, C)`` → ``(n, joints, components)`` degrees."""
+        """``(n, window, C)`` → ``(n, joints, components)`` degrees, as the service answers them (``answer_mask``)."""
         out = [
             self.loaded.run(np.ascontiguousarray(windows[i : i + CHUNK_WINDOWS], np.float32))
             for i in range(0, len(windows), CHUNK_WINDOWS)
         ]
-        return (
-            np.concatenate(out)
-            if out
-            else np.zeros((0, len(self.manifest.joints), len(self.manifest.joint_components)))
-        )
+        if not out:
+            return np.zeros((0, len(self.manifest.joints), len(self.manifest.joint_components)))
+        angles = np.concatenate(out)
+        return angles if self.answer_mask is None else angles * self.answer_mask
 
     def run_block(self, rows: np.ndarray) -> np.ndarray:
         """Rows ``(T, C)`` at the model's rate, ``T >= window`` → angles of samples ``window - 1 - latency`` to

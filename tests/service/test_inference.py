@@ -302,3 +302,28 @@ def test_a_shank_measured_on_some_frames_hinges_its_knee_on_those_frames_only() 
     M = np.einsum("tji,tjk->tik", R[: T // 2, shank], R[: T // 2, thigh])
     assert np.abs(M[:, 1, 1] - 1.0).max() < 1e-9  # shank⁻¹ · thigh turns about y only where the shank is measured
     assert not np.allclose(R[: T // 2, thigh], answered[: T // 2])
+
+
+def test_a_flex_model_in_the_hinge_frames_answers_the_hinges_zeros_as_zero() -> None:
+    """The simulated suit (hinge frames): each knee's abduction and rotation and each elbow's abduction answered 0,
+    the elbows' rotation (pronation) and every other angle as the network gives them; the capacitive sleeve, whose
+    manifest names no such frames, as its network gives it."""
+    from service.core.flex import HINGE_ZEROS, hinge_mask
+    from service.inference.flex import FlexModel
+
+    models = load_models(Path(__file__).resolve().parents[2] / "onnx_models", 1)
+    suit, sleeve = FlexModel(models["flex_bilstm_cm"]), FlexModel(models["flex_capacitive_knee"])
+    m = suit.manifest
+    assert m.training_data["limb_twist"] == "hinge" and sleeve.answer_mask is None
+    mask = hinge_mask(m.joints, m.joint_components)
+    assert int((mask == 0).sum()) == 6  # two knees × abduction, rotation; two elbows × abduction
+    assert mask[m.joints.index("LeftElbow"), m.joint_components.index("rotation")] == 1.0
+    assert set(HINGE_ZEROS) <= set(m.joints)
+    lo, hi = m.value_range
+    x = np.random.default_rng(60).uniform(lo + 500, hi - 500, size=(4, suit.window, len(m.channels)))
+    raw = suit.loaded.run(x.astype(np.float32))
+    got = suit.run_windows(x)
+    assert np.all(got[:, mask == 0] == 0.0) and np.abs(raw[:, mask == 0]).max() > 0.01
+    np.testing.assert_array_equal(got[:, mask == 1], raw[:, mask == 1])
+    y = np.random.default_rng(61).uniform(900.0, 1100.0, size=(2, sleeve.window, len(sleeve.manifest.channels)))
+    np.testing.assert_array_equal(sleeve.run_windows(y), sleeve.loaded.run(y.astype(np.float32)))

@@ -20,6 +20,7 @@ import pandas as pd
 from mlflow.tracking import MlflowClient
 
 from service.core.manifest import Evaluation, sha256_file
+from service.inference.flex import FlexModel
 from service.inference.registry import load_model
 from training.config import flatten
 from training.data.catalog import BANDAI_LICENCE, is_bandai_namco, mocap_entries
@@ -28,7 +29,7 @@ from training.flex.data import FlexClip, WindowSet, clip_seed, clip_suit, flex_c
 from training.flex.evaluate import clip_metrics, flat_metrics, mean_pose_predictor
 from training.flex.export import build_flex_manifest, export_flex_onnx, onnx_parity
 from training.flex.simulate import AGEING_BEYOND, FLEX_RATE_HZ, draw_sensor, draw_suit, simulate_counts
-from training.flex.train import FlexTrainResult, torch_predictor, train_flex
+from training.flex.train import FlexTrainResult, answer_mask, torch_predictor, train_flex
 from training.plots import bars_png, curves_png, flex_learning_curve_png, traces_png
 from training.pose.data import (
     build_motions,
@@ -82,6 +83,20 @@ def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: in
         str(data_dir),
         conv(seen),
     )
+
+
+def held_out_metrics(test: dict, ageing: dict[float, dict], replaced: dict) -> dict[str, float]:
+    """A manifest's held-out figures of a model (its run's, or ``evaluate-flex --record``'s)."""
+    metrics = {k: round(v, 4) for k, v in flat_metrics(test, "test").items() if "_joint_" not in k}
+    metrics |= {f"test_ageing_{int(100 * b)}pct_mae_deg": round(v["mae_deg"], 4) for b, v in ageing.items()}
+    return metrics | {"test_replaced_mae_deg": round(replaced["mae_deg"], 4)}
+
+
+def evaluation_digest(cfg: FlexConfig, data: FlexData) -> str:
+    """The registry's ``eval_digest`` of a validation figure: the validation clips, and "|hinge-zeros" where the
+    answer holds the hinge frames' zeros (``answer_mask``, since 2026-12-07): a figure scored one way is not compared
+    with one scored the other."""
+    return data.digest_val + ("|hinge-zeros" if answer_mask(cfg) is not None else "")
 
 
 def clip_table(clips: list[FlexClip]) -> pd.DataFrame:
@@ -207,7 +222,7 @@ def run_flex_experiment(
         mlflow.set_tag("stopped", result.stopped)
         label_run(MlflowClient(), run.info.run_id)  # its name and description in the UI
         mlflow.log_artifact(str(flex_learning_curve_png(result.history, tmp / "learning_curve.png", cfg.name)), "plots")
-        predict = torch_predictor(net)
+        predict = torch_predictor(net, answer_mask(cfg))  # as the service answers
         lat = net.latency_samples
         val = clip_metrics(predict, sets["val"], 0, lat, cfg.joints, cfg.sensors)
         test = clip_metrics(predict, sets["test"], 0, lat, cfg.joints, cfg.sensors)
@@ -307,12 +322,7 @@ def run_flex_experiment(
         } | ({"licence": BANDAI_LICENCE} if data.bandai else {})
         if cfg.data.seen_share:  # trained without a share of the training clips
             training_data["seen_share"] = cfg.data.seen_share
-        metrics = {k: round(v, 4) for k, v in flat_metrics(test, "test").items() if "_joint_" not in k}
-        metrics |= {f"test_ageing_{int(100 * b)}pct_mae_deg": round(v["mae_deg"], 4) for b, v in ageing.items()}
-        metrics |= {
-            "test_replaced_mae_deg": round(replaced["mae_deg"], 4),
-            "test_meanpose_mae_deg": round(baseline["mae_deg"], 4),
-        }
+        metrics = held_out_metrics(test, ageing, replaced) | {"test_meanpose_mae_deg": round(baseline["mae_deg"], 4)}
         evaluation = Evaluation(
             name=HELD_OUT,
             command=f"python -m training.cli evaluate-flex --model onnx_models/{cfg.name}/{version}",
@@ -334,14 +344,19 @@ def run_flex_experiment(
         mlflow.set_tag("model_uri", info.model_uri)
         registered = register_model(info.model_uri, cfg.registered_model)
         promoted = maybe_promote(
-            cfg.registered_model, registered.version, SELECTION_METRIC, val["mae_deg"], False, data.digest_val
+            cfg.registered_model,
+            registered.version,
+            SELECTION_METRIC,
+            val["mae_deg"],
+            False,
+            evaluation_digest(cfg, data),
         )
         mlflow.set_tag("promoted_to_champion", str(promoted))
         manifest = with_registry(manifest, info, registered)
         if ship_to is not None:
             shipped = ship_files(ship_to, manifest, onnx_path, tmp / "golden.npz")
-            served = load_model(shipped, 2)  # the served path must score as torch did
-            a = clip_metrics(served.run, sets["test"], 0, lat, cfg.joints, cfg.sensors)["mae_deg"]
+            served = FlexModel(load_model(shipped, 2))  # the served path must score as torch did
+            a = clip_metrics(served.run_windows, sets["test"], 0, lat, cfg.joints, cfg.sensors)["mae_deg"]
             if abs(a - test["mae_deg"]) > 0.02:
                 raise RuntimeError(f"the shipped model scores {a:.3f}° where torch scored {test['mae_deg']:.3f}°")
             summary["shipped"] = str(shipped)
@@ -369,19 +384,20 @@ def evaluate_served(loaded, data: FlexData, validation: bool = False) -> dict:
     m = loaded.manifest
     cfg = shipped_config(m)
     lat = m.flex.latency_samples
+    run = FlexModel(loaded).run_windows  # as the service answers
     if validation:
         val = window_set(data.val, 1, VAL_SEED, cfg.model.window)
         return {
             "model": f"{m.name} {m.version}",
-            "val": clip_metrics(loaded.run, val, 0, lat, cfg.joints, cfg.sensors),
-            "ageing": ageing_curve(loaded.run, {b: ageing_set(val, VAL_SEED, b) for b in AGEING_BEYOND}, lat, cfg),
+            "val": clip_metrics(run, val, 0, lat, cfg.joints, cfg.sensors),
+            "ageing": ageing_curve(run, {b: ageing_set(val, VAL_SEED, b) for b in AGEING_BEYOND}, lat, cfg),
         }
     sets = build_sets(cfg, data, train=False)
-    score = lambda key: clip_metrics(loaded.run, sets[key], 0, lat, cfg.joints, cfg.sensors)  # noqa: E731
+    score = lambda key: clip_metrics(run, sets[key], 0, lat, cfg.joints, cfg.sensors)  # noqa: E731
     return {
         "model": f"{m.name} {m.version}",
         "test": score("test"),
-        "ageing": ageing_curve(loaded.run, aged(sets, "ageing_"), lat, cfg),
+        "ageing": ageing_curve(run, aged(sets, "ageing_"), lat, cfg),
         "replaced": score("replaced"),
         "other_lot": score("other_lot"),
     }

@@ -14,7 +14,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from training.flex.config import FlexConfig
+from service.core.flex import JOINT_COMPONENTS, hinge_mask
+from training.flex.config import CapacitiveConfig, FlexConfig
 from training.flex.data import WindowSet
 from training.flex.evaluate import predict_windows
 from training.flex.models import FlexEnsemble, FlexNet, readings
@@ -79,15 +80,26 @@ def bent_further(
     return (x0 + factor * (x - x0)).astype(x.dtype), (a0 + factor * (angles - a0))[:, -steps:].astype(angles.dtype)
 
 
-def validation_mae(net: FlexNet | FlexEnsemble, val: WindowSet, hop: int = 2) -> float:
-    pred, truth = predict_windows(torch_predictor(net), val, 0, net.latency_samples, hop)
+def validation_mae(net: FlexNet | FlexEnsemble, val: WindowSet, hop: int = 2, mask: np.ndarray | None = None) -> float:
+    pred, truth = predict_windows(torch_predictor(net, mask), val, 0, net.latency_samples, hop)
     return float(np.abs(pred - truth).mean())
 
 
-def torch_predictor(net: FlexNet | FlexEnsemble) -> Callable[[np.ndarray], np.ndarray]:
+def answer_mask(cfg: FlexConfig | CapacitiveConfig) -> np.ndarray | None:
+    """The factors the service multiplies a model of ``cfg`` by (``service.inference.flex.FlexModel.answer_mask``):
+    in the hinge frames, zero where they hold an angle at zero; else None."""
+    if not isinstance(cfg, FlexConfig) or cfg.data.limb_twist != "hinge":
+        return None
+    return hinge_mask(cfg.joints, JOINT_COMPONENTS)
+
+
+def torch_predictor(net: FlexNet | FlexEnsemble, mask: np.ndarray | None = None) -> Callable[[np.ndarray], np.ndarray]:
+    """The network on raw windows, its answer times ``mask`` (``answer_mask``) where given: as the service answers."""
+
     def predict(x: np.ndarray) -> np.ndarray:
         with torch.no_grad():
-            return net(torch.from_numpy(x)).numpy()
+            y = net(torch.from_numpy(x)).numpy()
+        return y if mask is None else y * mask
 
     return predict
 
@@ -153,7 +165,7 @@ def _train_one(
             losses.append(loss.item())
         sched.step()
         net.eval()
-        val_mae = validation_mae(net, val)
+        val_mae = validation_mae(net, val, mask=answer_mask(cfg))
         row = {
             "train_loss": float(np.mean(losses)),
             "val_mae_deg": val_mae,

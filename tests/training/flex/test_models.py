@@ -225,6 +225,29 @@ def test_members_train_from_consecutive_seeds_and_answer_as_their_mean() -> None
             torch.testing.assert_close(member(torch.from_numpy(x)), alone.net(torch.from_numpy(x)))
 
 
+def test_a_run_in_the_hinge_frames_scores_the_network_as_the_service_answers_it() -> None:
+    """Its torch predictor (validation, epoch choice and every logged figure) holds the hinge frames' zeros at zero,
+    as ``service.inference.flex.FlexModel`` answers the shipped file; in a rig's own frames, and for a capacitive
+    sleeve, the network's answer as it is."""
+    from service.core.flex import JOINT_COMPONENTS, hinge_mask
+    from training.flex.config import CapacitiveConfig, FlexConfig
+    from training.flex.train import answer_mask, torch_predictor
+
+    model = {"kind": "fcn", "window": 100, "steps": 5}
+    hinge = FlexConfig(name="t", model=model, data={"limb_twist": "hinge"})
+    assert answer_mask(FlexConfig(name="t", model=model)) is None and answer_mask(CapacitiveConfig(name="c")) is None
+    mask = answer_mask(hinge)
+    np.testing.assert_array_equal(mask, hinge_mask(hinge.joints, JOINT_COMPONENTS))
+
+    class Constant(torch.nn.Module):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return torch.ones(x.shape[0], len(hinge.joints), 3)
+
+    x = np.zeros((2, 100, 4), np.float32)
+    np.testing.assert_array_equal(torch_predictor(Constant(), mask)(x), np.broadcast_to(mask, (2, *mask.shape)))
+    np.testing.assert_array_equal(torch_predictor(Constant())(x), np.ones((2, len(hinge.joints), 3)))
+
+
 def test_channel_gain_swings_each_channel_about_its_window_mean_within_the_range() -> None:
     from training.flex.train import swing_about_mean
 
