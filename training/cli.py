@@ -956,19 +956,21 @@ def evaluate_flex(
         for b, v in out["ageing"].items():
             typer.echo(f"validation, ageing {b}: {v['mae_deg']:.2f}° jitter {v['jitter_deg_s3'] / 1e4:.3f}e4")
         return
-    if as_json:
-        typer.echo(json.dumps(out, indent=1))
-        return
     test = out["test"]
     if record:
         from service.core.manifest import write_manifest
         from training.flex.pipeline import HELD_OUT, held_out_metrics
 
-        old = next(e for e in m.evaluations if e.name == HELD_OUT)
+        old = next((e for e in m.evaluations if e.name == HELD_OUT), None)
+        if old is None:
+            raise typer.BadParameter(f"{m.name} {m.version}'s manifest has no held-out evaluation to record into")
         metrics = held_out_metrics(test, out["ageing"], out["replaced"])
         metrics |= {k: v for k, v in old.metrics.items() if k not in metrics}  # the mean pose's: not the model's
         evaluations = [old.model_copy(update={"metrics": metrics}), *(e for e in m.evaluations if e.name != HELD_OUT)]
         write_manifest(m.model_copy(update={"evaluations": evaluations}), model_dir / "manifest.json")
+    if as_json:
+        typer.echo(json.dumps(out, indent=1))
+        return
     typer.echo(
         f"held-out: {test['mae_deg']:.2f}° jitter {test['jitter_deg_s3'] / 1e4:.3f}e4 °/s³; without each clip's "
         f"constant offset per angle {test['offset_free_mae_deg']:.2f}°"

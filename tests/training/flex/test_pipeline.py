@@ -22,7 +22,14 @@ from training.flex.pipeline import build_sets, evaluate_served, load_flex_data, 
 from training.flex.simulate import AGEING_BEYOND
 
 TINY = {
-    "data": {"sources": ["cmu_iclone"], "test_subjects": ["cmu_07"], "val_subjects": ["cmu_03"], "suits_per_clip": 1},
+    # the served suit's frames, whose hinges' zeros the service answers as zeros (FlexModel.answer_mask)
+    "data": {
+        "sources": ["cmu_iclone"],
+        "test_subjects": ["cmu_07"],
+        "val_subjects": ["cmu_03"],
+        "suits_per_clip": 1,
+        "limb_twist": "hinge",
+    },
     "train": {"windows_per_epoch": 128, "max_epochs": 2, "patience": 5},
     "tracking": {"experiment": "test-flex"},
 }
@@ -98,9 +105,16 @@ def test_the_shipped_flex_model_is_served_and_scores_as_in_its_run(flex_runs: di
     assert manifest.task == "flex_pose" and manifest.flex.calibration and manifest.flex.latency_samples == 1
     assert manifest.channels == ["LeftKnee_flex", "RightKnee_flex", "LeftElbow_flex", "RightElbow_flex"]
     assert manifest.value_range == [0.0, 4095.0] and manifest.sample_rate_hz == 20.0 and manifest.window_samples == 100
-    assert manifest.training_data["limb_twist"] == "rig"  # the frames evaluate-flex scores it in
+    assert manifest.training_data["limb_twist"] == "hinge"  # the frames evaluate-flex scores it in
     assert manifest.training_data["trunk_axes"] == "spine"
     model = FlexModel(load_model(target, 1))
+    # the file's golden output is the network's own; the service's answer holds the hinges' zeros, as the run scored
+    golden = np.load(target / "golden.npz")
+    raw = model.loaded.run(golden["counts"])
+    np.testing.assert_allclose(raw, golden["expected"], atol=1e-3)
+    assert np.abs(raw[:, model.answer_mask == 0]).max() > 0 and np.all(
+        model.run_windows(golden["counts"])[:, model.answer_mask == 0] == 0
+    )
     served = evaluate_served(model.loaded, flex_runs["data"])
     logged = flat = flex_runs["results"][0]
     assert served["test"]["mae_deg"] == pytest.approx(logged["test"]["mae_deg"], abs=0.02)
@@ -140,7 +154,18 @@ def test_evaluate_flex_rescores_the_validation_suits_and_tags_the_registry_versi
     tagged = subprocess.run([*base, "--validation", "--tag"], capture_output=True, text=True, cwd=REPO, timeout=300)
     assert tagged.returncode == 0, tagged.stderr[-2000:]
     tags = client.get_model_version("tiny_flex_cm", version.version).tags
-    assert tags["eval_digest"] == flex_runs["data"].digest_val
+    assert tags["eval_digest"] == flex_runs["data"].digest_val + "|hinge-zeros"  # scored as the service answers
+    # --record writes the held-out figures as the service answers into the manifest, keeping the mean pose's
+    path = flex_runs["models"] / "tiny_flex_cm" / "0.0.1" / "manifest.json"
+    before = next(e for e in read_manifest(path).evaluations if e.name.startswith("held-out")).metrics
+    recorded = subprocess.run([*base, "--record", "--json"], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert recorded.returncode == 0, recorded.stderr[-2000:]
+    held_out = json.loads(recorded.stdout[recorded.stdout.index("{") :])["test"]
+    after = next(e for e in read_manifest(path).evaluations if e.name.startswith("held-out")).metrics
+    assert set(after) == set(before) and after["test_meanpose_mae_deg"] == before["test_meanpose_mae_deg"]
+    assert after["test_mae_deg"] == pytest.approx(held_out["mae_deg"], abs=1e-4)
+    refused = subprocess.run([*base, "--record", "--validation"], capture_output=True, text=True, cwd=REPO)
+    assert refused.returncode != 0
     assert float(tags["eval_val_mae_deg"]) == pytest.approx(val, abs=0.02)
 
 
