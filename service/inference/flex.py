@@ -61,7 +61,7 @@ class FlexModel:
         if not out:
             return np.zeros((0, len(self.manifest.joints), len(self.manifest.joint_components)))
         angles = np.concatenate(out)
-        return angles if self.answer_mask is None else angles * self.answer_mask
+        return angles if self.answer_mask is None else np.where(self.answer_mask == 0.0, 0.0, angles)  # no −0.0
 
     def run_block(self, rows: np.ndarray) -> np.ndarray:
         """Rows ``(T, C)`` at the model's rate, ``T >= window`` → angles of samples ``window - 1 - latency`` to

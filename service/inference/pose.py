@@ -283,14 +283,14 @@ def whole_body(
     hinges: bool,
 ) -> np.ndarray:
     """Global orientations of all ``BODY_SEGMENTS`` ``(T, 21, 3, 3)``: the sensors' segments as measured, the
-    others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D), each knee a hinge where
-    the model answers the thigh and a sensor gives the shank, and each elbow in plane and each wrist neutral where it
-    answers the upper arm or the hand and a sensor gives the forearm, if ``hinges`` (``knees_as_hinges``,
-    ``elbows_in_plane``, ``neutral_wrists``; a model's ``hinge_joints``:
-    False for a model in a rig's own frames, and for the mean-pose baseline, which takes nothing from the sensors but
-    the root's and their own segments'). ``measured`` ``(T, 21, 3, 3)``: segments of sensors
-    the model does not read, NaN elsewhere, in place of the model's answer. Segments that no sensor and not the
-    model covers (e.g. the arms of a lower-body model) take their parent's orientation."""
+    others the measured root times the model's root-relative answer (Vlutters 2016 §IV-D). With ``hinges``, each knee
+    a hinge where the model answers the thigh and a sensor gives the shank, each elbow in plane and each wrist neutral
+    where it answers the upper arm or the hand and a sensor gives the forearm (``knees_as_hinges``,
+    ``elbows_in_plane``, ``neutral_wrists``; a model's ``hinge_joints``: False for a model in a rig's own frames, and
+    for the mean-pose baseline, which takes nothing from the sensors but the root's and their own segments').
+    ``measured`` ``(T, 21, 3, 3)``: segments of sensors the model does not read, NaN elsewhere, in place of the
+    model's answer. Segments that no sensor and not the model covers (e.g. the arms of a lower-body model) take their
+    parent's orientation."""
     T = R_root_out.shape[0]
     R = np.full((T, len(BODY_SEGMENTS), 3, 3), np.nan)
     R[:, sensor_index] = R_world_sensor_segment
