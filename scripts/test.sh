@@ -10,7 +10,7 @@ fi
 ruff check service training tests benchmarks
 lint-imports
 # Two workers, each test file whole on one (its module fixtures, an MLflow server or a trained job, built once), the
-# longest files first (tests/conftest.py): 572-594 s for a clean clone on two cores against 1,114 s in one process
+# longest files first (tests/conftest.py): 610-627 s for a clean clone on two cores against 1,114 s in one process
 # (2026-12-07; three workers were slower). TEST_WORKERS=0: one process.
 workers=(-n "${TEST_WORKERS:-2}" --dist loadfile --no-loadscope-reorder)
 if ! python -c "import xdist" 2>/dev/null; then
