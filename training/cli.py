@@ -701,7 +701,7 @@ def evaluate_pose(
 
     import numpy as np
 
-    from service.core.manifest import read_manifest, write_manifest
+    from service.core.manifest import read_manifest, with_evaluation, write_manifest
     from training.pose.evaluate import per_segment_mean
     from training.pose.pipeline import (
         TEST_SEED,
@@ -761,8 +761,7 @@ def evaluate_pose(
         manifest = read_manifest(model / "manifest.json")
         old = next(e for e in manifest.evaluations if e.name == HELD_OUT)
         new = evaluation_record(HELD_OUT, f"python -m training.cli evaluate-pose --model {model}", old.data, summary)
-        others = [e for e in manifest.evaluations if e.name != HELD_OUT]
-        write_manifest(manifest.model_copy(update={"evaluations": [new, *others]}), model / "manifest.json")
+        write_manifest(with_evaluation(manifest, new), model / "manifest.json")
     error, constant = per_segment_mean(results), per_segment_mean(results, constant=True)
     if as_json:
         per_clip = [{"clip": r.path, "frames": r.frames, **r.metrics} for r in results]
@@ -958,7 +957,7 @@ def evaluate_flex(
         return
     test = out["test"]
     if record:
-        from service.core.manifest import write_manifest
+        from service.core.manifest import with_evaluation, write_manifest
         from training.flex.pipeline import HELD_OUT, held_out_metrics
 
         old = next((e for e in m.evaluations if e.name == HELD_OUT), None)
@@ -966,8 +965,7 @@ def evaluate_flex(
             raise typer.BadParameter(f"{m.name} {m.version}'s manifest has no held-out evaluation to record into")
         metrics = held_out_metrics(test, out["ageing"], out["replaced"])
         metrics |= {k: v for k, v in old.metrics.items() if k not in metrics}  # the mean pose's: not the model's
-        evaluations = [old.model_copy(update={"metrics": metrics}), *(e for e in m.evaluations if e.name != HELD_OUT)]
-        write_manifest(m.model_copy(update={"evaluations": evaluations}), model_dir / "manifest.json")
+        write_manifest(with_evaluation(m, old.model_copy(update={"metrics": metrics})), model_dir / "manifest.json")
     if as_json:
         typer.echo(json.dumps(out, indent=1))
         return

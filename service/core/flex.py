@@ -71,6 +71,14 @@ HINGE_ZEROS: dict[str, tuple[str, ...]] = {
 }
 
 
+def answer_mask(
+    limb_twist: str | None, joints: list[str] | tuple[str, ...], components: list[str] | tuple[str, ...]
+) -> np.ndarray | None:
+    """What a model in the segment frames ``limb_twist`` (its manifest's or config's) is answered through:
+    ``hinge_mask`` in the hinge frames, else None (its answer as it is)."""
+    return hinge_mask(joints, components) if limb_twist == "hinge" else None
+
+
 def hinge_mask(joints: list[str] | tuple[str, ...], components: list[str] | tuple[str, ...]) -> np.ndarray:
     """``(J, C)`` float32 factors for a model's answer: 0 where ``HINGE_ZEROS`` holds the angle at zero, else 1."""
     mask = np.ones((len(joints), len(components)), np.float32)

@@ -276,5 +276,11 @@ def read_manifest(path: Path) -> Manifest:
     return Manifest.model_validate_json(Path(path).read_text())
 
 
+def with_evaluation(manifest: Manifest, evaluation: Evaluation) -> Manifest:
+    """``manifest`` with ``evaluation`` first, in place of any evaluation of the same name (a figure scored again)."""
+    others = [e for e in manifest.evaluations if e.name != evaluation.name]
+    return manifest.model_copy(update={"evaluations": [evaluation, *others]})
+
+
 def write_manifest(manifest: Manifest, path: Path) -> None:
     Path(path).write_text(manifest.model_dump_json(indent=2) + "\n")

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.flex import FlexWindow, ReadoutCheck, ReadoutFailure, block_windows, hinge_mask
+from service.core.flex import FlexWindow, ReadoutCheck, ReadoutFailure, answer_mask, block_windows
 from service.core.resample import resample_uniform
 from service.inference.predict import InputError
 from service.inference.registry import LoadedModel
@@ -27,9 +27,7 @@ class FlexModel:
         if m.task != "flex_pose" or m.flex is None:
             raise ValueError(f"{m.name} is not a flex_pose model")
         # a model in the hinge frames answers what they hold at zero as zero (service.core.flex.HINGE_ZEROS)
-        self.answer_mask = (
-            hinge_mask(m.joints, m.joint_components) if m.training_data.get("limb_twist") == "hinge" else None
-        )
+        self.answer_mask = answer_mask(m.training_data.get("limb_twist"), m.joints, m.joint_components)
 
     @property
     def name(self) -> str:

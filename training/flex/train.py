@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from service.core.flex import JOINT_COMPONENTS, hinge_mask
+from service.core import flex as flex_core
 from training.flex.config import CapacitiveConfig, FlexConfig
 from training.flex.data import WindowSet
 from training.flex.evaluate import predict_windows
@@ -86,11 +86,11 @@ def validation_mae(net: FlexNet | FlexEnsemble, val: WindowSet, hop: int = 2, ma
 
 
 def answer_mask(cfg: FlexConfig | CapacitiveConfig) -> np.ndarray | None:
-    """The factors the service multiplies a model of ``cfg`` by (``service.inference.flex.FlexModel.answer_mask``):
-    in the hinge frames, zero where they hold an angle at zero; else None."""
-    if not isinstance(cfg, FlexConfig) or cfg.data.limb_twist != "hinge":
+    """What the service answers a model of ``cfg`` through (``service.core.flex.answer_mask``, as
+    ``service.inference.flex.FlexModel`` reads it from the manifest); None for a capacitive sleeve."""
+    if not isinstance(cfg, FlexConfig):
         return None
-    return hinge_mask(cfg.joints, JOINT_COMPONENTS)
+    return flex_core.answer_mask(cfg.data.limb_twist, cfg.joints, flex_core.JOINT_COMPONENTS)
 
 
 def torch_predictor(net: FlexNet | FlexEnsemble, mask: np.ndarray | None = None) -> Callable[[np.ndarray], np.ndarray]:
