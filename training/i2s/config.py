@@ -41,6 +41,10 @@ class DataConfig(_Strict):
     # (uniform over rotations; accelerometer and gyroscope alike): the real gaits in every mounting. Only where a
     # teacher answers for the turned window (an alignment network's label would turn with it; train.distill_from)
     real_rotation: bool = False
+    # how real windows are drawn (training and validation alike): "window" uniformly over all of them, where
+    # MovingReality's eight long treadmill recordings are 85 % of the windows; "source" each source equally often,
+    # within it each person equally often (``source_balanced_weights``)
+    real_balance: Literal["window", "source"] = "window"
     sample_rate_hz: float = 60.0
     cutoff_hz: float = 10.0
     filter_order: int = 8

@@ -22,6 +22,7 @@ from training.i2s.data.windows import (
     WindowSampler,
     grid_batches,
     real_window_samplers,
+    source_balanced_weights,
 )
 from training.i2s.train import train
 
@@ -150,6 +151,24 @@ def test_real_validation_windows_come_after_every_training_window(data_dir: Path
     assert len(starts) and starts[0] >= cut  # it begins after the cut: no sample shared with a training window
     with pytest.raises(ValueError, match="validation part"):
         RealWindowSampler([recording], "validation", 1e-4)  # too short for one window
+
+
+def test_source_balance_draws_each_source_and_each_of_its_people_alike(data_dir: Path) -> None:
+    """``balance="source"``: a source of one short recording is drawn as often as one of many long ones, and the people
+    of a source share its draws equally, whatever their windows."""
+    owner = [("a", "p1")] * 90 + [("a", "p2")] * 10 + [("b", "q")] * 5
+    w = source_balanced_weights(owner)
+    assert np.isclose(w.sum(), 1.0)
+    assert np.isclose(w[:90].sum(), 0.25) and np.isclose(w[90:100].sum(), 0.25) and np.isclose(w[100:].sum(), 0.5)
+    recordings = [read_recording(data_dir, "capacitive_sub01/CSBaseline"), read_recording(data_dir, "ximu3_lowerbody")]
+    plain, balanced = RealWindowSampler(recordings), RealWindowSampler(recordings, balance="source")
+    n_first = len(RealWindowSampler(recordings[:1]).segment)
+    assert n_first / len(plain.segment) > 0.8  # the capacitive trial holds most windows
+    assert plain.p is None and np.isclose(balanced.p[:n_first].sum(), 0.5)
+    drawn = np.random.default_rng(0).choice(len(balanced.p), 20_000, p=balanced.p)
+    assert 0.47 < np.mean(drawn < n_first) < 0.53
+    batch = balanced.sample(np.random.default_rng(1), 64)
+    assert batch.imu.shape == (64, 128, 6) and np.isin(batch.segment, balanced.segment).all()
 
 
 def test_training_mixes_real_windows_and_refuses_them_for_alignment(walk_clips, data_dir: Path) -> None:

@@ -8,6 +8,7 @@ bias, noise, mirror image). Evaluation enumerates every window (hop 16) × segme
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Literal
@@ -279,7 +280,9 @@ class RealWindowSampler:
     samples, ``"validation"`` the rest, so no validation window shares a sample with a training window;
     ``"all"`` takes everything. ``mirror`` is the share of drawn windows read as the mirror-image body's
     (``mirrored_readings``, label ↔ the other side's segment); a draw of none leaves the random stream as it was.
-    ``rotate`` turns each drawn window by a uniformly random rotation (``turned_readings``).
+    ``rotate`` turns each drawn window by a uniformly random rotation (``turned_readings``). ``balance`` says how
+    windows are drawn: ``"window"`` uniformly over all of them (a source with many long recordings then fills most
+    draws), ``"source"`` each source equally often, within it each person equally often, within a person uniformly.
     """
 
     def __init__(
@@ -289,9 +292,10 @@ class RealWindowSampler:
         val_fraction: float = 0.2,
         mirror: float = 0.0,
         rotate: bool = False,
+        balance: Literal["window", "source"] = "window",
     ) -> None:
         self.mirror, self.rotate = mirror, rotate
-        imu, seg = [], []
+        imu, seg, owner = [], [], []
         for rec in recordings:
             for sensor in rec.sensors:
                 if sensor.segment is None:
@@ -304,12 +308,17 @@ class RealWindowSampler:
                 w = w[is_moving(w)]
                 imu.append(w)
                 seg.append(np.full(len(w), sensor.segment))
+                owner += [(rec.source, rec.subject)] * len(w)
         if not sum(len(w) for w in imu):
             raise ValueError(f"no labelled moving windows in the {part} part of the real training recordings")
         self.imu, self.segment = np.concatenate(imu), np.concatenate(seg)
+        self.p = None if balance == "window" else source_balanced_weights(owner)
 
     def sample(self, rng: np.random.Generator, batch_size: int) -> Batch:
-        idx = rng.integers(0, len(self.imu), batch_size)
+        if self.p is None:
+            idx = rng.integers(0, len(self.imu), batch_size)
+        else:
+            idx = rng.choice(len(self.imu), batch_size, p=self.p)
         nan_q = np.full((batch_size, 4), np.nan, dtype=np.float32)  # alignment unknown on real data
         imu, segment = self.imu[idx], self.segment[idx].astype(np.int64)
         if self.mirror > 0:
@@ -319,6 +328,15 @@ class RealWindowSampler:
         if self.rotate:
             imu = turned_readings(imu, Rotation.random(batch_size, rng).as_matrix().astype(np.float32))
         return Batch(np.ascontiguousarray(imu), segment, nan_q)
+
+
+def source_balanced_weights(owner: list[tuple[str, str]]) -> np.ndarray:
+    """Draw probabilities of windows owned by ``(source, person)``: every source the same total, shared equally by
+    its people, and by each person's windows."""
+    persons = Counter(owner)
+    per_source = Counter(source for source, _ in persons)
+    w = np.array([1.0 / (len(per_source) * per_source[src] * persons[(src, who)]) for src, who in owner])
+    return w / w.sum()
 
 
 def turned_readings(imu: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -339,11 +357,11 @@ def real_window_samplers(
         return None, None
     fraction = cfg.data.real_val_fraction
     mirror = cfg.data.real_mirror  # training windows only: validation reads the recordings as they are
-    rotate = cfg.data.real_rotation
+    rotate, balance = cfg.data.real_rotation, cfg.data.real_balance
     if fraction == 0:
-        return RealWindowSampler(recordings, mirror=mirror, rotate=rotate), None
-    train = RealWindowSampler(recordings, "train", fraction, mirror=mirror, rotate=rotate)
-    return train, RealWindowSampler(recordings, "validation", fraction)
+        return RealWindowSampler(recordings, mirror=mirror, rotate=rotate, balance=balance), None
+    train = RealWindowSampler(recordings, "train", fraction, mirror=mirror, rotate=rotate, balance=balance)
+    return train, RealWindowSampler(recordings, "validation", fraction, balance=balance)
 
 
 def concat_batches(*batches: Batch, limit: int | None = None) -> Batch:
