@@ -675,7 +675,11 @@ def evaluate_pose(
     data_dir: Path | None = DataDir,
     cache_dir: Path = typer.Option(POSE_CACHE, help="canonical-body motion cache"),
     as_json: bool = typer.Option(False, "--json", help="print per clip and overall metrics as JSON"),
-    record: bool = typer.Option(False, help="held-out mode: write the figures into the model's manifest"),
+    record: bool = typer.Option(
+        False,
+        help="held-out mode: write the figures into the model's manifest (with --sessions N > 1, as an evaluation of "
+        "its own beside the one-session figures training recorded)",
+    ),
     validation: bool = typer.Option(
         False,
         "--validation",
@@ -694,15 +698,22 @@ def evaluate_pose(
         help="a shipped velocity model of the same sensors (onnx_models/pose_full6_velocity/<version>): also score "
         "the translation with it (translation: learned) beside the rule",
     ),
+    sessions: int = typer.Option(
+        1,
+        min=1,
+        help="simulated sessions per clip (other mountings and noise; the first is the one training scored): each "
+        "clip's figures are their mean",
+    ),
 ) -> None:
     """Score a shipped pose model on mocap: simulate its sensors on the clips and report per clip and overall
-    segment-angle error, SIP error, joint-position error and jitter (per activity and subject too)."""
+    segment-angle error, SIP error, joint-position error and jitter (per activity and subject too), with 95 %
+    bootstrap intervals over clips of the mean segment-angle error."""
     import json
 
     import numpy as np
 
     from service.core.manifest import read_manifest, with_evaluation, write_manifest
-    from training.pose.evaluate import per_segment_mean
+    from training.pose.evaluate import clip_intervals, per_segment_mean
     from training.pose.pipeline import (
         TEST_SEED,
         VAL_SEED,
@@ -719,6 +730,10 @@ def evaluate_pose(
         raise typer.BadParameter("--record writes held-out figures; it does not go with --validation")
     if tag and not validation:
         raise typer.BadParameter("--tag writes the validation figure the registry compares by: give --validation")
+    if tag and sessions > 1:
+        raise typer.BadParameter("--tag writes the figure runs log, on one session per clip: leave --sessions at 1")
+    if velocity_model is not None and sessions > 1:
+        raise typer.BadParameter("--velocity-model scores one session per clip: leave --sessions at 1")
     manifest = read_manifest(model / "manifest.json")
     cfg = shipped_config(manifest)  # scored in the segment frames the model answers in
     skipped: list[dict[str, str]] = []  # a user's files that could not be scored, with the reason
@@ -732,7 +747,8 @@ def evaluate_pose(
     else:
         data = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir)
         clips = data.val if validation else data.test
-    results, summary = evaluate_shipped_pose(model, clips, VAL_SEED if validation else TEST_SEED)
+    results, summary = evaluate_shipped_pose(model, clips, VAL_SEED if validation else TEST_SEED, sessions)
+    intervals = clip_intervals(results)
     learned = None
     if velocity_model is not None:
         learned = _learned_translation(model, velocity_model, clips, VAL_SEED if validation else TEST_SEED)
@@ -760,13 +776,18 @@ def evaluate_pose(
 
         manifest = read_manifest(model / "manifest.json")
         old = next(e for e in manifest.evaluations if e.name == HELD_OUT)
-        new = evaluation_record(HELD_OUT, f"python -m training.cli evaluate-pose --model {model}", old.data, summary)
+        command = f"python -m training.cli evaluate-pose --model {model}"
+        name = HELD_OUT  # the training run's protocol; more sessions per clip are recorded beside it
+        if sessions > 1:
+            command, name = f"{command} --sessions {sessions}", f"{HELD_OUT}, {sessions} sessions per clip"
+        new = evaluation_record(name, command, old.data, summary, intervals)
         write_manifest(with_evaluation(manifest, new), model / "manifest.json")
     error, constant = per_segment_mean(results), per_segment_mean(results, constant=True)
     if as_json:
         per_clip = [{"clip": r.path, "frames": r.frames, **r.metrics} for r in results]
         segments = {s: {"angle_deg": error[s], "constant_per_clip_deg": constant[s]} for s in error}
-        report = {"clips": per_clip, **summary, "segments": segments, "skipped": skipped}
+        report = {"clips": per_clip, **summary, "segments": segments, "skipped": skipped, "sessions": sessions}
+        report["angle_all_interval_95"] = {k: list(v) for k, v in intervals.items()}
         typer.echo(json.dumps(report | ({"translation_learned": learned} if learned else {}), indent=1))
         return
     for left_out in skipped:
@@ -787,6 +808,13 @@ def evaluate_pose(
                 f"(on the true pose {m['trans_truth_1s_cm']:5.1f} cm, pelvis kept in place "
                 f"{m['trans_still_1s_cm']:5.1f} cm)"
             )
+    typer.echo(
+        f"mean segment-angle error with 95 % bootstrap intervals over clips ({sessions} simulated session"
+        f"{'s' if sessions > 1 else ''} per clip):"
+    )
+    for key, (low, high) in intervals.items():
+        m = summary["overall"]["all"] if key == "all" else summary["activity"][key]
+        typer.echo(f"  {key:14s} {m['angle_all_deg']:6.2f}°  [{low:.2f}, {high:.2f}]")
     m = summary["overall"]["all"]
     typer.echo(
         f"overall all {m['angle_all_deg']:.2f}°, unsensed {m['angle_unsensed_deg']:.2f}°, JPE {m['jpe_cm']:.2f} cm, "

@@ -192,6 +192,61 @@ def summarise(results: list[ClipResult]) -> dict[str, dict[str, dict[str, float]
     }
 
 
+def draws_mean(draws: list[list[ClipResult]]) -> list[ClipResult]:
+    """Each clip's figures averaged over its simulated sessions: ``draws[k][i]`` is clip i scored on its k-th
+    session (the same clips in the same order in every draw). Since a clip's frames are the same in every draw, the
+    frame-weighted summaries of the result equal those of all draws pooled."""
+    if len(draws) == 1:
+        return draws[0]
+    out = []
+    for same in zip(*draws, strict=True):
+        first = same[0]
+        if any(r.path != first.path for r in same):
+            raise ValueError("draws_mean needs the same clips in the same order in every draw")
+
+        def mean(key: str, field: str, rs: tuple[ClipResult, ...] = same) -> float:
+            v = np.array([getattr(r, field)[key] for r in rs], dtype=np.float64)
+            return float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
+
+        out.append(
+            ClipResult(
+                first.path,
+                first.activity,
+                first.group,
+                first.frames,
+                {k: mean(k, "metrics") for k in first.metrics},
+                {k: mean(k, "per_segment_deg") for k in first.per_segment_deg},
+                {k: mean(k, "per_segment_constant_deg") for k in first.per_segment_constant_deg},
+            )
+        )
+    return out
+
+
+def clip_intervals(
+    results: list[ClipResult], metric: str = "angle_all_deg", level: float = 0.95, resamples: int = 4000
+) -> dict[str, tuple[float, float]]:
+    """Percentile bootstrap intervals over clips of the frame-weighted mean of ``metric``, overall (``"all"``) and
+    per motion type: the clips of a motion type resampled with replacement, ``resamples`` times (seeded: the same
+    interval on every run). It measures how much the figure owes to which clips were recorded, not to which people:
+    clips of one person are not independent, so the interval is, if anything, too narrow."""
+    rng = np.random.default_rng(0)
+    activities = sorted({r.activity for r in results})
+    groups = {"all": results} | {a: [r for r in results if r.activity == a] for a in activities}
+    out = {}
+    for name, rs in groups.items():
+        v = np.array([r.metrics[metric] for r in rs], dtype=np.float64)
+        w = np.array([r.frames for r in rs], dtype=np.float64)
+        ok = np.isfinite(v)
+        v, w = v[ok], w[ok]
+        if not len(v):
+            continue
+        pick = rng.integers(0, len(v), (resamples, len(v)))
+        means = (v[pick] * w[pick]).sum(axis=1) / w[pick].sum(axis=1)
+        tail = 100.0 * (1.0 - level) / 2.0
+        out[name] = (float(np.percentile(means, tail)), float(np.percentile(means, 100.0 - tail)))
+    return out
+
+
 def per_segment_mean(results: list[ClipResult], constant: bool = False) -> dict[str, float]:
     """Frame-weighted mean per segment of the error (or, ``constant``, of its constant part per clip)."""
     acc, w = defaultdict(float), defaultdict(float)

@@ -51,6 +51,7 @@ from training.pose.data import (
 )
 from training.pose.evaluate import (
     ClipResult,
+    draws_mean,
     evaluate_clips,
     flat_metrics,
     mean_pose_predictor,
@@ -336,8 +337,16 @@ def _log_selection(sel: Selection, cfg: PoseConfig, tmp: Path) -> None:
     mlflow.log_artifact(str(data_selection_png(sel.trace, by_label, tmp / "data_selection.png", title)), "plots")
 
 
-def evaluation_record(name: str, command: str, data: str, summary: dict) -> Evaluation:
+def evaluation_record(
+    name: str, command: str, data: str, summary: dict, intervals: dict[str, tuple[float, float]] | None = None
+) -> Evaluation:
+    """A manifest's evaluation from a summary; ``intervals`` (``clip_intervals``) add each motion type's 95 %
+    interval of the mean segment-angle error (``test_walk_angle_all_deg_low`` / ``_high``; ``test_angle_all_…`` over
+    every clip)."""
     metrics = {k: round(v, 4) for k, v in flat_metrics(summary, "test").items()}
+    for key, (low, high) in (intervals or {}).items():
+        stem = "test_angle_all_deg" if key == "all" else f"test_{key}_angle_all_deg"
+        metrics |= {f"{stem}_low": round(low, 4), f"{stem}_high": round(high, 4)}
     return Evaluation(name=name, command=command, data=data, metrics=metrics)
 
 
@@ -806,13 +815,17 @@ def shipped_config(m) -> PoseConfig:
 
 
 def evaluate_shipped_pose(
-    model_dir: Path, clips: list[MotionClip], seed: int = TEST_SEED
+    model_dir: Path, clips: list[MotionClip], seed: int = TEST_SEED, sessions: int = 1
 ) -> tuple[list[ClipResult], dict]:
     """A shipped ``imu_pose`` model through the served path (onnxruntime, ``PoseModel``) on simulated sessions of
     ``clips``, the same sensors, noise and seeds as training's evaluation (``TEST_SEED`` held out, ``VAL_SEED`` for
-    the validation subjects)."""
+    the validation subjects). With ``sessions`` > 1 each clip is scored on that many sessions (the first the one
+    training scored) and its figures are their mean (``draws_mean``)."""
     model = PoseModel(load_model(model_dir, 2))
     cfg = PoseConfig(name=model.name, sensors=model.spec.sensors, output_segments=model.spec.output_segments)
-    sessions = fixed_sessions(clips, cfg, seed)
-    results = evaluate_clips(model.predict, clips, sessions, cfg.sensors, cfg.outputs, hinges=model.hinge_joints)
+    draws = [
+        evaluate_clips(model.predict, clips, drawn, cfg.sensors, cfg.outputs, hinges=model.hinge_joints)
+        for drawn in (fixed_sessions(clips, cfg, seed, k) for k in range(sessions))
+    ]
+    results = draws_mean(draws)
     return results, summarise(results)

@@ -49,9 +49,13 @@ def session_of(
     return simulate_session(clip.motion, cfg.sensors, cfg.outputs, rng, noise, cfg.train.acc_method)
 
 
-def fixed_sessions(clips: list[MotionClip], cfg: PoseConfig, seed: int) -> list[Session]:
-    """One session per clip, seeded by the clip's digest: the same evaluation data on every run."""
-    return [session_of(c, cfg, np.random.default_rng([seed, int(c.digest[:12], 16)])) for c in clips]
+def fixed_sessions(clips: list[MotionClip], cfg: PoseConfig, seed: int, draw: int = 0) -> list[Session]:
+    """One session per clip, seeded by the clip's digest: the same evaluation data on every run. ``draw`` k > 0 is
+    the k-th further session of each clip (other mountings and noise; draw 0 is the one every run scores)."""
+    return [
+        session_of(c, cfg, np.random.default_rng([seed, int(c.digest[:12], 16)] + ([draw] if draw else [])))
+        for c in clips
+    ]
 
 
 def clip_weights(

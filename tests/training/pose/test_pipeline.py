@@ -288,6 +288,22 @@ def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
         assert 0.0 <= seg["constant_per_clip_deg"] <= 180.0
         if name in SIX_SENSORS:
             assert seg["angle_deg"] < 20.0 and seg["constant_per_clip_deg"] <= seg["angle_deg"] + 0.5
+    # three simulated sessions per clip: the first is the one above, so the mean moves but stays near it, and
+    # the interval over the clips holds the mean
+    three = subprocess.run(
+        [*base, "--mapping", str(tmp_path / "rig.json"), "--sessions", "3", "--json"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=300,
+    )
+    assert three.returncode == 0, three.stderr[-2000:]
+    more = json.loads(three.stdout[three.stdout.index("{") :])
+    assert report["sessions"] == 1 and more["sessions"] == 3
+    angle, angle3 = report["overall"]["all"]["angle_all_deg"], more["overall"]["all"]["angle_all_deg"]
+    assert angle3 != angle and abs(angle3 - angle) < 0.25 * angle
+    low, high = more["angle_all_interval_95"]["all"]
+    assert low <= angle3 <= high
     unmapped = subprocess.run(base, capture_output=True, text=True, cwd=REPO, timeout=300)
     assert unmapped.returncode != 0
     assert "--mapping" in " ".join((unmapped.stdout + unmapped.stderr).split())
