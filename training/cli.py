@@ -780,8 +780,8 @@ def evaluate_pose(
         name = HELD_OUT  # the training run's protocol; more sessions per clip are recorded beside it
         if sessions > 1:
             command, name = f"{command} --sessions {sessions}", f"{HELD_OUT}, {sessions} sessions per clip"
-        new = evaluation_record(name, command, old.data, summary, intervals)
-        write_manifest(with_evaluation(manifest, new), model / "manifest.json")
+        new = evaluation_record(name, command, old.data, summary, intervals if sessions > 1 else None)
+        write_manifest(with_evaluation(manifest, new, after=HELD_OUT), model / "manifest.json")
     error, constant = per_segment_mean(results), per_segment_mean(results, constant=True)
     if as_json:
         per_clip = [{"clip": r.path, "frames": r.frames, **r.metrics} for r in results]

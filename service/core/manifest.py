@@ -276,10 +276,12 @@ def read_manifest(path: Path) -> Manifest:
     return Manifest.model_validate_json(Path(path).read_text())
 
 
-def with_evaluation(manifest: Manifest, evaluation: Evaluation) -> Manifest:
-    """``manifest`` with ``evaluation`` first, in place of any evaluation of the same name (a figure scored again)."""
+def with_evaluation(manifest: Manifest, evaluation: Evaluation, after: str | None = None) -> Manifest:
+    """``manifest`` with ``evaluation`` in place of any evaluation of the same name (a figure scored again): first,
+    or right after the evaluation named ``after`` where there is one (a figure beside the headline one)."""
     others = [e for e in manifest.evaluations if e.name != evaluation.name]
-    return manifest.model_copy(update={"evaluations": [evaluation, *others]})
+    at = next((i + 1 for i, e in enumerate(others) if e.name == after), 0) if after else 0
+    return manifest.model_copy(update={"evaluations": [*others[:at], evaluation, *others[at:]]})
 
 
 def write_manifest(manifest: Manifest, path: Path) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from service.core.manifest import Manifest, read_manifest
+from service.core.manifest import Evaluation, Manifest, read_manifest, with_evaluation
 from service.inference.registry import newest_version_dir
 
 SHIPPED = Path(__file__).resolve().parents[2] / "onnx_models" / "pose_full6_velocity"
@@ -51,3 +51,21 @@ def test_a_velocity_manifest_that_misdescribes_its_model_is_refused(change, mess
     change(raw)
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         Manifest.model_validate(raw)
+
+
+def test_an_evaluation_scored_again_replaces_its_namesake_first_or_beside_the_one_named() -> None:
+    """``with_evaluation``: a figure scored again takes its namesake's place at the top, or right after the
+    evaluation ``after`` names (a figure beside the headline one), and no other evaluation moves or goes."""
+    m = read_manifest(_newest() / "manifest.json")
+    one = Evaluation(name="held out", command="c1", data="d", metrics={"x": 1.0})
+    other = Evaluation(name="other", command="c2", data="d", metrics={"y": 2.0})
+    m = m.model_copy(update={"evaluations": [one, other]})
+    beside = Evaluation(name="held out, 5 sessions", command="c3", data="d", metrics={"x": 1.5})
+    names = [e.name for e in with_evaluation(m, beside, after="held out").evaluations]
+    assert names == ["held out", "held out, 5 sessions", "other"]
+    again = with_evaluation(with_evaluation(m, beside, after="held out"), beside, after="held out")
+    assert [e.name for e in again.evaluations] == names
+    assert [e.name for e in with_evaluation(m, beside).evaluations] == ["held out, 5 sessions", "held out", "other"]
+    assert [e.name for e in with_evaluation(m, beside, after="absent").evaluations][0] == "held out, 5 sessions"
+    rescored = with_evaluation(m, one.model_copy(update={"metrics": {"x": 3.0}}))
+    assert [e.metrics for e in rescored.evaluations] == [{"x": 3.0}, {"y": 2.0}]

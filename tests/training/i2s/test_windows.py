@@ -169,6 +169,11 @@ def test_source_balance_draws_each_source_and_each_of_its_people_alike(data_dir:
     assert 0.47 < np.mean(drawn < n_first) < 0.53
     batch = balanced.sample(np.random.default_rng(1), 64)
     assert batch.imu.shape == (64, 128, 6) and np.isin(batch.segment, balanced.segment).all()
+    cfg = load_config(REPO / "training/configs/i2s_assignment_real.yaml", ["data.real_balance=source"])
+    train_part, val_part = real_window_samplers(cfg, recordings)  # the config reaches both parts
+    assert np.isclose(train_part.p[: len(RealWindowSampler(recordings[:1], "train").segment)].sum(), 0.5)
+    direct = RealWindowSampler(recordings, "validation", cfg.data.real_val_fraction, balance="source")
+    assert val_part.p is not None and np.array_equal(val_part.p, direct.p)
 
 
 def test_training_mixes_real_windows_and_refuses_them_for_alignment(walk_clips, data_dir: Path) -> None:

@@ -350,6 +350,10 @@ def test_evaluate_pose_scores_the_validation_subjects_on_the_sessions_training_j
     assert float(version.tags["eval_val_angle_unsensed_deg"]) == pytest.approx(val, abs=1e-3)
     refused = subprocess.run([*base, *where, "--tag"], capture_output=True, text=True, cwd=REPO)
     assert refused.returncode != 0 and "--validation" in " ".join((refused.stdout + refused.stderr).split())
+    # the registry's figure is the runs' one session per clip
+    more = [*base, *where, "--validation", "--tag", "--sessions", "2"]
+    refused = subprocess.run(more, capture_output=True, text=True, cwd=REPO)
+    assert refused.returncode != 0 and "--sessions" in " ".join((refused.stdout + refused.stderr).split())
 
 
 def test_a_learned_velocity_is_trained_for_a_shipped_model_chosen_on_validation_and_shipped_only_if_it_helps(
