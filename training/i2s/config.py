@@ -45,6 +45,8 @@ class DataConfig(_Strict):
     # MovingReality's eight long treadmill recordings are 85 % of the windows; "source" each source equally often,
     # within it each person equally often (``source_balanced_weights``)
     real_balance: Literal["window", "source"] = "window"
+    # with real_balance "source": the share of real draws that follow it, the rest drawn by window
+    real_balance_share: float = Field(1.0, ge=0.0, le=1.0)
     sample_rate_hz: float = 60.0
     cutoff_hz: float = 10.0
     filter_order: int = 8

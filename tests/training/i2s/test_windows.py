@@ -174,6 +174,16 @@ def test_source_balance_draws_each_source_and_each_of_its_people_alike(data_dir:
     assert np.isclose(train_part.p[: len(RealWindowSampler(recordings[:1], "train").segment)].sum(), 0.5)
     direct = RealWindowSampler(recordings, "validation", cfg.data.real_val_fraction, balance="source")
     assert val_part.p is not None and np.array_equal(val_part.p, direct.p)
+    # half the draws balanced, half by window: each window's chance is the mean of the two rules'
+    half = RealWindowSampler(recordings, balance="source", balance_share=0.5)
+    assert np.allclose(half.p, 0.5 * balanced.p + 0.5 / len(balanced.p))
+    assert np.isclose(half.p[:n_first].sum(), 0.5 * 0.5 + 0.5 * n_first / len(plain.segment))
+    cfg = load_config(
+        REPO / "training/configs/i2s_assignment_real.yaml", ["data.real_balance=source", "data.real_balance_share=0.5"]
+    )
+    train_half = real_window_samplers(cfg, recordings)[0]
+    n_train_first = len(RealWindowSampler(recordings[:1], "train").segment)
+    assert np.isclose(train_half.p[:n_train_first].sum(), 0.25 + 0.5 * n_train_first / len(train_half.p))
 
 
 def test_training_mixes_real_windows_and_refuses_them_for_alignment(walk_clips, data_dir: Path) -> None:

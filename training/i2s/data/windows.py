@@ -282,7 +282,8 @@ class RealWindowSampler:
     (``mirrored_readings``, label ↔ the other side's segment); a draw of none leaves the random stream as it was.
     ``rotate`` turns each drawn window by a uniformly random rotation (``turned_readings``). ``balance`` says how
     windows are drawn: ``"window"`` uniformly over all of them (a source with many long recordings then fills most
-    draws), ``"source"`` each source equally often, within it each person equally often, within a person uniformly.
+    draws), ``"source"`` each source equally often, within it each person equally often, within a person uniformly;
+    with ``"source"``, ``balance_share`` of the draws follow that rule and the rest are drawn by window.
     """
 
     def __init__(
@@ -293,6 +294,7 @@ class RealWindowSampler:
         mirror: float = 0.0,
         rotate: bool = False,
         balance: Literal["window", "source"] = "window",
+        balance_share: float = 1.0,
     ) -> None:
         self.mirror, self.rotate = mirror, rotate
         imu, seg, owner = [], [], []
@@ -312,7 +314,9 @@ class RealWindowSampler:
         if not sum(len(w) for w in imu):
             raise ValueError(f"no labelled moving windows in the {part} part of the real training recordings")
         self.imu, self.segment = np.concatenate(imu), np.concatenate(seg)
-        self.p = None if balance == "window" else source_balanced_weights(owner)
+        self.p = None
+        if balance == "source":
+            self.p = balance_share * source_balanced_weights(owner) + (1.0 - balance_share) / len(owner)
 
     def sample(self, rng: np.random.Generator, batch_size: int) -> Batch:
         if self.p is None:
@@ -357,11 +361,12 @@ def real_window_samplers(
         return None, None
     fraction = cfg.data.real_val_fraction
     mirror = cfg.data.real_mirror  # training windows only: validation reads the recordings as they are
-    rotate, balance = cfg.data.real_rotation, cfg.data.real_balance
+    rotate = cfg.data.real_rotation
+    drawn = {"balance": cfg.data.real_balance, "balance_share": cfg.data.real_balance_share}
     if fraction == 0:
-        return RealWindowSampler(recordings, mirror=mirror, rotate=rotate, balance=balance), None
-    train = RealWindowSampler(recordings, "train", fraction, mirror=mirror, rotate=rotate, balance=balance)
-    return train, RealWindowSampler(recordings, "validation", fraction, balance=balance)
+        return RealWindowSampler(recordings, mirror=mirror, rotate=rotate, **drawn), None
+    train = RealWindowSampler(recordings, "train", fraction, mirror=mirror, rotate=rotate, **drawn)
+    return train, RealWindowSampler(recordings, "validation", fraction, **drawn)
 
 
 def concat_batches(*batches: Batch, limit: int | None = None) -> Batch:
