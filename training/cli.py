@@ -936,7 +936,7 @@ def evaluate_flex(
     overall, per motion type and joint, jitter, and under ageing beyond the training range and a replaced sensor."""
     import json
 
-    from service.core.flex import JOINT_COMPONENTS
+    from service.core.joint_angles import JOINT_COMPONENTS
     from service.inference.registry import load_model
     from training.flex.pipeline import (
         SELECTION_METRIC,

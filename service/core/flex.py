@@ -1,22 +1,6 @@
-"""Joint angles for flex-sensor pose (Chen et al. 2024): the joints, their angle convention, the bend a strip
-sensor over a joint feels, a functional knee angle from two IMU orientations, and the per-stream ring buffer.
-
-Joint angles (``joint_angles_deg``). A joint is a (parent, child) pair of canonical body segments
-(``service.core.body``, frames as DESIGN.md §2: x anterior, y left, z superior in neutral stance). Its rotation
-R = R_world_parent⁻¹ · R_world_child is decomposed as intrinsic Cardan angles y-x'-z'' (R = R_y(a) R_x(b) R_z(c),
-the flexion axis first, as ISB recommends for the lower limb) and reported with anatomical signs
-(``FLEX_JOINTS``):
-
-- ``flexion``: s · a, about the parent's y (left) axis; s makes flexion positive for hip, knee, shoulder, elbow
-  and forward bending of the spine (the knee's a is positive when the shank turns back; the hip's and elbow's
-  a is negative when they flex);
-- ``abduction``: b about the x axis, positive away from the midline for both sides (right-side b is negated);
-  for the spine joints, lateral bending to the left;
-- ``rotation``: c about the child's z (long) axis, internal rotation positive for both sides; for the spine,
-  axial rotation to the left.
-
-All in degrees. In neutral stance every angle is zero.
-"""
+"""Flex-sensor pose (Chen et al. 2024): the joints it answers, the bend a strip sensor over a joint feels, a
+functional knee angle from two IMU orientations, and the per-stream ring buffer. The joint-angle convention is
+``service.core.joint_angles``'s."""
 
 from __future__ import annotations
 
@@ -27,36 +11,23 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from service.core.body import BODY_SEGMENTS
+from service.core.joint_angles import JOINTS
 
-JOINT_COMPONENTS: tuple[str, ...] = ("flexion", "abduction", "rotation")
-
-
-@dataclass(frozen=True)
-class FlexJoint:
-    parent: str
-    child: str
-    flexion_sign: float  # on a (about y)
-    abduction_sign: float  # on b (about x)
-    rotation_sign: float  # on c (about z)
-
-
-# The joints of Chen et al. 2024 Table 3 that the canonical body has: its three spine joints become our two
-# (lumbar: L5 against the pelvis; thoracic: T8 against L5), and its Shoulder/Arm/ForeArm/UpLeg/Leg are the
-# sternoclavicular, shoulder, elbow, hip and knee joints.
-FLEX_JOINTS: dict[str, FlexJoint] = {
-    "LumbarSpine": FlexJoint("Pelvis", "L5", 1.0, -1.0, 1.0),
-    "ThoracicSpine": FlexJoint("L5", "T8", 1.0, -1.0, 1.0),
-    "LeftSternoclavicular": FlexJoint("T8", "LeftShoulder", 1.0, 1.0, -1.0),
-    "RightSternoclavicular": FlexJoint("T8", "RightShoulder", 1.0, -1.0, 1.0),
-    "LeftShoulder": FlexJoint("LeftShoulder", "LeftUpperArm", -1.0, 1.0, -1.0),
-    "RightShoulder": FlexJoint("RightShoulder", "RightUpperArm", -1.0, -1.0, 1.0),
-    "LeftElbow": FlexJoint("LeftUpperArm", "LeftForeArm", -1.0, 1.0, -1.0),
-    "RightElbow": FlexJoint("RightUpperArm", "RightForeArm", -1.0, -1.0, 1.0),
-    "LeftHip": FlexJoint("Pelvis", "LeftUpperLeg", -1.0, 1.0, -1.0),
-    "RightHip": FlexJoint("Pelvis", "RightUpperLeg", -1.0, -1.0, 1.0),
-    "LeftKnee": FlexJoint("LeftUpperLeg", "LeftLowerLeg", 1.0, 1.0, -1.0),
-    "RightKnee": FlexJoint("RightUpperLeg", "RightLowerLeg", 1.0, -1.0, 1.0),
-}
+# The joints of Chen et al. 2024 Table 3 that the canonical body has (``service.core.joint_angles.JOINTS``).
+FLEX_JOINTS: tuple[str, ...] = (
+    "LumbarSpine",
+    "ThoracicSpine",
+    "LeftSternoclavicular",
+    "RightSternoclavicular",
+    "LeftShoulder",
+    "RightShoulder",
+    "LeftElbow",
+    "RightElbow",
+    "LeftHip",
+    "RightHip",
+    "LeftKnee",
+    "RightKnee",
+)
 
 # What the hinge frames (``limb_twist`` "hinge": each limb's turn about its long axis taken from its hinge,
 # docs/pose.md "Hinge frames") hold at zero in the mocap: the knee is a hinge about y in every rig (within 0.7°), so
@@ -93,33 +64,12 @@ def hinge_mask(joints: list[str] | tuple[str, ...], components: list[str] | tupl
 FLEX_SENSOR_JOINTS: tuple[str, ...] = ("LeftKnee", "RightKnee", "LeftElbow", "RightElbow")
 
 
-def _relative(R_world_segment: np.ndarray, joint: FlexJoint) -> np.ndarray:
-    p, c = BODY_SEGMENTS.index(joint.parent), BODY_SEGMENTS.index(joint.child)
-    return np.einsum("...ji,...jk->...ik", R_world_segment[..., p, :, :], R_world_segment[..., c, :, :])
-
-
-def joint_angles_deg(R_world_segment: np.ndarray, joints: list[str] | tuple[str, ...]) -> np.ndarray:
-    """``(T, 21, 3, 3)`` segment orientations → ``(T, J, 3)`` flexion, abduction, rotation in degrees (module
-    docstring), the one definition training targets and evaluation use."""
-    out = np.empty((*R_world_segment.shape[:-3], len(joints), 3))
-    for k, name in enumerate(joints):
-        joint = FLEX_JOINTS[name]
-        rel = _relative(R_world_segment, joint)
-        # intrinsic y-x'-z'': a = atan2(R02, R22), b = asin(-R12), c = atan2(R10, R11)
-        a = np.arctan2(rel[..., 0, 2], rel[..., 2, 2])
-        b = np.arcsin(np.clip(-rel[..., 1, 2], -1.0, 1.0))
-        c = np.arctan2(rel[..., 1, 0], rel[..., 1, 1])
-        signs = (joint.flexion_sign, joint.abduction_sign, joint.rotation_sign)
-        out[..., k, :] = np.degrees(np.stack([a, b, c], axis=-1)) * np.array(signs)
-    return out
-
-
 def bend_angles_deg(R_world_segment: np.ndarray, joints: list[str] | tuple[str, ...]) -> np.ndarray:
     """``(T, 21, 3, 3)`` → ``(T, J)`` the angle between the parent's and the child's long (z) axes in degrees:
     what a strip glued along both segments bends by, whatever the plane of the bend."""
     out = np.empty((*R_world_segment.shape[:-3], len(joints)))
     for k, name in enumerate(joints):
-        joint = FLEX_JOINTS[name]
+        joint = JOINTS[name]
         p, c = BODY_SEGMENTS.index(joint.parent), BODY_SEGMENTS.index(joint.child)
         cos = np.einsum("...i,...i->...", R_world_segment[..., p, :, 2], R_world_segment[..., c, :, 2])
         out[..., k] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))

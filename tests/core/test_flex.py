@@ -15,8 +15,8 @@ from service.core.flex import (
     block_windows,
     fit_hinge,
     hinge_angle_deg,
-    joint_angles_deg,
 )
+from service.core.joint_angles import joint_angles_deg
 
 JOINTS = list(FLEX_JOINTS)
 

@@ -139,7 +139,7 @@ class FlexConfig(_FlexRun):
 
     @property
     def components(self) -> int:
-        return 3  # flexion, abduction, rotation (service.core.flex.JOINT_COMPONENTS)
+        return 3  # flexion, abduction, rotation (service.core.joint_angles.JOINT_COMPONENTS)
 
 
 class CapacitiveConfig(_FlexRun):

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.flex import bend_angles_deg, joint_angles_deg
+from service.core.flex import bend_angles_deg
+from service.core.joint_angles import joint_angles_deg
 from training.data.catalog import is_bandai_namco
 from training.flex.simulate import FLEX_RATE_HZ, SensorParams, draw_suit, simulate_counts
 from training.pose.data import MODEL_RATE_HZ, MotionClip

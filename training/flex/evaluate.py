@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from service.core.flex import JOINT_COMPONENTS
+from service.core.joint_angles import JOINT_COMPONENTS
 from training.flex.data import WindowSet
 from training.flex.simulate import FLEX_RATE_HZ
 

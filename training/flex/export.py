@@ -10,7 +10,7 @@ import onnx
 import onnxruntime as ort
 import torch
 
-from service.core.flex import JOINT_COMPONENTS
+from service.core.joint_angles import JOINT_COMPONENTS
 from service.core.manifest import Evaluation, FlexSpec, Manifest, ReadoutCheckSpec, TensorSpec
 from training.flex.config import FlexConfig
 from training.flex.models import FlexEnsemble, FlexNet

@@ -15,6 +15,7 @@ import torch
 from tqdm import tqdm
 
 from service.core import flex as flex_core
+from service.core.joint_angles import JOINT_COMPONENTS
 from training.flex.config import CapacitiveConfig, FlexConfig
 from training.flex.data import WindowSet
 from training.flex.evaluate import predict_windows
@@ -90,7 +91,7 @@ def answer_mask(cfg: FlexConfig | CapacitiveConfig) -> np.ndarray | None:
     ``service.inference.flex.FlexModel`` reads it from the manifest); None for a capacitive sleeve."""
     if not isinstance(cfg, FlexConfig):
         return None
-    return flex_core.answer_mask(cfg.data.limb_twist, cfg.joints, flex_core.JOINT_COMPONENTS)
+    return flex_core.answer_mask(cfg.data.limb_twist, cfg.joints, JOINT_COMPONENTS)
 
 
 def torch_predictor(net: FlexNet | FlexEnsemble, mask: np.ndarray | None = None) -> Callable[[np.ndarray], np.ndarray]:

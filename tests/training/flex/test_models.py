@@ -229,7 +229,8 @@ def test_a_run_in_the_hinge_frames_scores_the_network_as_the_service_answers_it(
     """Its torch predictor (validation, epoch choice and every logged figure) holds the hinge frames' zeros at zero,
     as ``service.inference.flex.FlexModel`` answers the shipped file; in a rig's own frames, and for a capacitive
     sleeve, the network's answer as it is."""
-    from service.core.flex import JOINT_COMPONENTS, hinge_mask
+    from service.core.flex import hinge_mask
+    from service.core.joint_angles import JOINT_COMPONENTS
     from training.flex.config import CapacitiveConfig, FlexConfig
     from training.flex.train import answer_mask, torch_predictor
 
