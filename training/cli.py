@@ -713,7 +713,7 @@ def evaluate_pose(
     import numpy as np
 
     from service.core.manifest import read_manifest, with_evaluation, write_manifest
-    from training.pose.evaluate import clip_intervals, per_segment_mean
+    from training.pose.evaluate import clip_intervals, per_joint_mean, per_segment_mean
     from training.pose.pipeline import (
         TEST_SEED,
         VAL_SEED,
@@ -783,11 +783,13 @@ def evaluate_pose(
         new = evaluation_record(name, command, old.data, summary, intervals if sessions > 1 else None)
         write_manifest(with_evaluation(manifest, new, after=HELD_OUT), model / "manifest.json")
     error, constant = per_segment_mean(results), per_segment_mean(results, constant=True)
+    joint_error = per_joint_mean(results)
     if as_json:
         per_clip = [{"clip": r.path, "frames": r.frames, **r.metrics} for r in results]
         segments = {s: {"angle_deg": error[s], "constant_per_clip_deg": constant[s]} for s in error}
         report = {"clips": per_clip, **summary, "segments": segments, "skipped": skipped, "sessions": sessions}
         report["angle_all_interval_95"] = {k: list(v) for k, v in intervals.items()}
+        report["joint_angles_deg"] = joint_error
         typer.echo(json.dumps(report | ({"translation_learned": learned} if learned else {}), indent=1))
         return
     for left_out in skipped:
@@ -796,6 +798,7 @@ def evaluate_pose(
     typer.echo("segment          angle°  of it constant per clip°")
     for s in error:
         typer.echo(f"{s:16s} {error[s]:6.2f}  {constant[s]:6.2f}")
+    _echo_joint_errors(joint_error)
     for kind in ("activity", "subject"):
         for key, m in summary[kind].items():
             typer.echo(
@@ -824,6 +827,22 @@ def evaluate_pose(
         typer.echo(f"translation over 1 s with {velocity_model} (cm): the rule, the rule with the learned velocity")
         for activity, row in sorted(learned.items()):
             typer.echo(f"  {activity:14s} rule {row['rule']:6.1f}  learned {row['learned']:6.1f}")
+
+
+def _echo_joint_errors(joint_error: dict[str, dict[str, float]]) -> None:
+    """The joint angles' mean absolute errors (``service.core.joint_angles``), a row per joint, a column per motion
+    type, flexion / abduction / rotation in each cell."""
+    from service.core.joint_angles import JOINT_COMPONENTS, JOINTS
+
+    kinds = list(joint_error)
+    joints = [j for j in JOINTS if f"{j}_flexion" in joint_error["all"]]
+    if not joints:
+        return
+    typer.echo("joint angle error, mean absolute (flexion / abduction / rotation, degrees):")
+    typer.echo(f"  {'joint':22s}" + "".join(f"{k:>20s}" for k in kinds))
+    for j in joints:
+        cells = ["/".join(f"{joint_error[k][f'{j}_{c}']:.1f}" for c in JOINT_COMPONENTS) for k in kinds]
+        typer.echo(f"  {j:22s}" + "".join(f"{c:>20s}" for c in cells))
 
 
 def _learned_translation(model: Path, velocity_model: Path, clips: list, seed: int) -> dict[str, dict[str, float]]:

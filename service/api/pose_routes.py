@@ -29,6 +29,8 @@ from service.core.calibration import (
     segment_readings,
     still_pose_calibration,
 )
+from service.core.joint_angles import ANGLE_CONVENTION, JOINT_COMPONENTS, answered_joints, joint_angles_deg
+from service.core.opensim import format_opensim_storage
 from service.core.resample import resample_quats, resample_uniform
 from service.core.rotations import UNIT_QUAT_TOLERANCE, canonical_quat, is_unit_quaternion
 from service.core.segments import SEGMENTS
@@ -391,13 +393,37 @@ def pose_bvh(job: PoseJob) -> str:
     return format_bvh(body_bvh(pose.R_world, pose.body, MODEL_RATE_HZ, pose.root_m))
 
 
-def pose_response(job: PoseJob, warnings: list[str]) -> PoseImuResponse:
+def segment_sources(job: PoseJob) -> dict[str, str]:
+    """Per segment what answers it: ``sensor`` (a calibrated sensor), ``model`` or ``parent`` (neither: its
+    parent's orientation)."""
+    covered, sensed = set(covered_segments(job.model)), set(job.readings.segments)
+    return {s: "sensor" if s in sensed else "model" if s in covered else "parent" for s in BODY_SEGMENTS}
+
+
+def pose_joint_angles(job: PoseJob, R_world: np.ndarray) -> tuple[list[str], np.ndarray]:
+    """The joints whose two segments a sensor or the model answers, and their angles ``(T, J, 3)`` in degrees
+    (``service.core.joint_angles``)."""
+    sources = segment_sources(job)
+    joints = answered_joints({s for s, src in sources.items() if src != "parent"})
+    return joints, joint_angles_deg(R_world, joints)
+
+
+def pose_storage(job: PoseJob) -> str:
+    """The pose's joint angles as an OpenSim storage file (``.mot``): time in seconds from the first frame at 60
+    Hz, one column per joint and component (``LeftKnee_flexion``), in degrees."""
+    pose = body_pose(job)
+    joints, angles = pose_joint_angles(job, pose.R_world)
+    columns = {f"{j}_{c}": angles[:, i, k] for i, j in enumerate(joints) for k, c in enumerate(JOINT_COMPONENTS)}
+    m = job.model.loaded.manifest
+    time_s = np.arange(len(pose.R_world)) / MODEL_RATE_HZ
+    return format_opensim_storage(f"{m.name} {m.version}", time_s, columns, in_degrees=True)
+
+
+def pose_response(job: PoseJob, warnings: list[str], joint_angles: bool = False) -> PoseImuResponse:
     pose = body_pose(job)
     model, R_world = job.model, pose.R_world
     answer = pose_answer(R_world, pose.body)
-    covered = set(covered_segments(model))
-    sensed = set(job.readings.segments)
-    sources = {s: "sensor" if s in sensed else "model" if s in covered else "parent" for s in BODY_SEGMENTS}
+    sources = segment_sources(job)
     rnd = lambda a, d: np.round(a, d).tolist()  # noqa: E731
     return PoseImuResponse(
         model={"name": model.name, "version": model.loaded.manifest.version},
@@ -417,7 +443,19 @@ def pose_response(job: PoseJob, warnings: list[str]) -> PoseImuResponse:
         },
         root_position_m=None if pose.root_m is None else rnd(pose.root_m, 4),
         warnings=warnings,
+        **(_angles_answer(job, R_world) if joint_angles else {}),
     )
+
+
+def _angles_answer(job: PoseJob, R_world: np.ndarray) -> dict:
+    joints, angles = pose_joint_angles(job, R_world)
+    per_joint = np.round(angles, 2)
+    return {
+        "joint_angles_deg": {
+            j: {c: per_joint[:, i, k].tolist() for k, c in enumerate(JOINT_COMPONENTS)} for i, j in enumerate(joints)
+        },
+        "angle_convention": ANGLE_CONVENTION,
+    }
 
 
 @router.post(
@@ -436,10 +474,14 @@ def pose_response(job: PoseJob, warnings: list[str]) -> PoseImuResponse:
         "(`root_position_m`). The model is the offline one whose sensors match, else the one that reads the most "
         "of them (the others answered as measured, and a warning says so), or the one `model` names. With "
         "`format=bvh` the same pose comes as a BVH file (one joint per segment, centimetres, Y up) for Blender, "
-        "MotionBuilder or OpenSim; its model and warnings in the headers `X-Pose-Model` and `X-Pose-Warnings`."
+        "MotionBuilder or OpenSim, with `format=mot` its joint angles as an OpenSim storage file; the model and "
+        "the warnings in the headers `X-Pose-Model` and `X-Pose-Warnings`. With `joint_angles` the JSON answer "
+        "also has each joint's flexion, abduction and rotation per frame."
     ),
     responses=file_responses(
-        "Pose", "HIERARCHY\nROOT Pelvis\n{\n\tOFFSET 0.0000 0.0000 0.0000\n...", "`bvh` the text of a BVH file"
+        "Pose",
+        "HIERARCHY\nROOT Pelvis\n{\n\tOFFSET 0.0000 0.0000 0.0000\n...",
+        "`bvh` the text of a BVH file; `mot` an OpenSim storage file of the joint angles",
     )
     | error_responses(
         400,
@@ -457,8 +499,10 @@ async def pose_from_imu(
     body: PoseImuRequest,
     request: Request,
     settings: Settings = Depends(_settings),
-    format: Literal["json", "bvh"] = Query(  # noqa: A002 (the query parameter's name)
-        "json", description="`json` (default): quaternions and joint positions; `bvh`: a BVH file of the pose"
+    format: Literal["json", "bvh", "mot"] = Query(  # noqa: A002 (the query parameter's name)
+        "json",
+        description="`json` (default): quaternions and joint positions; `bvh`: a BVH file of the pose; `mot`: its "
+        "joint angles as an OpenSim storage file (degrees, a column per joint and component)",
     ),
 ) -> Response:
     everything, placed, found = read_request(body), None, None
@@ -498,10 +542,10 @@ async def pose_from_imu(
     velocity = velocity_for(request, model, body.translation)
     job = PoseJob(model, readings, q_seg_sensor, body.body_height_m, body.translation, velocity)
     runner = request.app.state.runner
-    if format == "bvh":
-        text = await runner.run_call(pose_bvh, job)
+    if format != "json":
+        text = await runner.run_call(pose_bvh if format == "bvh" else pose_storage, job)
         version = model.loaded.manifest.version
-        return file_answer(text, f"{model.name}.bvh", "Pose", model.name, version, warnings)
-    answer = await runner.run_call(pose_response, job, warnings)
+        return file_answer(text, f"{model.name}.{format}", "Pose", model.name, version, warnings)
+    answer = await runner.run_call(pose_response, job, warnings, body.joint_angles)
     answer.assignment = placed
     return Response(answer.model_dump_json(), media_type="application/json")

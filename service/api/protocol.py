@@ -44,8 +44,9 @@ Server → client
   look_ahead_frames late; with "pose": {"translation": "feet" | "learned"} also root_position_m, the pelvis per frame
   by /v1/pose/imu's rule (with "learned" and the learned pelvis velocity of the velocity model of the pose model's
   sensors), run over the frames this stream answers, from its first answered frame; "started" says pose.translation
-  and, with "learned", pose.velocity_model) · warning (pose-only sessions: once per sensor, when the first 2 s of body
-  frames read implausibly for its declared units).
+  and, with "learned", pose.velocity_model; with "pose": {"joint_angles": true} also joint_angles_deg, per joint whose
+  two segments are answered its flexion, abduction and rotation per frame in degrees, frames × 3) · warning
+  (pose-only sessions: once per sensor, when the first 2 s of body frames read implausibly for its declared units).
   With "pose": {"output": "binary"} each pose message is a binary pose block instead (little-endian): uint16 1,
   uint16 S segments, uint32 first_frame, uint32 frames, then frames × S × 4 float32 q_world_segment (w x y z) and
   frames × S × 3 float32 joint_positions_m: 12 + 28 × frames × S bytes (``decode_pose_block``); with translation
@@ -175,6 +176,17 @@ class PoseStreamOptions(BaseModel):
     )
     translation: Literal["none", "feet", "learned"] = Field("none", description=TRANSLATION_DESCRIPTION)
     pelvis_heading: Literal["alignment", "legs"] | None = Field(None, description=PELVIS_HEADING_DESCRIPTION)
+    joint_angles: bool = Field(
+        False,
+        description="each JSON pose message also carries joint_angles_deg: per joint whose two segments are answered "
+        "(sensor or model), its flexion, abduction and rotation per frame in degrees (service.core.joint_angles)",
+    )
+
+    @model_validator(mode="after")
+    def _angles_in_json(self) -> PoseStreamOptions:
+        if self.joint_angles and self.output != "json":
+            raise ValueError(f"joint_angles come in JSON pose messages; output {self.output!r} carries none")
+        return self
 
 
 class StartMessage(BaseModel):

@@ -517,6 +517,12 @@ class PoseImuRequest(BaseModel):
     )
     body_height_m: float | None = Field(None, ge=0.5, le=2.5, description="scale the default body to this height")
     translation: Literal["none", "feet", "learned"] = Field("none", description=TRANSLATION_DESCRIPTION)
+    joint_angles: bool = Field(
+        False,
+        description="also answer `joint_angles_deg`: each joint's flexion, abduction and rotation per frame "
+        "(degrees, the convention in `angle_convention`) for the joints whose two segments the sensors or the "
+        "model answer (pelvis and shanks: hips, knees and ankles)",
+    )
 
 
 class SegmentTrack(BaseModel):
@@ -572,6 +578,12 @@ class PoseImuResponse(BaseModel):
         description="calibration `assignment` with sensors whose segment was not declared: how the walk placed "
         "them, as /v1/imu/assign answers (its `status` and each sensor's `p_correct` say how sure)",
     )
+    joint_angles_deg: dict[str, dict[str, list[float]]] | None = Field(
+        None,
+        description="with `joint_angles`: per joint (LeftHip, LeftKnee, LeftAnkle, …) its `flexion`, `abduction` and "
+        "`rotation` per frame in degrees",
+    )
+    angle_convention: str | None = Field(None, description="with `joint_angles`: how the angles are defined")
 
 
 class FieldError(BaseModel):

@@ -193,6 +193,7 @@ class Session:
             _velocity_model(model, opts.translation, velocity_models),
             pelvis_heading,
             measured,
+            opts.joint_angles,
         )
         self.aligner = FrameAligner(len(self.streams), 10)
         self.run_i2s = opts.calibration == "assignment"
@@ -730,4 +731,5 @@ def _pose_started(session: Session) -> dict | None:
         "pelvis_heading": live.pelvis_heading,
         "measured": live.measured if live.method != "assignment" else None,
         "body_height_m": round(live.body.height_m, 3),
+        "joint_angles": live.joint_angles,
     } | (bvh_started(live.body) if session.pose_output == "bvh" else {})

@@ -14,6 +14,9 @@ limb) and reported with anatomical signs (``JOINTS``):
 - ``rotation``: c about the child's z (long) axis, internal rotation positive for both sides; for the spine,
   axial rotation to the left.
 
+The ankle (the foot on the shank) reads the same way: ``flexion`` is dorsiflexion (toes up), ``abduction``
+eversion (the sole turned away from the midline), ``rotation`` internal rotation (toes turned in).
+
 All in degrees. In neutral stance every angle is zero.
 """
 
@@ -26,6 +29,13 @@ import numpy as np
 from service.core.body import BODY_SEGMENTS
 
 JOINT_COMPONENTS: tuple[str, ...] = ("flexion", "abduction", "rotation")
+# the convention in a sentence, for manifests and answers
+ANGLE_CONVENTION = (
+    "service.core.joint_angles: joint = R_world_parent^-1 R_world_child as intrinsic y-x'-z'' Cardan angles in "
+    "degrees; flexion positive for hip, knee, shoulder, elbow, ankle dorsiflexion and forward spine bending; "
+    "abduction positive away from the midline (ankle: eversion; spine: bending left); rotation internal positive "
+    "(spine: turning left); zero in neutral stance"
+)
 
 
 @dataclass(frozen=True)
@@ -53,7 +63,22 @@ JOINTS: dict[str, Joint] = {
     "RightHip": Joint("Pelvis", "RightUpperLeg", -1.0, -1.0, 1.0),
     "LeftKnee": Joint("LeftUpperLeg", "LeftLowerLeg", 1.0, 1.0, -1.0),
     "RightKnee": Joint("RightUpperLeg", "RightLowerLeg", 1.0, -1.0, 1.0),
+    # not in Chen et al. 2024 Table 3; what a gait lab reads beside hip and knee (the foot frame's x is the ankle ->
+    # toe heading, level in stance: R_y(a) with a > 0 turns the toes down, so dorsiflexion is -a)
+    "LeftAnkle": Joint("LeftLowerLeg", "LeftFoot", -1.0, 1.0, -1.0),
+    "RightAnkle": Joint("RightLowerLeg", "RightFoot", -1.0, -1.0, 1.0),
 }
+
+
+def answered_joints(segments: set[str] | frozenset[str]) -> list[str]:
+    """The joints of ``JOINTS`` (in its order) whose two segments are both in ``segments``: those a pose answers
+    with something other than a copy of a parent."""
+    return [name for name, j in JOINTS.items() if j.parent in segments and j.child in segments]
+
+
+def angle_error_deg(pred_deg: np.ndarray, true_deg: np.ndarray) -> np.ndarray:
+    """|pred − true| of angles in degrees, wrapped to at most 180 (a rotation of 179° and one of −179° are 2° apart)."""
+    return np.abs((pred_deg - true_deg + 180.0) % 360.0 - 180.0)
 
 
 def _relative(R_world_segment: np.ndarray, joint: Joint) -> np.ndarray:

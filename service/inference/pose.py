@@ -23,6 +23,7 @@ from service.core.calibration import (
     turn_about_own_axis,
     turn_about_z,
 )
+from service.core.joint_angles import answered_joints, joint_angles_deg
 from service.core.rotations import canonical_quat, quat_from_matrix
 from service.core.translation import RootTracker, advance_bodies
 from service.core.windowing import MODEL_RATE_HZ
@@ -364,6 +365,7 @@ class LivePose:
         velocity: VelocityModel | None = None,
         pelvis_heading: str = "alignment",
         measured: Sequence[str] = (),
+        joint_angles: bool = False,
     ) -> None:
         if not model.spec.streaming:
             raise ValueError(f"{model.name} is an offline model; live sessions need a streaming one")
@@ -401,6 +403,11 @@ class LivePose:
         self.velocity_inputs = 0  # frames fed to the velocity network
         self.inputs = 0  # frames fed to the network
         self.first_frame = 0  # stream frame index of the first frame fed to the network
+        self.joint_angles = joint_angles  # pose messages carry the answered joints' angles
+
+    def answered_joints(self) -> list[str]:
+        """The joints whose two segments the model or a sensor answers (the measured ones included)."""
+        return answered_joints(set(covered_segments(self.model)) | set(self.measured))
 
     @property
     def calibrated(self) -> bool:
@@ -620,6 +627,10 @@ def _step_live(lives: list[LivePose], frames: list[np.ndarray], first_frames: li
         }
         if a in roots:
             results[i]["root_position_m"] = roots[a]
+        if lives[i].joint_angles:
+            joints = lives[i].answered_joints()
+            angles = np.round(joint_angles_deg(R_world[row : row + n], joints), 2)
+            results[i]["joint_angles_deg"] = {j: np.ascontiguousarray(angles[:, k]) for k, j in enumerate(joints)}
     return results
 
 

@@ -1629,3 +1629,79 @@ def test_pose_blocks_with_and_without_translation_read_back_and_a_cut_block_is_r
                 np.testing.assert_allclose(back[key], value, rtol=1e-6)
         with pytest.raises(ValueError, match="not a pose block"):
             decode_pose_block(block[:-4])
+
+
+def test_rest_joint_angles_track_a_held_out_walk_in_json_and_in_the_opensim_file(server: str, walk) -> None:
+    """``joint_angles`` with three lower-body sensors on a real server: hips, knees and ankles (the joints whose two
+    segments are answered), the knee flexing by a walk's 50-70° in swing and tracking the truth's flexion; the
+    ankle dorsiflexed in stance and plantarflexed at push-off, as the truth is; ``format=mot`` the same angles as
+    an OpenSim storage file; six sensors answer every joint."""
+    from service.core.joint_angles import JOINTS, joint_angles_deg
+    from service.core.opensim import read_opensim_storage
+
+    motion, raw = walk
+    request = _body(raw, LOWER, placed=SIX_SENSORS) | {"joint_angles": True}
+    r = httpx.post(f"{server}/v1/pose/imu", json=request, timeout=60)
+    assert r.status_code == 200, r.text
+    body = r.json()
+    legs = ["LeftHip", "RightHip", "LeftKnee", "RightKnee", "LeftAnkle", "RightAnkle"]
+    assert list(body["joint_angles_deg"]) == legs and "dorsiflexion" in body["angle_convention"]
+    answered = {
+        j: np.array([body["joint_angles_deg"][j][c] for c in ("flexion", "abduction", "rotation")]).T for j in legs
+    }
+    truth = joint_angles_deg(motion.R_world_segment, legs)
+    for k, j in enumerate(legs):
+        assert answered[j].shape == (motion.n_frames, 3)
+        flexion_error = np.abs(answered[j][:, 0] - truth[:, k, 0]).mean()
+        print(
+            f"{j} flexion: answered {np.percentile(answered[j][:, 0], [2, 98]).round(1)}, truth "
+            f"{np.percentile(truth[:, k, 0], [2, 98]).round(1)}, mean absolute error {flexion_error:.1f} deg"
+        )
+        assert flexion_error < 12.0
+        assert np.corrcoef(answered[j][:, 0], truth[:, k, 0])[0, 1] > 0.8
+    for j in ("LeftKnee", "RightKnee"):
+        assert 45.0 < answered[j][:, 0].max() < 85.0 and answered[j][:, 0].min() > -10.0
+    for j in ("LeftAnkle", "RightAnkle"):
+        assert answered[j][:, 0].max() > 5.0 and answered[j][:, 0].min() < -5.0
+    mot = httpx.post(f"{server}/v1/pose/imu", params={"format": "mot"}, json=request, timeout=60)
+    assert mot.status_code == 200 and 'filename="pose_lower3.mot"' in mot.headers["content-disposition"]
+    header, names, table = read_opensim_storage(mot.text, "answer")
+    assert header["inDegrees"] == "yes" and names[0] == "time" and len(table) == motion.n_frames
+    np.testing.assert_allclose(table[1:4, 0], np.arange(1, 4) / 60.0, atol=1e-6)
+    assert names[1:] == [f"{j}_{c}" for j in legs for c in ("flexion", "abduction", "rotation")]
+    np.testing.assert_allclose(table[:, 1:], np.concatenate([answered[j] for j in legs], axis=1), atol=0.006)
+    six = httpx.post(
+        f"{server}/v1/pose/imu", json=_body(raw, SIX_SENSORS, frames=slice(0, 120)) | {"joint_angles": True}, timeout=60
+    ).json()
+    assert list(six["joint_angles_deg"]) == list(JOINTS)
+    plain = httpx.post(
+        f"{server}/v1/pose/imu", json=_body(raw, LOWER, placed=SIX_SENSORS, frames=slice(0, 120)), timeout=60
+    ).json()
+    assert plain["joint_angles_deg"] is None and plain["angle_convention"] is None
+
+
+def test_a_live_stream_carries_the_joint_angles_of_its_pose_when_asked(server: str, walk) -> None:
+    """``"joint_angles": true`` on a declared six-sensor stream of a real server: ``started`` says so, and every pose
+    message carries each joint's angles per frame, those of the message's own segment orientations; with binary
+    output the session is refused with what was expected."""
+    from service.core.joint_angles import JOINTS, joint_angles_deg
+
+    motion, raw = walk
+    n = min(240, motion.n_frames) // 8 * 8
+    sensors, packets = _declared_six(raw, n)
+    url = server.replace("http", "ws") + "/v1/stream"
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared", "joint_angles": True}}
+    messages, code, reason = asyncio.run(_stream(url, start, packets))
+    assert code == 1000, reason
+    assert messages[0]["pose"]["joint_angles"] is True
+    poses = [m for m in messages if m["type"] == "pose"]
+    assert sum(p["frames"] for p in poses) == n - 5
+    for p in poses:
+        assert list(p["joint_angles_deg"]) == list(JOINTS)
+        angles = np.stack([np.array(p["joint_angles_deg"][j]) for j in JOINTS], axis=1)
+        own = joint_angles_deg(matrix_from_quat(np.array(p["q_world_segment"])), list(JOINTS))
+        assert angles.shape == own.shape == (p["frames"], len(JOINTS), 3)
+        np.testing.assert_allclose(angles, own, atol=0.05)  # the quaternions are sent to 5 decimals
+    binary = {**start, "pose": {**start["pose"], "output": "binary"}}
+    _, code, reason = asyncio.run(_stream(url, binary, packets[:1]))
+    assert code == 1008 and "joint_angles" in reason and "binary" in reason

@@ -10,7 +10,7 @@ import onnx
 import onnxruntime as ort
 import torch
 
-from service.core.joint_angles import JOINT_COMPONENTS
+from service.core.joint_angles import ANGLE_CONVENTION, JOINT_COMPONENTS
 from service.core.manifest import Evaluation, FlexSpec, Manifest, ReadoutCheckSpec, TensorSpec
 from training.flex.config import FlexConfig
 from training.flex.models import FlexEnsemble, FlexNet
@@ -18,11 +18,6 @@ from training.flex.simulate import ADC_MAX, AMP_GAIN, DIVIDER_OHM, FLEX_RATE_HZ,
 
 OPSET = 17
 TASK = "flex_pose"
-ANGLE_CONVENTION = (
-    "service.core.flex: joint = R_world_parent^-1 R_world_child as intrinsic y-x'-z'' Cardan angles in degrees; "
-    "flexion positive for hip, knee, shoulder, elbow and forward spine bending; abduction positive away from the "
-    "midline (spine: bending left); rotation internal positive (spine: turning left); zero in neutral stance"
-)
 
 
 def export_flex_onnx(net: FlexNet | FlexEnsemble, path: Path) -> Path:

@@ -288,6 +288,13 @@ def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
         assert 0.0 <= seg["constant_per_clip_deg"] <= 180.0
         if name in SIX_SENSORS:
             assert seg["angle_deg"] < 20.0 and seg["constant_per_clip_deg"] <= seg["angle_deg"] + 0.5
+    # per joint angle, over all clips and per motion type: six sensors answer every joint of the convention
+    from service.core.joint_angles import JOINT_COMPONENTS, JOINTS
+
+    angles = report["joint_angles_deg"]
+    assert set(angles) == {"all", "walks"}
+    assert list(angles["all"]) == [f"{j}_{c}" for j in JOINTS for c in JOINT_COMPONENTS]
+    assert all(0.0 <= v <= 180.0 for v in angles["all"].values()) and angles["all"] == angles["walks"]
     # three simulated sessions per clip: the first is the one above, so the mean moves but stays near it, and
     # the interval over the clips holds the mean
     three = subprocess.run(
