@@ -783,13 +783,14 @@ def evaluate_pose(
         new = evaluation_record(name, command, old.data, summary, intervals if sessions > 1 else None)
         write_manifest(with_evaluation(manifest, new, after=HELD_OUT), model / "manifest.json")
     error, constant = per_segment_mean(results), per_segment_mean(results, constant=True)
-    joint_error = per_joint_mean(results)
+    joint_error, joint_bias = per_joint_mean(results), per_joint_mean(results, bias=True)
     if as_json:
         per_clip = [{"clip": r.path, "frames": r.frames, **r.metrics} for r in results]
         segments = {s: {"angle_deg": error[s], "constant_per_clip_deg": constant[s]} for s in error}
         report = {"clips": per_clip, **summary, "segments": segments, "skipped": skipped, "sessions": sessions}
         report["angle_all_interval_95"] = {k: list(v) for k, v in intervals.items()}
-        report["joint_angles_deg"] = joint_error
+        report["joint_angle_error_deg"] = joint_error
+        report["joint_angle_bias_deg"] = joint_bias
         typer.echo(json.dumps(report | ({"translation_learned": learned} if learned else {}), indent=1))
         return
     for left_out in skipped:
@@ -798,7 +799,8 @@ def evaluate_pose(
     typer.echo("segment          angle°  of it constant per clip°")
     for s in error:
         typer.echo(f"{s:16s} {error[s]:6.2f}  {constant[s]:6.2f}")
-    _echo_joint_errors(joint_error)
+    _echo_joint_errors(joint_error, "mean absolute")
+    _echo_joint_errors(joint_bias, "mean signed (answer − truth)")
     for kind in ("activity", "subject"):
         for key, m in summary[kind].items():
             typer.echo(
@@ -829,16 +831,16 @@ def evaluate_pose(
             typer.echo(f"  {activity:14s} rule {row['rule']:6.1f}  learned {row['learned']:6.1f}")
 
 
-def _echo_joint_errors(joint_error: dict[str, dict[str, float]]) -> None:
-    """The joint angles' mean absolute errors (``service.core.joint_angles``), a row per joint, a column per motion
-    type, flexion / abduction / rotation in each cell."""
+def _echo_joint_errors(joint_error: dict[str, dict[str, float]], what: str) -> None:
+    """The joint angles' errors (``service.core.joint_angles``; ``what``: which mean), a row per joint, a column per
+    motion type, flexion / abduction / rotation in each cell."""
     from service.core.joint_angles import JOINT_COMPONENTS, JOINTS
 
     kinds = list(joint_error)
     joints = [j for j in JOINTS if f"{j}_flexion" in joint_error["all"]]
     if not joints:
         return
-    typer.echo("joint angle error, mean absolute (flexion / abduction / rotation, degrees):")
+    typer.echo(f"joint angle error, {what} (flexion / abduction / rotation, degrees):")
     typer.echo(f"  {'joint':22s}" + "".join(f"{k:>20s}" for k in kinds))
     for j in joints:
         cells = ["/".join(f"{joint_error[k][f'{j}_{c}']:.1f}" for c in JOINT_COMPONENTS) for k in kinds]

@@ -3,7 +3,7 @@ the walk (I2S)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -411,7 +411,7 @@ def pose_joint_angles(job: PoseJob, R_world: np.ndarray) -> tuple[list[str], np.
 def pose_storage(job: PoseJob) -> str:
     """The pose's joint angles as an OpenSim storage file (``.mot``): time in seconds from the first frame at 60
     Hz, one column per joint and component (``LeftKnee_flexion``), in degrees."""
-    pose = body_pose(job)
+    pose = body_pose(replace(job, translation="none", velocity=None))  # angles need no translation
     joints, angles = pose_joint_angles(job, pose.R_world)
     columns = {f"{j}_{c}": angles[:, i, k] for i, j in enumerate(joints) for k, c in enumerate(JOINT_COMPONENTS)}
     m = job.model.loaded.manifest
@@ -543,6 +543,8 @@ async def pose_from_imu(
     job = PoseJob(model, readings, q_seg_sensor, body.body_height_m, body.translation, velocity)
     runner = request.app.state.runner
     if format != "json":
+        if body.joint_angles and format == "bvh":
+            raise InputError("joint_angles: the angles come in the JSON answer or as format=mot; format 'bvh' has none")
         text = await runner.run_call(pose_bvh if format == "bvh" else pose_storage, job)
         version = model.loaded.manifest.version
         return file_answer(text, f"{model.name}.{format}", "Pose", model.name, version, warnings)

@@ -45,7 +45,8 @@ Server → client
   by /v1/pose/imu's rule (with "learned" and the learned pelvis velocity of the velocity model of the pose model's
   sensors), run over the frames this stream answers, from its first answered frame; "started" says pose.translation
   and, with "learned", pose.velocity_model; with "pose": {"joint_angles": true} also joint_angles_deg, per joint whose
-  two segments are answered its flexion, abduction and rotation per frame in degrees, frames × 3) · warning
+  two segments are answered its flexion, abduction and rotation per frame in degrees, frames × 3, and "started" says
+  pose.joint_angles) · warning
   (pose-only sessions: once per sensor, when the first 2 s of body frames read implausibly for its declared units).
   With "pose": {"output": "binary"} each pose message is a binary pose block instead (little-endian): uint16 1,
   uint16 S segments, uint32 first_frame, uint32 frames, then frames × S × 4 float32 q_world_segment (w x y z) and
@@ -70,7 +71,7 @@ import struct
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator, model_validator
 
 from service.api.schemas import (
     CANDIDATE_SEGMENTS_DESCRIPTION,
@@ -176,7 +177,7 @@ class PoseStreamOptions(BaseModel):
     )
     translation: Literal["none", "feet", "learned"] = Field("none", description=TRANSLATION_DESCRIPTION)
     pelvis_heading: Literal["alignment", "legs"] | None = Field(None, description=PELVIS_HEADING_DESCRIPTION)
-    joint_angles: bool = Field(
+    joint_angles: StrictBool = Field(
         False,
         description="each JSON pose message also carries joint_angles_deg: per joint whose two segments are answered "
         "(sensor or model), its flexion, abduction and rotation per frame in degrees (service.core.joint_angles)",

@@ -376,7 +376,7 @@ class FlexResponse(BaseModel):
                     "first_sample": 98,
                     "frames": 1,
                     "angles_deg": {"LeftKnee": {"flexion": [12.5], "abduction": [0.4], "rotation": [-1.2]}},
-                    "angle_convention": "service.core.flex: ...",
+                    "angle_convention": "service.core.joint_angles: ...",
                 }
             ]
         }
@@ -517,7 +517,7 @@ class PoseImuRequest(BaseModel):
     )
     body_height_m: float | None = Field(None, ge=0.5, le=2.5, description="scale the default body to this height")
     translation: Literal["none", "feet", "learned"] = Field("none", description=TRANSLATION_DESCRIPTION)
-    joint_angles: bool = Field(
+    joint_angles: StrictBool = Field(
         False,
         description="also answer `joint_angles_deg`: each joint's flexion, abduction and rotation per frame "
         "(degrees, the convention in `angle_convention`) for the joints whose two segments the sensors or the "

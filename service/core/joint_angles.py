@@ -76,9 +76,9 @@ def answered_joints(segments: set[str] | frozenset[str]) -> list[str]:
     return [name for name, j in JOINTS.items() if j.parent in segments and j.child in segments]
 
 
-def angle_error_deg(pred_deg: np.ndarray, true_deg: np.ndarray) -> np.ndarray:
-    """|pred − true| of angles in degrees, wrapped to at most 180 (a rotation of 179° and one of −179° are 2° apart)."""
-    return np.abs((pred_deg - true_deg + 180.0) % 360.0 - 180.0)
+def angle_difference_deg(pred_deg: np.ndarray, true_deg: np.ndarray) -> np.ndarray:
+    """pred − true of angles in degrees, wrapped into [−180, 180) (179° against −179° is −2°)."""
+    return (pred_deg - true_deg + 180.0) % 360.0 - 180.0
 
 
 def _relative(R_world_segment: np.ndarray, joint: Joint) -> np.ndarray:

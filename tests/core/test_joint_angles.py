@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from service.core.body import BODY_PARENT, BODY_SEGMENTS
-from service.core.joint_angles import JOINTS, angle_error_deg, answered_joints, joint_angles_deg
+from service.core.joint_angles import JOINTS, angle_difference_deg, answered_joints, joint_angles_deg
 
 
 def _foot_turned(side: str, axis: str, degrees: float) -> np.ndarray:
@@ -49,7 +49,6 @@ def test_a_pose_answers_the_joints_whose_two_segments_it_covers() -> None:
     assert answered_joints({"Pelvis", "LeftLowerLeg"}) == []  # the thigh between them is not answered
 
 
-def test_the_angle_error_wraps_at_a_half_turn() -> None:
-    np.testing.assert_allclose(
-        angle_error_deg(np.array([179.0, 10.0, -170.0]), np.array([-179.0, 12.0, 175.0])), [2.0, 2.0, 15.0]
-    )
+def test_the_angle_difference_wraps_at_a_half_turn() -> None:
+    got = angle_difference_deg(np.array([179.0, 10.0, -170.0]), np.array([-179.0, 12.0, 175.0]))
+    np.testing.assert_allclose(got, [-2.0, -2.0, 15.0])

@@ -1,7 +1,7 @@
 """The live view in a real headless Chromium against a real uvicorn server with the shipped models: the page plays
 its bundled recording through ``/v1/stream`` at real time until it shows the recording's own placement of all seven
-sensors, with the pose figure and the flex chart drawn; behind an API key, the key field unlocks the models and
-the streams (a browser sends it as a WebSocket subprotocol).
+sensors, with the pose figure and the knee chart (sleeves and pose) drawn; behind an API key, the key field unlocks
+the models and the streams (a browser sends it as a WebSocket subprotocol).
 
 Needs Debian's ``chromium`` and ``chromium-driver`` (``/usr/bin/chromium``, ``/usr/bin/chromedriver``) and selenium.
 """
@@ -105,8 +105,13 @@ def test_the_page_streams_its_recording_and_shows_the_right_assignment_and_pose(
     assert figure.is_displayed() and figure.size["width"] > 300
     assert "calibrated by the assignment" in browser.find_element("id", "pose-note").text
     assert browser.execute_script("return !!arguments[0].getContext('webgl2')", figure)  # three.js draws in WebGL
-    assert browser.find_element("id", "flex-chart").is_displayed()
+    chart = browser.find_element("id", "flex-chart")
+    assert chart.is_displayed()
     assert "flex_capacitive_knee" in browser.find_element("id", "flex-note").text
+    # both knees twice: from the sleeves (the flex stream) and from the IMU pose's joint angles (the pose stream)
+    knees = {f"{side} knee, {by}" for side in ("Left", "Right") for by in ("sleeve", "IMU pose")}
+    series = lambda d: set((chart.get_attribute("data-series") or "").split("|"))  # noqa: E731
+    _wait(browser, 10, lambda d: series(d) == knees, f"the chart never drew {knees}")
 
     browser.find_element("id", "stop").click()
     _wait(browser, 10, lambda d: d.find_element("tag name", "body").get_attribute("data-state") == "done", "not done")

@@ -1635,7 +1635,8 @@ def test_rest_joint_angles_track_a_held_out_walk_in_json_and_in_the_opensim_file
     """``joint_angles`` with three lower-body sensors on a real server: hips, knees and ankles (the joints whose two
     segments are answered), the knee flexing by a walk's 50-70° in swing and tracking the truth's flexion; the
     ankle dorsiflexed in stance and plantarflexed at push-off, as the truth is; ``format=mot`` the same angles as
-    an OpenSim storage file; six sensors answer every joint."""
+    an OpenSim storage file, ``format=bvh`` with ``joint_angles`` a 422; thighs from their own sensors give the
+    knee's abduction as measured; six sensors answer every joint."""
     from service.core.joint_angles import JOINTS, joint_angles_deg
     from service.core.opensim import read_opensim_storage
 
@@ -1670,6 +1671,17 @@ def test_rest_joint_angles_track_a_held_out_walk_in_json_and_in_the_opensim_file
     np.testing.assert_allclose(table[1:4, 0], np.arange(1, 4) / 60.0, atol=1e-6)
     assert names[1:] == [f"{j}_{c}" for j in legs for c in ("flexion", "abduction", "rotation")]
     np.testing.assert_allclose(table[:, 1:], np.concatenate([answered[j] for j in legs], axis=1), atol=0.006)
+    bvh = httpx.post(f"{server}/v1/pose/imu", params={"format": "bvh"}, json=request, timeout=60)
+    assert bvh.status_code == 422 and "joint_angles" in bvh.text and "format=mot" in bvh.text
+    # thighs and feet from their own sensors: the knees as measured, abduction and rotation included (no hinge)
+    seven = [*LOWER, "LeftUpperLeg", "RightUpperLeg", "LeftFoot", "RightFoot"]
+    raw7 = simulate_sensors(motion, seven, np.random.default_rng(5))
+    measured = httpx.post(
+        f"{server}/v1/pose/imu", json=_body(raw7, seven, placed=seven) | {"joint_angles": True}, timeout=60
+    ).json()
+    assert list(measured["joint_angles_deg"]) == legs
+    knee = np.array(measured["joint_angles_deg"]["LeftKnee"]["abduction"])
+    np.testing.assert_allclose(knee, truth[:, legs.index("LeftKnee"), 1], atol=1.0)  # the sensors' own knee
     six = httpx.post(
         f"{server}/v1/pose/imu", json=_body(raw, SIX_SENSORS, frames=slice(0, 120)) | {"joint_angles": True}, timeout=60
     ).json()
@@ -1682,8 +1694,8 @@ def test_rest_joint_angles_track_a_held_out_walk_in_json_and_in_the_opensim_file
 
 def test_a_live_stream_carries_the_joint_angles_of_its_pose_when_asked(server: str, walk) -> None:
     """``"joint_angles": true`` on a declared six-sensor stream of a real server: ``started`` says so, and every pose
-    message carries each joint's angles per frame, those of the message's own segment orientations; with binary
-    output the session is refused with what was expected."""
+    message carries each joint's angles per frame, those of the message's own segment orientations; with binary or
+    BVH output the session is refused with what was expected."""
     from service.core.joint_angles import JOINTS, joint_angles_deg
 
     motion, raw = walk
@@ -1702,6 +1714,7 @@ def test_a_live_stream_carries_the_joint_angles_of_its_pose_when_asked(server: s
         own = joint_angles_deg(matrix_from_quat(np.array(p["q_world_segment"])), list(JOINTS))
         assert angles.shape == own.shape == (p["frames"], len(JOINTS), 3)
         np.testing.assert_allclose(angles, own, atol=0.05)  # the quaternions are sent to 5 decimals
-    binary = {**start, "pose": {**start["pose"], "output": "binary"}}
-    _, code, reason = asyncio.run(_stream(url, binary, packets[:1]))
-    assert code == 1008 and "joint_angles" in reason and "binary" in reason
+    for output in ("binary", "bvh"):
+        refused = {**start, "pose": {**start["pose"], "output": output}}
+        _, code, reason = asyncio.run(_stream(url, refused, packets[:1]))
+        assert code == 1008 and "joint_angles" in reason and output in reason

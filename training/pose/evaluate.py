@@ -13,7 +13,7 @@ sensors' segments as measured, the others the measured pelvis times the model's 
 - ``sip_deg``: the same over the upper arms and upper legs (SIP error, DIP 2018 / TransPose 2021);
 - per joint (``per_joint_deg``): the mean absolute error of each joint angle of ``service.core.joint_angles``
   (flexion, abduction, rotation; hip, knee and ankle for a gait lab) over the joints whose two segments the model
-  covers;
+  covers, and its mean signed error (``per_joint_bias_deg``, answer − truth);
 - ``jpe_cm``: mean distance of the segment origins after forward kinematics with the clip's own skeleton
   (``body.clip_body``), root-aligned (Vlutters 2016 §IV-E; TransPose's joint position error);
 - ``jitter_mps3``: mean magnitude of the third time derivative of the predicted joint positions (TransPose), and
@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from service.core.body import BODY_SEGMENTS, Body, clip_body, feet_of
 from service.core.calibration import ACC_SCALE_MPS2
-from service.core.joint_angles import JOINT_COMPONENTS, angle_error_deg, answered_joints, joint_angles_deg
+from service.core.joint_angles import JOINT_COMPONENTS, angle_difference_deg, answered_joints, joint_angles_deg
 from service.core.translation import RootTracker
 from service.inference.pose import whole_body
 from training.pose.data import MotionClip
@@ -74,8 +74,9 @@ class ClipResult:
     # the constant part of each segment's error in this clip: the angle of the rotation mean of R_true⁻¹ R_pred
     # (how the person holds a segment no sensor sees, or a frame convention that differs between rigs)
     per_segment_constant_deg: dict[str, float]
-    # each answered joint angle's mean absolute error, "LeftKnee_flexion" -> degrees
+    # each answered joint angle's mean absolute error, "LeftKnee_flexion" -> degrees, and its mean signed error
     per_joint_deg: dict[str, float] = field(default_factory=dict)
+    per_joint_bias_deg: dict[str, float] = field(default_factory=dict)
 
 
 def clip_metrics(
@@ -124,13 +125,13 @@ def clip_metrics(
         )
         for k in covered
     }
-    joints = answered_joints({BODY_SEGMENTS[k] for k in covered})
-    angle_err = angle_error_deg(joint_angles_deg(R_pred, joints), joint_angles_deg(R_true, joints)).mean(axis=0)
-    per_joint = {
-        f"{j}_{c}": float(angle_err[i, n]) for i, j in enumerate(joints) for n, c in enumerate(JOINT_COMPONENTS)
-    }
+    answered = answered_joints({BODY_SEGMENTS[k] for k in covered})
+    diff = angle_difference_deg(joint_angles_deg(R_pred, answered), joint_angles_deg(R_true, answered))
+    names = [f"{j}_{c}" for j in answered for c in JOINT_COMPONENTS]
+    per_joint = dict(zip(names, np.abs(diff).mean(axis=0).ravel().tolist(), strict=True))
+    bias = dict(zip(names, diff.mean(axis=0).ravel().tolist(), strict=True))
     return ClipResult(
-        clip.path, clip.activity, clip.group, clip.motion.n_frames, metrics, per_segment, constant, per_joint
+        clip.path, clip.activity, clip.group, clip.motion.n_frames, metrics, per_segment, constant, per_joint, bias
     )
 
 
@@ -231,6 +232,7 @@ def draws_mean(draws: list[list[ClipResult]]) -> list[ClipResult]:
                 {k: mean(k, "per_segment_deg") for k in first.per_segment_deg},
                 {k: mean(k, "per_segment_constant_deg") for k in first.per_segment_constant_deg},
                 {k: mean(k, "per_joint_deg") for k in first.per_joint_deg},
+                {k: mean(k, "per_joint_bias_deg") for k in first.per_joint_bias_deg},
             )
         )
     return out
@@ -279,14 +281,14 @@ def per_segment_mean(results: list[ClipResult], constant: bool = False) -> dict[
     return {s: acc[s] / w[s] for s in BODY_SEGMENTS if s in acc}
 
 
-def per_joint_mean(results: list[ClipResult]) -> dict[str, dict[str, float]]:
-    """Frame-weighted mean absolute error of each answered joint angle, per motion type and over all clips
-    (``"all"``): ``{"all": {"LeftKnee_flexion": degrees, …}, "walk": {…}, …}``."""
+def per_joint_mean(results: list[ClipResult], bias: bool = False) -> dict[str, dict[str, float]]:
+    """Frame-weighted mean absolute error (``bias``: mean signed error) of each answered joint angle, per motion type
+    and over all clips (``"all"``): ``{"all": {"LeftKnee_flexion": degrees, …}, "walk": {…}, …}``."""
 
     def mean(rs: list[ClipResult]) -> dict[str, float]:
         acc, w = defaultdict(float), defaultdict(float)
         for r in rs:
-            for k, v in r.per_joint_deg.items():
+            for k, v in (r.per_joint_bias_deg if bias else r.per_joint_deg).items():
                 acc[k] += v * r.frames
                 w[k] += r.frames
         return {k: acc[k] / w[k] for k in acc}

@@ -19,6 +19,7 @@ import numpy as np
 from service.core.assignment import is_moving
 from service.core.body import BODY_SEGMENTS
 from service.core.calibration import pelvis_heading_from_legs, pose_features, segment_readings
+from service.core.joint_angles import joint_angles_deg
 from service.core.recordings import (
     CAPACITIVE_TRIALS,
     MOVINGREALITY_SEGMENTS,
@@ -45,9 +46,11 @@ def i2s_alignment(sensor: OrientedSensor, segment: str, alignment: LoadedModel) 
 
 
 def knee_flexion_deg(R_thigh: np.ndarray, R_shank: np.ndarray) -> np.ndarray:
-    """Flexion of the shank against the thigh about the thigh's y (left) axis, degrees; positive: flexed."""
-    rel = np.einsum("tji,tjk->tik", R_thigh, R_shank)
-    return np.degrees(np.arctan2(rel[:, 0, 2], rel[:, 2, 2]))  # flexed: the shank's z turns towards the thigh's +x
+    """A knee's flexion (``service.core.joint_angles``; it reads alike on both sides) from thigh and shank
+    orientations, degrees; positive: flexed."""
+    R = np.tile(np.eye(3), (len(R_thigh), len(BODY_SEGMENTS), 1, 1))
+    R[:, BODY_SEGMENTS.index("LeftUpperLeg")], R[:, BODY_SEGMENTS.index("LeftLowerLeg")] = R_thigh, R_shank
+    return joint_angles_deg(R, ["LeftKnee"])[:, 0, 0]
 
 
 def check_recording(
@@ -85,7 +88,7 @@ def check_recording(
                 errs.append(geodesic_deg(R_pred[:, BODY_SEGMENTS.index(seg)], seg_R[seg][0]))
         if errs:
             out[f"{name.lower()}_angle_deg"] = float(np.mean(errs))
-    flex_err, corr, rom = [], [], []
+    flex_err, corr, rom, extended = [], [], [], []
     for side in ("Left", "Right"):
         if f"{side}UpperLeg" not in seg_R:
             continue
@@ -94,11 +97,15 @@ def check_recording(
         flex_err.append(np.abs(got - ref).mean())
         corr.append(np.corrcoef(got, ref)[0, 1])
         rom.append((np.percentile(ref, 95) - np.percentile(ref, 5), np.percentile(got, 95) - np.percentile(got, 5)))
+        # the knee at its most extended (2nd percentile): a walking knee extends to about 0-5° at heel strike
+        extended.append((np.percentile(ref, 2), np.percentile(got, 2)))
     if flex_err:
         out["knee_flexion_mae_deg"] = float(np.mean(flex_err))
         out["knee_flexion_correlation"] = float(np.mean(corr))
         out["knee_range_sensors_deg"] = float(np.mean([r[0] for r in rom]))
         out["knee_range_model_deg"] = float(np.mean([r[1] for r in rom]))
+        out["knee_extended_sensors_deg"] = float(np.mean([e[0] for e in extended]))
+        out["knee_extended_model_deg"] = float(np.mean([e[1] for e in extended]))
     return out
 
 

@@ -1,10 +1,14 @@
 // The live view: the loaded models, and a real recording played through the service's own streams.
-import { FlexChart } from "./chart.js";
+import { KneeChart } from "./chart.js";
 import { byId, el, fmt } from "./dom.js";
 import { loadModels, renderModels } from "./models.js";
 import { loadRecording, Player } from "./player.js";
 
-const page = { config: null, models: null, recording: null, player: null, figure: null, chart: null, rows: {} };
+const page = {
+  config: null, models: null, recording: null, player: null, figure: null, chart: null, flexRateHz: 0, rows: {},
+};
+
+const POSE_KNEES = "dashed: the knees of the IMU pose (pelvis and shank sensors), once the assignment has placed them";
 
 async function init() {
   page.config = await (await fetch("/dashboard/config.json")).json();
@@ -82,12 +86,14 @@ async function play() {
   const p = plan();
   byId("log").textContent = "";
   byId("pose-panel").hidden = !p.pose;
-  byId("flex-panel").hidden = !p.flexModel;
+  byId("flex-panel").hidden = !p.flexModel && !p.pose;
   if (p.pose && !page.figure) {
     const { StickFigure } = await import("./figure.js");
     page.figure = new StickFigure(byId("figure"), page.config.body);
   }
-  if (p.flexModel) page.chart = new FlexChart(byId("flex-chart"), p.flexRateHz);
+  if (p.flexModel || p.pose) page.chart = new KneeChart(byId("flex-chart"));
+  page.flexRateHz = p.flexRateHz;
+  byId("flex-note").textContent = p.pose ? POSE_KNEES : "";
   byId("play").disabled = true;
   byId("stop").disabled = false;
   setState("playing");
@@ -145,6 +151,10 @@ function onMessage(m) {
     const canvas = byId("figure");
     canvas.dataset.frames = Number(canvas.dataset.frames) + m.frames;
     page.figure.show(m.joint_positions_m.at(-1), m.q_world_segment.at(-1)[0]);
+    for (const side of ["Left", "Right"]) {
+      const knee = (m.joint_angles_deg || {})[`${side}Knee`];
+      if (knee) page.chart.push(`${side} knee, IMU pose`, side, 60, knee.map((frame) => frame[0]), true);
+    }
   } else if (m.type === "error") {
     log(`/v1/stream: ${m.detail}`);
   }
@@ -152,9 +162,10 @@ function onMessage(m) {
 
 function onFlex(side, m) {
   if (m.type === "started") {
-    byId("flex-note").textContent = `${m.model} ${m.version}: each sleeve's seven channels → knee flexion (°)`;
+    byId("flex-note").textContent =
+      `solid: ${m.model} ${m.version}, each sleeve's seven channels → knee flexion (°)` + (page.figure ? `; ${POSE_KNEES}` : "");
   } else if (m.type === "angles") {
-    page.chart.push(side, m.angles_deg.map((frame) => frame[0][0]));
+    page.chart.push(`${side} knee, sleeve`, side, page.flexRateHz, m.angles_deg.map((frame) => frame[0][0]));
   } else if (m.type === "warning") {
     log(`/v1/stream/flex (${side}): ${m.warnings.join("; ")}`);
   } else if (m.type === "error") {

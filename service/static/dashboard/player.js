@@ -73,7 +73,8 @@ export class Player {
       sensors: meta.imu.sensors.map((s) => ({ sensor_id: s.sensor_id, sample_rate_hz: meta.imu.sample_rate_hz })),
     };
     // No sensor's segment is declared: the stream's own assignment places them and hands its alignments to the pose.
-    if (this.plan.pose) start.pose = { calibration: "assignment" };
+    // joint_angles: the pose's knees are drawn beside the sleeves' answers.
+    if (this.plan.pose) start.pose = { calibration: "assignment", joint_angles: true };
     const imu = { path: "/v1/stream", rate: meta.imu.sample_rate_hz, total: meta.imu.frames, sent: 0 };
     imu.ws = open(imu.path, start, (m) => this.on.message(m), (c, r) => this.closed(imu, c, r), this.key);
     this.streams = [imu];

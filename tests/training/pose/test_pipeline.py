@@ -291,10 +291,12 @@ def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
     # per joint angle, over all clips and per motion type: six sensors answer every joint of the convention
     from service.core.joint_angles import JOINT_COMPONENTS, JOINTS
 
-    angles = report["joint_angles_deg"]
+    angles = report["joint_angle_error_deg"]
     assert set(angles) == {"all", "walks"}
     assert list(angles["all"]) == [f"{j}_{c}" for j in JOINTS for c in JOINT_COMPONENTS]
     assert all(0.0 <= v <= 180.0 for v in angles["all"].values()) and angles["all"] == angles["walks"]
+    bias = report["joint_angle_bias_deg"]["all"]
+    assert list(bias) == list(angles["all"]) and all(abs(bias[k]) <= angles["all"][k] + 1e-9 for k in bias)
     # three simulated sessions per clip: the first is the one above, so the mean moves but stays near it, and
     # the interval over the clips holds the mean
     three = subprocess.run(
