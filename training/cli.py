@@ -780,7 +780,9 @@ def evaluate_pose(
         name = HELD_OUT  # the training run's protocol; more sessions per clip are recorded beside it
         if sessions > 1:
             command, name = f"{command} --sessions {sessions}", f"{HELD_OUT}, {sessions} sessions per clip"
-        new = evaluation_record(name, command, old.data, summary, intervals if sessions > 1 else None)
+        new = evaluation_record(
+            name, command, old.data, summary, intervals if sessions > 1 else None, per_joint_mean(results)
+        )
         write_manifest(with_evaluation(manifest, new, after=HELD_OUT), model / "manifest.json")
     error, constant = per_segment_mean(results), per_segment_mean(results, constant=True)
     joint_error, joint_bias = per_joint_mean(results), per_joint_mean(results, bias=True)

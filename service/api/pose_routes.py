@@ -505,6 +505,8 @@ async def pose_from_imu(
         "joint angles as an OpenSim storage file (degrees, a column per joint and component)",
     ),
 ) -> Response:
+    if body.joint_angles and format == "bvh":
+        raise InputError("joint_angles: the angles come in the JSON answer or as format=mot; format 'bvh' has none")
     everything, placed, found = read_request(body), None, None
     unplaced = [k for k, s in enumerate(everything.segments) if s is None]
     if unplaced and body.calibration.method != "assignment":
@@ -543,8 +545,6 @@ async def pose_from_imu(
     job = PoseJob(model, readings, q_seg_sensor, body.body_height_m, body.translation, velocity)
     runner = request.app.state.runner
     if format != "json":
-        if body.joint_angles and format == "bvh":
-            raise InputError("joint_angles: the angles come in the JSON answer or as format=mot; format 'bvh' has none")
         text = await runner.run_call(pose_bvh if format == "bvh" else pose_storage, job)
         version = model.loaded.manifest.version
         return file_answer(text, f"{model.name}.{format}", "Pose", model.name, version, warnings)

@@ -313,6 +313,20 @@ def mean_pose_predictor(train_sessions: list[Session]) -> Callable[[np.ndarray],
     return predict
 
 
+# the joints a gait lab reads (hip, knee, ankle), whose flexion errors a run logs and a manifest records
+GAIT_JOINTS = ("LeftHip", "RightHip", "LeftKnee", "RightKnee", "LeftAnkle", "RightAnkle")
+
+
+def joint_flexion_metrics(per_joint: dict[str, dict[str, float]], prefix: str = "test") -> dict[str, float]:
+    """``per_joint_mean``'s flexion errors of the answered ``GAIT_JOINTS`` as metric names:
+    ``test_LeftKnee_flexion_deg`` over every clip, ``test_walk_LeftKnee_flexion_deg`` per motion type."""
+    out = {}
+    for key, errors in per_joint.items():
+        stem = prefix if key == "all" else f"{prefix}_{key}"
+        out |= {f"{stem}_{j}_flexion_deg": errors[f"{j}_flexion"] for j in GAIT_JOINTS if f"{j}_flexion" in errors}
+    return out
+
+
 def flat_metrics(summary: dict, prefix: str = "test") -> dict[str, float]:
     """MLflow metric names: ``test_walk_angle_unsensed_deg``, ``test_subject_cmu_07_jpe_cm``, ``test_angle_all_deg``."""
     out = {f"{prefix}_{k}": v for k, v in summary["overall"]["all"].items() if k != "frames"}

@@ -54,7 +54,9 @@ from training.pose.evaluate import (
     draws_mean,
     evaluate_clips,
     flat_metrics,
+    joint_flexion_metrics,
     mean_pose_predictor,
+    per_joint_mean,
     per_segment_mean,
     summarise,
 )
@@ -338,12 +340,18 @@ def _log_selection(sel: Selection, cfg: PoseConfig, tmp: Path) -> None:
 
 
 def evaluation_record(
-    name: str, command: str, data: str, summary: dict, intervals: dict[str, tuple[float, float]] | None = None
+    name: str,
+    command: str,
+    data: str,
+    summary: dict,
+    intervals: dict[str, tuple[float, float]] | None = None,
+    joints: dict[str, dict[str, float]] | None = None,
 ) -> Evaluation:
     """A manifest's evaluation from a summary; ``intervals`` (``clip_intervals``) add each motion type's 95 %
     interval of the mean segment-angle error (``test_walk_angle_all_deg_low`` / ``_high``; ``test_angle_all_…`` over
-    every clip)."""
+    every clip), ``joints`` (``per_joint_mean``) the hip, knee and ankle flexion errors (``joint_flexion_metrics``)."""
     metrics = {k: round(v, 4) for k, v in flat_metrics(summary, "test").items()}
+    metrics |= {k: round(v, 4) for k, v in joint_flexion_metrics(joints or {}).items()}
     for key, (low, high) in (intervals or {}).items():
         stem = "test_angle_all_deg" if key == "all" else f"test_{key}_angle_all_deg"
         metrics |= {f"{stem}_low": round(low, 4), f"{stem}_high": round(high, 4)}
@@ -430,6 +438,8 @@ def run_pose_experiment(
                 evaluate_clips(predict, data.own_test, own_sessions, cfg.sensors, cfg.outputs, hinges=hinges)
             )
             mlflow.log_metrics(flat_metrics(own_test_summary, "test_own"))
+        test_joints = per_joint_mean(test_results)
+        mlflow.log_metrics(joint_flexion_metrics(test_joints))
         seg = per_segment_mean(test_results)
         mlflow.log_artifact(
             str(
@@ -501,6 +511,7 @@ def run_pose_experiment(
             f"CMU subjects {', '.join(cfg.data.test_subjects)} and the li2018 run clips, never trained on or "
             "chosen by; one simulated session per clip (seed 2)",
             test_summary,
+            joints=test_joints,
         )
         evaluations = [evaluation]
         if own_test_summary is not None:

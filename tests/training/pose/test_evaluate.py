@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from training.pose.evaluate import METRICS, ClipResult, clip_intervals, draws_mean, per_joint_mean, summarise
+from training.pose.evaluate import (
+    METRICS,
+    ClipResult,
+    clip_intervals,
+    draws_mean,
+    joint_flexion_metrics,
+    per_joint_mean,
+    summarise,
+)
 
 
 def _result(path: str, activity: str, frames: int, angle: float, segment: float) -> ClipResult:
@@ -54,3 +62,11 @@ def test_per_joint_errors_are_frame_weighted_per_motion_type_and_over_all_clips(
     assert means["walk"]["LeftKnee_flexion"] == pytest.approx((5.0 * 100 + 1.0 * 300) / 400)
     assert means["run"]["LeftKnee_flexion"] == pytest.approx(4.0)
     assert means["all"]["LeftKnee_flexion"] == pytest.approx((500 + 300 + 400) / 500)
+
+
+def test_the_gait_joints_flexion_errors_are_named_per_motion_type_and_overall() -> None:
+    per_joint = {
+        "all": {"LeftKnee_flexion": 5.0, "LeftKnee_abduction": 1.0, "LeftShoulder_flexion": 9.0},
+        "walk": {"LeftKnee_flexion": 4.0},
+    }
+    assert joint_flexion_metrics(per_joint) == {"test_LeftKnee_flexion_deg": 5.0, "test_walk_LeftKnee_flexion_deg": 4.0}

@@ -103,6 +103,9 @@ def test_the_job_logs_its_run_registers_and_ships_a_valid_model(shipped: dict[st
     assert manifest.evaluations[0].metrics["test_walk_angle_all_deg"] == pytest.approx(
         m["test_walk_angle_all_deg"], abs=0.05
     )
+    # the gait joints' flexion errors, logged by the run and recorded in the manifest, per motion type and overall
+    for key in ("test_LeftKnee_flexion_deg", "test_walk_RightHip_flexion_deg", "test_walk_LeftAnkle_flexion_deg"):
+        assert 0.0 <= m[key] < 180.0 and manifest.evaluations[0].metrics[key] == pytest.approx(m[key], abs=1e-4)
 
 
 def test_an_offline_model_assembled_from_finished_runs_answers_as_their_mean(
