@@ -431,13 +431,14 @@ def run_pose_experiment(
             mlflow.log_metrics(flat_metrics(seen, "seen"))
             for a, v in sorted(seen["activity"].items()):
                 log.info("seen people, %s: %.2f° over all segments", a, v["angle_all_deg"])
-        own_test_summary = None
+        own_test_summary, own_joints = None, None
         if data.own_test:  # the user's held-out people, apart from the data directory's
             own_sessions = fixed_sessions(data.own_test, cfg, TEST_SEED)
-            own_test_summary = summarise(
-                evaluate_clips(predict, data.own_test, own_sessions, cfg.sensors, cfg.outputs, hinges=hinges)
+            own_results = evaluate_clips(predict, data.own_test, own_sessions, cfg.sensors, cfg.outputs, hinges=hinges)
+            own_test_summary, own_joints = summarise(own_results), per_joint_mean(own_results)
+            mlflow.log_metrics(
+                flat_metrics(own_test_summary, "test_own") | joint_flexion_metrics(own_joints, "test_own")
             )
-            mlflow.log_metrics(flat_metrics(own_test_summary, "test_own"))
         test_joints = per_joint_mean(test_results)
         mlflow.log_metrics(joint_flexion_metrics(test_joints))
         seg = per_segment_mean(test_results)
@@ -524,6 +525,7 @@ def run_pose_experiment(
                     f"the own folders {', '.join(cfg.data.own.test_people)} (data.own), never trained on or chosen "
                     "by; one simulated session per clip (seed 2)",
                     own_test_summary,
+                    joints=own_joints,
                 )
             )
         manifest = build_pose_manifest(

@@ -9,10 +9,13 @@ export class KneeChart {
     this.ctx = canvas.getContext("2d");
     this.series = {}; // label -> {side, rateHz, dashed, values}
     this.pending = false;
+    canvas.dataset.series = "";
+    this.ctx.clearRect(0, 0, canvas.width, canvas.height);
   }
 
   // values: the newest samples of the series `label` (a leg `side`, at `rateHz`; `dashed`: the IMU pose's)
   push(label, side, rateHz, values, dashed = false) {
+    if (!values.length) return;
     const s = (this.series[label] ??= { side, rateHz, dashed, values: [] });
     s.values.push(...values);
     const n = Math.round(WINDOW_S * rateHz);

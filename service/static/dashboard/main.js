@@ -5,10 +5,18 @@ import { loadModels, renderModels } from "./models.js";
 import { loadRecording, Player } from "./player.js";
 
 const page = {
-  config: null, models: null, recording: null, player: null, figure: null, chart: null, flexRateHz: 0, rows: {},
+  config: null, models: null, recording: null, player: null, figure: null, chart: null, plan: null, rows: {},
 };
 
-const POSE_KNEES = "dashed: the knees of the IMU pose (pelvis and shank sensors), once the assignment has placed them";
+const POSE_RATE_HZ = 60; // pose streams answer every frame at the model rate (service.api.protocol)
+const POSE_KNEES =
+  "dashed: the pose stream's knees once the assignment has handed its sensors over (between its thighs and " +
+  "shanks: the thigh sensors' own where the assignment placed them, as on this recording, else the model's thighs)";
+const HEADINGS = {
+  both: "Knee flexion: the capacitive sleeves and the IMU pose",
+  flex: "Knee flexion from the capacitive sleeves",
+  pose: "Knee flexion from the IMU pose",
+};
 
 async function init() {
   page.config = await (await fetch("/dashboard/config.json")).json();
@@ -92,7 +100,8 @@ async function play() {
     page.figure = new StickFigure(byId("figure"), page.config.body);
   }
   if (p.flexModel || p.pose) page.chart = new KneeChart(byId("flex-chart"));
-  page.flexRateHz = p.flexRateHz;
+  page.plan = p;
+  byId("flex-heading").textContent = HEADINGS[p.flexModel && p.pose ? "both" : p.flexModel ? "flex" : "pose"];
   byId("flex-note").textContent = p.pose ? POSE_KNEES : "";
   byId("play").disabled = true;
   byId("stop").disabled = false;
@@ -153,7 +162,7 @@ function onMessage(m) {
     page.figure.show(m.joint_positions_m.at(-1), m.q_world_segment.at(-1)[0]);
     for (const side of ["Left", "Right"]) {
       const knee = (m.joint_angles_deg || {})[`${side}Knee`];
-      if (knee) page.chart.push(`${side} knee, IMU pose`, side, 60, knee.map((frame) => frame[0]), true);
+      if (knee) page.chart.push(`${side} knee, IMU pose`, side, POSE_RATE_HZ, knee.map((frame) => frame[0]), true);
     }
   } else if (m.type === "error") {
     log(`/v1/stream: ${m.detail}`);
@@ -162,10 +171,10 @@ function onMessage(m) {
 
 function onFlex(side, m) {
   if (m.type === "started") {
-    byId("flex-note").textContent =
-      `solid: ${m.model} ${m.version}, each sleeve's seven channels → knee flexion (°)` + (page.figure ? `; ${POSE_KNEES}` : "");
+    const sleeves = `solid: ${m.model} ${m.version}, each sleeve's seven channels → knee flexion (°)`;
+    byId("flex-note").textContent = page.plan.pose ? `${sleeves}; ${POSE_KNEES}` : sleeves;
   } else if (m.type === "angles") {
-    page.chart.push(`${side} knee, sleeve`, side, page.flexRateHz, m.angles_deg.map((frame) => frame[0][0]));
+    page.chart.push(`${side} knee, sleeve`, side, page.plan.flexRateHz, m.angles_deg.map((frame) => frame[0][0]));
   } else if (m.type === "warning") {
     log(`/v1/stream/flex (${side}): ${m.warnings.join("; ")}`);
   } else if (m.type === "error") {

@@ -38,6 +38,9 @@ def test_the_lower_body_model_follows_the_real_thigh_sensors(data_dir: Path) -> 
     assert out["knee_flexion_correlation"] > 0.7  # the predicted knee bends with the measured one
     assert out["knee_range_sensors_deg"] > 30.0 and out["knee_range_model_deg"] > 15.0
     assert out["upperleg_angle_deg"] < 40.0
+    # each knee at its most extended (2nd percentile): the model's straightens about as far as the sensors' knee
+    extended = out["knee_extended_sensors_deg"], out["knee_extended_model_deg"]
+    assert all(-20.0 < e < 40.0 for e in extended) and abs(extended[1] - extended[0]) < 10.0
 
 
 def test_the_legs_turn_a_real_pelvis_alignment_round_to_where_the_feet_point(data_dir: Path) -> None:
