@@ -400,10 +400,9 @@ def segment_sources(job: PoseJob) -> dict[str, str]:
     return {s: "sensor" if s in sensed else "model" if s in covered else "parent" for s in BODY_SEGMENTS}
 
 
-def pose_joint_angles(job: PoseJob, R_world: np.ndarray) -> tuple[list[str], np.ndarray]:
-    """The joints whose two segments a sensor or the model answers, and their angles ``(T, J, 3)`` in degrees
-    (``service.core.joint_angles``)."""
-    sources = segment_sources(job)
+def pose_joint_angles(sources: dict[str, str], R_world: np.ndarray) -> tuple[list[str], np.ndarray]:
+    """The joints whose two segments a sensor or the model answers (``segment_sources``), and their angles
+    ``(T, J, 3)`` in degrees (``service.core.joint_angles``)."""
     joints = answered_joints({s for s, src in sources.items() if src != "parent"})
     return joints, joint_angles_deg(R_world, joints)
 
@@ -412,7 +411,7 @@ def pose_storage(job: PoseJob) -> str:
     """The pose's joint angles as an OpenSim storage file (``.mot``): time in seconds from the first frame at 60
     Hz, one column per joint and component (``LeftKnee_flexion``), in degrees."""
     pose = body_pose(replace(job, translation="none", velocity=None))  # angles need no translation
-    joints, angles = pose_joint_angles(job, pose.R_world)
+    joints, angles = pose_joint_angles(segment_sources(job), pose.R_world)
     columns = {f"{j}_{c}": angles[:, i, k] for i, j in enumerate(joints) for k, c in enumerate(JOINT_COMPONENTS)}
     m = job.model.loaded.manifest
     time_s = np.arange(len(pose.R_world)) / MODEL_RATE_HZ
@@ -443,12 +442,12 @@ def pose_response(job: PoseJob, warnings: list[str], joint_angles: bool = False)
         },
         root_position_m=None if pose.root_m is None else rnd(pose.root_m, 4),
         warnings=warnings,
-        **(_angles_answer(job, R_world) if joint_angles else {}),
+        **(_angles_answer(sources, R_world) if joint_angles else {}),
     )
 
 
-def _angles_answer(job: PoseJob, R_world: np.ndarray) -> dict:
-    joints, angles = pose_joint_angles(job, R_world)
+def _angles_answer(sources: dict[str, str], R_world: np.ndarray) -> dict:
+    joints, angles = pose_joint_angles(sources, R_world)
     per_joint = np.round(angles, 2)
     return {
         "joint_angles_deg": {
