@@ -721,8 +721,8 @@ def evaluate_pose(
         load_pose_data,
         results_table,
         shipped_config,
-        user_clips,
     )
+    from training.pose.user_mocap import user_clips
 
     if paths and (validation or record):
         raise typer.BadParameter("--validation and --record score the data directory's subjects: give no paths")

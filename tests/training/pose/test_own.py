@@ -11,8 +11,9 @@ from pydantic import ValidationError
 from service.core.body import BodyMotion
 from training.pose.config import PoseConfig
 from training.pose.data import OWN_SOURCE, MotionClip
-from training.pose.pipeline import bvh_files, carries_bandai, own_clips, with_own
+from training.pose.pipeline import carries_bandai, own_clips, with_own
 from training.pose.train import clip_weights
+from training.pose.user_mocap import bvh_files
 
 
 def clip(source: str, activity: str, frames: int) -> MotionClip:

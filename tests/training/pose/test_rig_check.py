@@ -66,7 +66,7 @@ def test_evaluate_pose_s_clips_take_the_frames_of_the_model_s_limb_rule(data_dir
     as the model's training clips did; read for a model in its rig's frames it keeps the rig's turn."""
     from service.core.body import BODY_SEGMENTS
     from training.data.catalog import mocap_entries
-    from training.pose.pipeline import user_clips
+    from training.pose.user_mocap import user_clips
 
     for e in mocap_entries(data_dir, ["walk"], ["cmu_li2018"])[:4]:
         (tmp_path / (data_dir / e.path).name).symlink_to(data_dir / e.path)
@@ -101,7 +101,7 @@ def test_a_user_s_clips_of_a_training_rig_are_scored_in_its_training_frames(data
     the sprints; a skeleton the data directory does not have gets None (its frames are fitted on the clips)."""
     from training.data.catalog import mocap_entries
     from training.pose.data import build_rig_offsets, load_motion
-    from training.pose.pipeline import catalogue_rig, user_clips
+    from training.pose.user_mocap import catalogue_rig, user_clips
 
     runs = [data_dir / e.path for e in mocap_entries(data_dir, ["run"], ["cmu_li2018"])][:2]
     entries = mocap_entries(data_dir, sources=["cmu_li2018"])
@@ -150,7 +150,7 @@ def test_a_folder_whose_feet_never_stand_flat_is_scored_with_the_feet_level_at_t
     from service.core.body import BODY_SEGMENTS, NoStanceError, read_clip_offsets
     from training.data.catalog import mocap_entries
     from training.pose.data import build_rig_offsets, load_motion
-    from training.pose.pipeline import user_clips
+    from training.pose.user_mocap import user_clips
 
     sprints = tmp_path / "sprints"
     sprints.mkdir()
@@ -171,7 +171,7 @@ def test_a_user_s_files_that_cannot_be_scored_are_left_out_with_the_reason(data_
     """One broken or too short file in a folder does not stop the others; a folder of nothing else is an error."""
     from service.core.bvh import BvhFormatError
     from training.data.catalog import mocap_entries
-    from training.pose.pipeline import MIN_USER_SECONDS, user_clips
+    from training.pose.user_mocap import MIN_USER_SECONDS, user_clips
 
     good = data_dir / mocap_entries(data_dir, ["run"], ["cmu_li2018"])[0].path
     lines = good.read_text().splitlines()
@@ -233,7 +233,7 @@ def test_a_shipped_model_is_scored_in_the_frames_its_manifest_names() -> None:
 def test_an_unknown_trunk_rule_is_refused_not_read_as_another(tmp_path) -> None:
     from service.core.body import check_trunk_axes
     from training.pose.data import build_rig_offsets
-    from training.pose.pipeline import user_clips
+    from training.pose.user_mocap import user_clips
 
     assert check_trunk_axes("thorax") == "thorax"
     for call in (
