@@ -931,6 +931,8 @@ def flex_train(
 
 @app.command("evaluate-flex")
 def evaluate_flex(
+    paths: list[Path] = typer.Argument(None, help="BVH files or folders (default: the held-out subjects)"),
+    mapping: Path | None = typer.Option(None, help="JSON/YAML mapping of an unknown skeleton onto the body"),
     model: Path | None = typer.Option(
         None, help="a shipped flex model folder (default: the newest under onnx_models/flex_bilstm_cm)"
     ),
@@ -955,8 +957,10 @@ def evaluate_flex(
         help="write the held-out figures into the model's manifest (after a change to how it answers)",
     ),
 ) -> None:
-    """A shipped flex model (its ONNX file through onnxruntime) on the held-out subjects' simulated suits: error
-    overall, per motion type and joint, jitter, and under ageing beyond the training range and a replaced sensor."""
+    """A shipped flex model (its ONNX file through onnxruntime) on simulated suits worn in mocap: the held-out
+    subjects', or the BVH files given (read as ``evaluate-pose`` reads them, a mapping file for an unknown
+    skeleton): error overall, per motion type, clip and joint, jitter, and under ageing beyond the training range
+    and a replaced sensor."""
     import json
 
     from service.core.joint_angles import JOINT_COMPONENTS
@@ -969,6 +973,8 @@ def evaluate_flex(
         shipped_config,
     )
 
+    if paths and (validation or record):
+        raise typer.BadParameter("--validation and --record score the data directory's subjects: give no paths")
     if tag and not validation:
         raise typer.BadParameter("--tag writes the validation figure the registry compares by: give --validation")
     if record and validation:
@@ -982,7 +988,17 @@ def evaluate_flex(
             "a capacitive sleeve model is scored by evaluate-capacitive"
         )
     cfg = shipped_config(m)  # its clips built and split as its run had them
-    data = load_flex_data(cfg, resolve_data_dir(data_dir), cache_dir)
+    skipped: list[dict[str, str]] = []  # a user's files that could not be scored, with the reason
+    if paths:
+        from training.flex.pipeline import user_flex_data
+
+        try:  # the data directory's rigs give a user's clips of the same skeleton their training frames
+            known = resolve_data_dir(data_dir)
+        except RuntimeError:
+            known = None
+        data = user_flex_data(cfg, list(paths), mapping, known, cache_dir, skipped)
+    else:
+        data = load_flex_data(cfg, resolve_data_dir(data_dir), cache_dir)
     out = evaluate_served(loaded, data, validation)
     if validation:
         val = out["val"]
@@ -1018,11 +1034,16 @@ def evaluate_flex(
         metrics |= {k: v for k, v in old.metrics.items() if k not in metrics}  # the mean pose's: not the model's
         write_manifest(with_evaluation(m, old.model_copy(update={"metrics": metrics})), model_dir / "manifest.json")
     if as_json:
-        typer.echo(json.dumps(out, indent=1))
+        typer.echo(json.dumps(out | ({"skipped": skipped} if paths else {}), indent=1))
         return
+    for left_out in skipped:
+        typer.echo(f"left out {left_out['clip']}: {left_out['reason']}")
+    for c in test["clips"] if paths else []:
+        typer.echo(f"  {c['clip']}: {c['mae_deg']:6.2f}°  ({c['frames']} frames, jitter {c['jitter_deg_s3']:.0f} °/s³)")
     typer.echo(
-        f"held-out: {test['mae_deg']:.2f}° jitter {test['jitter_deg_s3'] / 1e4:.3f}e4 °/s³; without each clip's "
-        f"constant offset per angle {test['offset_free_mae_deg']:.2f}°"
+        f"{'these clips' if paths else 'held-out'}: {test['mae_deg']:.2f}° jitter "
+        f"{test['jitter_deg_s3'] / 1e4:.3f}e4 °/s³; without each clip's constant offset per angle "
+        f"{test['offset_free_mae_deg']:.2f}°"
     )
     for a, v in out["test"]["per_activity"].items():
         typer.echo(f"  {a:18s} {v['mae_deg']:6.2f}°  ({v['frames']} frames)")

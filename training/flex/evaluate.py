@@ -94,6 +94,16 @@ def summarise(rows: list[dict], joints: list[str]) -> dict:
         "per_activity": {
             a: {"mae_deg": mean("per_joint", s), "frames": int(w[s].sum())} for a, s in by_activity.items()
         },
+        "clips": [
+            {
+                "clip": r["clip"],
+                "activity": r["activity"],
+                "frames": r["frames"],
+                "mae_deg": round(float(np.mean(r["per_joint"])), 4),
+                "jitter_deg_s3": round(float(r["jitter"]), 1),
+            }
+            for r in rows
+        ],
     }
 
 

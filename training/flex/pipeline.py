@@ -39,6 +39,7 @@ from training.pose.data import (
     seen_split,
     shipped_split_and_frames,
 )
+from training.pose.user_mocap import user_clips
 from training.run_labels import label_run
 from training.shipping import ship_files, with_registry
 from training.tracking import log_onnx_model, maybe_promote, register_model, setup_tracking
@@ -83,6 +84,23 @@ def load_flex_data(cfg: FlexConfig, data_dir: Path, cache_dir: Path, workers: in
         str(data_dir),
         conv(seen),
     )
+
+
+def user_flex_data(
+    cfg: FlexConfig,
+    paths: list[Path],
+    mapping: Path | None,
+    data_dir: Path | None,
+    cache_dir: Path,
+    skipped: list[dict[str, str]] | None = None,
+) -> FlexData:
+    """A user's BVH files or folders as the test part (``training.pose.user_mocap.user_clips``: a mapping file for
+    an unknown skeleton, the activity the folder's name, a file that cannot be scored left out into ``skipped``),
+    in the segment frames ``cfg`` names; nothing to train on or validate by."""
+    d = cfg.data
+    clips = user_clips(paths, mapping, d.limb_twist, data_dir, cache_dir, skipped, d.trunk_axes)
+    test = [flex_clip(c, cfg.joints, cfg.sensors, cfg.model.window) for c in clips]
+    return FlexData([], [], test, "", "", False, ", ".join(str(p) for p in paths))
 
 
 def held_out_metrics(test: dict, ageing: dict[float, dict], replaced: dict) -> dict[str, float]:
@@ -419,7 +437,9 @@ def build_sets(cfg: FlexConfig, data: FlexData, train: bool = True) -> dict[str,
     """Training suits (``suits_per_clip``, seed ``cfg.seed``), one fixed suit per validation and test clip, the
     test and validation clips under ageing beyond the training range and the test clips with a sensor replaced."""
     w = cfg.model.window
-    sets = {"val": window_set(data.val, 1, VAL_SEED, w), "test": window_set(data.test, 1, TEST_SEED, w)}
+    sets = {"test": window_set(data.test, 1, TEST_SEED, w)}
+    if data.val:  # a user's own clips (``evaluate-flex PATHS``) have no validation part
+        sets["val"] = window_set(data.val, 1, VAL_SEED, w)
     if train:
         sets["train"] = window_set(
             data.train,
@@ -431,7 +451,8 @@ def build_sets(cfg: FlexConfig, data: FlexData, train: bool = True) -> dict[str,
         )
     for b in AGEING_BEYOND:
         sets[f"ageing_{b}"] = ageing_set(sets["test"], TEST_SEED, b)
-        sets[f"val_ageing_{b}"] = ageing_set(sets["val"], VAL_SEED, b)
+        if "val" in sets:
+            sets[f"val_ageing_{b}"] = ageing_set(sets["val"], VAL_SEED, b)
     sets["replaced"] = replacement_set(sets["test"], TEST_SEED)
     sets["other_lot"] = other_lot_set(sets["test"], TEST_SEED)
     return sets

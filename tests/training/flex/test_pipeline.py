@@ -16,6 +16,7 @@ from service.core.manifest import read_manifest
 from service.core.recordings import CAPACITIVE_CHANNELS, read_capacitive_sleeve
 from service.inference.flex import FlexModel
 from service.inference.registry import load_model
+from tests.training.lab_rig import lab_clips, lab_mapping
 from training.flex.capacitive import evaluate_capacitive, run_capacitive_experiment
 from training.flex.config import CapacitiveConfig, FlexConfig
 from training.flex.pipeline import build_sets, evaluate_served, load_flex_data, log_summary_run, run_flex_experiment
@@ -318,6 +319,47 @@ def test_mirror_adds_each_training_clip_performed_by_the_mirror_image_body(
     for c, m in zip(plain.train, both.train[len(plain.train) :], strict=True):
         # the mirror body's left knee bends as the clip's right knee did
         np.testing.assert_allclose(m.bend[:, left], c.bend[:, right], atol=1e-3)
+
+
+def test_evaluate_flex_scores_a_bvh_folder_through_a_mapping_file(
+    flex_runs: dict, data_dir: Path, tmp_path: Path
+) -> None:
+    """A user's own mocap of a skeleton family the job does not know (the iClone rig renamed), read as
+    ``evaluate-pose`` reads it: per clip, per motion type (the folder) and per joint, ageing and a replaced sensor;
+    a file that cannot be read is left out with its reason; without the mapping the skeleton is refused."""
+    lab_clips(data_dir, tmp_path / "lab" / "walks", ["07_01", "07_02"])
+    (tmp_path / "lab" / "walks" / "broken.bvh").write_text("HIERARCHY\nROOT Hips\n")
+    (tmp_path / "rig.json").write_text(json.dumps(lab_mapping()))
+    model = flex_runs["models"] / "tiny_flex_cm" / "0.0.1"
+    base = [sys.executable, "-m", "training.cli", "evaluate-flex", str(tmp_path / "lab"), "--model", str(model)]
+    base += ["--cache-dir", str(flex_runs["cache"])]
+    done = subprocess.run(
+        [*base, "--mapping", str(tmp_path / "rig.json"), "--json"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = json.loads(done.stdout[done.stdout.index("{") :])
+    test = out["test"]
+    assert [Path(c["clip"]).name for c in test["clips"]] == ["07_01.bvh", "07_02.bvh"]
+    assert [Path(s["clip"]).name for s in out["skipped"]] == ["broken.bvh"]
+    assert set(test["per_activity"]) == {"walks"} and set(test["per_joint"]) == set(
+        read_manifest(model / "manifest.json").joints
+    )
+    # every frame of each clip is answered (20 Hz) and the overall figure is the clips' frame-weighted mean
+    frames = np.array([c["frames"] for c in test["clips"]])
+    assert test["frames"] == frames.sum() and all(abs(f / 20.0 - 157 / 60.0) < 0.2 for f in frames)
+    clip_mae = np.array([c["mae_deg"] for c in test["clips"]])
+    assert 0.0 < test["mae_deg"] < 180.0
+    assert test["mae_deg"] == pytest.approx(np.average(clip_mae, weights=frames), abs=1e-3)
+    assert set(out["ageing"]) == {str(b) for b in AGEING_BEYOND} and out["replaced"]["mae_deg"] > 0.0
+    refused = subprocess.run([*base, "--validation"], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert refused.returncode != 0 and "give no paths" in " ".join((refused.stdout + refused.stderr).split())
+    unmapped = subprocess.run(base, capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert unmapped.returncode != 0
+    assert "--mapping" in " ".join((unmapped.stdout + unmapped.stderr).split())
 
 
 def test_the_served_suit_model_is_scored_in_the_frames_its_manifest_names() -> None:

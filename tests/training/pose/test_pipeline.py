@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
 
-from service.core.body import SKELETON_MAPPINGS
 from service.core.manifest import read_manifest
 from service.inference.pose import PoseModel
 from service.inference.registry import load_model
+from tests.training.lab_rig import lab_clips, lab_mapping
 from training.pose.config import SIX_SENSORS, PoseConfig
 from training.pose.pipeline import run_pose_experiment
 
@@ -164,18 +164,6 @@ def test_the_streaming_model_frame_by_frame_equals_its_offline_evaluation(shippe
     np.testing.assert_allclose(live, offline, atol=1e-5)
 
 
-def lab_mapping() -> dict:
-    """The iClone rig's mapping with its joints renamed: a skeleton family the job does not know."""
-    built_in = SKELETON_MAPPINGS["cmu_iclone"]
-    rename = lambda j: None if j is None else j.replace("CC_Base_", "Lab_")  # noqa: E731
-    return {
-        "name": "a_lab_rig",
-        "metres_per_unit": built_in.metres_per_unit,
-        "hips": [rename(j) for j in built_in.hips],
-        "segments": {s: {"joint": rename(j), "distal": rename(d)} for s, (j, d) in built_in.segments.items()},
-    }
-
-
 def test_a_shipped_model_fine_tuned_on_own_motion_capture_of_an_unknown_rig(
     shipped: dict[str, dict], data_dir: Path, canonical_cache: Path, tmp_path: Path
 ) -> None:
@@ -185,10 +173,7 @@ def test_a_shipped_model_fine_tuned_on_own_motion_capture_of_an_unknown_rig(
     own = tmp_path / "lab"
     layout = {"ann/walk": ["07_01", "07_02"], "ann/turns": ["07_05"], "bob": ["07_03"], "cid/walk": ["07_04"]}
     for folder, names in layout.items():
-        (own / folder).mkdir(parents=True)
-        for name in names:
-            text = (data_dir / "mocap/cmu_iclone" / f"{name}.bvh").read_text().replace("CC_Base_", "Lab_")
-            (own / folder / f"{name}.bvh").write_text(text)
+        lab_clips(data_dir, own / folder, names)
     (tmp_path / "rig.json").write_text(json.dumps(lab_mapping()))
     start = Path(shipped["tiny_full6"]["shipped"])
     cfg = PoseConfig.model_validate(
@@ -262,10 +247,7 @@ def test_evaluate_pose_scores_a_bvh_folder_through_a_mapping_file(
 ) -> None:
     """A skeleton family we do not know (the iClone rig with its joints renamed) works through a mapping file."""
     clips = tmp_path / "walks"
-    clips.mkdir()
-    for name in ("07_01.bvh", "07_02.bvh"):
-        text = (data_dir / "mocap/cmu_iclone" / name).read_text().replace("CC_Base_", "Lab_")
-        (clips / name).write_text(text)
+    lab_clips(data_dir, clips, ["07_01", "07_02"])
     (tmp_path / "rig.json").write_text(json.dumps(lab_mapping()))
     model = shipped["tiny_full6"]["shipped"]
     base = [sys.executable, "-m", "training.cli", "evaluate-pose", str(clips), "--model", model]
