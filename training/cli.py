@@ -1120,7 +1120,10 @@ def evaluate_capacitive_command(
     from training.flex.capacitive import evaluate_capacitive
 
     loaded = load_model(newest_shipped(model, "flex_capacitive_knee"), 2)
-    out = evaluate_capacitive(loaded, resolve_data_dir(data_dir), test_trial, train_trial, source)
+    try:
+        out = evaluate_capacitive(loaded, resolve_data_dir(data_dir), test_trial, train_trial, source)
+    except (FileNotFoundError, ValueError) as exc:  # a subject's files in another layout: say what was expected
+        raise typer.BadParameter(str(exc)) from None
     typer.echo(json.dumps(out, indent=1))
 
 

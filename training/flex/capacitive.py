@@ -78,34 +78,60 @@ class LegRecording:
     sleeve_lag_s: float = 0.0  # how far the file's sleeve rows lagged the Xsens rows (undone here)
 
 
-def read_trials(cfg: CapacitiveConfig, data_dir: Path) -> dict[str, list[LegRecording]]:
-    """Every trial of ``cfg``, both legs, at ``cfg.rate_hz``; the hinge of each knee fitted on ``cfg.train_trial``."""
+def read_trials(
+    cfg: CapacitiveConfig, data_dir: Path, skipped: dict[str, str] | None = None
+) -> dict[str, list[LegRecording]]:
+    """Every trial of ``cfg``, both legs, at ``cfg.rate_hz``; the hinge of each knee fitted on ``cfg.train_trial``.
+    With ``skipped``, a leg that cannot be read in some trial (no sleeve file or channel, no thigh or shank sensor)
+    is left out of every trial, its reason recorded there under its side; without it the error is raised."""
     names = cfg.training_trials + ([cfg.test_trial] if cfg.test_trial else [])
     oriented = {t: read_capacitive_oriented(data_dir, t, cfg.source) for t in names}
     out: dict[str, list[LegRecording]] = {t: [] for t in names}
     for side in SIDES:
-        thigh, shank = f"{side}UpperLeg", f"{side}LowerLeg"
-        fit = oriented[cfg.train_trial]
-        hinge = fit_hinge(fit[thigh].q_world_sensor, fit[shank].q_world_sensor)
-        for trial, sensors in oriented.items():
-            cs, rate = read_capacitive_sleeve(data_dir, trial, side, cfg.source)
-            angle = hinge_angle_deg(sensors[thigh].q_world_sensor, sensors[shank].q_world_sensor, hinge)
-            sync = capacitive_sleeve_sync(data_dir, trial, side, cfg.source, rows=len(cs)) if cfg.sync else None
-            if sync is not None and sync.applied_rows != sync.lag_rows:
-                log.warning(
-                    "%s %s: the sleeve board matches the shank only at %.2f (at least %.2f): rows kept as the file "
-                    "pairs them",
-                    trial,
-                    side,
-                    sync.correlation,
-                    SYNC_MIN_CORRELATION,
-                )
-            cs, angle = synchronised(cs, angle, sync.applied_rows if sync else 0)
-            x = resample_uniform(cs, rate, cfg.rate_hz)
-            y = resample_uniform(angle[:, None], sensors[thigh].rate_hz, cfg.rate_hz)[:, 0]
-            m = min(len(x), len(y))
-            lag_s = sync.applied_rows / sync.rate_hz if sync else 0.0
-            out[trial].append(LegRecording(trial, side, x[:m].astype(np.float32), y[:m].astype(np.float32), lag_s))
+        try:
+            legs = _read_leg(cfg, data_dir, oriented, side)
+        except (FileNotFoundError, ValueError) as exc:
+            if skipped is None:
+                raise
+            log.warning("%s %s leg left out: %s", cfg.source, side, exc)
+            skipped[side] = str(exc)
+            continue
+        for trial, rec in legs.items():
+            out[trial].append(rec)
+    return out
+
+
+def _read_leg(cfg: CapacitiveConfig, data_dir: Path, oriented: dict[str, dict], side: str) -> dict[str, LegRecording]:
+    """One leg of every trial of ``oriented``: the sleeve in step with the Xsens sensors, and its knee's flexion."""
+    thigh, shank = f"{side}UpperLeg", f"{side}LowerLeg"
+    for trial, sensors in oriented.items():
+        if thigh not in sensors or shank not in sensors:
+            raise ValueError(
+                f"{cfg.source}/{trial}: no {side.lower()} femur and tibia sensors in its Orientations.sto "
+                f"(it has {sorted(s.name for s in sensors.values())})"
+            )
+    fit = oriented[cfg.train_trial]
+    hinge = fit_hinge(fit[thigh].q_world_sensor, fit[shank].q_world_sensor)
+    out = {}
+    for trial, sensors in oriented.items():
+        cs, rate = read_capacitive_sleeve(data_dir, trial, side, cfg.source)
+        angle = hinge_angle_deg(sensors[thigh].q_world_sensor, sensors[shank].q_world_sensor, hinge)
+        sync = capacitive_sleeve_sync(data_dir, trial, side, cfg.source, rows=len(cs)) if cfg.sync else None
+        if sync is not None and sync.applied_rows != sync.lag_rows:
+            log.warning(
+                "%s %s: the sleeve board matches the shank only at %.2f (at least %.2f): rows kept as the file "
+                "pairs them",
+                trial,
+                side,
+                sync.correlation,
+                SYNC_MIN_CORRELATION,
+            )
+        cs, angle = synchronised(cs, angle, sync.applied_rows if sync else 0)
+        x = resample_uniform(cs, rate, cfg.rate_hz)
+        y = resample_uniform(angle[:, None], sensors[thigh].rate_hz, cfg.rate_hz)[:, 0]
+        m = min(len(x), len(y))
+        lag_s = sync.applied_rows / sync.rate_hz if sync else 0.0
+        out[trial] = LegRecording(trial, side, x[:m].astype(np.float32), y[:m].astype(np.float32), lag_s)
     return out
 
 
@@ -427,8 +453,21 @@ def evaluate_capacitive(
         test_trial=None if trial == hinge_trial else trial,
         rate_hz=loaded.manifest.sample_rate_hz,
     )
-    trials = read_trials(cfg, data_dir)
-    test = leg_sets(trials[trial], loaded.manifest.window_samples, None)["test"]
+    skipped: dict[str, str] = {}
+    trials = read_trials(cfg, data_dir, skipped)
+    window = loaded.manifest.window_samples
+    legs_read = []
+    for rec in trials[trial]:
+        if len(rec.readings) <= window:  # a read-out that failed within the first window
+            skipped[rec.side] = (
+                f"{len(rec.readings) / cfg.rate_hz:.1f} s of readings before the read-out fails: the model answers "
+                f"after its {window / cfg.rate_hz:.1f} s window"
+            )
+        else:
+            legs_read.append(rec)
+    if not legs_read:
+        raise ValueError(f"{source}/{trial}: no leg can be scored: {skipped}")
+    test = leg_sets(legs_read, window, None)["test"]
     lat = loaded.manifest.flex.latency_samples
     legs = {leg: float(np.abs(p - t).mean()) for leg, (p, t) in _per_clip(loaded.run, test, lat).items()}
     both = clip_metrics(loaded.run, test, 0, lat, ["Knee"], [])
@@ -442,4 +481,5 @@ def evaluate_capacitive(
         "mae_deg": both["mae_deg"],
         "jitter_deg_s3": both["jitter_deg_s3"],
         "per_leg_mae_deg": legs,
+        "skipped_legs": skipped,  # a leg that could not be scored, with the reason
     }

@@ -229,6 +229,22 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
         load_model(tmp_path / "tiny_capacitive_all" / "0.0.2", 1), other, "CSStiffKnee", source="capacitive_subx"
     )
     assert not theirs["trained_on_this_trial"] and theirs["mae_deg"] == pytest.approx(scored["mae_deg"], abs=1e-6)
+    # a subject whose right sleeve was not recorded is scored on the left leg, the right one named with its reason
+    one_leg = other / "imu_real" / "capacitive_suby" / "CSStiffKnee"
+    one_leg.mkdir(parents=True)
+    for f in (data_dir / "imu_real" / "capacitive_sub01" / "CSStiffKnee").iterdir():
+        if not f.name.endswith("_RCS.mot"):
+            (one_leg / f.name).symlink_to(f)
+    left = evaluate_capacitive(
+        load_model(tmp_path / "tiny_capacitive_all" / "0.0.2", 1), other, "CSStiffKnee", source="capacitive_suby"
+    )
+    assert left["per_leg_mae_deg"] == pytest.approx({"Left": scored["per_leg_mae_deg"]["Left"]}, abs=1e-6)
+    assert list(left["skipped_legs"]) == ["Right"] and "_RCS.mot" in left["skipped_legs"]["Right"]
+    (one_leg / "OpenSim_Sub01_CSStiffKnee_LCS.mot").unlink()
+    with pytest.raises(ValueError, match="no leg can be scored"):
+        evaluate_capacitive(
+            load_model(tmp_path / "tiny_capacitive_all" / "0.0.2", 1), other, "CSStiffKnee", source="capacitive_suby"
+        )
     # a leg's sleeve held out over both trials (the nearest to another person's sleeve): its figures go in as well
     leg = cfg.model_copy(
         update={
