@@ -743,7 +743,10 @@ def evaluate_pose(
         except RuntimeError:
             known = None
         d = cfg.data
-        clips = user_clips(list(paths), mapping, d.limb_twist, known, cache_dir, skipped, d.trunk_axes)
+        try:
+            clips = user_clips(list(paths), mapping, d.limb_twist, known, cache_dir, skipped, d.trunk_axes)
+        except (ValueError, OSError) as exc:  # no file could be read: the first reason (a mapping's first)
+            raise typer.BadParameter(str(exc)) from None
     else:
         data = load_pose_data(cfg, resolve_data_dir(data_dir), cache_dir)
         clips = data.val if validation else data.test
@@ -996,7 +999,10 @@ def evaluate_flex(
             known = resolve_data_dir(data_dir)
         except RuntimeError:
             known = None
-        data = user_flex_data(cfg, list(paths), mapping, known, cache_dir, skipped)
+        try:
+            data = user_flex_data(cfg, list(paths), mapping, known, cache_dir, skipped)
+        except (ValueError, OSError) as exc:  # no file could be read: the first reason (a mapping's first)
+            raise typer.BadParameter(str(exc)) from None
     else:
         data = load_flex_data(cfg, resolve_data_dir(data_dir), cache_dir)
     out = evaluate_served(loaded, data, validation)
@@ -1113,16 +1119,17 @@ def evaluate_capacitive_command(
     ),
 ) -> None:
     """A shipped capacitive knee model (onnxruntime) on a trial: knee flexion MAE per leg and both, and whether the
-    model trained on that trial (then it is no held-out figure)."""
+    model trained on that trial (then it is no held-out figure); a leg that cannot be scored is named with the
+    reason (``skipped_legs``)."""
     import json
 
     from service.inference.registry import load_model
-    from training.flex.capacitive import evaluate_capacitive
+    from training.flex.capacitive import UnscorableSubject, evaluate_capacitive
 
     loaded = load_model(newest_shipped(model, "flex_capacitive_knee"), 2)
     try:
         out = evaluate_capacitive(loaded, resolve_data_dir(data_dir), test_trial, train_trial, source)
-    except (FileNotFoundError, ValueError) as exc:  # a subject's files in another layout: say what was expected
+    except (FileNotFoundError, UnscorableSubject) as exc:  # a subject's files in another layout: what was expected
         raise typer.BadParameter(str(exc)) from None
     typer.echo(json.dumps(out, indent=1))
 

@@ -69,6 +69,10 @@ HINGE_CONVENTION = (
 )
 
 
+class UnscorableSubject(ValueError):
+    """A subject's trial in which no leg can be scored (``evaluate_capacitive``), with each leg's reason."""
+
+
 @dataclass
 class LegRecording:
     trial: str
@@ -79,17 +83,20 @@ class LegRecording:
 
 
 def read_trials(
-    cfg: CapacitiveConfig, data_dir: Path, skipped: dict[str, str] | None = None
+    cfg: CapacitiveConfig, data_dir: Path, skipped: dict[str, str] | None = None, sleeves_of: set[str] | None = None
 ) -> dict[str, list[LegRecording]]:
     """Every trial of ``cfg``, both legs, at ``cfg.rate_hz``; the hinge of each knee fitted on ``cfg.train_trial``.
-    With ``skipped``, a leg that cannot be read in some trial (no sleeve file or channel, no thigh or shank sensor)
-    is left out of every trial, its reason recorded there under its side; without it the error is raised."""
+    With ``skipped``, a leg that fails in any trial (its sleeve file missing or unreadable or without a channel, its
+    thigh or shank sensor missing, its sleeve not to be put in step with the Xsens rows, its hinge not to be fitted)
+    is left out of every trial, its reason recorded there under its side; without it the error is raised.
+    ``sleeves_of``: the trials whose sleeves are read (default: every one); the others give only their orientations
+    (the hinge fit) and no recordings."""
     names = cfg.training_trials + ([cfg.test_trial] if cfg.test_trial else [])
     oriented = {t: read_capacitive_oriented(data_dir, t, cfg.source) for t in names}
     out: dict[str, list[LegRecording]] = {t: [] for t in names}
     for side in SIDES:
         try:
-            legs = _read_leg(cfg, data_dir, oriented, side)
+            legs = _read_leg(cfg, data_dir, oriented, side, names if sleeves_of is None else sleeves_of)
         except (FileNotFoundError, ValueError) as exc:
             if skipped is None:
                 raise
@@ -101,19 +108,25 @@ def read_trials(
     return out
 
 
-def _read_leg(cfg: CapacitiveConfig, data_dir: Path, oriented: dict[str, dict], side: str) -> dict[str, LegRecording]:
-    """One leg of every trial of ``oriented``: the sleeve in step with the Xsens sensors, and its knee's flexion."""
+def _read_leg(
+    cfg: CapacitiveConfig, data_dir: Path, oriented: dict[str, dict], side: str, sleeves_of: set[str] | list[str]
+) -> dict[str, LegRecording]:
+    """One leg of the trials ``sleeves_of``: the sleeve in step with the Xsens sensors, and its knee's flexion (the
+    hinge fitted on ``cfg.train_trial``'s orientations)."""
     thigh, shank = f"{side}UpperLeg", f"{side}LowerLeg"
     for trial, sensors in oriented.items():
-        if thigh not in sensors or shank not in sensors:
+        missing = [s for s in (thigh, shank) if s not in sensors]
+        if missing:
             raise ValueError(
-                f"{cfg.source}/{trial}: no {side.lower()} femur and tibia sensors in its Orientations.sto "
-                f"(it has {sorted(s.name for s in sensors.values())})"
+                f"{cfg.source}/{trial}: no {' or '.join(missing)} sensor in its Orientations.sto (its columns read "
+                f"as {sorted(f'{seg} ({s.name})' for seg, s in sensors.items())})"
             )
     fit = oriented[cfg.train_trial]
     hinge = fit_hinge(fit[thigh].q_world_sensor, fit[shank].q_world_sensor)
     out = {}
     for trial, sensors in oriented.items():
+        if trial not in sleeves_of:
+            continue
         cs, rate = read_capacitive_sleeve(data_dir, trial, side, cfg.source)
         angle = hinge_angle_deg(sensors[thigh].q_world_sensor, sensors[shank].q_world_sensor, hinge)
         sync = capacitive_sleeve_sync(data_dir, trial, side, cfg.source, rows=len(cs)) if cfg.sync else None
@@ -444,7 +457,9 @@ def evaluate_capacitive(
     """A shipped capacitive model (through onnxruntime) on one trial of a capacitive-study subject (``source``: the
     folder under ``imu_real``, e.g. another subject's ``capacitive_sub02`` in the same layout), per leg and both, and
     whether the model trained on that trial (then the figure is not a held-out one). ``hinge_trial``: the trial of
-    the same session the knee hinge reference is fitted on (default: ``trial`` itself)."""
+    the same session the knee hinge reference is fitted on (default: ``trial`` itself; only its orientations are
+    read). A leg that cannot be scored is left out with the reason (``skipped_legs``, ``read_trials``); where
+    neither can, ``UnscorableSubject`` says why."""
     hinge_trial = hinge_trial or trial
     cfg = CapacitiveConfig(
         name=loaded.manifest.name,
@@ -454,19 +469,19 @@ def evaluate_capacitive(
         rate_hz=loaded.manifest.sample_rate_hz,
     )
     skipped: dict[str, str] = {}
-    trials = read_trials(cfg, data_dir, skipped)
+    trials = read_trials(cfg, data_dir, skipped, {trial})  # the hinge trial's orientations, not its sleeves
     window = loaded.manifest.window_samples
     legs_read = []
     for rec in trials[trial]:
-        if len(rec.readings) <= window:  # a read-out that failed within the first window
+        if len(rec.readings) < window:  # the file ends, or the read-out fails, within the first window
             skipped[rec.side] = (
-                f"{len(rec.readings) / cfg.rate_hz:.1f} s of readings before the read-out fails: the model answers "
-                f"after its {window / cfg.rate_hz:.1f} s window"
+                f"only {len(rec.readings) / cfg.rate_hz:.1f} s of readings in step with the Xsens sensors: the "
+                f"model answers after its {window / cfg.rate_hz:.1f} s window"
             )
         else:
             legs_read.append(rec)
     if not legs_read:
-        raise ValueError(f"{source}/{trial}: no leg can be scored: {skipped}")
+        raise UnscorableSubject(f"{source}/{trial}: no leg can be scored: {skipped}")
     test = leg_sets(legs_read, window, None)["test"]
     lat = loaded.manifest.flex.latency_samples
     legs = {leg: float(np.abs(p - t).mean()) for leg, (p, t) in _per_clip(loaded.run, test, lat).items()}

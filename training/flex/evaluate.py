@@ -62,7 +62,8 @@ def clip_metrics(
 
 
 def summarise(rows: list[dict], joints: list[str]) -> dict:
-    """Frame-weighted means over clips: overall, per activity, per joint."""
+    """Frame-weighted means over clips: overall, per activity, per joint; and each clip's error and jitter
+    (``clips``)."""
     w = np.array([r["frames"] for r in rows], float)
 
     def mean(key: str, sel: list[int]) -> float:

@@ -435,10 +435,11 @@ def ageing_curve(predict, aged_sets: dict[float, WindowSet], lat: int, cfg: Flex
 
 def build_sets(cfg: FlexConfig, data: FlexData, train: bool = True) -> dict[str, WindowSet]:
     """Training suits (``suits_per_clip``, seed ``cfg.seed``), one fixed suit per validation and test clip, the
-    test and validation clips under ageing beyond the training range and the test clips with a sensor replaced."""
+    test and validation clips under ageing beyond the training range and the test clips with a sensor replaced.
+    Evaluating (``train`` False) clips without a validation part (a user's own), the validation sets are left out."""
     w = cfg.model.window
     sets = {"test": window_set(data.test, 1, TEST_SEED, w)}
-    if data.val:  # a user's own clips (``evaluate-flex PATHS``) have no validation part
+    if train or data.val:  # a user's own clips (``evaluate-flex PATHS``) have no validation part
         sets["val"] = window_set(data.val, 1, VAL_SEED, w)
     if train:
         sets["train"] = window_set(

@@ -45,7 +45,8 @@ def user_clips(
     the elbows' and knees' hinges lie along y (``training.pose.data.hinge_twisted``), with ``trunk_axes`` "thorax"
     the upper trunk read from the hip and shoulder joint centres (``service.core.body``). A file that cannot be scored
     (not BVH, shorter than ``MIN_USER_SECONDS``, a skeleton the mapping does not fit) is left out with the reason,
-    appended to ``skipped`` and logged, unless no file can be: then its error is raised."""
+    appended to ``skipped`` and logged, unless no file can be: then its error is raised (a skeleton's that no
+    mapping fits before a file's that cannot be read)."""
     check_trunk_axes(trunk_axes)
     mapping = load_mapping(mapping_file) if mapping_file else None
     files, walks = [], []
@@ -99,8 +100,8 @@ def user_clips(
             continue
         digest = hashlib.sha256(f.read_bytes()).hexdigest()[:20]
         clips.append(MotionClip(str(f), "user", f.parent.name, f.parent.name, motion, digest))
-    if not clips:
-        raise errors[0]
+    if not clips:  # a skeleton no mapping fits says more than a broken file beside it
+        raise next((e for e in errors if isinstance(e, MappingError)), errors[0])
     return clips
 
 
@@ -120,7 +121,6 @@ def _skeleton(path: Path) -> str:
     """A BVH file's skeleton from its header: joint names, parents, channels and the bone offsets (to 1e-3 of its
     unit) of the joints without position channels (the root's OFFSET is where a take starts, and Bandai-Namco's
     position channels replace its joints' offsets)."""
-
     bvh, _ = read_bvh_header(path)
     h = hashlib.sha256()
     for j in bvh.joints:
@@ -139,7 +139,6 @@ def catalogue_rig(
     walks), where every file has a skeleton of exactly one whole-source rig of the data directory; else None. A
     user's clips of a rig the models trained on are then scored in exactly the frames they learned, whatever the
     clips do (fitted on a folder of sprints, the pelvis's and trunk's frames would take the sprint's lean)."""
-
     wanted = {_skeleton(f) for f in files}
     if len(wanted) != 1:
         return None
@@ -158,7 +157,6 @@ def catalogue_rig(
 def _catalogue_skeletons(data_dir: Path) -> dict[str, tuple[set[str], list]]:
     """Per whole-source rig of the data directory (each cmu_raw file is its own person's skeleton, so not one),
     the skeletons of its files and its catalogue entries; read once per data directory (about 2 s)."""
-
     out: dict[str, tuple[set[str], list]] = {}
     for e in mocap_entries(data_dir):
         if rig_key(e) == e.source:
@@ -174,7 +172,6 @@ def fitted_rig(files: list[Path], walks: list[Path], mapping, limb_twist: str, t
     three, else all its clips; a user's folder has fewer, and one walk is nearer to neutral than any sprint), the
     clips whose feet stand flat somewhere (the foot frames are level there); where none does, the feet taken
     level where they move slowest."""
-
     chosen = walks or files
     if not walks:
         log.warning(

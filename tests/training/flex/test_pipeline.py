@@ -4,6 +4,7 @@ and the real capacitive sleeves, with tiny training budgets; the shipped ONNX fi
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +18,12 @@ from service.core.recordings import CAPACITIVE_CHANNELS, read_capacitive_sleeve
 from service.inference.flex import FlexModel
 from service.inference.registry import load_model
 from tests.training.lab_rig import lab_clips, lab_mapping
-from training.flex.capacitive import evaluate_capacitive, run_capacitive_experiment
+from training.flex.capacitive import (
+    UnscorableSubject,
+    evaluate_capacitive,
+    read_trials,
+    run_capacitive_experiment,
+)
 from training.flex.config import CapacitiveConfig, FlexConfig
 from training.flex.pipeline import build_sets, evaluate_served, load_flex_data, log_summary_run, run_flex_experiment
 from training.flex.simulate import AGEING_BEYOND
@@ -240,8 +246,25 @@ def test_the_capacitive_job_trains_on_one_trial_and_reports_the_other(
     )
     assert left["per_leg_mae_deg"] == pytest.approx({"Left": scored["per_leg_mae_deg"]["Left"]}, abs=1e-6)
     assert list(left["skipped_legs"]) == ["Right"] and "_RCS.mot" in left["skipped_legs"]["Right"]
+    with pytest.raises(FileNotFoundError, match="_RCS.mot"):  # training reads every leg or stops
+        read_trials(
+            CapacitiveConfig(name="x", source="capacitive_suby", train_trial="CSStiffKnee", test_trial=None), other
+        )
+    # one whose right tibia sensor is missing from its orientations: the right leg is named with the missing sensor
+    no_tibia = other / "imu_real" / "capacitive_subz" / "CSStiffKnee"
+    no_tibia.mkdir(parents=True)
+    for f in (data_dir / "imu_real" / "capacitive_sub01" / "CSStiffKnee").iterdir():
+        if f.name.endswith("_Orientations.sto"):
+            (no_tibia / f.name).write_text(f.read_text().replace("tibia_r_imu", "tibia_x_imu", 1))
+        else:
+            (no_tibia / f.name).symlink_to(f)
+    shankless = evaluate_capacitive(
+        load_model(tmp_path / "tiny_capacitive_all" / "0.0.2", 1), other, "CSStiffKnee", source="capacitive_subz"
+    )
+    assert shankless["per_leg_mae_deg"] == pytest.approx(left["per_leg_mae_deg"], abs=1e-6)
+    assert "no RightLowerLeg sensor" in shankless["skipped_legs"]["Right"]
     (one_leg / "OpenSim_Sub01_CSStiffKnee_LCS.mot").unlink()
-    with pytest.raises(ValueError, match="no leg can be scored"):
+    with pytest.raises(UnscorableSubject, match="no leg can be scored"):
         evaluate_capacitive(
             load_model(tmp_path / "tiny_capacitive_all" / "0.0.2", 1), other, "CSStiffKnee", source="capacitive_suby"
         )
@@ -340,42 +363,49 @@ def test_mirror_adds_each_training_clip_performed_by_the_mirror_image_body(
 def test_evaluate_flex_scores_a_bvh_folder_through_a_mapping_file(
     flex_runs: dict, data_dir: Path, tmp_path: Path
 ) -> None:
-    """A user's own mocap of a skeleton family the job does not know (the iClone rig renamed), read as
-    ``evaluate-pose`` reads it: per clip, per motion type (the folder) and per joint, ageing and a replaced sensor;
-    a file that cannot be read is left out with its reason; without the mapping the skeleton is refused."""
-    lab_clips(data_dir, tmp_path / "lab" / "walks", ["07_01", "07_02"])
-    (tmp_path / "lab" / "walks" / "broken.bvh").write_text("HIERARCHY\nROOT Hips\n")
+    """A user's own mocap, read as ``evaluate-pose`` reads it: the iClone clips of a known family, and the same
+    clips renamed into a skeleton the job does not know with the mapping file a user writes for it, score alike per
+    clip; per motion type (the folder), per joint, ageing and a replaced sensor; a file that cannot be read is left
+    out with its reason; without the mapping the unknown skeleton is refused, saying what to give."""
+    walks = tmp_path / "lab" / "walks"
+    walks.mkdir(parents=True)
+    for name in ("07_01", "07_02"):
+        (walks / f"{name}.bvh").symlink_to(data_dir / "mocap/cmu_iclone" / f"{name}.bvh")
     (tmp_path / "rig.json").write_text(json.dumps(lab_mapping()))
     model = flex_runs["models"] / "tiny_flex_cm" / "0.0.1"
     base = [sys.executable, "-m", "training.cli", "evaluate-flex", str(tmp_path / "lab"), "--model", str(model)]
     base += ["--cache-dir", str(flex_runs["cache"])]
-    done = subprocess.run(
-        [*base, "--mapping", str(tmp_path / "rig.json"), "--json"],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        timeout=300,
-    )
-    assert done.returncode == 0, done.stderr[-2000:]
-    out = json.loads(done.stdout[done.stdout.index("{") :])
+    env = {k: v for k, v in os.environ.items() if k != "WEARMOCAP_DATA_DIR"}  # frames fitted on the clips, alike
+    env["COLUMNS"] = "1000"  # the usage error on one line
+
+    def scored(*extra: str) -> dict:
+        done = subprocess.run([*base, *extra, "--json"], capture_output=True, text=True, cwd=REPO, env=env, timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout[done.stdout.index("{") :])
+
+    known = scored()
+    for name in ("07_01", "07_02"):
+        (walks / f"{name}.bvh").unlink()
+    lab_clips(data_dir, walks, ["07_01", "07_02"])
+    (walks / "broken.bvh").write_text("HIERARCHY\nROOT Hips\n")
+    out = scored("--mapping", str(tmp_path / "rig.json"))
     test = out["test"]
     assert [Path(c["clip"]).name for c in test["clips"]] == ["07_01.bvh", "07_02.bvh"]
-    assert [Path(s["clip"]).name for s in out["skipped"]] == ["broken.bvh"]
-    assert set(test["per_activity"]) == {"walks"} and set(test["per_joint"]) == set(
-        read_manifest(model / "manifest.json").joints
-    )
-    # every frame of each clip is answered (20 Hz) and the overall figure is the clips' frame-weighted mean
+    assert [Path(s["clip"]).name for s in out["skipped"]] == ["broken.bvh"] and known["skipped"] == []
+    for mine, theirs in zip(test["clips"], known["test"]["clips"], strict=True):
+        assert mine["frames"] == theirs["frames"] and abs(mine["frames"] / 20.0 - 157 / 60.0) < 0.2  # 20 Hz
+        assert mine["mae_deg"] == pytest.approx(theirs["mae_deg"], abs=1e-3)
+    assert set(test["per_activity"]) == {"walks"}
+    assert set(test["per_joint"]) == set(read_manifest(model / "manifest.json").joints)
     frames = np.array([c["frames"] for c in test["clips"]])
-    assert test["frames"] == frames.sum() and all(abs(f / 20.0 - 157 / 60.0) < 0.2 for f in frames)
-    clip_mae = np.array([c["mae_deg"] for c in test["clips"]])
-    assert 0.0 < test["mae_deg"] < 180.0
-    assert test["mae_deg"] == pytest.approx(np.average(clip_mae, weights=frames), abs=1e-3)
+    assert test["mae_deg"] == pytest.approx(np.average([c["mae_deg"] for c in test["clips"]], weights=frames), abs=1e-3)
     assert set(out["ageing"]) == {str(b) for b in AGEING_BEYOND} and out["replaced"]["mae_deg"] > 0.0
-    refused = subprocess.run([*base, "--validation"], capture_output=True, text=True, cwd=REPO, timeout=300)
+    refused = subprocess.run([*base, "--validation"], capture_output=True, text=True, cwd=REPO, env=env, timeout=300)
     assert refused.returncode != 0 and "give no paths" in " ".join((refused.stdout + refused.stderr).split())
-    unmapped = subprocess.run(base, capture_output=True, text=True, cwd=REPO, timeout=300)
+    unmapped = subprocess.run(base, capture_output=True, text=True, cwd=REPO, env=env, timeout=300)
     assert unmapped.returncode != 0
-    assert "--mapping" in " ".join((unmapped.stdout + unmapped.stderr).split())
+    error = unmapped.stderr.split("Invalid value")[1]  # the usage error, after the files' warnings
+    assert "--mapping" in error and "MOTION" not in error  # the skeleton's reason, not the broken file's
 
 
 def test_the_served_suit_model_is_scored_in_the_frames_its_manifest_names() -> None:
