@@ -1013,7 +1013,7 @@ def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(
 
     # Handed over only once the calibration commits each of the model's sensors: never before an assignment
     # message in which all three are committed (with 1.10.1's calibration this person's pelvis stayed below the
-    # threshold for the minute streamed here and the pose never started; with 1.10.2's it starts).
+    # threshold for the minute streamed here and the pose never started; with 1.10.2's and 1.11.0's it starts).
     start["pose"] = {"calibration": "assignment", "hand_over": "committed"}
     messages, code, reason = asyncio.run(_stream(url, start, packets))
     assert code == 1000, reason
