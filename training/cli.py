@@ -667,6 +667,15 @@ def pose_real_check(
     typer.echo(f"pelvis heading: {pelvis_heading}")
 
 
+def _rigs_of(data_dir: Path | None) -> Path | None:
+    """The data directory whose rigs give a user's clips of the same skeleton their training frames, where there
+    is one; a user's own mocap is scored without it too."""
+    try:
+        return resolve_data_dir(data_dir)
+    except RuntimeError:
+        return None
+
+
 @app.command("evaluate-pose")
 def evaluate_pose(
     paths: list[Path] = typer.Argument(None, help="BVH files or folders (default: the held-out subjects)"),
@@ -738,13 +747,9 @@ def evaluate_pose(
     cfg = shipped_config(manifest)  # scored in the segment frames the model answers in
     skipped: list[dict[str, str]] = []  # a user's files that could not be scored, with the reason
     if paths:
-        try:  # the data directory's rigs give a user's clips of the same skeleton their training frames
-            known = resolve_data_dir(data_dir)
-        except RuntimeError:
-            known = None
         d = cfg.data
         try:
-            clips = user_clips(list(paths), mapping, d.limb_twist, known, cache_dir, skipped, d.trunk_axes)
+            clips = user_clips(list(paths), mapping, d.limb_twist, _rigs_of(data_dir), cache_dir, skipped, d.trunk_axes)
         except (ValueError, OSError) as exc:  # no file could be read: the first reason (a mapping's first)
             raise typer.BadParameter(str(exc)) from None
     else:
@@ -995,12 +1000,8 @@ def evaluate_flex(
     if paths:
         from training.flex.pipeline import user_flex_data
 
-        try:  # the data directory's rigs give a user's clips of the same skeleton their training frames
-            known = resolve_data_dir(data_dir)
-        except RuntimeError:
-            known = None
         try:
-            data = user_flex_data(cfg, list(paths), mapping, known, cache_dir, skipped)
+            data = user_flex_data(cfg, list(paths), mapping, _rigs_of(data_dir), cache_dir, skipped)
         except (ValueError, OSError) as exc:  # no file could be read: the first reason (a mapping's first)
             raise typer.BadParameter(str(exc)) from None
     else:
