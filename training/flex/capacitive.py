@@ -96,7 +96,7 @@ def read_trials(
     out: dict[str, list[LegRecording]] = {t: [] for t in names}
     for side in SIDES:
         try:
-            legs = _read_leg(cfg, data_dir, oriented, side, names if sleeves_of is None else sleeves_of)
+            legs = _read_leg(cfg, data_dir, oriented, side, set(names) if sleeves_of is None else sleeves_of)
         except (FileNotFoundError, ValueError) as exc:
             if skipped is None:
                 raise
@@ -109,7 +109,7 @@ def read_trials(
 
 
 def _read_leg(
-    cfg: CapacitiveConfig, data_dir: Path, oriented: dict[str, dict], side: str, sleeves_of: set[str] | list[str]
+    cfg: CapacitiveConfig, data_dir: Path, oriented: dict[str, dict], side: str, sleeves_of: set[str]
 ) -> dict[str, LegRecording]:
     """One leg of the trials ``sleeves_of``: the sleeve in step with the Xsens sensors, and its knee's flexion (the
     hinge fitted on ``cfg.train_trial``'s orientations)."""
