@@ -1,4 +1,4 @@
-"""What every task does to ship a model: its files under ``onnx_models/<name>/<version>/`` (DESIGN.md §1) and the
+"""What every task does to ship a model: its files under ``onnx_models/<name>/<version>/`` (docs/conventions.md) and the
 registry entry recorded in its manifest."""
 
 from __future__ import annotations

@@ -1,1 +1,1 @@
-"""Pure numpy/scipy domain code shared by training and the service (DESIGN.md §1)."""
+"""Pure numpy/scipy domain code shared by training and the service (docs/conventions.md)."""

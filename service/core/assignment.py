@@ -1,8 +1,8 @@
 """Joint sensor-to-segment assignment from per-window class probabilities, and motion detection.
 
 Evidence of a sensor is the sum of log-probabilities over its windows; the one-to-one assignment
-maximising the total is ``scipy.optimize.linear_sum_assignment`` (DESIGN.md §5: per-trial joint
-assignment is right more often than single windows). ``window_joint_assignment`` applies the same
+maximising the total is ``scipy.optimize.linear_sum_assignment`` (per-trial joint assignment is right more
+often than single windows: docs/conventions.md, "Evaluation protocol"). ``window_joint_assignment`` applies the same
 constraint to each moment on its own: the windows that sensors worn together recorded at the same time. Both can
 weigh how the sensors swing together (``SWING``): the sensors of one leg swing together, the two legs take turns.
 The per-moment answers can also weigh which side each leg sensor is on by how the pelvis sways (``sway_table``).
@@ -28,7 +28,7 @@ from service.core.manifest import ConfidenceSpec, SessionConfidenceSpec
 from service.core.rotations import matrix_from_quat
 from service.core.segments import BODY_PART, SEGMENTS
 
-# A window whose gyroscope norm stays under this mean carries no gait information (DESIGN.md §5).
+# A window whose gyroscope norm stays under this mean carries no gait information.
 STILL_GYR_MEAN_RADS = 0.35
 
 

@@ -4,7 +4,7 @@ Every mocap skeleton family is mapped onto these segments by a small declarative
 segment → the joint whose rotation drives it and the joint that ends it); a user's own BVH with an unknown
 skeleton works the same way with a mapping file (``load_mapping``, JSON or YAML with the same fields).
 
-Segment frames follow DESIGN.md §2 (as Xsens MVN): in neutral stance x anterior, y left, z superior, origin at
+Segment frames follow docs/conventions.md (as Xsens MVN): in neutral stance x anterior, y left, z superior, origin at
 the proximal joint. They are built as ``service.core.skeleton`` builds the seven lower-body frames: a geometric
 target per frame (long axis from the joints, anterior from the pelvis heading), then one constant offset per
 clip and segment (the rotation mean of R_world_bone⁻¹ · target), so that each segment frame moves rigidly with

@@ -1,7 +1,7 @@
 """Joint angles of the canonical body: the joints, the one angle convention that flex models, pose answers and
 their evaluations share (``joint_angles_deg``).
 
-A joint is a (parent, child) pair of canonical body segments (``service.core.body``, frames as DESIGN.md §2: x
+A joint is a (parent, child) pair of canonical body segments (``service.core.body``, frames as docs/conventions.md: x
 anterior, y left, z superior in neutral stance). Its rotation R = R_world_parent⁻¹ · R_world_child is decomposed as
 intrinsic Cardan angles y-x'-z'' (R = R_y(a) R_x(b) R_z(c), the flexion axis first, as ISB recommends for the lower
 limb) and reported with anatomical signs (``JOINTS``):

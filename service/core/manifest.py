@@ -1,4 +1,4 @@
-"""``manifest.json``: the train/serve contract beside each ``model.onnx`` (DESIGN.md §1)."""
+"""``manifest.json``: the train/serve contract beside each ``model.onnx`` (docs/conventions.md)."""
 
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ class Evaluation(BaseModel):
 
 
 class PoseSpec(BaseModel):
-    """What an ``imu_pose`` model needs from the service and gives back (Zheng et al. 2021 §4; DESIGN.md §2).
+    """What an ``imu_pose`` model needs from the service and gives back (Zheng et al. 2021 §4; docs/conventions.md).
 
     The input is ``(batch, frames, features)`` of ``service.core.calibration.pose_features`` for ``sensors`` in
     that order (the first is the root, the Pelvis); the output ``(batch, frames, segments, 3, 3)`` holds the

@@ -1,4 +1,4 @@
-"""Quaternion conventions of the project (DESIGN.md §2): Hamilton, scalar first, unit, w >= 0.
+"""Quaternion conventions of the project (docs/conventions.md): Hamilton, scalar first, unit, w >= 0.
 
 All heavy lifting is scipy's ``Rotation`` with ``scalar_first=True`` said explicitly (two closed forms,
 ``matrix_from_quat`` and ``quat_from_matrix``, are on the service's per-window and per-frame paths and tested

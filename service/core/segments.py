@@ -1,4 +1,4 @@
-"""The seven lower-body segment classes of Zimmermann et al. 2018 (§2.1), in its order (DESIGN.md §2)."""
+"""The seven lower-body segment classes of Zimmermann et al. 2018 (§2.1), in its order (docs/conventions.md)."""
 
 from __future__ import annotations
 

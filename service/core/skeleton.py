@@ -1,6 +1,6 @@
 """Mapping of each mocap skeleton onto Zimmermann et al. 2018's seven segments, with anatomical segment frames.
 
-Segment frames follow DESIGN.md §2: x anterior, y left, z superior in neutral stance, origin at the
+Segment frames follow docs/conventions.md: x anterior, y left, z superior in neutral stance, origin at the
 proximal joint. Bone-local axes are not anatomical in every source (iClone rigs; 20° tilted rest
 legs in li2018/cmu_raw), so each segment frame is built in two steps:
 
@@ -209,14 +209,14 @@ def functional_correction(
 ) -> FunctionalCorrection:
     """The rotation from each geometric segment frame to the frame that the clip's motion defines.
 
-    DESIGN.md §2 wants x anterior, y left and z superior in neutral stance; ``segment_trajectories`` builds that
+    docs/conventions.md wants x anterior, y left and z superior in neutral stance; ``segment_trajectories`` builds that
     from joint positions, which every mocap fit places a little differently per person (toe-out, the ankle→toe
     line, the hip line). Functional calibration (Zimmermann et al. 2018 refs. 14-15) reads the same axes off the motion:
 
     - upper and lower legs: z stays the long axis; y is the dominant axis of the segment's angular velocity
       (the flexion axis in gait), made orthogonal to z; x = y × z;
     - feet: z is "up" while the foot is flat on the ground (the slowest quarter of its samples, the neutral
-      stance of DESIGN.md §2), its pitch only; y is the flexion axis made orthogonal to it; x = y × z;
+      stance of docs/conventions.md), its pitch only; y is the flexion axis made orthogonal to it; x = y × z;
     - pelvis: z stays; x is the direction of travel (mean horizontal velocity direction in the pelvis frame, over
       samples faster than ``min_speed_mps``), made orthogonal to z; y = z × x.
 

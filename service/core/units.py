@@ -1,11 +1,11 @@
-"""Unit conversion to the model contract: acc in m/s², gyr in rad/s (DESIGN.md §2)."""
+"""Unit conversion to the model contract: acc in m/s², gyr in rad/s (docs/conventions.md)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 STANDARD_GRAVITY_MPS2 = 9.80665  # for converting readings given in g
-GRAVITY_MPS2 = 9.81  # world gravity of the simulation and the model's input scale (DESIGN.md §2)
+GRAVITY_MPS2 = 9.81  # world gravity of the simulation and the model's input scale (docs/conventions.md)
 ACC_UNITS = {"m/s^2": 1.0, "g": STANDARD_GRAVITY_MPS2}
 GYR_UNITS = {"rad/s": 1.0, "deg/s": float(np.pi / 180.0)}
 
@@ -24,7 +24,7 @@ def to_contract_units(imu: np.ndarray, acc_unit: str, gyr_unit: str) -> np.ndarr
     return np.asarray(imu, dtype=np.float64) * scale
 
 
-# Plausibility of readings already converted to contract units (DESIGN.md §2): what a mistaken unit looks like.
+# Plausibility of readings already converted to contract units (docs/conventions.md): what a mistaken unit looks like.
 GRAVITY_PLAUSIBLE_MPS2 = (6.0, 14.0)  # |mean specific force| over a 2 s window of human motion: gravity
 MAX_HUMAN_GYR_RADS = 35.0  # 2000 deg/s, the full scale of common IMUs; human segments stay below it
 UNIT_CHECK_SECONDS = 2.0  # readings are judged over windows this long: long enough for the mean to read gravity

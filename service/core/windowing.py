@@ -1,4 +1,4 @@
-"""Windowing of sensor streams: 128 samples shifted by 16 (Zimmermann et al. 2018 §2.1, DESIGN.md §2)."""
+"""Windowing of sensor streams: 128 samples shifted by 16 (Zimmermann et al. 2018 §2.1, docs/conventions.md)."""
 
 from __future__ import annotations
 

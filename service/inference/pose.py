@@ -1,6 +1,6 @@
 """Running an ``imu_pose`` model: offline in overlapping chunks, or streaming with its LSTM state (several live
 sessions in one call: ``process_live``), and turning its root-relative output into whole-body orientations and
-joint positions (DESIGN.md §2 pose output).
+joint positions (docs/conventions.md, pose output).
 
 Used by the service and by training's evaluation alike, so a shipped model is scored the way it is served.
 """
@@ -180,7 +180,7 @@ def fitting_models(models: list[PoseModel], segments: Sequence[str]) -> list[Pos
     return [m for m in within if len(m.spec.sensors) == most]
 
 
-# (thigh, shank) per leg: the knee, a hinge about the segments' y axes (DESIGN.md §2 frames, the limbs' turn taken
+# (thigh, shank) per leg: the knee, a hinge about the segments' y axes (conventions.md frames, the limbs' turn taken
 # from the knee's hinge). In the mocap the knee is a hinge within 0.7° in every rig (median per clip),
 # docs/pose.md "The knee as a hinge".
 KNEES = tuple((BODY_SEGMENTS.index(f"{s}UpperLeg"), BODY_SEGMENTS.index(f"{s}LowerLeg")) for s in ("Left", "Right"))

@@ -56,7 +56,7 @@ def test_every_family_keeps_its_bone_lengths_and_stands_like_a_person(data_dir: 
 
 @pytest.mark.parametrize("family", ["cmu_li2018", "cmu_iclone", "bandai_namco_2"])
 def test_segment_frames_are_anatomical_in_walking(data_dir: Path, family: str) -> None:
-    """DESIGN.md §2: z superior and x anterior in stance; walking keeps every major segment near that."""
+    """docs/conventions.md: z superior and x anterior in stance; walking keeps every major segment near that."""
     path, source = FAMILY_CLIPS[family]
     R = read_body_motion(data_dir / path, source=source).R_world_segment
     z_up = np.median(R[..., 2, 2], axis=0)  # world z of each segment's z axis
@@ -136,7 +136,7 @@ def _flat_foot_pitch_deg(motion, side: str) -> float:
 
 def test_feet_are_level_when_they_stand_flat_on_every_rig(data_dir: Path) -> None:
     """Rigs put the toe joint at different heights: with a fixed ankle → toe pitch Bandai-Namco's flat feet read
-    about 16° toes-down and CMU's 5-15° toes-up. The foot frame is level in flat stance (DESIGN.md §2) on the rig's
+    about 16° toes-down and CMU's 5-15° toes-up. The foot frame is level in flat stance (conventions.md) on the rig's
     frames fitted on some of its walks, and on another walk of the same rig."""
     from service.core.body import read_clip_offsets, rig_offsets
 

@@ -1,4 +1,4 @@
-"""ONNX export of a flex network, its parity check and manifest (DESIGN.md §1)."""
+"""ONNX export of a flex network, its parity check and manifest (docs/conventions.md)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The networks of Chen et al. 2024 Table 5 on windows of raw counts, with its dynamic calibration and median layer.
 
 Every network takes ``(B, window, C)`` raw readings (counts) and does inside the graph what is stateless
-(DESIGN.md §1): min-max normalisation with the training set's per-channel bounds (§3.4.3; for real sleeves
+(docs/conventions.md): min-max normalisation with the training set's per-channel bounds (§3.4.3; for real sleeves
 optionally of each channel relative to its window's mean, or for the simulated strips of the log resistance read
 back from the counts, ``input_norm``), the dynamic
 calibration of eq. 2 where enabled, then only the last ``steps`` samples go to the network (§4.2.4). It predicts

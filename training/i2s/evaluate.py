@@ -148,7 +148,7 @@ def evaluate_real(predict: Predict, recordings: list[RealRecording]) -> tuple[di
     """Assignment on real recordings: per moving window, and per recording jointly (one-to-one).
 
     Windows whose gyroscope is still (``is_moving``) are counted, not scored: they carry no gait
-    information (DESIGN.md §5). Per recording and per sensor (``accuracy/<recording>/<segment>``) too, and per
+    information (docs/conventions.md). Per recording and per sensor (``accuracy/<recording>/<segment>``) too, and per
     recording the share of moving leg windows that turn about the vertical (``turns_about_vertical``).
     Two answers per moving window: the window's own (``real_accuracy``, Zimmermann et al. 2018's per-window figure) and
     the one-to-one answer of the windows the recording's sensors took at that moment (``real_window_joint_*``,

@@ -18,7 +18,7 @@ GYRO_SCALE_RADS = 3.14159
 
 
 class InputScale(nn.Module):
-    """Fixed per-channel scaling (acc / g, gyr / π rad/s), part of the exported graph (DESIGN.md §1)."""
+    """Fixed per-channel scaling (acc / g, gyr / π rad/s), part of the exported graph (docs/conventions.md)."""
 
     def __init__(self) -> None:
         super().__init__()

@@ -67,7 +67,7 @@ def run_version(run: mlflow.entities.Run) -> str:
 
 
 def build_manifest(cfg: ExperimentConfig, run: mlflow.entities.Run, sha256: str, version: str) -> Manifest:
-    """The manifest of a run's ONNX model (DESIGN.md §1): written beside shipped files by ``export_run`` and
+    """The manifest of a run's ONNX model (docs/conventions.md): written beside shipped files by ``export_run`` and
     embedded in the logged MLflow model's metadata by ``training.i2s.pipeline`` (for registry serving)."""
     output, kind = _output_spec(cfg.task)
     mlflow_info = {"run_id": run.info.run_id, "experiment_id": run.info.experiment_id}

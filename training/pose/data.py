@@ -145,7 +145,7 @@ def build_rig_offsets(
             offs = list(tqdm(offs, total=len(jobs), desc="rig frames", unit="clip"))
         return [(e, off) for e, off in zip(chosen, offs, strict=True) if off is not None]
 
-    # Neutral stance defines the frames (DESIGN.md §2); walking is the nearest to it that every rig has: a rig's
+    # Neutral stance defines the frames (docs/conventions.md); walking is the nearest to it that every rig has: a rig's
     # dances and raised arms would turn its arms' frames (iClone forearms by about 60° about their long axis). A
     # rig's other clips are read only where fewer than three of its walks give offsets.
     done = fitted([e for e in rig_entries if e.activity == "walk" or walk_count[rig_key(e)] < 3])

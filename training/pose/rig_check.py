@@ -3,7 +3,7 @@
 A segment frame is its bone's frame times one offset per rig (``service.core.body``, fitted on the rig's walks): z
 along the long axis, x anterior from the pelvis heading. About the long axis that leaves each rig's own notion of
 neutral. An anatomical reference that every rig shares is the hinge of the joint below: the elbow flexes about an
-axis that DESIGN.md §2's frames put along y (left) of the upper arm, the knee likewise in the thigh's frame. Where a
+axis that conventions.md's frames put along y (left) of the upper arm, the knee likewise in the thigh's frame. Where a
 rig's hinge axis lies off y, turned about z by an azimuth, its upper arms (thighs) are turned by that azimuth
 against an anatomical frame; two rigs whose azimuths differ score the same posture with that difference as error.
 Where two rigs retargeted the same recording (li2018 and iClone), every segment can be compared directly

@@ -50,7 +50,7 @@ class Augmentation(BaseModel):
     model_config = ConfigDict(extra="forbid")
     alignment: str = "continuous"  # "grid": eq. 8's 64 variations; "continuous": θ₁, θ₂ uniform
     tilt_deg: float = 0.0  # extra random tilt of the sensor off the surface tangent
-    speed_min: float = 1.0  # playback-speed scaling range (DESIGN.md §5)
+    speed_min: float = 1.0  # playback-speed scaling range (docs/conventions.md)
     speed_max: float = 1.0
     offset_std_m: float = 0.0  # sensor position offset from the segment midpoint
     gain_std: float = 0.0  # per-axis scale-factor error
