@@ -39,12 +39,18 @@ def _input_excerpt(value: Any) -> str | None:
     return excerpt(text)
 
 
+def _with_reason(err: dict) -> str:
+    """pydantic's message, with the parser's reason where it keeps one apart (a body that is not JSON)."""
+    msg, reason = str(err.get("msg", "")), (err.get("ctx") or {}).get("error")
+    return f"{msg} ({reason})" if err.get("type") == "json_invalid" and reason else msg
+
+
 def field_errors(errors: list[dict]) -> dict[str, Any]:
     """pydantic's errors → the bounded body of a 422."""
     shown = [
         {
             "loc": [p if isinstance(p, int) else str(p) for p in err.get("loc", ())],
-            "msg": excerpt(str(err.get("msg", "")), MAX_EXCERPT_CHARS),
+            "msg": excerpt(_with_reason(err), MAX_EXCERPT_CHARS),
             "type": str(err.get("type", "")),
             "input": _input_excerpt(err.get("input")),
         }

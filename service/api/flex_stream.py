@@ -31,6 +31,7 @@ import asyncio
 import json
 import logging
 import time
+from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
@@ -59,8 +60,8 @@ class FlexStart(BaseModel):
 
 class FlexSamples(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    type: str = Field(pattern="^samples$")
-    seq: int = Field(ge=0)
+    type: Literal["samples"]
+    seq: int = Field(ge=0, strict=True)
     samples: list[Sample] = Field(min_length=1)
 
 
@@ -182,6 +183,11 @@ async def _serve(ws: WebSocket, live: LiveFlex, outbox: Outbox) -> None:
             data = _parse_text(message["text"])
             if data["type"] == "stop":
                 return
+            if data["type"] != "samples":
+                raise ProtocolError(
+                    f"unexpected message type {str(data['type'])[:40]!r} in a started session: expected 'samples' "
+                    "or 'stop'"
+                )
             try:
                 packet = FlexSamples.model_validate(data)
             except ValidationError as exc:
@@ -223,6 +229,10 @@ async def flex_stream(ws: WebSocket) -> None:
         code, reason = 1008, str(exc)
     except WebSocketDisconnect as exc:
         code, reason = -1, "1008-slow" if exc.code == 1008 else "client"  # 1008: closed for not answering a ping
+    except Exception:  # a fault of the service, not of the client: 1011, never a normal close
+        log.exception("stream session failed")
+        code, reason = 1011, "internal error: the session failed; what was answered before stands"
+        outbox.put({"type": "error", "detail": reason, "close_code": code})
     finally:
         metrics.open_streams.dec()
         ws.app.state.streams.release(admitted)

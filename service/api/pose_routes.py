@@ -287,7 +287,8 @@ def _calibrate_by_method(body: PoseImuRequest, model: PoseModel, r: Readings) ->
                 )
             q = np.asarray(s.q_segment_sensor, dtype=np.float64)
             if not is_unit_quaternion(q):
-                raise InputError(f"sensors[{k}].q_segment_sensor: expected a finite unit quaternion, got {list(q)}")
+                got = [round(float(v), 6) for v in q]
+                raise InputError(f"sensors[{k}].q_segment_sensor: expected a finite unit quaternion, got {got}")
             out.append(canonical_quat(q))
         return np.stack(out)
     scale = 60.0 / body.sample_rate_hz

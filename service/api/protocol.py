@@ -80,6 +80,7 @@ from service.api.schemas import (
     WORN_SEGMENTS_DESCRIPTION,
     AccUnit,
     BodySegmentName,
+    Direction3,
     GyrUnit,
     Sample,
     SegmentSet,
@@ -159,7 +160,7 @@ class PoseStreamOptions(BaseModel):
     calibration: Literal["declared", "still_pose", "assignment"] = "declared"
     still_pose: Literal["npose", "tpose"] = "npose"
     still_seconds: float = Field(2.0, ge=0.5, le=10.0)
-    pelvis_back_axis: list[float] = Field(default_factory=lambda: [0.0, 0.0, 1.0], min_length=3, max_length=3)
+    pelvis_back_axis: Direction3 = Field(default_factory=lambda: [0.0, 0.0, 1.0])
     body_height_m: float | None = Field(None, ge=0.5, le=2.5)
     assignment_confidence: float = Field(0.9, gt=0.0, le=1.0, description="assignment: hand over at this confidence")
     hand_over: Literal["confidence", "committed"] | None = Field(
@@ -224,7 +225,7 @@ class SamplesMessage(BaseModel):
     model_config = ConfigDict(extra="forbid")
     type: Literal["samples"]
     sensor_id: str
-    seq: int = Field(ge=0)
+    seq: int = Field(ge=0, strict=True)
     samples: list[Sample] = Field(min_length=1)
 
 

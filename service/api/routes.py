@@ -76,7 +76,18 @@ class _Request(Request):
             except orjson.JSONDecodeError:
                 # orjson refuses NaN/Infinity literals; json reads them, so validation can say "must be finite",
                 # and raises json.JSONDecodeError (FastAPI's 422) for anything that is not JSON at all.
-                self._json = json.loads(body)
+                try:
+                    self._json = json.loads(body)
+                except UnicodeDecodeError as exc:
+                    raise HTTPException(400, f"the body is not UTF-8 JSON: {exc.reason} at byte {exc.start}") from None
+                except RecursionError:
+                    raise HTTPException(400, "the body's JSON nests arrays or objects too deeply") from None
+                except json.JSONDecodeError:
+                    raise
+                except ValueError:  # an integer of thousands of digits
+                    raise HTTPException(
+                        400, "the body's JSON has a number with too many digits for a reading"
+                    ) from None
         return self._json
 
 

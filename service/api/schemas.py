@@ -33,6 +33,16 @@ ImuSample = Annotated[
 ]
 Quaternion = Annotated[list[Reading], Field(min_length=4, max_length=4, description="w, x, y, z")]
 Vector3 = Annotated[list[Reading], Field(min_length=3, max_length=3, description="x, y, z")]
+
+
+def _non_zero(v: list[float]) -> list[float]:
+    if float(np.linalg.norm(v)) < 1e-6:
+        raise ValueError(f"a direction needs a non-zero vector, got {v}")
+    return v
+
+
+# A direction in a sensor's frame (its length does not matter; zero has no direction).
+Direction3 = Annotated[Vector3, AfterValidator(_non_zero)]
 MAX_WINDOWS_PER_REQUEST = Settings.model_fields["max_windows_per_request"].default
 # Request bodies: extra fields refused, no coercion between JSON types.
 REQUEST = ConfigDict(extra="forbid", strict=True)
@@ -464,7 +474,7 @@ class PoseCalibration(BaseModel):
         description="still_pose (required there): the sample after the span; start < stop <= the number of rows, "
         "and the span lasts at least 0.5 s with every sensor still and reading gravity",
     )
-    pelvis_back_axis: Vector3 = Field(default_factory=lambda: [0.0, 0.0, 1.0])
+    pelvis_back_axis: Direction3 = Field(default_factory=lambda: [0.0, 0.0, 1.0])
     pelvis_heading: Literal["alignment", "legs"] | None = Field(None, description=PELVIS_HEADING_DESCRIPTION)
 
 

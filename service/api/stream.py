@@ -195,7 +195,7 @@ class Session:
             measured,
             opts.joint_angles,
         )
-        self.aligner = FrameAligner(len(self.streams), 10)
+        self.aligner = FrameAligner(len(self.streams), 10, [st.sensor_id for st in self.streams])
         self.run_i2s = opts.calibration == "assignment"
         self.width = 10
         self.pose_threshold = opts.assignment_confidence
@@ -377,18 +377,20 @@ async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples
             }
         )
     if joined.filled and not session.run_i2s:
-        outbox.put(
-            {
-                "type": "gap",
-                "sensor_id": sensor_id,
-                "expected_seq": seq - joined.filled,
-                "received_seq": seq,
-                "missing": joined.filled,
-                "action": "held the last sample",
-            }
-        )
+        outbox.put(_gap_message(sensor_id, seq, joined.filled))
     if len(joined.frames):
         await _pose_frames(app, session, joined)
+
+
+def _gap_message(sensor_id: str, seq: int, filled: int) -> dict:
+    return {
+        "type": "gap",
+        "sensor_id": sensor_id,
+        "expected_seq": seq - filled,
+        "received_seq": seq,
+        "missing": filled,
+        "action": "held the last sample",
+    }
 
 
 async def _pose_frames(app: FastAPI, session: Session, joined: AlignResult) -> None:
@@ -555,6 +557,11 @@ def _parse_text(text: str) -> dict:
         message = json.loads(text)
     except json.JSONDecodeError as exc:
         raise ProtocolError(f"messages must be JSON objects; could not parse: {exc.msg} at {exc.pos}", 1003) from None
+    except (RecursionError, ValueError):  # nested too deeply, or an integer of thousands of digits
+        raise ProtocolError(
+            "messages must be JSON objects of readings; this one nests too deeply or has a number of too many digits",
+            1003,
+        ) from None
     if not isinstance(message, dict) or "type" not in message:
         raise ProtocolError(f"messages need a 'type' field; got {str(message)[:80]}")
     return message
@@ -606,8 +613,13 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
                 ids = [s.sensor_id for s in session.streams]
                 check_frame_samples(samples, max_samples, ids, session.width)
                 if session.pose is not None and not session.run_i2s:
-                    joined = session.aligner.push_all(seq, samples * session.pose_units_all())
+                    try:
+                        joined = session.aligner.push_all(seq, samples * session.pose_units_all())
+                    except StreamLagError as exc:
+                        raise ProtocolError(str(exc)) from None
                     if joined is not None:
+                        for sensor_id in ids if joined.filled else ():
+                            outbox.put(_gap_message(sensor_id, seq, joined.filled))
                         await _pose_frames(ws.app, session, joined)
                         continue
                 for j in range(len(session.streams)):
@@ -625,6 +637,11 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
                         ws.app.state.metrics.dropped.inc()
                 outbox.put(session.assignment_message(outbox.dropped))
                 return
+            if data["type"] != "samples":
+                raise ProtocolError(
+                    f"unexpected message type {str(data['type'])[:40]!r} in a started session: expected 'samples', "
+                    "'calibrate' or 'stop'"
+                )
             try:
                 packet = SamplesMessage.model_validate(data)
             except ValidationError as exc:
@@ -672,6 +689,10 @@ async def stream(ws: WebSocket) -> None:
         code, reason = 1008, str(exc)
     except WebSocketDisconnect as exc:
         code, reason = -1, "1008-slow" if exc.code == 1008 else "client"  # 1008: closed for not answering a ping
+    except Exception:  # a fault of the service, not of the client: 1011, never a normal close
+        log.exception("stream session failed")
+        code, reason = 1011, "internal error: the session failed; what was answered before stands"
+        outbox.put({"type": "error", "detail": reason, "close_code": code})
     finally:
         metrics.open_streams.dec()
         ws.app.state.streams.release(admitted)

@@ -1,12 +1,12 @@
 """From raw sensor readings to segment readings: sensor-to-segment calibration and pelvis-relative pose features.
 
-One module for training and serving (DESIGN.md §1): the simulator feeds its virtual sensors' raw readings through
+One module for training and serving (docs/conventions.md): the simulator feeds its virtual sensors' raw readings through
 exactly these functions, and the service feeds a client's.
 
 Raw readings per sensor: ``q_world_sensor`` (the sensor's own fusion output in its own world frame: ENU, NWU, …,
 z up) and the accelerometer's specific force in the sensor frame (m/s², +9.81 up at rest).
 
-Calibration gives ``q_segment_sensor`` per sensor (DESIGN.md §2: v_segment = R_segment_sensor · v_sensor):
+Calibration gives ``q_segment_sensor`` per sensor (docs/conventions.md: v_segment = R_segment_sensor · v_sensor):
 
 - ``declared``: the client states it (e.g. from ``/v1/imu/assign`` for the lower-body sensors): no pose needed;
 - ``still_pose_calibration``: a still N-pose (arms down) or T-pose (arms sideways) of 2–3 s, as TransPose's live
@@ -202,13 +202,19 @@ def still_pose_calibration(
     """
     R_ws = matrix_from_quat(q_world_sensor)  # (T, N, 3, 3)
     R_mean = _mean_rotation(R_ws)  # (N, 3, 3)
-    back_w = R_mean[root] @ np.asarray(back_axis, dtype=np.float64)
+    axis = np.asarray(back_axis, dtype=np.float64)
+    length = float(np.linalg.norm(axis))
+    if not np.isfinite(length) or length < 1e-6:
+        raise CalibrationError(
+            f"the pelvis sensor's back axis must be a finite non-zero vector, got {[float(v) for v in back_axis]}"
+        )
+    back_w = R_mean[root] @ (axis / length)
     forward = -back_w
     forward[2] = 0.0
     norm = np.linalg.norm(forward)
     if norm < 0.3:
         raise CalibrationError(
-            f"the pelvis sensor's back axis {list(back_axis)} points "
+            f"the pelvis sensor's back axis {[float(v) for v in back_axis]} points "
             f"{np.degrees(np.arccos(np.clip(abs(back_w[2]), 0, 1))):.0f}° "
             "from vertical: expected it roughly horizontal (out of the lower back) to give the heading"
         )

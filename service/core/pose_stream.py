@@ -3,7 +3,7 @@
 Each sensor's packets carry consecutive samples from a sequence number; ``FrameAligner`` joins the sensors'
 samples with the same number into one body frame ``(N, C)`` and releases every frame that all sensors have
 reached. A gap is filled by holding the sensor's last sample (the pose model needs every frame; the fill is
-reported), a late or repeated packet is dropped (reported).
+reported) up to ``MAX_LAG_FRAMES``, a longer one ends the session; a late or repeated packet is dropped (reported).
 """
 
 from __future__ import annotations
@@ -29,8 +29,9 @@ class AlignResult:
 
 
 class FrameAligner:
-    def __init__(self, n_sensors: int, width: int) -> None:
+    def __init__(self, n_sensors: int, width: int, names: list[str] | None = None) -> None:
         self.n, self.width = n_sensors, width
+        self.names = names or [f"#{k}" for k in range(n_sensors)]  # how errors name the sensors
         self.buffers: list[list[np.ndarray]] = [[] for _ in range(n_sensors)]
         # plain ints: a live session pushes every packet through here, and numpy's per-call cost on N numbers is
         # larger than the work
@@ -46,13 +47,29 @@ class FrameAligner:
         ``push`` sensor by sensor. A packet without samples changes nothing."""
         if not len(samples):
             return AlignResult(self._none, self.emitted)
-        if any(self.buffered) or any(e != seq for e in self.expected):
+        expected = self.expected[0]
+        if any(self.buffered) or any(e != expected for e in self.expected) or seq < expected:
             return None
-        self.expected = [seq + len(samples)] * self.n
+        filled = seq - expected  # every sensor skipped the same readings: hold each one's last sample
+        if filled:
+            self._check_gap(None, expected, seq)
+            hold = np.stack([last if last is not None else samples[0, j] for j, last in enumerate(self.last)])
+            samples = np.concatenate([np.repeat(hold[None], filled, axis=0), samples])
+        self.expected = [seq + len(samples) - filled] * self.n
         self.last = list(samples[-1])
-        result = AlignResult(samples, self.emitted)
+        result = AlignResult(samples, self.emitted, filled=filled)
         self.emitted += len(samples)
         return result
+
+    def _check_gap(self, k: int | None, expected: int, seq: int) -> None:
+        """A gap longer than ``MAX_LAG_FRAMES`` is refused before anything is held for it (a sequence number that
+        jumps by millions must not fill memory with copies)."""
+        if seq - expected > MAX_LAG_FRAMES:
+            who = "every sensor" if k is None else f"sensor {self.names[k]}"
+            raise StreamLagError(
+                f"{who}: seq jumped from {expected} to {seq}, a gap of {seq - expected} samples; at most "
+                f"{MAX_LAG_FRAMES} missing samples are filled (by holding the last one): start a new session"
+            )
 
     def push(self, k: int, seq: int, samples: np.ndarray) -> AlignResult:
         """Add sensor ``k``'s ``samples`` ``(n, C)`` whose first has sequence number ``seq`` (none: nothing)."""
@@ -63,6 +80,7 @@ class FrameAligner:
             result.late = (self.expected[k], seq)
             return result
         if seq > self.expected[k]:
+            self._check_gap(k, self.expected[k], seq)
             hold = self.last[k] if self.last[k] is not None else samples[0]
             result.filled = seq - self.expected[k]
             self.buffers[k].append(np.repeat(hold[None], result.filled, axis=0))
@@ -74,7 +92,9 @@ class FrameAligner:
         most, m = max(self.buffered), min(self.buffered)
         if most - m > MAX_LAG_FRAMES:
             slow = self.buffered.index(m)
-            raise StreamLagError(f"sensor #{slow} is {most - m} samples behind the others (at most {MAX_LAG_FRAMES})")
+            raise StreamLagError(
+                f"sensor {self.names[slow]} is {most - m} samples behind the others (at most {MAX_LAG_FRAMES})"
+            )
         if m == 0:
             return result
         out = np.empty((m, self.n, self.width))

@@ -37,6 +37,37 @@ def test_a_sensor_that_falls_far_behind_stops_the_session() -> None:
     a = FrameAligner(2, 3)
     with pytest.raises(StreamLagError, match="sensor #1"):
         a.push(0, 0, _rows(0, MAX_LAG_FRAMES + 1, 0))
+    named = FrameAligner(2, 3, ["pelvis", "shank"])
+    with pytest.raises(StreamLagError, match="sensor shank is"):
+        named.push(0, 0, _rows(0, MAX_LAG_FRAMES + 1, 0))
+
+
+@pytest.mark.parametrize("seq", [MAX_LAG_FRAMES + 3, 40_000_000, 2**32 - 1, 10**20])
+def test_a_gap_too_long_to_fill_is_refused_before_anything_is_held(seq: int) -> None:
+    """A sequence number that jumps by millions (a device counting from a timestamp) must not fill memory with
+    held copies: the gap is refused, naming the sensor and the jump, and nothing is buffered."""
+    a = FrameAligner(2, 3, ["pelvis", "shank"])
+    a.push(1, 0, _rows(0, 2, 1))
+    with pytest.raises(StreamLagError, match=f"sensor shank: seq jumped from 2 to {seq}"):
+        a.push(1, seq, _rows(0, 1, 1))
+    assert a.buffered == [0, 2]
+    with pytest.raises(StreamLagError, match=f"every sensor: seq jumped from 0 to {seq}"):
+        FrameAligner(2, 3).push_all(seq, np.zeros((1, 2, 3)))
+
+
+def test_a_frame_packet_after_a_gap_holds_every_sensor_alike() -> None:
+    """Every sensor skipped the same readings (a frame packet after a gap): each holds its own last sample and the
+    frames are released at once; a gap as long as the buffer allows is not mistaken for a sensor falling behind."""
+    a = FrameAligner(2, 3)
+    first = np.stack([_rows(0, 2, 0), _rows(0, 2, 1)], axis=1)
+    assert len(a.push_all(0, first).frames) == 2
+    gap = MAX_LAG_FRAMES
+    out = a.push_all(2 + gap, np.stack([_rows(500, 30, 0), _rows(500, 30, 1)], axis=1))
+    assert out.filled == gap and out.first_frame == 2 and out.frames.shape == (gap + 30, 2, 3)
+    np.testing.assert_array_equal(out.frames[:gap, 0, 0], 1)  # sensor 0's last sample, held
+    np.testing.assert_array_equal(out.frames[:gap, 1, 0], 101)
+    np.testing.assert_array_equal(out.frames[gap:, 1, 0], np.arange(600, 630))
+    assert a.expected == [2 + gap + 30] * 2
 
 
 def test_a_packet_without_samples_changes_nothing() -> None:

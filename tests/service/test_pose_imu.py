@@ -962,6 +962,52 @@ def test_a_bad_frame_packet_closes_naming_its_sensor_after_the_earlier_answers(s
     assert code == 1003 and "of 6 sensors must be" in reason, reason
 
 
+def test_gaps_in_a_pose_stream_are_held_or_refused_as_documented(server: str, walk) -> None:
+    """Frame packets after a gap: every sensor holds its last sample and each says so (a gap as long as the buffer
+    allows is not taken for one sensor falling behind); a gap longer than that (a device counting from a timestamp)
+    is refused at once with the jump named, and the frames answered before it stand."""
+    motion, raw = walk
+    rows = np.stack([_rows(raw, k)[:64] for k in range(len(SIX_SENSORS))], axis=1)
+    sensors = [
+        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
+        for k, s in enumerate(SIX_SENSORS)
+    ]
+    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}
+    url = server.replace("http", "ws") + "/v1/stream"
+    held = [encode_binary(ALL_SENSORS, 0, rows[:32]), encode_binary(ALL_SENSORS, 32 + 1200, rows[32:64])]
+    messages, code, reason = asyncio.run(_stream(url, start, held))
+    assert code == 1000, reason
+    gaps = [m for m in messages if m["type"] == "gap"]
+    assert sorted(m["sensor_id"] for m in gaps) == sorted(s["sensor_id"] for s in sensors)
+    assert all(m["missing"] == 1200 and m["expected_seq"] == 32 for m in gaps)
+    assert sum(m["frames"] for m in messages if m["type"] == "pose") == 64 + 1200 - 5
+    for jump in (32 + 1201, 2**32 - 1):
+        too_long = [encode_binary(ALL_SENSORS, 0, rows[:32]), encode_binary(ALL_SENSORS, jump, rows[32:48])]
+        messages, code, reason = asyncio.run(_stream(url, start, too_long))
+        assert code == 1008 and f"seq jumped from 32 to {jump}" in reason, reason
+        assert sum(m["frames"] for m in messages if m["type"] == "pose") == 32 - 5
+    one = [("pelvis", 0, rows[:16, 0]), ("pelvis", 10**20, rows[16:32, 0])]
+    messages, code, reason = asyncio.run(_stream(url, start, one))
+    assert code == 1008 and "sensor pelvis: seq jumped from 16" in reason, reason
+
+
+def test_stream_options_and_messages_a_session_cannot_use_are_refused_with_what_was_expected(server: str) -> None:
+    url = server.replace("http", "ws") + "/v1/stream"
+    sensors = [{"sensor_id": s.lower(), "segment": s} for s in ("Pelvis", "LeftLowerLeg", "RightLowerLeg")]
+    for axis, fragment in (([0, 0, 0], "non-zero vector"), (["NaN", 0, 0], "pelvis_back_axis")):
+        start = {"type": "start", "sensors": sensors, "pose": {"calibration": "still_pose", "pelvis_back_axis": axis}}
+        messages, code, reason = asyncio.run(_stream(url, start, []))
+        assert code == 1008 and fragment in reason, reason
+    declared = [dict(s, q_segment_sensor=[1, 0, 0, 0]) for s in sensors]
+    start = {"type": "start", "sensors": declared, "pose": {"calibration": "declared"}}
+    messages, code, reason = asyncio.run(_stream(url, start, [{"type": "start", "sensors": declared}]))
+    assert code == 1008 and "unexpected message type 'start'" in reason and "'samples'" in reason, reason
+    row = [0.0, 0.0, 9.81, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    packet = {"type": "samples", "sensor_id": "pelvis", "seq": "1", "samples": [row]}
+    messages, code, reason = asyncio.run(_stream(url, start, [packet]))
+    assert code == 1008 and "seq" in reason, reason
+
+
 @pytest.mark.parametrize("translation", ["feet", "learned"])
 def test_a_real_recording_is_placed_by_the_assignment_and_then_posed(
     server: str, data_dir: Path, translation: str

@@ -94,7 +94,7 @@ def test_nan_and_inf_are_rejected(client: TestClient) -> None:
 
 def test_malformed_json_and_oversized_bodies(client: TestClient) -> None:
     r = client.post("/v1/imu/windows", content="{not json", headers={"content-type": "application/json"})
-    assert r.status_code == 422
+    assert r.status_code == 422 and "Expecting property name" in r.json()["detail"]  # the parser's reason
     big = {"windows": [_window()] * 200}
     assert client.post("/v1/imu/windows", json=big).status_code == 413
 
@@ -489,3 +489,20 @@ def test_the_streams_assignment_message_carries_the_probability_that_all_is_righ
     assert last["status"] == "not_enough_walking"
     assert last["p_all_correct"] == pytest.approx(np.prod([s["p_correct"] for s in last["sensors"]]))
     assert last["p_all_correct"] < 0.01
+
+
+@pytest.mark.parametrize(
+    ("body", "fragment"),
+    [
+        (b'{"windows": "\xff\xfe"}', "not UTF-8 JSON"),
+        (b"[" * 100_000 + b"]" * 100_000, "too deeply"),
+        (b'{"windows": [{"samples": [[' + b"9" * 5000 + b", 0, 9.8, 0, 0, 0]]}]}", "too many digits"),
+    ],
+    ids=["invalid utf-8", "deep nesting", "a 5000-digit integer"],
+)
+def test_a_body_json_cannot_read_says_why(client: TestClient, body: bytes, fragment: str) -> None:
+    """Bodies that orjson and then json refuse for reasons other than JSON syntax get a 400 that says which, not
+    FastAPI's bare "There was an error parsing the body"."""
+    for route in ("/v1/imu/windows", "/v1/imu/assign", "/v1/pose/imu", "/v1/pose/flex"):
+        r = client.post(route, content=body, headers={"content-type": "application/json"})
+        assert r.status_code == 400 and fragment in r.json()["detail"], (route, r.status_code, r.text[:200])
