@@ -9,8 +9,8 @@ Client → server
   binary packet (little-endian): uint16 0, uint16 n, uint32 seq, then n x C float32          8 + 4 C n bytes
   {"type": "stop"}
 ``seq`` counts readings at the stream's rate (the packet's first one); a packet that skips readings is a gap:
-the calibration window starts again, and a "gap" message says so. A packet that repeats readings is "late" and
-dropped.
+the calibration window starts again, and a "gap" message says so. Readings a packet repeats are "late" and
+dropped; the packet's readings after them are kept.
 
 Server → client
   started (model, version, channels, joints, joint_components, sample_rate_hz, window_samples, latency_samples,
@@ -130,8 +130,11 @@ async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, out
     except InputError as exc:
         raise ProtocolError(str(exc)) from None
     if seq < live.samples_in:
-        outbox.put({"type": "late", "seq": seq, "expected_seq": live.samples_in, "samples_dropped": len(rows)})
-        return
+        dropped = min(live.samples_in - seq, len(rows))
+        outbox.put({"type": "late", "seq": seq, "expected_seq": live.samples_in, "samples_dropped": dropped})
+        if dropped == len(rows):
+            return
+        seq, rows = live.samples_in, rows[dropped:]  # the part after the repeated readings is new: kept
     if seq > live.samples_in:
         outbox.put(
             {

@@ -373,13 +373,20 @@ async def _accept_pose(app: FastAPI, session: Session, k: int, seq: int, samples
                 "sensor_id": sensor_id,
                 "expected_seq": expected,
                 "received_seq": received,
-                "action": "packet dropped",
+                "samples_dropped": joined.late_dropped,
+                "action": _late_action(joined.late_dropped, len(samples)),
             }
         )
     if joined.filled and not session.run_i2s:
         outbox.put(_gap_message(sensor_id, seq, joined.filled))
     if len(joined.frames):
         await _pose_frames(app, session, joined)
+
+
+def _late_action(dropped: int, received: int) -> str:
+    if dropped == received:
+        return "packet dropped"
+    return f"{dropped} repeated samples dropped, the {received - dropped} new ones accepted"
 
 
 def _gap_message(sensor_id: str, seq: int, filled: int) -> dict:
@@ -430,7 +437,11 @@ async def _accept_packet(app: FastAPI, session: Session, k: int, seq: int, sampl
         app.state.metrics.gaps.inc()
         expected, received = problem
         message = {"type": kind, "sensor_id": stream.sensor_id, "expected_seq": expected, "received_seq": received}
-        message[extra] = received - expected if kind == "gap" else "packet dropped"
+        if kind == "gap":
+            message[extra] = received - expected
+        else:
+            message["samples_dropped"] = pushed.late_dropped
+            message[extra] = _late_action(pushed.late_dropped, len(samples))
         work.notices.append(message)
     if not (pushed.windows or work.notices):
         return

@@ -3,7 +3,8 @@
 Each sensor's packets carry consecutive samples from a sequence number; ``FrameAligner`` joins the sensors'
 samples with the same number into one body frame ``(N, C)`` and releases every frame that all sensors have
 reached. A gap is filled by holding the sensor's last sample (the pose model needs every frame; the fill is
-reported) up to ``MAX_LAG_FRAMES``, a longer one ends the session; a late or repeated packet is dropped (reported).
+reported) up to ``MAX_LAG_FRAMES``, a longer one ends the session; samples that repeat ones already received are
+dropped and the rest of their packet kept (reported).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ class AlignResult:
     frames: np.ndarray  # (m, N, C), the frames all sensors have reached, oldest first
     first_frame: int  # index of frames[0] since the start of the stream
     filled: int = 0  # samples held to fill a gap in this packet
-    late: tuple[int, int] | None = None  # (expected, received): the packet was dropped
+    late: tuple[int, int] | None = None  # (expected, received): the packet repeated samples already received
+    late_dropped: int = 0  # its samples dropped: all of them, or the repeated ones before new ones (kept)
     notices: list[dict] = field(default_factory=list)
 
 
@@ -78,7 +80,10 @@ class FrameAligner:
             return result
         if seq < self.expected[k]:
             result.late = (self.expected[k], seq)
-            return result
+            result.late_dropped = min(self.expected[k] - seq, len(samples))
+            if result.late_dropped == len(samples):
+                return result
+            samples, seq = samples[result.late_dropped :], self.expected[k]
         if seq > self.expected[k]:
             self._check_gap(k, self.expected[k], seq)
             hold = self.last[k] if self.last[k] is not None else samples[0]

@@ -60,7 +60,8 @@ class PushResult:
     windows: list[np.ndarray] = field(default_factory=list)  # each (128, 6) float32, contract units
     window_end_s: list[float] = field(default_factory=list)  # sensor-clock time of each window's last sample
     gap: tuple[int, int] | None = None  # (expected, received): the window restarts at the new packet
-    late: tuple[int, int] | None = None  # (expected, received): the packet was dropped
+    late: tuple[int, int] | None = None  # (expected, received): the packet repeated samples already received
+    late_dropped: int = 0  # its samples dropped: all of them, or the repeated ones before new ones (kept)
 
 
 class SensorStream:
@@ -86,7 +87,10 @@ class SensorStream:
         result = PushResult()
         if seq < self.expected_seq:
             result.late = (self.expected_seq, seq)
-            return result
+            result.late_dropped = min(self.expected_seq - seq, len(samples))
+            if result.late_dropped == len(samples):
+                return result
+            samples, seq = samples[result.late_dropped :], self.expected_seq
         if seq > self.expected_seq:
             result.gap = (self.expected_seq, seq)
             self._restart(seq)

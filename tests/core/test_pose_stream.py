@@ -30,7 +30,10 @@ def test_a_gap_holds_the_last_sample_and_a_late_packet_is_dropped() -> None:
     assert out.filled == 3
     np.testing.assert_array_equal(out.frames[:, 0, 0], [1, 1, 1, 5])
     late = a.push(0, 2, _rows(2, 2, 0))
-    assert late.late == (6, 2) and len(late.frames) == 0
+    assert late.late == (6, 2) and len(late.frames) == 0 and late.late_dropped == 2
+    overlap = a.push(0, 4, _rows(4, 4, 0))  # samples 4, 5 repeat; 6, 7 are new
+    assert overlap.late == (6, 4) and overlap.late_dropped == 2 and overlap.filled == 0
+    np.testing.assert_array_equal(overlap.frames[:, 0, 0], [6, 7])
 
 
 def test_a_sensor_that_falls_far_behind_stops_the_session() -> None:

@@ -47,5 +47,18 @@ def test_gap_restarts_the_window_and_late_packets_are_dropped() -> None:
     gap = stream.push(140, x[:100])
     assert gap.gap == (130, 140) and gap.windows == []
     late = stream.push(100, x[:10])
-    assert late.late == (240, 100) and late.windows == []
+    assert late.late == (240, 100) and late.windows == [] and late.late_dropped == 10
     assert len(stream.push(240, x[:28]).windows) == 1  # 128 contiguous samples since the gap
+
+
+def test_a_packet_that_overlaps_keeps_its_new_samples() -> None:
+    """A resent packet that overlaps what came (seq 110, 20 rows after 0-119): its 10 repeated samples are
+    dropped, its 10 new ones go on the stream, and the next packet is no gap."""
+    x = np.arange(200 * 6, dtype=np.float32).reshape(200, 6)
+    stream = SensorStream("s", 60.0, "m/s^2", "rad/s")
+    stream.push(0, x[:120])
+    overlap = stream.push(110, x[110:130])
+    assert overlap.late == (120, 110) and overlap.late_dropped == 10 and stream.expected_seq == 130
+    after = stream.push(130, x[130:144])
+    assert after.gap is None and len(after.windows) == 1
+    np.testing.assert_array_equal(after.windows[0], x[16:144])  # one contiguous stream, nothing repeated

@@ -145,11 +145,13 @@ def test_a_gap_restarts_the_calibration_window_and_says_so(flex_client: TestClie
     with flex_client.websocket_connect("/v1/stream/flex") as ws:
         ws.send_json({"type": "start", "channels": CHANNELS})
         ws.receive_json()
-        messages = _stream(ws, [(0, x[:120]), (150, x[150:260]), (100, x[100:110])])
+        messages = _stream(ws, [(0, x[:120]), (150, x[150:260]), (100, x[100:110]), (250, x[250:270])])
     kinds = [m["type"] for m in messages]
-    assert kinds == ["angles", "gap", "angles", "late"], kinds
+    assert kinds == ["angles", "gap", "angles", "late", "late", "angles"], kinds
     assert messages[1]["missing"] == 30 and messages[2]["first_sample"] == 150 + 99  # in the stream's time
     assert messages[2]["frames"] == 11 and messages[3]["samples_dropped"] == 10
+    # a packet that overlaps: its 10 repeated readings dropped, its 10 new ones answered in turn
+    assert messages[4]["samples_dropped"] == 10 and messages[5]["first_sample"] == 260 and messages[5]["frames"] == 10
 
 
 @pytest.mark.parametrize(
