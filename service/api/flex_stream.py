@@ -55,7 +55,9 @@ class FlexStart(BaseModel):
     type: str = Field(pattern="^start$")
     model: str | None = Field(None, max_length=128)
     channels: list[str] = Field(min_length=1, max_length=64)
-    sample_rate_hz: float | None = Field(None, gt=0.0, le=2000.0, description="default: the model's rate")
+    sample_rate_hz: float | None = Field(
+        None, gt=0.0, le=2000.0, allow_inf_nan=False, description="default: the model's rate"
+    )
 
 
 class FlexSamples(BaseModel):

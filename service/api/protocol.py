@@ -114,7 +114,7 @@ def unit_quaternion(q: list[float] | None) -> list[float] | None:
 class StreamSensor(BaseModel):
     model_config = ConfigDict(extra="forbid")
     sensor_id: str = Field(min_length=1, max_length=128)
-    sample_rate_hz: float = Field(60.0, ge=10.0, le=2000.0)
+    sample_rate_hz: float = Field(60.0, ge=10.0, le=2000.0, allow_inf_nan=False)
     acc_unit: AccUnit = "m/s^2"
     gyr_unit: GyrUnit = "rad/s"
     candidate_segments: SegmentSet | None = Field(None, description=CANDIDATE_SEGMENTS_DESCRIPTION)
@@ -159,9 +159,9 @@ class PoseStreamOptions(BaseModel):
     model: str | None = Field(None, description="a streaming pose model's name; default: the one for the sensors")
     calibration: Literal["declared", "still_pose", "assignment"] = "declared"
     still_pose: Literal["npose", "tpose"] = "npose"
-    still_seconds: float = Field(2.0, ge=0.5, le=10.0)
+    still_seconds: float = Field(2.0, ge=0.5, le=10.0, allow_inf_nan=False)
     pelvis_back_axis: Direction3 = Field(default_factory=lambda: [0.0, 0.0, 1.0])
-    body_height_m: float | None = Field(None, ge=0.5, le=2.5)
+    body_height_m: float | None = Field(None, ge=0.5, le=2.5, allow_inf_nan=False)
     assignment_confidence: float = Field(0.9, gt=0.0, le=1.0, description="assignment: hand over at this confidence")
     hand_over: Literal["confidence", "committed"] | None = Field(
         None,

@@ -129,7 +129,7 @@ class ImuWindow(BaseModel):
     samples: list[ImuSample] = Field(
         min_length=MIN_WINDOW_ROWS, description=f"rows of 6 finite numbers, oldest first. {WINDOW_ROWS_RULE}"
     )
-    sample_rate_hz: float = Field(MODEL_RATE_HZ, ge=MIN_RATE_HZ, le=MAX_RATE_HZ)
+    sample_rate_hz: float = Field(MODEL_RATE_HZ, ge=MIN_RATE_HZ, le=MAX_RATE_HZ, allow_inf_nan=False)
     acc_unit: AccUnit = "m/s^2"
     gyr_unit: GyrUnit = "rad/s"
     segment: SegmentName | None = Field(None, description="known segment: the alignment is given for it")
@@ -357,6 +357,7 @@ class FlexRequest(BaseModel):
     )
     sample_rate_hz: float | None = Field(
         None,
+        allow_inf_nan=False,
         ge=MIN_FLEX_RATE_HZ,
         le=MAX_FLEX_RATE_HZ,
         description="default: the model's rate; others are resampled to it",
@@ -508,6 +509,7 @@ class PoseImuRequest(BaseModel):
     model_config = REQUEST | ConfigDict(json_schema_extra={"examples": [EXAMPLE_POSE_IMU]})
     sample_rate_hz: float = Field(
         MODEL_RATE_HZ,
+        allow_inf_nan=False,
         ge=MIN_POSE_IMU_RATE_HZ,
         le=MAX_POSE_IMU_RATE_HZ,
         description=f"resampled to the model's 60 Hz; at most {MAX_POSE_FRAMES} frames at 60 Hz per request "
@@ -525,7 +527,9 @@ class PoseImuRequest(BaseModel):
     model: str | None = Field(
         None, description="a loaded pose model's name; default: the offline model for these sensors"
     )
-    body_height_m: float | None = Field(None, ge=0.5, le=2.5, description="scale the default body to this height")
+    body_height_m: float | None = Field(
+        None, ge=0.5, le=2.5, allow_inf_nan=False, description="scale the default body to this height"
+    )
     translation: Literal["none", "feet", "learned"] = Field("none", description=TRANSLATION_DESCRIPTION)
     joint_angles: StrictBool = Field(
         False,

@@ -153,7 +153,8 @@ def block_rows(
     if n_model > max_samples:
         raise InputError(
             f"samples: at most {max_samples} samples at {m.sample_rate_hz:g} Hz per request, got {len(samples)} "
-            f"at {rate:g} Hz; send longer recordings in blocks or over /v1/stream/flex"
+            f"at {rate:g} Hz, {n_model} at {m.sample_rate_hz:g} Hz; send longer recordings in blocks or over "
+            "/v1/stream/flex"
         )
     x = np.asarray(samples, dtype=np.float64)
     check_rows(x, model, "samples")
