@@ -107,6 +107,13 @@ class PoseTrainConfig(Strict):
     acc_method: Literal["finite_difference", "butterworth"] = "finite_difference"
     # Share of the drawn training sequences performed by the mirror-image body (``data.mirrored``; our addition)
     mirror: float = Field(0.0, ge=0.0, le=1.0)
+    # Each drawn training sequence played faster or slower by a factor uniform in this range (the motion resampled;
+    # cadence, angular rates and accelerations change with it: the I2S simulation's most useful augmentation,
+    # Zimmermann et al. 2018's people and ours walk at other speeds than the mocap actors), and its body scaled by a
+    # factor uniform in ``size`` (the segment positions, so the accelerations; orientations and targets unchanged).
+    # (1, 1): no draw, as before (our addition)
+    speed: tuple[float, float] = (1.0, 1.0)
+    size: tuple[float, float] = (1.0, 1.0)
     # Weight (1/m²) of a joint-position term beside the rotation loss: the mean squared distance of the segment
     # origins after forward kinematics with each sequence's own bones, root-relative (TransPose and PIP supervise
     # joint positions; ours is one term on the same network). 0: rotations only (Zheng et al. 2021).
@@ -121,6 +128,15 @@ class PoseTrainConfig(Strict):
     # feature standardisation; ``training.pose.warmstart``) instead of at random: fine-tuning, e.g. on ``data.own``.
     # Its validation figure is epoch 0's, so a run that never beats it returns it unchanged.
     init_from_onnx: str | None = None
+
+    @model_validator(mode="after")
+    def _ranges(self) -> PoseTrainConfig:
+        for name, (lo, hi), (least, most) in (("speed", self.speed, (0.5, 2.0)), ("size", self.size, (0.5, 1.5))):
+            if not least <= lo <= hi <= most:
+                raise ValueError(
+                    f"train.{name}: expected [low, high] with {least} <= low <= high <= {most}, got {[lo, hi]}"
+                )
+        return self
 
 
 class PoseConfig(Strict):

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from service.core.body import BODY_SEGMENTS, PARENT_INDEX, clip_body
+from service.core.body import BODY_SEGMENTS, PARENT_INDEX, BodyMotion, clip_body, resample_motion
 from service.inference.pose import run_chunked
 from training.data.catalog import is_bandai_namco
 from training.pose.config import PoseConfig, served_chunks
@@ -284,8 +284,7 @@ def train_pose(
             n = min(W, min(train_clips[i].motion.n_frames for i in batch))
             sessions, bodies = [], []
             for i in batch:
-                start = int(rng.integers(0, train_clips[i].motion.n_frames - n + 1))
-                clip = _crop(train_clips[i], start, start + n)
+                clip = _drawn_sequence(train_clips[i], n, cfg.train.speed, cfg.train.size, rng)
                 if cfg.train.mirror and rng.random() < cfg.train.mirror:  # no draw without it: older runs replay
                     clip = mirrored(clip)
                 sessions.append(session_of(clip, cfg, rng))
@@ -339,6 +338,33 @@ def _length_buckets(
     order = picks[np.argsort([frames[i] for i in picks], kind="stable")]
     batches = [order[i : i + batch_size] for i in range(0, len(order), batch_size)]
     return [batches[k] for k in rng.permutation(len(batches))]
+
+
+def _drawn_sequence(
+    clip: MotionClip, n: int, speed: tuple[float, float], size: tuple[float, float], rng: np.random.Generator
+) -> MotionClip:
+    """``n`` frames of ``clip`` from a random start; with a ``speed`` range, the motion of about ``n · s`` frames
+    played in ``n`` (s uniform in the range, as far as the clip is long), with a ``size`` range, the body scaled
+    about its first pelvis position. Ranges of (1, 1) draw nothing (older runs replay)."""
+    frames = clip.motion.n_frames
+    s = rng.uniform(*speed) if speed != (1.0, 1.0) else 1.0
+    n_src = min(frames, max(n, int(round((n - 1) * s)) + 1))
+    start = int(rng.integers(0, frames - n_src + 1))
+    clip = _crop(clip, start, start + n_src)
+    if n_src != n:  # n_src frames lasting what n frames last: resampled, exactly n at the model rate
+        m = clip.motion
+        rate = m.sample_rate_hz
+        played = BodyMotion(m.R_world_segment, m.origin_m, m.midpoint_m, rate * (n_src - 1) / (n - 1))
+        motion = resample_motion(played, rate)
+        clip = MotionClip(clip.path, clip.source, clip.subject, clip.activity, motion.crop(0, n), clip.digest)
+    if size != (1.0, 1.0):
+        b, m = rng.uniform(*size), clip.motion
+        pivot = m.origin_m[0, 0]
+        motion = BodyMotion(
+            m.R_world_segment, pivot + b * (m.origin_m - pivot), pivot + b * (m.midpoint_m - pivot), m.sample_rate_hz
+        )
+        clip = MotionClip(clip.path, clip.source, clip.subject, clip.activity, motion, clip.digest)
+    return clip
 
 
 def _crop(clip: MotionClip, start: int, stop: int) -> MotionClip:

@@ -298,3 +298,33 @@ def test_the_best_epoch_s_weights_come_back_and_training_stops_after_its_patienc
     assert late.record(1, 1.0, elapsed_s=5.0) == "" and late.record(2, 0.5, elapsed_s=11.0) == "time budget 10 s spent"
     warm = BestEpoch(torch.nn.Linear(2, 1), patience=1, best=2.0)  # a warm start's own figure to beat
     assert warm.record(1, 2.5, elapsed_s=0.0) == "no validation gain for 1 epochs" and warm.best_epoch == 0
+
+
+def test_a_sequence_played_at_another_speed_and_size_keeps_its_length_and_scales_its_motion() -> None:
+    """``train.speed`` / ``train.size``: a sequence of n frames covers about n · s frames of the clip, resampled to
+    the model rate (the same path at s times the speed); the body scaled by b moves b times as far; (1, 1) draws
+    nothing, so the plain draw is the crop it always was."""
+    from scipy.spatial.transform import Rotation
+
+    from service.core.body import BodyMotion
+    from training.pose.data import MotionClip
+    from training.pose.train import _crop, _drawn_sequence
+
+    T, S = 400, 21
+    t = np.arange(T) / 60.0
+    R = np.broadcast_to(Rotation.from_rotvec(np.outer(np.sin(t), [0.0, 0.0, 1.0])).as_matrix()[:, None], (T, S, 3, 3))
+    origin = np.zeros((T, S, 3))
+    origin[..., 0] = 1.2 * t[:, None]  # walking along x at 1.2 m/s
+    clip = MotionClip("c.bvh", "cmu_iclone", "cmu_01", "walk", BodyMotion(R.copy(), origin, origin + 0.1, 60.0), "d")
+    plain, rng = _drawn_sequence(clip, 100, (1.0, 1.0), (1.0, 1.0), np.random.default_rng(3)), np.random.default_rng(3)
+    start = int(rng.integers(0, T - 100 + 1))
+    np.testing.assert_array_equal(plain.motion.origin_m, _crop(clip, start, start + 100).motion.origin_m)
+    fast = _drawn_sequence(clip, 100, (1.5, 1.5), (1.0, 1.0), np.random.default_rng(0))
+    assert fast.motion.n_frames == 100 and fast.motion.sample_rate_hz == 60.0
+    step = np.diff(fast.motion.origin_m[:, 0, 0]) * 60.0
+    np.testing.assert_allclose(step, 1.2 * 1.5, rtol=0.02)  # 1.8 m/s
+    big = _drawn_sequence(clip, 100, (1.0, 1.0), (1.1, 1.1), np.random.default_rng(3))  # the start of `plain`
+    np.testing.assert_allclose(np.diff(big.motion.origin_m[:, 0, 0]) * 60.0, 1.2 * 1.1, rtol=1e-9)
+    np.testing.assert_array_equal(big.motion.R_world_segment, plain.motion.R_world_segment)
+    short = _drawn_sequence(_crop(clip, 0, 120), 100, (1.5, 1.5), (1.0, 1.0), np.random.default_rng(0))
+    assert short.motion.n_frames == 100  # as fast as the clip's length allows
