@@ -223,7 +223,15 @@ def evaluate(
     """Evaluate a shipped model (LOSO fold on simulated data, real recordings) and record it in its manifest."""
     import mlflow
 
+    from service.core.manifest import read_manifest
     from training.i2s.ship import evaluate_shipped, record_real_loso
+
+    task = read_manifest(shipped_model(model_dir) / "manifest.json").task
+    if task not in ("i2s_assignment", "i2s_alignment"):
+        raise typer.BadParameter(
+            f"{model_dir} is a {task} model; evaluate scores I2S models (evaluate-pose, evaluate-flex and "
+            "evaluate-capacitive score the others)"
+        )
     from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
@@ -613,16 +621,34 @@ def pose_acc_check(
     typer.echo(json.dumps(acceleration_check(build_motions(root, entries, cache_dir)), indent=1))
 
 
-def newest_shipped(model: Path | None, name: str, models_dir: Path = Path("onnx_models")) -> Path:
-    """``model`` if given, else the newest version shipped of ``name`` under ``models_dir``."""
+def newest_shipped(
+    model: Path | None, name: str, models_dir: Path = Path("onnx_models"), task: str | None = None
+) -> Path:
+    """``model`` if given (checked: a shipped model folder, of ``task`` where named), else the newest version
+    shipped of ``name`` under ``models_dir``."""
     if model is not None:
-        return model
+        return shipped_model(model, task)
     from service.inference.registry import newest_version_dir
 
     newest = newest_version_dir(models_dir, name)
     if newest is None:
         raise typer.BadParameter(f"no shipped version of {name} under {models_dir}; pass --model")
     return newest
+
+
+def shipped_model(model: Path, task: str | None = None) -> Path:
+    """``model`` if it is a shipped model folder (``manifest.json`` and ``model.onnx``) of ``task``; else a usage
+    error that says what it is and what was expected."""
+    from service.core.manifest import read_manifest
+
+    if not (model / "manifest.json").is_file():
+        versions = sorted(p.parent.name for p in model.glob("*/manifest.json")) if model.is_dir() else []
+        hint = f"; it holds versions {versions}: name one, e.g. {model / versions[-1]}" if versions else ""
+        raise typer.BadParameter(f"{model} is not a shipped model folder (no manifest.json){hint}")
+    found = read_manifest(model / "manifest.json").task
+    if task is not None and found != task:
+        raise typer.BadParameter(f"{model} is a {found} model; this command scores {task} models")
+    return model
 
 
 @app.command("pose-real-check")
@@ -647,7 +673,7 @@ def pose_real_check(
     from training.pose.real_check import pooled, real_pose_check
 
     alignment = load_models(Path("onnx_models"), 2)["i2s_alignment"]
-    model = newest_shipped(model, "pose_lower3")
+    model = newest_shipped(model, "pose_lower3", task="imu_pose")
     if pelvis_heading not in ("legs", "alignment"):
         raise typer.BadParameter(f"--pelvis-heading: 'legs' or 'alignment', got {pelvis_heading!r}")
     results = real_pose_check(resolve_data_dir(data_dir), PoseModel(load_model(model, 2)), alignment, pelvis_heading)
@@ -743,7 +769,7 @@ def evaluate_pose(
         raise typer.BadParameter("--tag writes the figure runs log, on one session per clip: leave --sessions at 1")
     if velocity_model is not None and sessions > 1:
         raise typer.BadParameter("--velocity-model scores one session per clip: leave --sessions at 1")
-    manifest = read_manifest(model / "manifest.json")
+    manifest = read_manifest(shipped_model(model, "imu_pose") / "manifest.json")
     cfg = shipped_config(manifest)  # scored in the segment frames the model answers in
     skipped: list[dict[str, str]] = []  # a user's files that could not be scored, with the reason
     if paths:
@@ -987,7 +1013,7 @@ def evaluate_flex(
         raise typer.BadParameter("--tag writes the validation figure the registry compares by: give --validation")
     if record and validation:
         raise typer.BadParameter("--record writes held-out figures; it does not go with --validation")
-    model_dir = newest_shipped(model, "flex_bilstm_cm")
+    model_dir = newest_shipped(model, "flex_bilstm_cm", task="flex_pose")
     loaded = load_model(model_dir, 2)
     m = loaded.manifest
     if "test_subjects" not in m.training_data:
@@ -1127,7 +1153,12 @@ def evaluate_capacitive_command(
     from service.inference.registry import load_model
     from training.flex.capacitive import UnscorableSubject, evaluate_capacitive
 
-    loaded = load_model(newest_shipped(model, "flex_capacitive_knee"), 2)
+    loaded = load_model(newest_shipped(model, "flex_capacitive_knee", task="flex_pose"), 2)
+    if loaded.manifest.name != "flex_capacitive_knee" and "sleeve_lag_s" not in loaded.manifest.training_data:
+        raise typer.BadParameter(
+            f"{loaded.manifest.name} {loaded.manifest.version} is not a capacitive sleeve model; a simulated-suit "
+            "model is scored by evaluate-flex"
+        )
     try:
         out = evaluate_capacitive(loaded, resolve_data_dir(data_dir), test_trial, train_trial, source)
     except (FileNotFoundError, UnscorableSubject) as exc:  # a subject's files in another layout: what was expected
@@ -1278,7 +1309,11 @@ def restore_model_cmd(
     WEARMOCAP_MODEL_VERSIONS, or by default if it is the newest."""
     from training.snapshot import restore_model
 
-    for folder in restore_model(name, version, snapshot_dir, models_dir):
+    try:
+        restored = restore_model(name, version, snapshot_dir, models_dir)
+    except (LookupError, FileExistsError) as exc:
+        raise typer.BadParameter(str(exc)) from None
+    for folder in restored:
         typer.echo(f"restored {folder}")
 
 
@@ -1325,5 +1360,18 @@ def ui(
     raise typer.Exit(subprocess.call(cmd, env=env))
 
 
+def main() -> None:
+    """The command line; a config or override it cannot use ends with what was expected (exit 2), not a traceback."""
+    from pydantic import ValidationError
+
+    from training.config import ConfigError
+
+    try:
+        app()
+    except (ConfigError, ValidationError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise SystemExit(2) from None
+
+
 if __name__ == "__main__":
-    app()
+    main()

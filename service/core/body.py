@@ -360,25 +360,48 @@ def load_mapping(path: str | Path) -> SkeletonMapping:
     if Path(path).suffix in (".yaml", ".yml"):
         import yaml  # the service installs PyYAML; plain numpy users can write JSON
 
-        raw = yaml.safe_load(text)
+        try:
+            raw = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise MappingError(f"{path}: not valid YAML: {exc}") from None
     else:
-        raw = json.loads(text)
+        try:
+            raw = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise MappingError(f"{path}: not valid JSON: {exc}") from None
     try:
         segments = {s: (v["joint"], v.get("distal")) for s, v in raw["segments"].items()}
+        hips = raw["hips"]
+        if not isinstance(hips, list | tuple) or len(hips) != 2:
+            raise TypeError(f"'hips' must be a list of the two hip joints [left, right], got {hips!r}")
+        try:
+            scale = float(raw["metres_per_unit"])
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"'metres_per_unit' must be a number (0.01 for centimetres), got {raw['metres_per_unit']!r}"
+            ) from None
+        if not np.isfinite(scale) or scale <= 0:
+            raise TypeError(f"'metres_per_unit' must be positive (0.01 for centimetres), got {scale}")
         mapping = SkeletonMapping(
             str(raw.get("name", Path(path).stem)),
             segments,
-            (raw["hips"][0], raw["hips"][1]),
-            float(raw["metres_per_unit"]),
+            (hips[0], hips[1]),
+            scale,
             str(raw.get("up_axis", "y")).lower(),
         )
-    except (KeyError, TypeError, IndexError) as exc:
+    except (KeyError, TypeError, IndexError, AttributeError) as exc:
         raise MappingError(
             f"{path}: a mapping needs 'metres_per_unit', 'hips' [left, right] and 'segments' "
             f"{{segment: {{'joint': ..., 'distal': ...}}}}; missing or malformed: {exc}"
         ) from None
     if mapping.up_axis not in ("y", "z"):
         raise MappingError(f'{path}: \'up_axis\' is the BVH world\'s vertical, "y" or "z"; got {raw["up_axis"]!r}')
+    shared: dict[str, list[str]] = {}
+    for segment, (joint, _) in mapping.segments.items():
+        shared.setdefault(joint, []).append(segment)
+    doubled = {j: s for j, s in shared.items() if len(s) > 1}
+    if doubled:  # each segment turns with its own joint (a copy-paste slip would score one side as the other)
+        raise MappingError(f"{path}: each segment needs its own joint; these share one: {doubled}")
     return mapping
 
 

@@ -7,6 +7,7 @@ line is honoured: channel order differs between sources (``../shared/data/README
 from __future__ import annotations
 
 import gzip
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,7 +49,12 @@ class Bvh:
 def read_bvh(path: str | Path) -> Bvh:
     """Parse a BVH file, plain or gzipped (``.bvh.gz``)."""
     path = Path(path)
-    text = gzip.open(path, "rt").read() if path.suffix == ".gz" else path.read_text()
+    try:
+        text = gzip.open(path, "rt").read() if path.suffix == ".gz" else path.read_text()
+    except (EOFError, zlib.error, gzip.BadGzipFile, UnicodeDecodeError) as exc:
+        raise BvhFormatError(
+            f"{path}: not a readable BVH file{' (gzip)' if path.suffix == '.gz' else ''}: {exc}"
+        ) from None
     tokens = text.split()
     return _parse(tokens, str(path))
 
@@ -58,18 +64,23 @@ def read_bvh_header(path: str | Path) -> tuple[Bvh, int]:
     the number of frames its header declares."""
     path = Path(path)
     header = []
-    with gzip.open(path, "rt") if path.suffix == ".gz" else path.open() as f:
-        for line in f:
-            header.append(line)
-            if line.strip().startswith("Frame Time:"):
-                break
+    try:
+        with gzip.open(path, "rt") if path.suffix == ".gz" else path.open() as f:
+            for line in f:
+                header.append(line)
+                if line.strip().startswith("Frame Time:"):
+                    break
+    except (EOFError, zlib.error, gzip.BadGzipFile, UnicodeDecodeError) as exc:
+        raise BvhFormatError(
+            f"{path}: not a readable BVH file{' (gzip)' if path.suffix == '.gz' else ''}: {exc}"
+        ) from None
     tokens = "".join(header).split()
     if "MOTION" not in tokens:
         raise BvhFormatError(f"{path}: expected 'MOTION' after the HIERARCHY, found the end of the file")
     k = tokens.index("MOTION")
     if k + 6 > len(tokens) or tokens[k + 1] != "Frames:":
         raise BvhFormatError(f"{path}: expected 'Frames: N' and 'Frame Time: s' after 'MOTION'")
-    frames = int(tokens[k + 2])
+    frames = _number(tokens[k + 2], int, "the frame count after 'Frames:'", str(path))
     tokens[k + 2] = "0"  # the header alone: no values follow
     return _parse(tokens, str(path)), frames
 
@@ -79,6 +90,13 @@ def _expect(tokens: list[str], i: int, word: str, where: str) -> int:
         found = tokens[i] if i < len(tokens) else "end of file"
         raise BvhFormatError(f"{where}: expected {word!r} at token {i}, found {found!r}")
     return i + 1
+
+
+def _number(token: str, kind: type, what: str, where: str) -> int | float:
+    try:
+        return kind(token)
+    except ValueError:
+        raise BvhFormatError(f"{where}: expected {what}, found {token[:40]!r}") from None
 
 
 def _parse(tokens: list[str], where: str) -> Bvh:
@@ -93,9 +111,9 @@ def _parse(tokens: list[str], where: str) -> Bvh:
             name = tokens[i + 1]
             i = _expect(tokens, i + 2, "{", where)
             i = _expect(tokens, i, "OFFSET", where)
-            offset = np.array([float(t) for t in tokens[i : i + 3]])
+            offset = np.array([_number(t, float, f"joint {name}'s OFFSET x y z", where) for t in tokens[i : i + 3]])
             i = _expect(tokens, i + 3, "CHANNELS", where)
-            count = int(tokens[i])
+            count = _number(tokens[i], int, f"joint {name}'s channel count", where)
             channels = tuple(tokens[i + 1 : i + 1 + count])
             i += 1 + count
             parent = stack[-1] if stack else -1
@@ -105,7 +123,9 @@ def _parse(tokens: list[str], where: str) -> Bvh:
         elif word == "End":
             i = _expect(tokens, i + 2, "{", where)
             i = _expect(tokens, i, "OFFSET", where)
-            end_sites[stack[-1]] = np.array([float(t) for t in tokens[i : i + 3]])
+            end_sites[stack[-1]] = np.array(
+                [_number(t, float, "an End Site OFFSET x y z", where) for t in tokens[i : i + 3]]
+            )
             i = _expect(tokens, i + 3, "}", where)
         elif word == "}":
             stack.pop()
@@ -113,17 +133,35 @@ def _parse(tokens: list[str], where: str) -> Bvh:
         else:
             raise BvhFormatError(f"{where}: unexpected token {word!r} in HIERARCHY at token {i}")
     i = _expect(tokens, i + 1, "Frames:", where)
-    n_frames = int(tokens[i])
+    n_frames = _number(tokens[i], int, "the frame count after 'Frames:'", where)
     i = _expect(tokens, i + 1, "Frame", where)
     i = _expect(tokens, i, "Time:", where)
-    frame_time_s = float(tokens[i])
-    values = np.array(tokens[i + 1 :], dtype=np.float64)
+    frame_time_s = _number(tokens[i], float, "the seconds per frame after 'Frame Time:'", where)
+    if not np.isfinite(frame_time_s) or frame_time_s <= 0:
+        raise BvhFormatError(f"{where}: expected a positive 'Frame Time:' in seconds, found {tokens[i]!r}")
+    try:
+        values = np.array(tokens[i + 1 :], dtype=np.float64)
+    except ValueError:
+        bad = next(t for t in tokens[i + 1 :] if not _is_number(t))
+        raise BvhFormatError(f"{where}: expected numbers in the MOTION table, found {bad[:40]!r}") from None
+    if not np.isfinite(values).all():
+        k = int(np.flatnonzero(~np.isfinite(values))[0])
+        row = k // n_channels if n_channels else 0
+        raise BvhFormatError(f"{where}: frame {row} has a value that is not finite ({values[k]}); every value must be")
     if values.size != n_frames * n_channels:
         raise BvhFormatError(
             f"{where}: expected {n_frames} frames x {n_channels} channels = {n_frames * n_channels} values, "
             f"found {values.size}"
         )
     return Bvh(tuple(joints), end_sites, frame_time_s, values.reshape(n_frames, n_channels))
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
 
 
 ROOT_CHANNELS = ("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation")

@@ -9,6 +9,7 @@ import functools
 import hashlib
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +68,12 @@ def user_clips(
                 skipped.append({"clip": str(f), "reason": str(exc)})
 
     rigs: dict[str, list[Path]] = {}
+    bad: set[Path] = set()  # files left out while a skeleton's frames were fitted
+
+    def unreadable(f: Path, exc: Exception) -> None:
+        bad.add(f)
+        leave_out([f], exc)
+
     for f in files:
         try:
             bvh, frames = read_bvh_header(f)
@@ -85,17 +92,18 @@ def user_clips(
             if mapping is None and data_dir is not None:
                 rig = catalogue_rig(group, data_dir, cache_dir or Path(".cache/pose_motion"), limb_twist, trunk_axes)
             if rig is None:
-                rig = fitted_rig(group, [w for w in walks if w in group], mapping, limb_twist, trunk_axes)
+                walked = [w for w in walks if w in group]
+                rig = fitted_rig(group, walked, mapping, limb_twist, trunk_axes, unreadable)
             offsets |= dict.fromkeys(group, rig)
-        except (MappingError, ValueError) as exc:  # a skeleton the mapping does not fit, a clip it cannot read
-            leave_out(group, exc)
+        except (MappingError, ValueError) as exc:  # a skeleton the mapping does not fit, no clip it can read
+            leave_out([f for f in group if f not in bad], exc)
     clips = []
     for f in files:
-        if f not in offsets:
+        if f not in offsets or f in bad:
             continue
         try:
             motion = load_motion(f, "", 0, mapping, offsets[f])
-        except (MappingError, ValueError) as exc:
+        except (MappingError, ValueError, OSError) as exc:
             leave_out([f], exc)
             continue
         digest = hashlib.sha256(f.read_bytes()).hexdigest()[:20]
@@ -166,25 +174,47 @@ def _catalogue_skeletons(data_dir: Path) -> dict[str, tuple[set[str], list]]:
     return out
 
 
-def fitted_rig(files: list[Path], walks: list[Path], mapping, limb_twist: str, trunk_axes: str = "spine") -> np.ndarray:
+def fitted_rig(
+    files: list[Path],
+    walks: list[Path],
+    mapping,
+    limb_twist: str,
+    trunk_axes: str = "spine",
+    unreadable: Callable[[Path, Exception], None] | None = None,
+) -> np.ndarray:
     """A rig's segment offsets fitted on ``files`` with ``build_rig_offsets``' rules (a rig's walks are the nearest
     to the neutral stance that defines the frames), on its ``walks`` where there are any (a training rig needs
     three, else all its clips; a user's folder has fewer, and one walk is nearer to neutral than any sprint), the
     clips whose feet stand flat somewhere (the foot frames are level there); where none does, the feet taken
-    level where they move slowest."""
-    chosen = walks or files
+    level where they move slowest. A file that cannot be read is handed to ``unreadable`` with its error and the
+    rest fit the frames (without it, the error is raised); a ``MappingError`` always is: it holds for every file."""
+    # the walks first; should none of them be readable, the other clips fit the frames
+    chosen = walks + [f for f in files if f not in walks] if walks else files
     if not walks:
         log.warning(
             "no clip is a walk (no folder or file name says so): the segment frames are fitted on all %d clips, so "
             "the pelvis's and trunk's frames take their mean lean; add walks of the same rig for neutral frames",
             len(files),
         )
-    per_clip, no_stance = [], []
+    per_clip, no_stance, readable = [], [], []
     for f in chosen:
+        if readable and walks and f not in walks:
+            break  # a readable walk fitted them: the other clips are not for the frames
         try:
             per_clip.append(read_clip_offsets(f, mapping, trunk_axes=trunk_axes))
         except NoStanceError as exc:
             no_stance.append(exc)
+        except MappingError:
+            raise
+        except (ValueError, OSError, np.linalg.LinAlgError) as exc:
+            if unreadable is None:
+                raise
+            unreadable(f, exc)
+            continue
+        readable.append(f)
+    chosen = readable
+    if not chosen:
+        raise ValueError(f"none of the {len(walks or files)} clips that would fit this skeleton's frames can be read")
     if not per_clip:  # no clip stands flat long enough (sprints, jumps): the feet level where they move slowest
         log.warning(
             "%s; so in none of these %d clips: each foot's frame is taken level where it moves slowest (its "

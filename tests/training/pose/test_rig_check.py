@@ -295,3 +295,46 @@ class _InProcessPool:
 
     def map(self, fn, jobs, chunksize: int = 1):
         return map(fn, jobs)
+
+
+def test_a_broken_file_beside_good_ones_of_an_unknown_skeleton_is_left_out_alone(data_dir, tmp_path) -> None:
+    """The files of one skeleton share frames fitted on them: a file among them that cannot be read (truncated, a
+    value that is not a number or not finite, a corrupt gzip) is left out with its own reason, and the others are
+    fitted and scored without it; a mapping that cannot be read names its file."""
+    import gzip
+    import json
+
+    from service.core.body import MappingError
+    from tests.training.lab_rig import lab_clips, lab_mapping
+    from training.pose.user_mocap import user_clips
+
+    walk = tmp_path / "mine" / "walk"
+    lab_clips(data_dir, walk, ["07_01", "07_02"])
+    text = (walk / "07_01.bvh").read_text()
+    head, motion = text.split("Frame Time:")
+    rows = motion.splitlines()
+    (walk / "truncated.bvh").write_text(head + "Frame Time:" + "\n".join(rows[: len(rows) // 2]) + "\n")
+    (walk / "nan.bvh").write_text(
+        head + "Frame Time:" + "\n".join([rows[0], rows[1].replace(" ", " nan ", 1)] + rows[2:])
+    )
+    (walk / "word.bvh").write_text(head + "Frame Time:" + "\n".join([rows[0], rows[1] + " x1"] + rows[2:]))
+    (walk / "crc.bvh.gz").write_bytes(gzip.compress(text.encode())[:-8] + b"\0" * 8)
+    mapping = tmp_path / "lab.json"
+    mapping.write_text(json.dumps(lab_mapping()))
+    skipped: list[dict[str, str]] = []
+    clips = user_clips([tmp_path / "mine"], mapping, "hinge", skipped=skipped)
+    assert sorted(Path(c.path).name for c in clips) == ["07_01.bvh", "07_02.bvh"]
+    reasons = {Path(s["clip"]).name: s["reason"] for s in skipped}
+    assert set(reasons) == {"truncated.bvh", "nan.bvh", "word.bvh", "crc.bvh.gz"}, reasons
+    assert "values" in reasons["truncated.bvh"] and "not finite" in reasons["nan.bvh"]
+    assert "'x1'" in reasons["word.bvh"] and "gzip" in reasons["crc.bvh.gz"]
+    assert all(Path(s["clip"]).name in s["reason"] for s in skipped)  # each its own reason
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("segments: [unclosed\n")
+    with pytest.raises(MappingError, match="broken.yaml: not valid YAML"):
+        user_clips([tmp_path / "mine"], broken, "hinge")
+    twice = lab_mapping()
+    twice["segments"]["RightUpperLeg"] = twice["segments"]["LeftUpperLeg"]
+    mapping.write_text(json.dumps(twice))
+    with pytest.raises(MappingError, match="share one"):
+        user_clips([tmp_path / "mine"], mapping, "hinge")
