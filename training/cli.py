@@ -698,7 +698,10 @@ def _rigs_of(data_dir: Path | None) -> Path | None:
     is one; a user's own mocap is scored without it too."""
     try:
         return resolve_data_dir(data_dir)
-    except RuntimeError:
+    except RuntimeError as exc:
+        if data_dir is not None:  # named, but not one: say so, since the frames then differ
+            raise typer.BadParameter(str(exc)) from None
+        typer.echo(f"no data directory ({exc}): every skeleton's frames are fitted on its own clips", err=True)
         return None
 
 
