@@ -942,7 +942,8 @@ def test_rest_pose_warns_of_a_sensor_whose_readings_do_not_fit_its_declared_unit
     assert client.post("/v1/pose/imu", json=short).json()["warnings"] == []
 
 
-def test_a_bad_frame_packet_closes_naming_its_sensor_after_the_earlier_answers(server: str, walk) -> None:
+def _six_sensor_frames(server: str, walk) -> tuple[np.ndarray, dict, str]:
+    """The walk's first 64 frames of six declared sensors ``(64, 6, 10)``, their start message and the stream URL."""
     motion, raw = walk
     rows = np.stack([_rows(raw, k)[:64] for k in range(len(SIX_SENSORS))], axis=1)
     sensors = [
@@ -950,7 +951,11 @@ def test_a_bad_frame_packet_closes_naming_its_sensor_after_the_earlier_answers(s
         for k, s in enumerate(SIX_SENSORS)
     ]
     start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}
-    url = server.replace("http", "ws") + "/v1/stream"
+    return rows, start, server.replace("http", "ws") + "/v1/stream"
+
+
+def test_a_bad_frame_packet_closes_naming_its_sensor_after_the_earlier_answers(server: str, walk) -> None:
+    rows, start, url = _six_sensor_frames(server, walk)
     bad = rows[32:48].copy()
     bad[3, SIX_SENSORS.index("Head"), 0] = np.nan
     good = [encode_binary(ALL_SENSORS, f, rows[f : f + 16]) for f in (0, 16)]
@@ -966,19 +971,12 @@ def test_gaps_in_a_pose_stream_are_held_or_refused_as_documented(server: str, wa
     """Frame packets after a gap: every sensor holds its last sample and each says so (a gap as long as the buffer
     allows is not taken for one sensor falling behind); a gap longer than that (a device counting from a timestamp)
     is refused at once with the jump named, and the frames answered before it stand."""
-    motion, raw = walk
-    rows = np.stack([_rows(raw, k)[:64] for k in range(len(SIX_SENSORS))], axis=1)
-    sensors = [
-        {"sensor_id": s.lower(), "segment": s, "q_segment_sensor": raw.q_segment_sensor[k].tolist()}
-        for k, s in enumerate(SIX_SENSORS)
-    ]
-    start = {"type": "start", "sensors": sensors, "pose": {"calibration": "declared"}}
-    url = server.replace("http", "ws") + "/v1/stream"
+    rows, start, url = _six_sensor_frames(server, walk)
     held = [encode_binary(ALL_SENSORS, 0, rows[:32]), encode_binary(ALL_SENSORS, 32 + 1200, rows[32:64])]
     messages, code, reason = asyncio.run(_stream(url, start, held))
     assert code == 1000, reason
     gaps = [m for m in messages if m["type"] == "gap"]
-    assert sorted(m["sensor_id"] for m in gaps) == sorted(s["sensor_id"] for s in sensors)
+    assert sorted(m["sensor_id"] for m in gaps) == sorted(s["sensor_id"] for s in start["sensors"])
     assert all(m["missing"] == 1200 and m["expected_seq"] == 32 for m in gaps)
     assert sum(m["frames"] for m in messages if m["type"] == "pose") == 64 + 1200 - 5
     for jump in (32 + 1201, 2**32 - 1):
