@@ -225,6 +225,7 @@ def evaluate(
 
     from service.core.manifest import read_manifest
     from training.i2s.ship import evaluate_shipped, record_real_loso
+    from training.tracking import default_tracking_uri
 
     task = read_manifest(shipped_model(model_dir) / "manifest.json").task
     if task not in ("i2s_assignment", "i2s_alignment"):
@@ -232,7 +233,6 @@ def evaluate(
             f"{model_dir} is a {task} model; evaluate scores I2S models (evaluate-pose, evaluate-flex and "
             "evaluate-capacitive score the others)"
         )
-    from training.tracking import default_tracking_uri
 
     mlflow.set_tracking_uri(default_tracking_uri())
     _restore_into_empty_store()  # a fresh clone: the runs the manifests name
