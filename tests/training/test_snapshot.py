@@ -133,6 +133,8 @@ def test_a_fresh_store_gets_the_runs_and_registry_behind_the_shipped_models(
         # capacitive strides bent further (docs/flex.md, "Strides bent further")
         | {f"flex_capacitive_knee_deeper_leg_{leg}_seed{s}" for leg in ("Left", "Right") for s in (0, 1, 2)}
         | {f"flex_capacitive_knee_deeper_{v}seed{s}" for v in ("", "reverse_") for s in (0, 1, 2)}
+        # pose_full6 at other speeds and sizes (docs/pose.md, "Other speeds and other sizes")
+        | {"pose_full6_speed_size", "pose_full6_speed_size_seed1", "pose_full6_speed_size_mean"}
     )
     # versions of served models whose runs lost their shipping rule (the mirror-image runs, docs/flex.md, docs/pose.md)
     not_shipped = {"flex_bilstm_cm v3", "pose_lower3_stream v5", "pose_full6 v6", "pose_lower3_walk v2"}
