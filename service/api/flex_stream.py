@@ -42,6 +42,7 @@ from service.api.protocol import ProtocolError, decode_binary
 from service.api.schemas import Sample
 from service.api.stream import _first_error, _parse_text
 from service.api.stream_admission import admit_or_refuse, record_answer_latency
+from service.core.stream import repeated_samples
 from service.inference.flex import FlexModel, LiveFlex, check_rows, readout_message
 from service.inference.predict import InputError
 
@@ -132,7 +133,7 @@ async def _accept(ws: WebSocket, live: LiveFlex, seq: int, rows: np.ndarray, out
     except InputError as exc:
         raise ProtocolError(str(exc)) from None
     if seq < live.samples_in:
-        dropped = min(live.samples_in - seq, len(rows))
+        dropped = repeated_samples(live.samples_in, seq, len(rows))
         outbox.put({"type": "late", "seq": seq, "expected_seq": live.samples_in, "samples_dropped": dropped})
         if dropped == len(rows):
             return

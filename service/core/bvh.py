@@ -46,15 +46,21 @@ class Bvh:
         raise KeyError(f"joint {name!r} not in BVH; joints are {[j.name for j in self.joints]}")
 
 
+# what opening a corrupt gzip or a file that is not text raises: a format error of that file
+UNREADABLE = (EOFError, zlib.error, gzip.BadGzipFile, UnicodeDecodeError)
+
+
+def _unreadable(path: Path, exc: Exception) -> BvhFormatError:
+    return BvhFormatError(f"{path}: not a readable BVH file{' (gzip)' if path.suffix == '.gz' else ''}: {exc}")
+
+
 def read_bvh(path: str | Path) -> Bvh:
     """Parse a BVH file, plain or gzipped (``.bvh.gz``)."""
     path = Path(path)
     try:
         text = gzip.open(path, "rt").read() if path.suffix == ".gz" else path.read_text()
-    except (EOFError, zlib.error, gzip.BadGzipFile, UnicodeDecodeError) as exc:
-        raise BvhFormatError(
-            f"{path}: not a readable BVH file{' (gzip)' if path.suffix == '.gz' else ''}: {exc}"
-        ) from None
+    except UNREADABLE as exc:
+        raise _unreadable(path, exc) from None
     tokens = text.split()
     return _parse(tokens, str(path))
 
@@ -70,10 +76,8 @@ def read_bvh_header(path: str | Path) -> tuple[Bvh, int]:
                 header.append(line)
                 if line.strip().startswith("Frame Time:"):
                     break
-    except (EOFError, zlib.error, gzip.BadGzipFile, UnicodeDecodeError) as exc:
-        raise BvhFormatError(
-            f"{path}: not a readable BVH file{' (gzip)' if path.suffix == '.gz' else ''}: {exc}"
-        ) from None
+    except UNREADABLE as exc:
+        raise _unreadable(path, exc) from None
     tokens = "".join(header).split()
     if "MOTION" not in tokens:
         raise BvhFormatError(f"{path}: expected 'MOTION' after the HIERARCHY, found the end of the file")
@@ -142,8 +146,9 @@ def _parse(tokens: list[str], where: str) -> Bvh:
     try:
         values = np.array(tokens[i + 1 :], dtype=np.float64)
     except ValueError:
-        bad = next(t for t in tokens[i + 1 :] if not _is_number(t))
-        raise BvhFormatError(f"{where}: expected numbers in the MOTION table, found {bad[:40]!r}") from None
+        for t in tokens[i + 1 :]:  # the first that is none, named
+            _number(t, float, "numbers in the MOTION table", where)
+        raise
     if not np.isfinite(values).all():
         k = int(np.flatnonzero(~np.isfinite(values))[0])
         row = k // n_channels if n_channels else 0
@@ -154,14 +159,6 @@ def _parse(tokens: list[str], where: str) -> Bvh:
             f"found {values.size}"
         )
     return Bvh(tuple(joints), end_sites, frame_time_s, values.reshape(n_frames, n_channels))
-
-
-def _is_number(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
 
 
 ROOT_CHANNELS = ("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation")

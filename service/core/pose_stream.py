@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.core.stream import repeated_samples
+
 MAX_LAG_FRAMES = 1200  # 20 s at 60 Hz: a sensor further behind the others stalls the session
 
 
@@ -80,7 +82,7 @@ class FrameAligner:
             return result
         if seq < self.expected[k]:
             result.late = (self.expected[k], seq)
-            result.late_dropped = min(self.expected[k] - seq, len(samples))
+            result.late_dropped = repeated_samples(self.expected[k], seq, len(samples))
             if result.late_dropped == len(samples):
                 return result
             samples, seq = samples[result.late_dropped :], self.expected[k]

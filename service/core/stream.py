@@ -55,6 +55,12 @@ def resample_linear(x: np.ndarray, from_hz: float, to_hz: float = MODEL_RATE_HZ)
     return resample_timestamps(np.arange(len(x)) / from_hz, x, to_hz)[1]
 
 
+def repeated_samples(expected_seq: int, seq: int, n: int) -> int:
+    """How many of a packet's ``n`` samples from ``seq`` repeat samples already received (``expected_seq``: the
+    next new one): dropped, and the packet's samples after them kept."""
+    return max(0, min(expected_seq - seq, n))
+
+
 @dataclass
 class PushResult:
     windows: list[np.ndarray] = field(default_factory=list)  # each (128, 6) float32, contract units
@@ -87,7 +93,7 @@ class SensorStream:
         result = PushResult()
         if seq < self.expected_seq:
             result.late = (self.expected_seq, seq)
-            result.late_dropped = min(self.expected_seq - seq, len(samples))
+            result.late_dropped = repeated_samples(self.expected_seq, seq, len(samples))
             if result.late_dropped == len(samples):
                 return result
             samples, seq = samples[result.late_dropped :], self.expected_seq

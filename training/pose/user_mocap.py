@@ -189,7 +189,7 @@ def fitted_rig(
     level where they move slowest. A file that cannot be read is handed to ``unreadable`` with its error and the
     rest fit the frames (without it, the error is raised); a ``MappingError`` always is: it holds for every file."""
     # the walks first; should none of them be readable, the other clips fit the frames
-    chosen = walks + [f for f in files if f not in walks] if walks else files
+    chosen = walks + [f for f in files if f not in walks]
     if not walks:
         log.warning(
             "no clip is a walk (no folder or file name says so): the segment frames are fitted on all %d clips, so "
