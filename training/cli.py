@@ -195,19 +195,46 @@ def quantize(
     model_dir: Path,
     version: str = typer.Option(..., help="the version directory to write beside model_dir"),
     rnn: bool = typer.Option(False, help="also int8 LSTM weights (dynamic)"),
-    calibration_windows: int = typer.Option(1024, help="simulated training windows for the static calibration"),
+    calibration_windows: int = typer.Option(1024, help="training windows for the static calibration"),
+    calibrate_on: str = typer.Option(
+        "simulated", help="simulated: the run's simulated training windows; real: its real training recordings"
+    ),
+    float_first_conv: bool = typer.Option(False, help="keep the convolutions of the raw sensor channels float32"),
+    max_probability_diff: float = typer.Option(
+        0.01, help="refuse an assignment file whose golden probabilities move further than this"
+    ),
+    loso_run: str | None = typer.Option(
+        None, help="also quantise this real-loso run's folds alike and write their held-out figures as a new run"
+    ),
     data_dir: Path | None = DataDir,
     cache_dir: Path = DEFAULT_CACHE,
 ) -> None:
     """Write an int8 variant of a shipped model (static QDQ Conv, optionally int8 LSTM); evaluate it next."""
     import mlflow
 
-    from training.i2s.quantize import ship_int8
+    from training.i2s.quantize import CALIBRATE_ON, quantize_folds, ship_int8
     from training.tracking import default_tracking_uri
 
+    if calibrate_on not in CALIBRATE_ON:
+        raise typer.BadParameter(f"one of {', '.join(CALIBRATE_ON)}; got {calibrate_on!r}", param_hint="--calibrate-on")
     mlflow.set_tracking_uri(default_tracking_uri())
-    target = ship_int8(model_dir, version, resolve_data_dir(data_dir), cache_dir, calibration_windows, rnn)
+    root = resolve_data_dir(data_dir)
+    model_dir = shipped_model(model_dir)
+    target = ship_int8(
+        model_dir,
+        version,
+        root,
+        cache_dir,
+        calibration_windows,
+        rnn,
+        calibrate_on,
+        float_first_conv,
+        max_probability_diff,
+    )
     typer.echo(f"{target}  (next: python -m training.cli evaluate {target})")
+    if loso_run:
+        summary = quantize_folds(loso_run, root, cache_dir, calibration_windows, rnn, calibrate_on, float_first_conv)
+        typer.echo(f"int8 folds: run_id={summary}  (next: python -m training.cli real-table --loso-run {summary})")
 
 
 @app.command()

@@ -192,21 +192,39 @@ def run_real_loso(
         run_id = _finished_fold(fold_cfg, held_out) or run_training(
             fold_cfg, data_dir, cache_dir, False, eval_max_windows, tags={"real_loso_held_out": held_out}
         )
-        metrics = MlflowClient().get_run(run_id).data.metrics
-        names = [r.name.replace("/", ".") for r in persons[held_out]]
-        n_windows = sum(metrics.get(f"n_windows.{name}", 0.0) for name in names)
-        folds[held_out] = {"n_windows": n_windows} | {k: metrics[k] for k in HELD_OUT_METRICS}
-        folds[held_out]["run_id"] = run_id  # type: ignore[assignment]
+        folds[held_out] = fold_figures(run_id, persons[held_out])
         source_of[held_out] = persons[held_out][0].source
+    return log_real_loso_summary(cfg, folds, source_of, data_dir, f"{cfg.name}_real_loso")
+
+
+def fold_figures(run_id: str, recordings: list[RealRecording]) -> dict[str, float]:
+    """A fold run's figures on its held-out person's ``recordings`` (``HELD_OUT_METRICS``, window count, run id)."""
+    metrics = MlflowClient().get_run(run_id).data.metrics
+    n_windows = sum(metrics.get(f"n_windows.{r.name.replace('/', '.')}", 0.0) for r in recordings)
+    return {"n_windows": n_windows} | {k: metrics[k] for k in HELD_OUT_METRICS} | {"run_id": run_id}  # type: ignore[dict-item]
+
+
+def log_real_loso_summary(
+    cfg: ExperimentConfig,
+    folds: dict[str, dict[str, float]],
+    source_of: dict[str, str],
+    data_dir: Path,
+    run_name: str,
+    tags: dict[str, str] | None = None,
+) -> tuple[str, dict[str, dict[str, float]]]:
+    """The summary run of leave-one-person-out folds (``fold_figures`` per person, each person's source): pooled and
+    per-source figures, the per-person bars, and every fold's held-out predictions (``fold_predictions``)."""
     pooled = {"pooled": _pooled(list(folds.values()))}
     for source in dict.fromkeys(source_of.values()):
         pooled[f"pooled/{source}"] = _pooled([f for p, f in folds.items() if source_of[p] == source])
-    with mlflow.start_run(run_name=f"{cfg.name}_real_loso") as run, tempfile.TemporaryDirectory() as tmp_dir:
+    with mlflow.start_run(run_name=run_name) as run, tempfile.TemporaryDirectory() as tmp_dir:
         mlflow.log_params(
             {k: str(v) for k, v in flatten(cfg.model_dump()).items() if k != "data.real_train_recordings"}
         )
         mlflow.set_tags(
-            {"task": cfg.task, "real_loso": "summary"} | {f"fold_run.{p}": str(f["run_id"]) for p, f in folds.items()}
+            {"task": cfg.task, "real_loso": "summary"}
+            | {f"fold_run.{p}": str(f["run_id"]) for p, f in folds.items()}
+            | (tags or {})
         )
         for name, figures in pooled.items():
             prefix = "" if name == "pooled" else f"{name.removeprefix('pooled/')}."
@@ -215,7 +233,7 @@ def run_real_loso(
             mlflow.log_metrics({f"{person}.{k}": fold[k] for k in (*HELD_OUT_METRICS, "n_windows")})
         mlflow.log_dict(folds | pooled, "evaluation/real_loso.json")
         png = held_out_bars_png(
-            folds, Path(tmp_dir) / "real_loso.png", f"{cfg.name}: real recordings, one person held out"
+            folds, Path(tmp_dir) / "real_loso.png", f"{run_name}: real recordings, one person held out"
         )
         mlflow.log_artifact(str(png), "plots")
         summary_id = run.info.run_id

@@ -324,6 +324,32 @@ def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
     assert _finished_fold(same, chosen[0]) == folds[chosen[0]]["run_id"]
     changed = same.model_copy(update={"data": same.data.model_copy(update={"real_fraction": 0.3})})
     assert _finished_fold(changed, chosen[0]) is None  # another recipe trains its own folds
+    # its folds quantised as a shipped file is (each calibrated on its own training people), scored on the same people
+    import mlflow
+    import onnx
+
+    from training.i2s.quantize import input_convolutions, quantize_folds
+
+    int8_id = quantize_folds(summary_id, data_dir, kinematics_cache, 64, False, "real", True)
+    int8 = client.get_run(int8_id)
+    assert int8.data.tags["quantized_from"] == summary_id and int8.data.tags["real_loso"] == "summary"
+    for person in chosen:
+        fold_run = client.get_run(int8.data.tags[f"fold_run.{person}"])
+        assert fold_run.data.tags["quantized_from"] == folds[person]["run_id"]
+        assert fold_run.data.tags["real_loso_held_out"] == person
+        assert int8.data.metrics[f"{person}.n_windows"] == folds[person]["n_windows"]  # the same windows scored
+        assert "real training windows" in fold_run.data.params["quantization"]
+    assert {h.person for h in fold_predictions(int8_id, data_dir)} == set(chosen)
+    fold_model = client.get_run(int8.data.tags[f"fold_run.{chosen[0]}"]).data.tags["model_uri"]
+    graph = onnx.load(str(next(Path(mlflow.artifacts.download_artifacts(fold_model)).rglob("*.onnx")))).graph
+    weights = {n.name: n.input[1] for n in graph.node if n.op_type == "Conv"}
+    dequantized = {n.output[0] for n in graph.node if n.op_type == "DequantizeLinear"}
+    first = input_convolutions(REPO / "onnx_models/i2s_assignment/1.11.0/model.onnx")
+    assert first == ["/net/cnn/net/net.0/Conv"]
+    assert [name for name, w in weights.items() if w not in dequantized] == first  # the input convolution stays float
+    assert len(weights) == 3
+    with pytest.raises(ValueError, match="not a real-loso summary run"):
+        quantize_folds(str(folds[chosen[0]]["run_id"]), data_dir, kinematics_cache, 64, False, "real", True)
     with pytest.raises(ValueError, match="real_fraction > 0"):
         run_real_loso(load_config(REPO / "training/configs/i2s_assignment.yaml", TINY), data_dir, kinematics_cache)
     with pytest.raises(ValueError, match="no real recordings of \\['nobody'\\]"):
