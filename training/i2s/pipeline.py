@@ -255,6 +255,8 @@ def _finished_fold(fold_cfg: ExperimentConfig, held_out: str) -> str | None:
         order_by=["attributes.start_time DESC"],
     )
     for run in runs:
+        if "quantized_from" in run.data.tags:  # an int8 copy of a fold (training.i2s.quantize), not one trained
+            continue
         if all(run.data.params.get(k) == v for k, v in expected.items()) and "model_uri" in run.data.tags:
             log.info("fold %s: reusing finished run %s", held_out, run.info.run_id)
             return run.info.run_id

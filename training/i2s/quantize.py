@@ -262,6 +262,8 @@ def quantize_folds(
             with mlflow.start_run(run_name=f"{cfg.name} int8 · held out {person}", tags=run_tags):
                 mlflow.log_params({"quantization": described[:500], "quantized_from": fold_id})
                 mlflow.log_metric("int8_golden_max_abs_diff", parity)
+                mlflow.log_text(mlflow.artifacts.load_text(f"runs:/{fold_id}/config.yaml"), "config.yaml")
+                mlflow.log_artifact(str(golden), "export")  # the fold's golden pair: write_run checks against it
                 _log_real_evaluation(cfg, tmp / "int8.onnx", data_dir, tmp)
                 info = mlflow.onnx.log_model(
                     onnx.load(str(tmp / "int8.onnx")), name="model", save_as_external_data=False

@@ -251,7 +251,7 @@ def test_fit_mixes_in_the_real_recordings_its_pack_carries_and_is_tracked_only_w
 
 
 def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
-    mlflow_server: str, data_dir: Path, kinematics_cache: Path
+    mlflow_server: str, data_dir: Path, kinematics_cache: Path, tmp_path: Path
 ) -> None:
     """Two of the real people, two fold runs: each trains on every other person's recordings and is scored on
     their own only; the summary's pooled figures are the window-weighted means of the folds' held-out figures."""
@@ -348,6 +348,17 @@ def test_real_loso_holds_each_person_out_once_and_pools_their_windows(
     assert first == ["/net/cnn/net/net.0/Conv"]
     assert [name for name, w in weights.items() if w not in dequantized] == first  # the input convolution stays float
     assert len(weights) == 3
+    # an int8 fold is written out as a fold model is (the held-out time-to-answer benchmark serves it), its golden
+    # pair within the parity it states
+    from service.inference.registry import load_model
+    from training.i2s.ship import write_run
+
+    written = write_run(int8.data.tags[f"fold_run.{chosen[0]}"], tmp_path / "int8", version="0.0.0")
+    manifest = read_manifest(written / "manifest.json")
+    assert "quantization" in manifest.exporter and manifest.parity_atol >= 1e-4
+    with np.load(written / "golden.npz") as golden:
+        got = load_model(written, threads=1).run(golden["imu"])
+        assert np.abs(got - golden["expected"]).max() <= manifest.parity_atol
     with pytest.raises(ValueError, match="not a real-loso summary run"):
         quantize_folds(str(folds[chosen[0]]["run_id"]), data_dir, kinematics_cache, 64, False, "real", True)
     with pytest.raises(ValueError, match="real_fraction > 0"):
