@@ -66,6 +66,15 @@ def field_errors(errors: list[dict]) -> dict[str, Any]:
     }
 
 
+def _not_json(content_type: str) -> str | None:
+    """What a Content-Type header that is not JSON says (FastAPI reads only ``application/json`` and
+    ``application/*+json`` bodies as JSON, and no body without the header); None for JSON."""
+    media = content_type.split(";", 1)[0].strip().lower()
+    if media == "application/json" or (media.startswith("application/") and media.endswith("+json")):
+        return None
+    return excerpt(media, 80) if media else "no Content-Type"
+
+
 def error_response(status: int, detail: str, headers: dict[str, str] | None = None, **extra: Any) -> Response:
     """The one error body; escaped to ASCII, so a lone surrogate echoed from the client cannot make it
     unencodable."""
@@ -81,7 +90,12 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _invalid_request(request: Request, exc: RequestValidationError) -> Response:
-        body = field_errors(list(exc.errors()))
+        errors = list(exc.errors())
+        if (not_json := _not_json(request.headers.get("content-type", ""))) and any(
+            tuple(e.get("loc", ())) == ("body",) and e.get("type") != "missing" for e in errors
+        ):  # FastAPI reads a body as JSON only under a JSON Content-Type: else it fails as "not a valid dictionary"
+            return error_response(415, f"this route takes a JSON body (Content-Type: application/json); got {not_json}")
+        body = field_errors(errors)
         return error_response(422, body.pop("detail"), **body)
 
     @app.exception_handler(StarletteHTTPException)

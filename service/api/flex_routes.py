@@ -90,6 +90,7 @@ def flex_storage(model: FlexModel, rows: np.ndarray) -> str:
         400,
         401,
         413,
+        415,
         422,
         503,
         details={

@@ -487,6 +487,7 @@ def _angles_answer(sources: dict[str, str], R_world: np.ndarray) -> dict:
         400,
         401,
         413,
+        415,
         422,
         503,
         details={

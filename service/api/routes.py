@@ -103,7 +103,7 @@ class _Route(APIRoute):
 
 router = APIRouter(route_class=_Route)
 TOO_MANY_WINDOWS = {413: {"too many windows": f"at most {MAX_WINDOWS_PER_REQUEST} windows per request, got 5000"}}
-WINDOWS_ERRORS = error_responses(400, 401, 413, 422, 503, details=TOO_MANY_WINDOWS)
+WINDOWS_ERRORS = error_responses(400, 401, 413, 415, 422, 503, details=TOO_MANY_WINDOWS)
 
 
 def _models(request: Request) -> dict[str, LoadedModel]:

@@ -640,6 +640,7 @@ _ERROR_EXAMPLES: dict[int, dict[str, dict]] = {
     400: {"not UTF-8": {"detail": "There was an error parsing the body"}},
     401: {"no key": {"detail": "missing or wrong X-API-Key header"}},
     413: {"too large": {"detail": "body of 40000000 bytes exceeds the limit of 33554432 bytes"}},
+    415: {"not JSON": {"detail": "this route takes a JSON body (Content-Type: application/json); got text/plain"}},
     422: {
         "a rule": {"detail": "windows[0]: at 60 Hz a window has 128 samples, got 127"},
         "a field": {"detail": "body: Field required", "errors": [_FIELD_ERROR], "errors_total": 1},
@@ -656,6 +657,7 @@ _ERROR_DESCRIPTIONS = {
     400: "the body is not UTF-8 text",
     401: "missing or wrong X-API-Key header (when the service has an API key)",
     413: "too large: a body over WEARMOCAP_MAX_BODY_BYTES (or, where the examples say so, too many windows)",
+    415: "a body sent with a Content-Type other than JSON on a route that reads JSON",
     422: "the body is not JSON, or the request breaks a rule of the schema or one stated in a field's description",
     503: "no model for this route is loaded, or the service is overloaded (then with Retry-After)",
 }

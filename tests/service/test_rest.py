@@ -506,3 +506,23 @@ def test_a_body_json_cannot_read_says_why(client: TestClient, body: bytes, fragm
     for route in ("/v1/imu/windows", "/v1/imu/assign", "/v1/pose/imu", "/v1/pose/flex"):
         r = client.post(route, content=body, headers={"content-type": "application/json"})
         assert r.status_code == 400 and fragment in r.json()["detail"], (route, r.status_code, r.text[:200])
+
+
+@pytest.mark.parametrize(
+    "content_type", ["text/plain", "application/x-www-form-urlencoded", "application/octet-stream", None]
+)
+def test_a_json_body_sent_as_another_media_type_is_named(client: TestClient, content_type: str) -> None:
+    """FastAPI reads a body as JSON only when its Content-Type says JSON; any other type, or none, failed as
+    "body: Input should be a valid dictionary". It is a 415 that names the type sent and the one expected."""
+    body = b'{"windows": [{"samples": [[0, 0, 9.8, 0, 0, 0]]}]}'
+    for route in ("/v1/imu/windows", "/v1/imu/assign", "/v1/pose/imu", "/v1/pose/flex"):
+        r = client.post(route, content=body, headers={"content-type": content_type} if content_type else {})
+        assert r.status_code == 415, (route, r.status_code, r.text[:200])
+        assert r.json()["detail"] == (
+            f"this route takes a JSON body (Content-Type: application/json); got {content_type or 'no Content-Type'}"
+        )
+    for declared in ("application/json; charset=utf-8", "application/vnd.wearmocap+json"):
+        r = client.post("/v1/imu/windows", content=body, headers={"content-type": declared})
+        assert r.status_code == 422 and "samples" in r.json()["detail"], (declared, r.text[:200])  # read as JSON
+    r = client.post("/v1/imu/windows")  # no body at all: the body is missing, whatever the header says
+    assert r.status_code == 422 and r.json()["detail"] == "body: Field required"
