@@ -129,7 +129,7 @@ def run_training(
         mlflow.log_artifact(str(tmp / "golden.npz"), "export")
         if test_clips:
             _log_simulated_evaluation(cfg, onnx_path, test_clips, tmp, eval_max_windows)
-        _log_real_evaluation(cfg, onnx_path, data_dir, tmp)
+        log_real_evaluation(cfg, onnx_path, data_dir, tmp)
         proto = onnx.load(str(onnx_path))
         # mlflow.onnx writes the proto's serialisation, whose sha256 the manifest states.
         current = MlflowClient().get_run(run.info.run_id)
@@ -346,7 +346,8 @@ def held_out_recordings(cfg: ExperimentConfig, data_dir: Path) -> list[RealRecor
     return [r for r in read_all_real(data_dir) if r.name not in cfg.data.real_train_recordings]
 
 
-def _log_real_evaluation(cfg: ExperimentConfig, onnx_path: Path, data_dir: Path, tmp: Path) -> None:
+def log_real_evaluation(cfg: ExperimentConfig, onnx_path: Path, data_dir: Path, tmp: Path) -> None:
+    """Score a model file on the real recordings its configuration did not train on and log it to the active run."""
     predict, recordings = onnx_predictor(onnx_path), held_out_recordings(cfg, data_dir)
     if not recordings:  # trained on every real person: their held-out figures are real-loso's
         log.info("no real recording held out of training: no real-data evaluation in this run")

@@ -9,7 +9,7 @@ layers stay float32 for the GRU (onnxruntime has no int8 GRU); for the LSTM, dyn
 The calibration windows are simulated training windows of the run (the default) or, with ``calibrate_on="real"``,
 windows of the run's real training recordings (what a model fine-tuned on real people sees when served). With
 ``float_first_conv`` the convolutions that read the six raw sensor channels stay float32: on the served assignment
-they moved most of the answers that int8 changed (docs/models.md, "int8 convolutions for the served assignment").
+they moved most of the answers that int8 changed (docs/models.md, "Served assignment 1.12.0").
 
 The quantised file is shipped as its own version beside the float32 one, with its own golden output and
 evaluations: accuracy is measured on the shipped int8 file by the same ``training.cli evaluate`` command, and a
@@ -34,7 +34,7 @@ from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantTy
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from service.core.manifest import read_manifest, sha256_file, write_manifest
-from service.core.recordings import read_all_real, read_recording
+from service.core.recordings import RealRecording, read_all_real, read_recording
 from service.core.windowing import sliding_windows
 from training.i2s.config import ExperimentConfig
 from training.i2s.data.windows import WindowSampler
@@ -223,7 +223,7 @@ def quantize_folds(
     calibrated on its own training windows, so never on the person it is scored on), score each on its held-out
     person as the fold run did (one tracked run per fold, ``quantized_from`` the fold), and write their summary run as
     ``real-loso`` writes one: ``real-table``, ``swing-table`` and ``calibrate`` read it alike. Returns its run id."""
-    from training.i2s.pipeline import _log_real_evaluation, fold_figures, log_real_loso_summary
+    from training.i2s.pipeline import fold_figures, log_real_evaluation, log_real_loso_summary
     from training.i2s.ship import load_run_config
     from training.tracking import setup_tracking
 
@@ -233,7 +233,7 @@ def quantize_folds(
     folds = {k.removeprefix("fold_run."): v for k, v in tags.items() if k.startswith("fold_run.")}
     if not folds:
         raise ValueError(f"run {summary_run_id} is not a real-loso summary run (no fold_run.* tags)")
-    persons: dict[str, list] = {}
+    persons: dict[str, list[RealRecording]] = {}
     for recording in read_all_real(data_dir):
         persons.setdefault(recording.subject, []).append(recording)
     figures: dict[str, dict[str, float]] = {}
@@ -264,7 +264,7 @@ def quantize_folds(
                 mlflow.log_metric("int8_golden_max_abs_diff", parity)
                 mlflow.log_text(mlflow.artifacts.load_text(f"runs:/{fold_id}/config.yaml"), "config.yaml")
                 mlflow.log_artifact(str(golden), "export")  # the fold's golden pair: write_run checks against it
-                _log_real_evaluation(cfg, tmp / "int8.onnx", data_dir, tmp)
+                log_real_evaluation(cfg, tmp / "int8.onnx", data_dir, tmp)
                 info = mlflow.onnx.log_model(
                     onnx.load(str(tmp / "int8.onnx")), name="model", save_as_external_data=False
                 )
