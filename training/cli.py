@@ -193,7 +193,9 @@ def export(run_id: str, out_root: Path = typer.Option(Path("onnx_models")), vers
 @app.command()
 def quantize(
     model_dir: Path,
-    version: str = typer.Option(..., help="the version directory to write beside model_dir"),
+    version: str | None = typer.Option(
+        None, help="the version directory to write beside model_dir (without it, --loso-run's folds only)"
+    ),
     rnn: bool = typer.Option(False, help="also int8 LSTM weights (dynamic)"),
     calibration_windows: int = typer.Option(1024, help="training windows for the static calibration"),
     calibrate_on: str = typer.Option(
@@ -209,7 +211,9 @@ def quantize(
     data_dir: Path | None = DataDir,
     cache_dir: Path = DEFAULT_CACHE,
 ) -> None:
-    """Write an int8 variant of a shipped model (static QDQ Conv, optionally int8 LSTM); evaluate it next."""
+    """Write an int8 variant of a shipped model (static QDQ Conv, optionally int8 LSTM); evaluate it next. With
+    --loso-run, the recipe's folds are quantised alike and scored on their held-out people first (without --version,
+    only they are: judge them before a file that the service would serve is written)."""
     import mlflow
 
     from training.i2s.quantize import CALIBRATE_ON, quantize_folds, ship_int8
@@ -217,9 +221,16 @@ def quantize(
 
     if calibrate_on not in CALIBRATE_ON:
         raise typer.BadParameter(f"one of {', '.join(CALIBRATE_ON)}; got {calibrate_on!r}", param_hint="--calibrate-on")
+    if version is None and loso_run is None:
+        raise typer.BadParameter("name the --version to write (or --loso-run to quantise a recipe's folds only)")
     mlflow.set_tracking_uri(default_tracking_uri())
     root = resolve_data_dir(data_dir)
     model_dir = shipped_model(model_dir)
+    if loso_run:
+        summary = quantize_folds(loso_run, root, cache_dir, calibration_windows, rnn, calibrate_on, float_first_conv)
+        typer.echo(f"int8 folds: run_id={summary}  (next: python -m training.cli real-table --loso-run {summary})")
+    if version is None:
+        return
     target = ship_int8(
         model_dir,
         version,
@@ -232,9 +243,6 @@ def quantize(
         max_probability_diff,
     )
     typer.echo(f"{target}  (next: python -m training.cli evaluate {target})")
-    if loso_run:
-        summary = quantize_folds(loso_run, root, cache_dir, calibration_windows, rnn, calibrate_on, float_first_conv)
-        typer.echo(f"int8 folds: run_id={summary}  (next: python -m training.cli real-table --loso-run {summary})")
 
 
 @app.command()

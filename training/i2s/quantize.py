@@ -236,14 +236,25 @@ def quantize_folds(
     persons: dict[str, list[RealRecording]] = {}
     for recording in read_all_real(data_dir):
         persons.setdefault(recording.subject, []).append(recording)
+    runs = {person: client.get_run(local_run_id(fold_run)) for person, fold_run in sorted(folds.items())}
+    for person, fold in runs.items():  # every fold checked before any is quantised
+        if "model_uri" not in fold.data.tags:
+            raise ValueError(
+                f"fold run {fold.info.run_id} ({person}) has no model in this store (a snapshot keeps none): quantise "
+                "its folds in the store that trained them, or run real-loso again"
+            )
+        scored = {k.removeprefix("n_windows.") for k in fold.data.metrics if k.startswith("n_windows.")}
+        here = {r.name.replace("/", ".") for r in persons.get(person, [])}
+        if scored != here:
+            raise ValueError(
+                f"fold {person} was scored on {sorted(scored)}, the data directory holds {sorted(here)} of them: "
+                "its int8 figures would not be comparable"
+            )
     figures: dict[str, dict[str, float]] = {}
     cfg = None
-    for k, (person, fold_run) in enumerate(sorted(folds.items())):
+    for k, (person, fold) in enumerate(runs.items()):
         log.info("int8 fold %d/%d: %s", k + 1, len(folds), person)
-        fold_id = local_run_id(fold_run)
-        fold = client.get_run(fold_id)
-        if "model_uri" not in fold.data.tags:
-            raise ValueError(f"fold run {fold_run} ({person}) has no model in this store (a snapshot keeps none)")
+        fold_id = fold.info.run_id
         cfg = ExperimentConfig.model_validate(load_run_config(fold_id))
         setup_tracking(cfg.tracking.experiment)
         with tempfile.TemporaryDirectory() as tmp_dir:

@@ -329,7 +329,13 @@ def record_real_loso(model_dir: Path, summary_run_id: str, command: str) -> Mani
         command=command,
         data=f"real recordings, leave one person out: real-loso summary run {summary_run_id}, "
         f"{sum(1 for n in folds if not n.startswith('pooled'))} people, each fold fine-tuned by the same recipe "
-        "without the person it is scored on; moving windows; per window and one-to-one per moment",
+        "without the person it is scored on"
+        + (
+            f" and quantised as this file is (from real-loso run {summary.data.tags['quantized_from']})"
+            if "quantized_from" in summary.data.tags
+            else ""
+        )
+        + "; moving windows; per window and one-to-one per moment",
         metrics=metrics,
     )
     manifest.evaluations = [e for e in manifest.evaluations if e.name != REAL_LOSO] + [evaluation]

@@ -345,3 +345,42 @@ def test_evaluate_csv_scores_ones_own_files_as_the_reader_does(data_dir: Path, t
             app, ["evaluate-csv", "--rate", "60", "--skip-columns", "1", *bad], env={"COLUMNS": "400"}
         )
         assert out.exit_code == 2 and fragment in out.output, out.output
+
+
+def test_int8_calibration_windows_come_from_the_named_recordings_only(data_dir: Path) -> None:
+    """`quantize --calibrate-on real` draws its windows from a model's real training recordings: for a fold, never
+    the person it is scored on."""
+    from service.core.recordings import read_recording
+    from training.i2s.quantize import real_calibration_windows
+
+    name = "gaitmap_foot/imu_sample_ic_stride"
+    every = np.concatenate(
+        [
+            sliding_windows(s.imu.astype(np.float32))
+            for s in read_recording(data_dir, name).sensors
+            if s.segment is not None
+        ]
+    )
+    drawn = real_calibration_windows([name], data_dir, 10**6)  # more than there are: all of them, in order
+    np.testing.assert_array_equal(drawn, every)
+    some = real_calibration_windows([name], data_dir, 16)
+    assert len(some) == 16 and all((every == w).all(axis=(1, 2)).any() for w in some)
+    with pytest.raises(ValueError, match="trained on no real recording"):
+        real_calibration_windows([], data_dir, 16)
+
+
+def test_quantize_says_what_it_needs(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from training.cli import app
+
+    served = Path(__file__).resolve().parents[3] / "onnx_models" / "i2s_assignment"
+    newest = sorted(served.iterdir(), key=lambda p: tuple(int(x) for x in p.name.split(".")))[-1]
+    for args, fragment in (
+        ([str(newest)], "name the --version to write (or --loso-run"),
+        ([str(newest), "--version", "9.9.9", "--calibrate-on", "mocap"], "one of simulated, real; got 'mocap'"),
+        ([str(tmp_path), "--version", "9.9.9"], "is not a shipped model folder"),
+    ):
+        out = CliRunner().invoke(app, ["quantize", *args], env={"COLUMNS": "400"})
+        assert out.exit_code == 2 and fragment in out.output, out.output
+    assert not (served / "9.9.9").exists()
