@@ -1,5 +1,7 @@
-"""uvicorn's WebSocket protocol with one change: a client that does not answer a ping in time is closed with 1008
-and a reason, and the connection lingers so that the reason can reach it.
+"""uvicorn's WebSocket protocol with two changes: a client that does not answer a ping in time is closed with 1008
+and a reason, and the connection lingers so that the reason can reach it; and a text message that is not UTF-8 is
+closed with 1007 and a reason that says where, logged in one line (uvicorn closes it with no reason and logs two
+tracebacks, its own close raising on a connection the WebSocket library is already closing).
 
 A client that stops reading its socket stops answering pings too, while the kernel's buffers (megabytes on
 loopback) still take everything the service sends: the ping is the first sign that it has fallen behind. uvicorn
@@ -14,6 +16,7 @@ whose buffers did fill.)
 from __future__ import annotations
 
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
+from websockets.protocol import State
 
 LINGER_S = 60.0
 
@@ -36,3 +39,20 @@ class WebSocketProtocol(WebSocketsSansIOProtocol):
         if self.transport.can_write_eof():
             self.transport.write_eof()
         self.close_timer = self.loop.call_later(max(self.close_timeout, LINGER_S), self.transport.close)
+
+    def send_receive_event_to_app(self) -> None:
+        if self.curr_msg_data_type == "text" and not self.close_sent:
+            try:
+                b"".join(self.frames).decode()
+            except UnicodeDecodeError as exc:
+                self.frames = []
+                reason = f"a text message must be UTF-8 JSON; byte {exc.start} is not UTF-8 ({exc.reason})"
+                self.logger.info("closing a WebSocket client with 1007: %s", reason)
+                self.queue.put_nowait({"type": "websocket.disconnect", "code": 1007, "reason": reason})
+                if self.conn.state is State.OPEN:
+                    self.conn.send_close(1007, reason)
+                self.transport.write(b"".join(self.conn.data_to_send()))
+                self.close_sent = True
+                self.transport.close()
+                return
+        super().send_receive_event_to_app()

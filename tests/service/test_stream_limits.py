@@ -9,6 +9,7 @@ import socket
 import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 import websockets
@@ -184,3 +185,34 @@ def test_streams_are_refused_while_the_admitted_ones_answer_late(tiny_models: Pa
         with c.websocket_connect("/v1/stream") as ws:
             ws.send_text(json.dumps(start))
             assert json.loads(ws.receive_text())["type"] == "started"
+
+
+def test_a_text_message_that_is_not_utf8_is_closed_with_1007_and_where(tiny_models: Path) -> None:
+    """uvicorn closed it with 1007 and no reason, and logged two tracebacks (its close raised on a connection the
+    WebSocket library was already closing); the client is told which byte, and the log has one line."""
+    from websockets.frames import Frame, Opcode
+
+    from benchmarks.servers import server_log
+
+    server, base = start_service(tiny_models)
+
+    async def send_bad_text() -> websockets.ConnectionClosed:
+        async with websockets.connect(base.replace("http", "ws") + "/v1/stream", ping_interval=None) as ws:
+            await ws.send(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+            assert json.loads(await ws.recv())["type"] == "started"
+            ws.protocol.send_frame(Frame(Opcode.TEXT, b'{"type": "\xff\xfe"}'))
+            ws.send_data()
+            with pytest.raises(websockets.ConnectionClosed) as closed:
+                while True:
+                    await asyncio.wait_for(ws.recv(), 10)
+            return closed.value
+
+    try:
+        closed = asyncio.run(send_bad_text())
+        assert httpx.get(base + "/health").status_code == 200  # the service goes on
+    finally:
+        stop(server)
+    assert closed.rcvd is not None and closed.rcvd.code == 1007
+    assert closed.rcvd.reason == "a text message must be UTF-8 JSON; byte 10 is not UTF-8 (invalid start byte)"
+    log = server_log(base).read_text()
+    assert "closing a WebSocket client with 1007" in log and "Traceback" not in log
