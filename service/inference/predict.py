@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
@@ -127,6 +128,25 @@ def window_results(
 
 MODE_DEG = 45.0  # windows within this of a window count towards its mode (``mean_alignment``)
 MODE_CANDIDATES = 64  # windows tried as the start of the robust mean
+_MODE_COS_HALF = float(np.cos(np.radians(MODE_DEG) / 2))
+
+
+def median(x: np.ndarray) -> float:
+    """``np.median`` of a 1-D array, the same value (NaN if any is NaN; the mean of the two middle values for an even
+    count), two to four times faster on the few hundred values of a stream's alignment windows: a live stream
+    computes four per window and sensor (``mean_alignment``)."""
+    n = len(x)
+    k = n // 2
+    part = np.partition(x, (k - 1, k, n - 1) if n % 2 == 0 else (k, n - 1))
+    if np.isnan(part[-1]):  # NaN sorts last
+        return float("nan")
+    return float(part[k] if n % 2 else (part[k - 1] + part[k]) / 2)
+
+
+@lru_cache(maxsize=512)
+def _mode_candidates(n: int) -> np.ndarray:
+    """Indices of at most ``MODE_CANDIDATES`` windows spread over ``n``."""
+    return np.linspace(0, n - 1, min(n, MODE_CANDIDATES)).astype(int)
 
 
 def mean_alignment(q_rows: np.ndarray) -> tuple[np.ndarray, float]:
@@ -148,13 +168,13 @@ def mean_alignment(q_rows: np.ndarray) -> tuple[np.ndarray, float]:
     def angles(mean: np.ndarray) -> np.ndarray:
         return 2.0 * np.arccos(np.clip(np.abs(q @ mean), 0.0, 1.0))
 
-    candidates = q[np.linspace(0, len(q) - 1, min(len(q), MODE_CANDIDATES)).astype(int)]
-    near = np.abs(candidates @ q.T) >= np.cos(np.radians(MODE_DEG) / 2)  # rotation angle ≤ MODE_DEG
+    candidates = q[_mode_candidates(len(q))]
+    near = np.abs(candidates @ q.T) >= _MODE_COS_HALF  # rotation angle ≤ MODE_DEG
     mean = candidates[int(np.argmax(near.sum(axis=1)))]
     for _ in range(3):
         dist = angles(mean)
-        mean = chordal_mean(q[dist <= np.median(dist)])
-    spread = float(np.degrees(np.median(angles(mean))))
+        mean = chordal_mean(q[dist <= median(dist)])
+    spread = float(np.degrees(median(angles(mean))))
     return canonical_quat(mean), spread
 
 

@@ -327,3 +327,19 @@ def test_a_flex_model_in_the_hinge_frames_answers_the_hinges_zeros_as_zero() -> 
     np.testing.assert_array_equal(got[:, mask == 1], raw[:, mask == 1])
     y = np.random.default_rng(61).uniform(900.0, 1100.0, size=(2, sleeve.window, len(sleeve.manifest.channels)))
     np.testing.assert_array_equal(sleeve.run_windows(y), sleeve.loaded.run(y.astype(np.float32)))
+
+
+def test_the_stream_median_is_numpys_median() -> None:
+    """``median`` (four per window and sensor of a live stream) gives ``np.median``'s value bit for bit: odd and
+    even counts, ties, a single value, and NaN."""
+    from service.inference.predict import median
+
+    rng = np.random.default_rng(0)
+    for n in [1, 2, 3, 4, *rng.integers(5, 500, 200).tolist()]:
+        x = rng.normal(size=n)
+        if n > 3 and n % 5 == 0:
+            x[: n // 2] = x[0]  # ties
+        assert median(x) == np.median(x), n
+        if n > 1:
+            x[int(rng.integers(n))] = np.nan
+            assert np.isnan(median(x))
