@@ -451,7 +451,7 @@ def evaluate_real_command(
     from service.core.manifest import read_manifest
     from training.i2s.evaluate import evaluate_real, evaluate_real_alignment, onnx_predictor
     from training.i2s.pipeline import held_out_recordings
-    from training.tracking import default_tracking_uri
+    from training.tracking import default_tracking_uri, download_onnx
 
     cfg = load_config(config)
     with tempfile.TemporaryDirectory() as tmp:
@@ -459,9 +459,7 @@ def evaluate_real_command(
             mlflow.set_tracking_uri(default_tracking_uri())
             run = mlflow.get_run(source.removeprefix("runs:/"))
             task = run.data.tags.get("task") or run.data.params.get("task", "")
-            onnx_path = next(
-                Path(mlflow.artifacts.download_artifacts(run.data.tags["model_uri"], dst_path=tmp)).rglob("*.onnx")
-            )
+            onnx_path = download_onnx(run.data.tags["model_uri"], tmp)
         else:
             task = read_manifest(Path(source) / "manifest.json").task.removeprefix("i2s_")
             onnx_path = Path(source) / "model.onnx"

@@ -73,6 +73,11 @@ def log_onnx_model(
     )
 
 
+def download_onnx(model_uri: str, dst: str | Path) -> Path:
+    """The ONNX file of a logged model (a run's ``model_uri`` tag), downloaded under ``dst``."""
+    return next(Path(mlflow.artifacts.download_artifacts(model_uri, dst_path=str(dst))).rglob("*.onnx"))
+
+
 def _schema(specs: list[TensorSpec]) -> Schema:
     """MLflow's tensor schema of a manifest's inputs or outputs: named, their symbolic dimensions variable."""
     return Schema(

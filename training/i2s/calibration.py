@@ -65,6 +65,7 @@ from training.i2s.evaluate import onnx_predictor
 from training.plots import reliability_png
 from training.run_labels import label_run
 from training.snapshot import local_run_id
+from training.tracking import download_onnx
 
 log = logging.getLogger(__name__)
 
@@ -164,8 +165,7 @@ def _predict_folds(client: MlflowClient, summary_run_id: str, data_dir: Path) ->
     with tempfile.TemporaryDirectory() as tmp:
         for k, (person, uri) in enumerate(uris.items()):
             log.info("fold %d/%d: %s", k + 1, len(uris), person)
-            onnx_path = next(Path(mlflow.artifacts.download_artifacts(uri, dst_path=f"{tmp}/{k}")).rglob("*.onnx"))
-            predict = onnx_predictor(onnx_path)
+            predict = onnx_predictor(download_onnx(uri, f"{tmp}/{k}"))
             for recording in by_person[person]:
                 sensors = []
                 for s in recording.sensors:

@@ -223,9 +223,10 @@ def quantize_folds(
     calibrated on its own training windows, so never on the person it is scored on), score each on its held-out
     person as the fold run did (one tracked run per fold, ``quantized_from`` the fold), and write their summary run as
     ``real-loso`` writes one: ``real-table``, ``swing-table`` and ``calibrate`` read it alike. Returns its run id."""
+    from training.i2s.export import onnx_parity
     from training.i2s.pipeline import fold_figures, log_real_evaluation, log_real_loso_summary
     from training.i2s.ship import load_run_config
-    from training.tracking import setup_tracking
+    from training.tracking import download_onnx, setup_tracking
 
     client = MlflowClient()
     summary = local_run_id(summary_run_id)
@@ -259,16 +260,14 @@ def quantize_folds(
         setup_tracking(cfg.tracking.experiment)
         with tempfile.TemporaryDirectory() as tmp_dir:
             tmp = Path(tmp_dir)
-            src = next(
-                Path(mlflow.artifacts.download_artifacts(fold.data.tags["model_uri"], dst_path=tmp_dir)).rglob("*.onnx")
-            )
+            src = download_onnx(fold.data.tags["model_uri"], tmp_dir)
             calibration = model_calibration_windows(cfg, calibrate_on, data_dir, cache_dir, n_calibration)
             described = quantize_onnx(
                 src, tmp / "int8.onnx", calibration, rnn, float_first_conv, f"{calibrate_on} training windows"
             )
             golden = Path(client.download_artifacts(fold_id, "export/golden.npz", tmp_dir))
             with np.load(golden) as z:
-                parity = _gate(tmp / "int8.onnx", dict(z), "probabilities", max_probability_diff=float("inf"))
+                parity = onnx_parity(tmp / "int8.onnx", dict(z))
             run_tags = {"task": cfg.task, "real_loso_held_out": person, "quantized_from": fold_id}
             with mlflow.start_run(run_name=f"{cfg.name} int8 · held out {person}", tags=run_tags):
                 mlflow.log_params({"quantization": described[:500], "quantized_from": fold_id})

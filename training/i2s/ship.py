@@ -37,7 +37,7 @@ from training.i2s.metrics import confusion_matrix
 from training.plots import confusion_matrix_png
 from training.run_labels import record_shipped
 from training.snapshot import local_run_id
-from training.tracking import record_evaluation
+from training.tracking import download_onnx, record_evaluation
 
 log = logging.getLogger(__name__)
 
@@ -187,10 +187,11 @@ def write_run(run_id: str, out_root: Path, version: str | None = None) -> Path:
     target = out_root / cfg.registered_model / version
     target.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
-        model_dir = Path(mlflow.artifacts.download_artifacts(run.data.tags["model_uri"], dst_path=tmp))
         # One self-contained file, also for models MLflow stored with external weight data.
         onnx.save_model(
-            onnx.load(str(next(model_dir.rglob("*.onnx")))), str(target / "model.onnx"), save_as_external_data=False
+            onnx.load(str(download_onnx(run.data.tags["model_uri"], tmp))),
+            str(target / "model.onnx"),
+            save_as_external_data=False,
         )
         golden = Path(mlflow.artifacts.download_artifacts(f"runs:/{run_id}/export/golden.npz", dst_path=tmp))
         shutil.copy(golden, target / "golden.npz")
