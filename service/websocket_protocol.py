@@ -1,7 +1,7 @@
 """uvicorn's WebSocket protocol with two changes: a client that does not answer a ping in time is closed with 1008
 and a reason, and the connection lingers so that the reason can reach it; and a text message that is not UTF-8 is
-closed with 1007 and a reason that says where, logged in one line (uvicorn closes it with no reason and logs two
-tracebacks, its own close raising on a connection the WebSocket library is already closing).
+closed with 1007 and a reason that says where, logged in one line and lingering alike (uvicorn closes it with no
+reason and logs two tracebacks, its own close raising on a connection the WebSocket library is already closing).
 
 A client that stops reading its socket stops answering pings too, while the kernel's buffers (megabytes on
 loopback) still take everything the service sends: the ping is the first sign that it has fallen behind. uvicorn
@@ -27,10 +27,30 @@ class WebSocketProtocol(WebSocketsSansIOProtocol):
         self.pending_ping_payload = None
         if self.close_sent or self.transport.is_closing():
             return
-        reason = f"consumer too slow: no answer to a ping within {self.ping_timeout:g} s (not reading)"
-        self.logger.info("closing a WebSocket client with 1008: %s", reason)
-        self.queue.put_nowait({"type": "websocket.disconnect", "code": 1008, "reason": reason})
-        self.conn.send_close(1008, reason)
+        self._close_lingering(
+            1008, f"consumer too slow: no answer to a ping within {self.ping_timeout:g} s (not reading)"
+        )
+
+    def send_receive_event_to_app(self) -> None:
+        if self.curr_msg_data_type == "text" and not self.close_sent:
+            try:
+                b"".join(self.frames).decode()
+            except UnicodeDecodeError as exc:
+                self.frames = []
+                self._close_lingering(
+                    1007, f"a text message must be UTF-8 JSON; byte {exc.start} is not UTF-8 ({exc.reason})"
+                )
+                return
+        super().send_receive_event_to_app()
+
+    def _close_lingering(self, code: int, reason: str) -> None:
+        """Tell the app, send the close frame with ``reason``, then half-close and go on reading (and discarding)
+        until the client answers the close or ``LINGER_S`` passes, so that the reason reaches a client still
+        sending."""
+        self.logger.info("closing a WebSocket client with %d: %s", code, reason)
+        self.queue.put_nowait({"type": "websocket.disconnect", "code": code, "reason": reason})
+        if self.conn.state is State.OPEN:
+            self.conn.send_close(code, reason)
         self.transport.write(b"".join(self.conn.data_to_send()))
         self.close_sent = True
         if self.read_paused:
@@ -39,20 +59,3 @@ class WebSocketProtocol(WebSocketsSansIOProtocol):
         if self.transport.can_write_eof():
             self.transport.write_eof()
         self.close_timer = self.loop.call_later(max(self.close_timeout, LINGER_S), self.transport.close)
-
-    def send_receive_event_to_app(self) -> None:
-        if self.curr_msg_data_type == "text" and not self.close_sent:
-            try:
-                b"".join(self.frames).decode()
-            except UnicodeDecodeError as exc:
-                self.frames = []
-                reason = f"a text message must be UTF-8 JSON; byte {exc.start} is not UTF-8 ({exc.reason})"
-                self.logger.info("closing a WebSocket client with 1007: %s", reason)
-                self.queue.put_nowait({"type": "websocket.disconnect", "code": 1007, "reason": reason})
-                if self.conn.state is State.OPEN:
-                    self.conn.send_close(1007, reason)
-                self.transport.write(b"".join(self.conn.data_to_send()))
-                self.close_sent = True
-                self.transport.close()
-                return
-        super().send_receive_event_to_app()
