@@ -33,7 +33,7 @@ import orjson
 import websockets
 
 from benchmarks.machine import machine_state
-from benchmarks.servers import REPO, start_mlflow_serve, start_service, stop
+from benchmarks.servers import REPO, process_cpu_s, start_mlflow_serve, start_service, stop
 from service.api.protocol import encode_binary
 from service.core.manifest import read_manifest
 from service.core.segments import SEGMENTS
@@ -138,12 +138,13 @@ async def _stream_body(url: str, seconds: float, lat_ms: list[float], sent: list
         await rx
 
 
-async def bench_streams(base: str, n: int, seconds: float) -> dict:
+async def bench_streams(base: str, n: int, seconds: float, server_pid: int | None = None) -> dict:
     url = base.replace("http", "ws") + "/v1/stream"
     lat: list[float] = []
     sent: list[int] = []
     failures: list[str] = []
     before = _server_metrics(base)
+    cpu_before = None if server_pid is None else (process_cpu_s(server_pid), process_cpu_s(server_pid, True))
     start_at = time.perf_counter() + 2.0 + n * 0.005
     t = time.perf_counter()
     # Independent sensors: packet phases spread evenly over one packet period (16 samples at 60 Hz).
@@ -151,6 +152,8 @@ async def bench_streams(base: str, n: int, seconds: float) -> dict:
     await asyncio.gather(*[_one_stream(url, seconds, lat, sent, start_at + k * phase, failures) for k in range(n)])
     wall = time.perf_counter() - t
     server = {k: v - before.get(k, 0.0) for k, v in _server_metrics(base).items()}
+    cpu_after = None if server_pid is None else (process_cpu_s(server_pid), process_cpu_s(server_pid, True))
+    windows = server["wearmocap_inference_batch_windows_sum"]
     received = server["wearmocap_stream_samples_total"]
     refused = sum(f.startswith("Refused") for f in failures)
     failures = [f for f in failures if not f.startswith("Refused")]
@@ -173,6 +176,10 @@ async def bench_streams(base: str, n: int, seconds: float) -> dict:
         "server_mean_batch_windows": server["wearmocap_inference_batch_windows_sum"]
         / max(server["wearmocap_inference_batch_windows_count"], 1),
         "server_inference_busy_fraction": server["wearmocap_inference_seconds_sum"] / wall,
+        # the server process' CPU per window it answered: all of it (event loop, inference threads), and its event
+        # loop's thread alone (parsing, windowing, the messages; not inference)
+        "server_cpu_ms_per_window": _per_window(cpu_before, cpu_after, 0, windows),
+        "server_loop_cpu_ms_per_window": _per_window(cpu_before, cpu_after, 1, windows),
         "wall_s": wall,
     }
 
@@ -261,6 +268,12 @@ async def bench_time_to_answer(base: str, seconds: float, concurrency: int) -> d
     }
 
 
+def _per_window(before: tuple | None, after: tuple | None, k: int, windows: float) -> float | None:
+    if before is None or after is None or before[k] is None or after[k] is None or not windows:
+        return None
+    return 1000 * (after[k] - before[k]) / windows
+
+
 def summarize_streams(runs: list[dict]) -> dict:
     """Repeated runs of one stream count: this machine's timing noise is large, so every run is kept."""
     p99 = [r["result_latency_ms_p99"] for r in runs]
@@ -274,6 +287,8 @@ def summarize_streams(runs: list[dict]) -> dict:
         "result_latency_ms_p50_per_run": [r["result_latency_ms_p50"] for r in runs],
         "result_latency_ms_p99_per_run": p99,
         "result_latency_ms_p99_median_of_runs": float(np.median(p99)),
+        "server_cpu_ms_per_window_per_run": [r["server_cpu_ms_per_window"] for r in runs],
+        "server_loop_cpu_ms_per_window_per_run": [r["server_loop_cpu_ms_per_window"] for r in runs],
         "details": runs,
     }
 
@@ -372,7 +387,7 @@ def main() -> None:
         for n in args.streams if "streams" in args.parts else []:
             runs = []
             for _ in range(args.repeats):
-                runs.append(asyncio.run(bench_streams(base, n, args.stream_seconds)))
+                runs.append(asyncio.run(bench_streams(base, n, args.stream_seconds, proc.pid)))
                 print(json.dumps({k: v for k, v in runs[-1].items() if k != "failures"}))
             result["streams"].append(summarize_streams(runs))
         if "answer" in args.parts:

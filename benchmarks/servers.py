@@ -70,6 +70,17 @@ def server_log(base: str) -> Path:
     return LOGS / f"server-{base.rsplit(':', 1)[1]}.log"
 
 
+def process_cpu_s(pid: int, main_thread: bool = False) -> float | None:
+    """CPU seconds (user + system) a process has used, all its threads or its main thread only (a Python server's
+    event loop); None where ``/proc`` is not there."""
+    path = f"/proc/{pid}/task/{pid}/stat" if main_thread else f"/proc/{pid}/stat"
+    try:
+        fields = Path(path).read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime (fields 14, 15)
+
+
 def start_service(models_dir: Path, threads: int = 2, **env: str) -> tuple[subprocess.Popen, str]:
     """``python -m service`` on the models under ``models_dir``; extra settings as WEARMOCAP_* values."""
     port = free_port()

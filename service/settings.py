@@ -83,6 +83,12 @@ class Settings(BaseSettings):
         description="a streamed sensor's alignment in the assignment message is the robust mean over its last this "
         "many moving windows (450: about two minutes at 60 Hz, hop 16)",
     )
+    stream_assignment_interval_s: float = Field(
+        0.5,
+        ge=0,
+        description="a stream's running assignment message goes out after its first results, then once its newest "
+        "window end has moved on by this many seconds of stream time, and at stop (0: after every group of results)",
+    )
     ws_ping_interval_s: float = Field(10.0, gt=0, description="WebSocket ping interval (python -m service)")
     ws_ping_timeout_s: float = Field(
         10.0,

@@ -30,7 +30,8 @@ Server → client
   · assignment (joint, one-to-one over the session's evidence, and per sensor the robust mean alignment over its last
   WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread, its calibrated p_correct and whether it is
   committed on its own, the probability p_all_correct that every sensor is right, and status, as /v1/imu/assign; after
-  each group of results) · warning (once per sensor, when its first 4 windows read implausibly for its declared units:
+  the first results, then once the newest window end has moved on by WEARMOCAP_STREAM_ASSIGNMENT_INTERVAL_S of
+  stream time (0.5 s; 0: after each group of results), and at stop) · warning (once per sensor, when its first 4 windows read implausibly for its declared units:
   the REST routes' `warnings`) · gap / late (sequence problems, in order with the results) · error (then close, after
   the results of every accepted packet).
   Pose sessions also get: calibration ({"status": "waiting" | "calibrated", ...}: how the session calibrates; declared

@@ -88,6 +88,7 @@ class Session:
         max_pending: int,
         alignment_windows: int = 450,
         confidence: ConfidenceModel | None = None,
+        assignment_interval_s: float = 0.0,
     ) -> None:
         ids = [s.sensor_id for s in start.sensors]
         if len(set(ids)) != len(ids):
@@ -118,6 +119,13 @@ class Session:
         # Each sensor's first UNIT_CHECK_WINDOWS windows, checked once for implausible units, then dropped.
         self.unit_check: list[list[np.ndarray] | None] = [[] for _ in self.streams]
         self.alignments = [RunningAlignment(alignment_windows) for _ in self.streams]
+        # The running assignment goes out after the first results, then once the stream's newest window end has
+        # moved on by ``assignment_interval_s`` (stream time, so a replay gets the same messages at any speed), and
+        # at stop: the joint answer, its calibration and the robust alignment means are the event loop's largest
+        # per-window work, and an answer over seconds of evidence moves little from one hop to the next.
+        self.assignment_interval_s = assignment_interval_s
+        self.newest_end_s = -np.inf  # the newest window end of any sensor with results
+        self.assignment_end_s: float | None = None  # newest_end_s when the last assignment message was made
         self.max_pending = max_pending
         self.work: deque[Work] = deque()
         self.pending = 0  # windows queued or being inferred
@@ -319,6 +327,14 @@ class Session:
                 messages.append({"type": "warning", "sensor_id": stream.sensor_id, "warnings": found})
         return messages
 
+    def assignment_due(self) -> bool:
+        """Whether the running assignment goes out after this group of results (``assignment_interval_s``)."""
+        last = self.assignment_end_s
+        if last is not None and self.newest_end_s - last < self.assignment_interval_s - 1e-9:
+            return False
+        self.assignment_end_s = self.newest_end_s
+        return True
+
     def assignment_message(self, dropped: int) -> dict:
         evidence = np.where(self.windows[:, None] > 0, self.evidence, self.still_evidence)
         swing = None if self.moments is None else self.moments.swing  # as /v1/imu/assign weighs it
@@ -517,6 +533,8 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
         if outbox.put(moment):
             app.state.metrics.dropped.inc()
     if windows:
+        session.newest_end_s = max(session.newest_end_s, *(end for item in items for end in item.window_end_s))
+    if windows and session.assignment_due():
         message = session.assignment_message(outbox.dropped)
         outbox.put(message)
         handed = session.hand_over(message)
@@ -588,7 +606,11 @@ async def _receive_start(ws: WebSocket) -> Session:
         raise ProtocolError(f"invalid start message: {_first_error(exc)}") from None
     settings = ws.app.state.settings
     session = Session(
-        start, settings.stream_max_pending_windows, settings.stream_alignment_windows, ws.app.state.confidence
+        start,
+        settings.stream_max_pending_windows,
+        settings.stream_alignment_windows,
+        ws.app.state.confidence,
+        settings.stream_assignment_interval_s,
     )
     if start.pose is not None:
         session.start_pose(start, ws.app.state.pose_models, ws.app.state.velocity_models)
