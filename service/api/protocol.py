@@ -31,9 +31,9 @@ Server → client
   WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread, its calibrated p_correct and whether it is
   committed on its own, the probability p_all_correct that every sensor is right, and status, as /v1/imu/assign; after
   the first results, then once the newest window end has moved on by WEARMOCAP_STREAM_ASSIGNMENT_INTERVAL_S of
-  stream time (0.5 s; 0: after each group of results), and at stop) · warning (once per sensor, when its first 4 windows read implausibly for its declared units:
-  the REST routes' `warnings`) · gap / late (sequence problems, in order with the results) · error (then close, after
-  the results of every accepted packet).
+  stream time (0.5 s; 0: after each group of results), and at stop) · warning (once per sensor, when its first 4
+  windows read implausibly for its declared units: the REST routes' `warnings`) · gap / late (sequence problems, in
+  order with the results) · error (then close, after the results of every accepted packet).
   Pose sessions also get: calibration ({"status": "waiting" | "calibrated", ...}: how the session calibrates; declared
   sessions are calibrated at the start and after each calibrate with q_segment_sensor (every sensor's alignment, by
   segment), still-pose sessions after a still span, assignment sessions when the

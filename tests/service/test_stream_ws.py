@@ -300,7 +300,9 @@ def test_a_sensor_that_has_not_moved_yet_is_answered_as_the_rest_route_answers_i
         assert final[name]["confidence"] == pytest.approx(rest[name]["confidence"], abs=1e-4)
 
 
-@pytest.mark.parametrize(("interval_s", "expected_windows"), [(0.5, [1, 3, 5, 7, 8]), (0.0, [1, 2, 3, 4, 5, 6, 7, 8, 8])])
+@pytest.mark.parametrize(
+    ("interval_s", "expected_windows"), [(0.5, [1, 3, 5, 7, 8]), (0.0, [1, 2, 3, 4, 5, 6, 7, 8, 8])]
+)
 def test_the_running_assignment_goes_out_once_per_interval_of_stream_time(
     tiny_models, interval_s: float, expected_windows: list[int]
 ) -> None:
