@@ -335,7 +335,8 @@ class Session:
         self.assignment_end_s = self.newest_end_s
         return True
 
-    def assignment_message(self, dropped: int) -> dict:
+    def assignment_message(self, dropped: int, final: bool = False) -> dict:
+        """The running joint assignment; ``final``: the stream's last, whose alignments read every window."""
         evidence = np.where(self.windows[:, None] > 0, self.evidence, self.still_evidence)
         swing = None if self.moments is None else self.moments.swing  # as /v1/imu/assign weighs it
         joint = joint_assignment(
@@ -351,7 +352,7 @@ class Session:
         sensors = []
         seen = self.windows + self.still_windows
         for k, (s, g, n) in enumerate(zip(self.streams, joint.segment.tolist(), self.windows, strict=True)):
-            mean = self.alignments[k].mean(g) if g >= 0 and n else None
+            mean = self.alignments[k].mean(g, fresh=final) if g >= 0 and n else None
             sensors.append(
                 {
                     "sensor_id": s.sensor_id,
@@ -668,7 +669,7 @@ async def _serve(ws: WebSocket, session: Session, outbox: Outbox) -> None:
                 for moment in session.moment_messages(final=True):
                     if outbox.put(moment):
                         ws.app.state.metrics.dropped.inc()
-                outbox.put(session.assignment_message(outbox.dropped))
+                outbox.put(session.assignment_message(outbox.dropped, final=True))
                 return
             if data["type"] != "samples":
                 raise ProtocolError(

@@ -101,6 +101,32 @@ def test_a_streamed_sensors_alignment_follows_its_last_windows_for_its_segment()
     assert np.degrees((Rotation.from_quat(q, scalar_first=True).inv() * moved).magnitude()) < 3.0
 
 
+def test_a_running_alignment_is_recomputed_once_a_sixteenth_of_its_windows_are_new() -> None:
+    """Up to 16 windows every window counts at once; later the mean waits for a sixteenth of new windows (or a
+    segment change), and ``fresh`` reads every window."""
+    rng = np.random.default_rng(2)
+    rows = Rotation.from_rotvec(rng.normal(scale=0.3, size=(120, 3))).as_quat(scalar_first=True)
+    running = RunningAlignment(capacity=450)
+
+    def exact(n: int) -> np.ndarray:
+        return mean_alignment(np.repeat(rows[:n, None], 7, axis=1)[:, 4].astype(np.float32).astype(np.float64))[0]
+
+    for n, row in enumerate(rows[:100], start=1):
+        running.add(np.repeat(row[None], 7, axis=0))
+        if n <= 16:  # each window counts
+            np.testing.assert_allclose(running.mean(4)[0], exact(n), atol=1e-9)
+    at_100 = running.mean(4)[0]
+    for n, row in enumerate(rows[100:106], start=101):
+        running.add(np.repeat(row[None], 7, axis=0))
+        q = running.mean(4)[0]
+        if n < 106:  # 100 // 16 = 6 new windows are due
+            assert q is at_100
+    np.testing.assert_allclose(q, exact(106), atol=1e-9)
+    running.add(np.repeat(rows[106][None], 7, axis=0))
+    assert running.mean(4)[0] is q
+    np.testing.assert_allclose(running.mean(4, fresh=True)[0], exact(107), atol=1e-9)
+
+
 def _twist_about_y_deg(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Of rotations ``(T, 3, 3)``: the angle about y and how far the y axis itself is turned (a pure hinge: 0)."""
     return np.degrees(np.arctan2(R[:, 0, 2], R[:, 0, 0])), np.degrees(np.arccos(np.clip(R[:, 1, 1], -1.0, 1.0)))
