@@ -145,6 +145,7 @@ async def bench_streams(base: str, n: int, seconds: float, server_pid: int | Non
     failures: list[str] = []
     before = _server_metrics(base)
     cpu_before = None if server_pid is None else (process_cpu_s(server_pid), process_cpu_s(server_pid, True))
+    client_before = time.process_time()  # the load generator's CPU: this machine's cores are shared
     start_at = time.perf_counter() + 2.0 + n * 0.005
     t = time.perf_counter()
     # Independent sensors: packet phases spread evenly over one packet period (16 samples at 60 Hz).
@@ -153,6 +154,7 @@ async def bench_streams(base: str, n: int, seconds: float, server_pid: int | Non
     wall = time.perf_counter() - t
     server = {k: v - before.get(k, 0.0) for k, v in _server_metrics(base).items()}
     cpu_after = None if server_pid is None else (process_cpu_s(server_pid), process_cpu_s(server_pid, True))
+    client_cpu_s = time.process_time() - client_before
     windows = server["wearmocap_inference_batch_windows_sum"]
     received = server["wearmocap_stream_samples_total"]
     refused = sum(f.startswith("Refused") for f in failures)
@@ -180,6 +182,7 @@ async def bench_streams(base: str, n: int, seconds: float, server_pid: int | Non
         # loop's thread alone (parsing, windowing, the messages; not inference)
         "server_cpu_ms_per_window": _per_window(cpu_before, cpu_after, 0, windows),
         "server_loop_cpu_ms_per_window": _per_window(cpu_before, cpu_after, 1, windows),
+        "client_cpu_ms_per_window": 1000 * client_cpu_s / windows if windows else None,
         "wall_s": wall,
     }
 
@@ -289,6 +292,7 @@ def summarize_streams(runs: list[dict]) -> dict:
         "result_latency_ms_p99_median_of_runs": float(np.median(p99)),
         "server_cpu_ms_per_window_per_run": [r["server_cpu_ms_per_window"] for r in runs],
         "server_loop_cpu_ms_per_window_per_run": [r["server_loop_cpu_ms_per_window"] for r in runs],
+        "client_cpu_ms_per_window_per_run": [r["client_cpu_ms_per_window"] for r in runs],
         "details": runs,
     }
 
