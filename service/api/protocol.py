@@ -23,17 +23,19 @@ Client → server
 ``seq`` is the sensor's sample counter of the packet's first sample (0, 1, 2, … per sample).
 
 Server → client
-  started · result (per window: class, probabilities, moving, turns_about_vertical, alignment: the window's own answer
-  over all seven segments) · moment (sessions of two or more sensors or with worn_segments, per window end time: the
-  one-to-one answer of the sensors' windows that end then, as /v1/imu/assign's window_segments; sent once every sensor
-  has reached that time, or when 32 moments wait on a stalled sensor, whose windows then come in moments of their own)
-  · assignment (joint, one-to-one over the session's evidence, and per sensor the robust mean alignment over its last
-  WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread, its calibrated p_correct and whether it is
-  committed on its own, the probability p_all_correct that every sensor is right, and status, as /v1/imu/assign; after
-  the first results, then once the newest window end has moved on by WEARMOCAP_STREAM_ASSIGNMENT_INTERVAL_S of
-  stream time (0.5 s; 0: after each group of results), and at stop) · warning (once per sensor, when its first 4
-  windows read implausibly for its declared units: the REST routes' `warnings`) · gap / late (sequence problems, in
-  order with the results) · error (then close, after the results of every accepted packet).
+  started (the session's sensors, window_samples, hop_samples, model_rate_hz, assignment_interval_s and its
+  declarations) · result (per window: class, probabilities, moving, turns_about_vertical, alignment: the window's own
+  answer over all seven segments) · moment (sessions of two or more sensors or with worn_segments, per window end
+  time: the one-to-one answer of the sensors' windows that end then, as /v1/imu/assign's window_segments; sent once
+  every sensor has reached that time, or when 32 moments wait on a stalled sensor, whose windows then come in moments
+  of their own) · assignment (joint, one-to-one over the session's evidence, and per sensor the robust mean alignment
+  over its last WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread, its calibrated p_correct and
+  whether it is committed on its own, the probability p_all_correct that every sensor is right, and status, as
+  /v1/imu/assign; after the first results, then once the newest window end has moved on by
+  WEARMOCAP_STREAM_ASSIGNMENT_INTERVAL_S of stream time (0.5 s; 0: after each group of results), and at stop) ·
+  warning (once per sensor, when its first 4 windows read implausibly for its declared units: the REST routes'
+  `warnings`) · gap / late (sequence problems, in order with the results) · error (then close, after the results of
+  every accepted packet).
   Pose sessions also get: calibration ({"status": "waiting" | "calibrated", ...}: how the session calibrates; declared
   sessions are calibrated at the start and after each calibrate with q_segment_sensor (every sensor's alignment, by
   segment), still-pose sessions after a still span, assignment sessions when the

@@ -760,6 +760,7 @@ def _started(session: Session) -> dict:
         "window_samples": 128,
         "hop_samples": 16,
         "model_rate_hz": 60.0,
+        "assignment_interval_s": session.assignment_interval_s,
         "worn_segments": segment_names(session.worn),
         "candidate_segments": {
             s.sensor_id: segment_names(c) for s, c in zip(session.streams, session.candidates, strict=True)

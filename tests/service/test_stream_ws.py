@@ -313,7 +313,8 @@ def test_the_running_assignment_goes_out_once_per_interval_of_stream_time(
     settings = Settings(models_dir=tiny_models, stream_assignment_interval_s=interval_s)
     with TestClient(create_app(settings)) as c, c.websocket_connect("/v1/stream") as ws:
         ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
-        assert json.loads(ws.receive_text())["type"] == "started"
+        started = json.loads(ws.receive_text())
+        assert started["type"] == "started" and started["assignment_interval_s"] == interval_s
         messages = []
         for seq in range(0, len(x), 16):
             ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
