@@ -231,7 +231,8 @@ async def answer_session(url: str, recording, seconds: float, start_at: float) -
     return {
         "sensors": len(sensors),
         "streamed_s": n / 60.0,
-        "right_s": (later[0] - t_first if settled is not None else answers[0][0] - t_first) if later else None,
+        # 0 where it is right for good from a message before the first moving window
+        "right_s": max(0.0, later[0] - t_first if settled is not None else answers[0][0] - t_first) if later else None,
         "committed_s": committed[0][0] - t_first if committed else None,
         "committed_right": committed[0][1] if committed else None,
     }

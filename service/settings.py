@@ -86,8 +86,10 @@ class Settings(BaseSettings):
     stream_assignment_interval_s: float = Field(
         0.5,
         ge=0,
-        description="a stream's running assignment message goes out after its first results, then once its newest "
-        "window end has moved on by this many seconds of stream time, and at stop (0: after every group of results)",
+        description="a stream's running assignment message goes out after its first results, then once the session "
+        "has answered as many windows as its sensors make in this many seconds of stream time (0.5: two per sensor), "
+        "and at the end; after every group of results while a pose calibrated from the assignment waits for it, and "
+        "with 0",
     )
     ws_ping_interval_s: float = Field(10.0, gt=0, description="WebSocket ping interval (python -m service)")
     ws_ping_timeout_s: float = Field(

@@ -31,8 +31,9 @@ Server → client
   of their own) · assignment (joint, one-to-one over the session's evidence, and per sensor the robust mean alignment
   over its last WEARMOCAP_STREAM_ALIGNMENT_WINDOWS moving windows with its spread, its calibrated p_correct and
   whether it is committed on its own, the probability p_all_correct that every sensor is right, and status, as
-  /v1/imu/assign; after the first results, then once the newest window end has moved on by
-  WEARMOCAP_STREAM_ASSIGNMENT_INTERVAL_S of stream time (0.5 s; 0: after each group of results), and at stop) ·
+  /v1/imu/assign; after the first results, then once the session has answered as many windows as its sensors
+  make in WEARMOCAP_STREAM_ASSIGNMENT_INTERVAL_S of stream time (0.5 s: two per sensor; 0, or a pose session
+  calibrating from the assignment until it has: after each group of results), and at stop or before an error) ·
   warning (once per sensor, when its first 4 windows read implausibly for its declared units: the REST routes'
   `warnings`) · gap / late (sequence problems, in order with the results) · error (then close, after the results of
   every accepted packet).

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -119,13 +120,15 @@ class Session:
         # Each sensor's first UNIT_CHECK_WINDOWS windows, checked once for implausible units, then dropped.
         self.unit_check: list[list[np.ndarray] | None] = [[] for _ in self.streams]
         self.alignments = [RunningAlignment(alignment_windows) for _ in self.streams]
-        # The running assignment goes out after the first results, then once the stream's newest window end has
-        # moved on by ``assignment_interval_s`` (stream time, so a replay gets the same messages at any speed), and
-        # at stop: the joint answer, its calibration and the robust alignment means are the event loop's largest
+        # The running assignment goes out after the first results, then once the session has answered as many
+        # windows as its sensors make in ``assignment_interval_s`` of stream time (a count, so that a sensor whose
+        # clock jumps cannot hold it back, and a replay gets about as many per second of stream time), and at the
+        # end: the joint answer, its calibration and the robust alignment means were the event loop's largest
         # per-window work, and an answer over seconds of evidence moves little from one hop to the next.
         self.assignment_interval_s = assignment_interval_s
-        self.newest_end_s = -np.inf  # the newest window end of any sensor with results
-        self.assignment_end_s: float | None = None  # newest_end_s when the last assignment message was made
+        per_sensor = math.ceil(assignment_interval_s * I2S_WINDOWS_PER_SENSOR_S - 1e-9)
+        self.assignment_every = max(1, per_sensor * len(self.streams))  # windows between messages
+        self.windows_since_assignment: int | None = None  # None: none sent yet
         self.max_pending = max_pending
         self.work: deque[Work] = deque()
         self.pending = 0  # windows queued or being inferred
@@ -327,13 +330,22 @@ class Session:
                 messages.append({"type": "warning", "sensor_id": stream.sensor_id, "warnings": found})
         return messages
 
-    def assignment_due(self) -> bool:
-        """Whether the running assignment goes out after this group of results (``assignment_interval_s``)."""
-        last = self.assignment_end_s
-        if last is not None and self.newest_end_s - last < self.assignment_interval_s - 1e-9:
+    def assignment_due(self, windows: int) -> bool:
+        """Whether the running assignment goes out after this group of ``windows`` results
+        (``assignment_interval_s``). A session that calibrates its pose from the assignment gets one after every
+        group until the hand-over, which reads them."""
+        since = windows + (self.windows_since_assignment or 0)
+        waiting_pose = self.pose is not None and self.pose.method == "assignment" and not self.pose.calibrated
+        if self.windows_since_assignment is not None and since < self.assignment_every and not waiting_pose:
+            self.windows_since_assignment = since
             return False
-        self.assignment_end_s = self.newest_end_s
+        self.windows_since_assignment = 0
         return True
+
+    def assignment_pending(self) -> bool:
+        """Results have been sent since the last running assignment (or none was sent yet after results)."""
+        answered = bool((self.windows + self.still_windows).any())
+        return bool(self.windows_since_assignment) or (self.windows_since_assignment is None and answered)
 
     def assignment_message(self, dropped: int, final: bool = False) -> dict:
         """The running joint assignment; ``final``: the stream's last, whose alignments read every window."""
@@ -533,9 +545,7 @@ async def _run_work(app: FastAPI, session: Session, items: list[Work], outbox: O
     for moment in session.moment_messages():
         if outbox.put(moment):
             app.state.metrics.dropped.inc()
-    if windows:
-        session.newest_end_s = max(session.newest_end_s, *(end for item in items for end in item.window_end_s))
-    if windows and session.assignment_due():
+    if windows and session.assignment_due(len(windows)):
         message = session.assignment_message(outbox.dropped)
         outbox.put(message)
         handed = session.hand_over(message)
@@ -718,6 +728,8 @@ async def stream(ws: WebSocket) -> None:
         code, reason = exc.code, str(exc)
         if session is not None and session.failure is None and code != 1013:
             await session.flush()  # the results of every packet accepted before the mistake still go out
+            if session.assignment_pending():  # and the running assignment over all of them
+                outbox.put(session.assignment_message(outbox.dropped, final=True))
         outbox.put({"type": "error", "detail": reason, "close_code": code})
     except SlowConsumer as exc:
         code, reason = 1008, str(exc)

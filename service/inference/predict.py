@@ -187,7 +187,7 @@ def alignment_answer(segment: int, q: np.ndarray) -> dict:
     }
 
 
-REFRESH_SHARE = 16  # a running alignment is recomputed once its windows changed by this fraction (1/16)
+REFRESH_SHARE = 16  # a running alignment is recomputed once this share (1/16) of the windows it reads are new
 
 
 class RunningAlignment:
@@ -195,15 +195,15 @@ class RunningAlignment:
     mean as ``/v1/imu/assign``) for whichever segment the session assigns it to. The quaternions of all seven
     segment hypotheses are kept in a fixed ring (memory is bounded; a sensor that slipped is followed).
 
-    The mean is recomputed when the segment changed, and once a sixteenth of the windows it reads are new since it
-    was last computed (every window up to 16, every 28th once 450 are in): a robust mean over many windows moves
+    A segment's mean is recomputed once a sixteenth of the windows it reads are new since it was last computed for
+    that segment (every new window below 32, every 28th once 450 are in): a robust mean over many windows moves
     little by one more, and recomputing it per window was most of a long stream's running assignment cost.
     ``mean(segment, fresh=True)`` reads every window (a stream's last message)."""
 
     def __init__(self, capacity: int) -> None:
         self.rows = np.zeros((capacity, len(SEGMENTS), 4), dtype=np.float32)
         self.count = 0  # moving windows ever added
-        self._cached: tuple[int, int, np.ndarray, float] | None = None  # count, segment, q, spread
+        self._cached: dict[int, tuple[int, np.ndarray, float]] = {}  # segment → (count, q, spread)
 
     def add(self, q_segments: np.ndarray) -> None:
         """One window's ``(7, 4)`` quaternions."""
@@ -214,13 +214,10 @@ class RunningAlignment:
         """(canonical quaternion, spread in degrees), or None before the first moving window."""
         if not self.count:
             return None
-        cached, in_ring = self._cached, min(self.count, len(self.rows))
-        if cached is None or cached[1] != segment:
-            due = True
-        else:
-            new = self.count - cached[0]
-            due = new > 0 and (fresh or new >= max(1, in_ring // REFRESH_SHARE))
-        if due:
+        in_ring = min(self.count, len(self.rows))
+        cached = self._cached.get(segment)
+        new = self.count - cached[0] if cached is not None else None
+        if new is None or (new > 0 and (fresh or new >= max(1, in_ring // REFRESH_SHARE))):
             q, spread = mean_alignment(self.rows[:in_ring, segment].astype(np.float64))
-            self._cached = (self.count, segment, q, spread)
-        return self._cached[2], self._cached[3]
+            self._cached[segment] = cached = (self.count, q, spread)
+        return cached[1], cached[2]

@@ -102,8 +102,8 @@ def test_a_streamed_sensors_alignment_follows_its_last_windows_for_its_segment()
 
 
 def test_a_running_alignment_is_recomputed_once_a_sixteenth_of_its_windows_are_new() -> None:
-    """Up to 16 windows every window counts at once; later the mean waits for a sixteenth of new windows (or a
-    segment change), and ``fresh`` reads every window."""
+    """Below 32 windows every new window counts at once; later a segment's mean waits for a sixteenth of new
+    windows, each segment's apart, and ``fresh`` reads every window."""
     rng = np.random.default_rng(2)
     rows = Rotation.from_rotvec(rng.normal(scale=0.3, size=(120, 3))).as_quat(scalar_first=True)
     running = RunningAlignment(capacity=450)
@@ -124,6 +124,8 @@ def test_a_running_alignment_is_recomputed_once_a_sixteenth_of_its_windows_are_n
     np.testing.assert_allclose(q, exact(106), atol=1e-9)
     running.add(np.repeat(rows[106][None], 7, axis=0))
     assert running.mean(4)[0] is q
+    other = running.mean(2)[0]  # another segment, computed over all 107; segment 4 keeps its own
+    assert running.mean(4)[0] is q and running.mean(2)[0] is other
     np.testing.assert_allclose(running.mean(4, fresh=True)[0], exact(107), atol=1e-9)
 
 

@@ -327,3 +327,50 @@ def test_the_running_assignment_goes_out_once_per_interval_of_stream_time(
     assert sum(m["type"] == "result" for m in messages) == 8
     windows = [m["sensors"][0]["windows"] for m in messages if m["type"] == "assignment"]
     assert windows == expected_windows
+
+
+def _hop_by_hop(ws, x: np.ndarray) -> list[dict]:
+    """Send ``x`` one 16-sample hop at a time, each hop's result read before the next is sent."""
+    messages = []
+    for seq in range(0, len(x), 16):
+        ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
+        if seq + 16 >= 128:
+            while (m := json.loads(ws.receive_text()))["type"] != "result":
+                messages.append(m)
+            messages.append(m)
+    return messages
+
+
+def test_the_last_assignment_reads_every_window_as_the_rest_route_does(client: TestClient) -> None:
+    """52 windows hop by hop: the running alignment mean is refreshed by sixteenths, but the message at stop is
+    /v1/imu/assign's robust mean over all 52 windows."""
+    x = _signal(128 + 16 * 51, seed=3)
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+        assert json.loads(ws.receive_text())["type"] == "started"
+        messages = _hop_by_hop(ws, x)
+        ws.send_text(json.dumps({"type": "stop"}))
+        messages += _collect(ws)
+    results = [m for m in messages if m["type"] == "result"]
+    assert len(results) == 52 and all(r["moving"] for r in results)
+    final = [m for m in messages if m["type"] == "assignment"][-1]["sensors"][0]
+    assert final["windows"] == 52
+    windows = [{"samples": x[16 * k : 16 * k + 128].tolist()} for k in range(52)]
+    want = client.post("/v1/imu/assign", json={"sensors": [{"sensor_id": "a", "windows": windows}]}).json()
+    want = want["sensors"][0]
+    assert final["segment"] == want["segment"] == final["alignment"]["segment"]
+    np.testing.assert_allclose(final["alignment"]["q_segment_imu"], want["alignment"]["q_segment_imu"], atol=1e-5)
+    assert final["alignment_spread_deg"] == pytest.approx(want["alignment_spread_deg"], abs=0.01)  # float32 batches
+
+
+def test_a_session_that_ends_in_an_error_gets_the_assignment_over_all_its_results_first(client: TestClient) -> None:
+    x = _signal(128 + 16 * 7)
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+        assert json.loads(ws.receive_text())["type"] == "started"
+        messages = _hop_by_hop(ws, x)
+        ws.send_text(json.dumps({"type": "bogus"}))
+        messages += _collect(ws)
+    kinds = [m["type"] for m in messages]
+    assert kinds[-3:] == ["assignment", "error", "close"] and messages[-1]["code"] == 1008
+    assert [m["sensors"][0]["windows"] for m in messages if m["type"] == "assignment"] == [1, 3, 5, 7, 8]
