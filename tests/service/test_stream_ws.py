@@ -300,33 +300,11 @@ def test_a_sensor_that_has_not_moved_yet_is_answered_as_the_rest_route_answers_i
         assert final[name]["confidence"] == pytest.approx(rest[name]["confidence"], abs=1e-4)
 
 
-@pytest.mark.parametrize(
-    ("interval_s", "expected_windows"), [(0.5, [1, 3, 5, 7, 8]), (0.0, [1, 2, 3, 4, 5, 6, 7, 8, 8])]
-)
-def test_the_running_assignment_goes_out_once_per_interval_of_stream_time(
-    tiny_models, interval_s: float, expected_windows: list[int]
-) -> None:
-    """A sensor streamed hop by hop (16 samples at 60 Hz: a window end every 0.27 s of stream time) gets an
-    assignment message after its first result, then after the first result at least ``interval_s`` later, and one
-    at stop over every window; with 0, one after every group of results."""
-    x = _signal(128 + 16 * 7)
-    settings = Settings(models_dir=tiny_models, stream_assignment_interval_s=interval_s)
-    with TestClient(create_app(settings)) as c, c.websocket_connect("/v1/stream") as ws:
-        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
-        started = json.loads(ws.receive_text())
-        assert started["type"] == "started" and started["assignment_interval_s"] == interval_s
-        messages = []
-        for seq in range(0, len(x), 16):
-            ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
-            if seq + 16 >= 128:  # a window ends in this hop: wait for its result
-                while (m := json.loads(ws.receive_text()))["type"] != "result":
-                    messages.append(m)
-                messages.append(m)
-        ws.send_text(json.dumps({"type": "stop"}))
-        messages += _collect(ws)
-    assert sum(m["type"] == "result" for m in messages) == 8
-    windows = [m["sensors"][0]["windows"] for m in messages if m["type"] == "assignment"]
-    assert windows == expected_windows
+def _start_one_sensor(ws) -> dict:
+    ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
+    started = json.loads(ws.receive_text())
+    assert started["type"] == "started"
+    return started
 
 
 def _hop_by_hop(ws, x: np.ndarray) -> list[dict]:
@@ -334,11 +312,32 @@ def _hop_by_hop(ws, x: np.ndarray) -> list[dict]:
     messages = []
     for seq in range(0, len(x), 16):
         ws.send_bytes(encode_binary(0, seq, x[seq : seq + 16]))
-        if seq + 16 >= 128:
+        if seq + 16 >= 128:  # a window ends in this hop: wait for its result
             while (m := json.loads(ws.receive_text()))["type"] != "result":
                 messages.append(m)
             messages.append(m)
     return messages
+
+
+@pytest.mark.parametrize(
+    ("interval_s", "expected_windows"), [(0.5, [1, 3, 5, 7, 8]), (0.0, [1, 2, 3, 4, 5, 6, 7, 8, 8])]
+)
+def test_the_running_assignment_goes_out_once_per_interval_of_stream_time(
+    tiny_models, interval_s: float, expected_windows: list[int]
+) -> None:
+    """A sensor streamed hop by hop (a window every 16 samples at 60 Hz, 0.27 s of stream time) gets an assignment
+    message after its first result, then after every second one (the windows it makes in 0.5 s), and one at stop
+    over every window; with 0, one after every group of results."""
+    x = _signal(128 + 16 * 7)
+    settings = Settings(models_dir=tiny_models, stream_assignment_interval_s=interval_s)
+    with TestClient(create_app(settings)) as c, c.websocket_connect("/v1/stream") as ws:
+        assert _start_one_sensor(ws)["assignment_interval_s"] == interval_s
+        messages = _hop_by_hop(ws, x)
+        ws.send_text(json.dumps({"type": "stop"}))
+        messages += _collect(ws)
+    assert sum(m["type"] == "result" for m in messages) == 8
+    windows = [m["sensors"][0]["windows"] for m in messages if m["type"] == "assignment"]
+    assert windows == expected_windows
 
 
 def test_the_last_assignment_reads_every_window_as_the_rest_route_does(client: TestClient) -> None:
@@ -346,8 +345,7 @@ def test_the_last_assignment_reads_every_window_as_the_rest_route_does(client: T
     /v1/imu/assign's robust mean over all 52 windows."""
     x = _signal(128 + 16 * 51, seed=3)
     with client.websocket_connect("/v1/stream") as ws:
-        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
-        assert json.loads(ws.receive_text())["type"] == "started"
+        _start_one_sensor(ws)
         messages = _hop_by_hop(ws, x)
         ws.send_text(json.dumps({"type": "stop"}))
         messages += _collect(ws)
@@ -366,8 +364,7 @@ def test_the_last_assignment_reads_every_window_as_the_rest_route_does(client: T
 def test_a_session_that_ends_in_an_error_gets_the_assignment_over_all_its_results_first(client: TestClient) -> None:
     x = _signal(128 + 16 * 7)
     with client.websocket_connect("/v1/stream") as ws:
-        ws.send_text(json.dumps({"type": "start", "sensors": [{"sensor_id": "a"}]}))
-        assert json.loads(ws.receive_text())["type"] == "started"
+        _start_one_sensor(ws)
         messages = _hop_by_hop(ws, x)
         ws.send_text(json.dumps({"type": "bogus"}))
         messages += _collect(ws)
