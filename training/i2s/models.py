@@ -5,9 +5,11 @@
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -51,11 +53,93 @@ def _unit(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     return v / torch.sqrt((v * v).sum(-1, keepdim=True) + eps)
 
 
-def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Cross product over the last axis, written out (``torch.linalg.cross`` has no ONNX export)."""
+def _hamilton_terms(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a ⊗ b of quaternions (w, x, y, z), written out: the definition ``_HAMILTON`` is read from."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
+
+
+def _cross_terms(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a × b, written out: the definition ``_LEVI_CIVITA`` is read from."""
     a0, a1, a2 = a.unbind(-1)
     b0, b1, b2 = b.unbind(-1)
     return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim=-1)
+
+
+def _rotation_terms(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """The symmetric bilinear form whose value at (q, q) is R(q) of a unit quaternion q = (w, x, y, z) (v' = R v),
+    written out: the definition ``_ROTATION`` is read from."""
+    pw, px, py, pz = p.unbind(-1)
+    w, x, y, z = q.unbind(-1)
+    rows = [
+        [pw * w + px * x - py * y - pz * z, px * y + py * x - pw * z - pz * w, px * z + pz * x + pw * y + py * w],
+        [px * y + py * x + pw * z + pz * w, pw * w - px * x + py * y - pz * z, py * z + pz * y - pw * x - px * w],
+        [px * z + pz * x - pw * y - py * w, py * z + pz * y + pw * x + px * w, pw * w - px * x - py * y + pz * z],
+    ]
+    return torch.stack([torch.stack(row, -1) for row in rows], -2)
+
+
+def _shepperd_terms(R: torch.Tensor) -> torch.Tensor:
+    """4 q qᵀ of the unit quaternion q of a rotation matrix R, which is affine in R (Shepperd 1978), written out:
+    the definition ``_SHEPPERD`` is read from."""
+    r00, r01, r02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    r10, r11, r12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    r20, r21, r22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    rows = [
+        [1 + r00 + r11 + r22, r21 - r12, r02 - r20, r10 - r01],
+        [r21 - r12, 1 + r00 - r11 - r22, r01 + r10, r02 + r20],
+        [r02 - r20, r01 + r10, 1 - r00 + r11 - r22, r12 + r21],
+        [r10 - r01, r02 + r20, r12 + r21, 1 - r00 - r11 + r22],
+    ]
+    return torch.stack([torch.stack(row, -1) for row in rows], -2)
+
+
+def _bilinear_table(terms: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], n_a: int, n_b: int) -> torch.Tensor:
+    """``(n_a, n_b, *K)``: T[i, j] = terms(e_i, e_j), so that terms(a, b) = Σ_ij a_i b_j T[i, j] for bilinear terms."""
+    eye_a, eye_b = torch.eye(n_a, dtype=torch.float64), torch.eye(n_b, dtype=torch.float64)
+    return torch.stack([torch.stack([terms(eye_a[i], eye_b[j]) for j in range(n_b)]) for i in range(n_a)]).float()
+
+
+_HAMILTON = _bilinear_table(_hamilton_terms, 4, 4)  # (4, 4, 4)
+_LEVI_CIVITA = _bilinear_table(_cross_terms, 3, 3)  # (3, 3, 3)
+_ROTATION = _bilinear_table(_rotation_terms, 4, 4)  # (4, 4, 3, 3)
+# 4 q qᵀ = I + Σ_ab R_ab · _SHEPPERD[a, b]: the terms at each basis matrix, less those at R = 0 (the identity)
+_SHEPPERD = (
+    (_shepperd_terms(torch.eye(9, dtype=torch.float64).reshape(9, 3, 3)) - _shepperd_terms(torch.zeros(3, 3)))
+    .reshape(3, 3, 4, 4)
+    .float()
+)
+
+
+def _bilinear(a: torch.Tensor, b: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
+    """Σ_ij a_i b_j table[i, j, …]: ``a`` ``(..., I)``, ``b`` ``(..., J)``, ``table`` ``(I, J, *K)`` → ``(..., *K)``.
+
+    Products of quaternions and vectors written out term by term export as one graph node per term, and onnxruntime
+    pays about as much per small node as for its arithmetic (docs/models.md, "Served alignment"); as one product
+    with a constant table they are a handful of nodes."""
+    extra = (None,) * (table.dim() - 2)
+    outer = (a[..., :, None] * b[..., None, :])[(..., *extra)]
+    return (outer * table.to(a)).sum((-2 - len(extra), -1 - len(extra)))
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Cross product over the last axis (``torch.linalg.cross`` has no ONNX export)."""
+    return _bilinear(a, b, _LEVI_CIVITA)
+
+
+def rotation_matrix(q: torch.Tensor) -> torch.Tensor:
+    """R(q) ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` (w, x, y, z): v' = R v, so R's rows are the rotated
+    frame's axes in the original coordinates."""
+    return _bilinear(q, q, _ROTATION)
 
 
 def _sign(x: torch.Tensor) -> torch.Tensor:
@@ -74,40 +158,19 @@ def _half_angle(cos2: torch.Tensor, sin2: torch.Tensor) -> tuple[torch.Tensor, t
 def quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
     """Unit quaternions ``(..., 4)`` (w, x, y, z) of rotation matrices ``(..., 3, 3)``, exportable to ONNX.
 
-    Shepperd's method: the four closed forms, each accurate where its pivot (1 + trace, or 1 + 2 R_ii − trace)
-    is the largest, are all evaluated and the best one is picked per matrix, so 180° rotations are exact too.
+    Shepperd's method: 4 q qᵀ is linear in R; its largest diagonal element 4 q_k² picks the column 4 q_k q that is
+    read most accurately, so 180° rotations are exact too. That column, normalised, is q up to its sign.
     """
-    r00, r01, r02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
-    r10, r11, r12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
-    r20, r21, r22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
-    pivots = torch.stack([1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22], -1)
-    s = 2.0 * torch.sqrt(pivots.clamp(min=1e-12))  # 4 × the pivot's quaternion component
-    candidates = torch.stack(
-        [
-            torch.stack([s[..., 0] / 4, (r21 - r12) / s[..., 0], (r02 - r20) / s[..., 0], (r10 - r01) / s[..., 0]], -1),
-            torch.stack([(r21 - r12) / s[..., 1], s[..., 1] / 4, (r01 + r10) / s[..., 1], (r02 + r20) / s[..., 1]], -1),
-            torch.stack([(r02 - r20) / s[..., 2], (r01 + r10) / s[..., 2], s[..., 2] / 4, (r12 + r21) / s[..., 2]], -1),
-            torch.stack([(r10 - r01) / s[..., 3], (r02 + r20) / s[..., 3], (r12 + r21) / s[..., 3], s[..., 3] / 4], -1),
-        ],
-        dim=-2,
-    )  # (..., 4 candidates, 4)
+    eye = torch.eye(4, dtype=R.dtype, device=R.device)
+    S = (R[..., :, :, None, None] * _SHEPPERD.to(R)).sum((-4, -3)) + eye  # (..., 4, 4): 4 q qᵀ
+    pivots = (S * eye).sum(-1)  # its diagonal, 4 q_k²
     pick = nn.functional.one_hot(pivots.argmax(-1), 4).to(R.dtype)
-    return _unit((candidates * pick[..., None]).sum(-2))
+    return _unit((S * pick[..., None, :]).sum(-1))
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product a ⊗ b of ``(..., 4)`` quaternions (w, x, y, z)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        dim=-1,
-    )
+    return _bilinear(a, b, _HAMILTON)
 
 
 class CanonicalFrame(nn.Module):
@@ -128,7 +191,8 @@ class CanonicalFrame(nn.Module):
         ref = torch.where(z[:, :1].abs() < 0.9, z.new_tensor([1.0, 0.0, 0.0]), z.new_tensor([0.0, 1.0, 0.0]))
         e1 = _unit(_cross(z, ref))
         e2 = _cross(z, e1)
-        u, v = (gyr * e1[:, None]).sum(-1), (gyr * e2[:, None]).sum(-1)  # (B, T) in-plane components
+        uv = torch.einsum("btk,bjk->bjt", gyr, torch.stack([e1, e2], 1))  # (B, 2, T) in-plane components
+        u, v = uv[:, 0], uv[:, 1]
         # Principal axis of the in-plane 2 × 2 covariance: direction of the doubled angle, then halved.
         d = _unit(torch.stack([(u * u - v * v).mean(1), 2.0 * (u * v).mean(1)], -1))
         cos, sin = _half_angle(d[:, 0], d[:, 1])
@@ -267,41 +331,57 @@ def turned_about_gravity(imu: torch.Tensor, n: int) -> list[torch.Tensor]:
     return views
 
 
-def _turn_about_z(cos2: torch.Tensor, sin2: torch.Tensor) -> torch.Tensor:
-    """Quaternions ``(..., 4)`` of R_z(ψ) from the doubled angle (cos 2ψ, sin 2ψ) with cos 2ψ ≥ 0 (|ψ| ≤ 45°),
-    by the half-angle formulas twice (no atan2 in the graph)."""
+def _turn_about_z(cos2: torch.Tensor, sin2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (w, z) components of the quaternion of R_z(ψ) (x and y are 0) from the doubled angle (cos 2ψ, sin 2ψ)
+    with cos 2ψ ≥ 0 (|ψ| ≤ 45°), by the half-angle formulas twice (no atan2 in the graph)."""
     cos, sin = _half_angle(cos2, sin2)
     half_cos = torch.sqrt(((1 + cos) / 2).clamp(min=1e-12))
-    zero = torch.zeros_like(cos)
-    return torch.stack([half_cos, zero, zero, sin / (2 * half_cos)], -1)
+    return half_cos, sin / (2 * half_cos)
 
 
-def _lagged_at(a: torch.Tensor, b: torch.Tensor, lag: torch.Tensor) -> torch.Tensor:
-    """``_lagged`` at one lag per window: ``a``, ``b`` ``(B, T)``, ``lag`` ``(B,)`` samples → ``(B,)``. The same
-    sum as picking that lag's column of ``_lagged``, with one gather of ``(B, T)`` instead of ``(B, lags, T)``."""
-    n = a.shape[-1]
-    t = torch.arange(n, device=a.device)
+# k ⊗ q = q · _Z_LEFT for k = (0, 0, 0, 1): a turn about z applied on the left, (w, 0, 0, z) ⊗ q = w q + z (k ⊗ q)
+_Z_LEFT = _HAMILTON[3]
+
+
+def _lagged_matrix_at(x: torch.Tensor, lag: torch.Tensor) -> torch.Tensor:
+    """Lagged products mean(x_i,t · x_j,t+L) over time at one lag per window: ``x`` ``(B, P, C, T)`` (P groups of
+    C signals), ``lag`` ``(B,)`` samples → ``(B, P, C, C)``. ``_lagged`` of signals i and j at that lag is the
+    symmetric part, ½ (S_ij + S_ji); one gather of ``x`` for all of them."""
+    n = x.shape[-1]
+    t = torch.arange(n, device=x.device)
     ahead = t[None, :] + lag[:, None]  # (B, T)
-    weight = (ahead < n).to(a.dtype) / (n - lag[:, None]).to(a.dtype)
-    index = ahead.clamp(max=n - 1)
-    a_later, b_later = torch.gather(a, -1, index), torch.gather(b, -1, index)
-    return 0.5 * ((a * b_later + b * a_later) * weight).sum(-1)
+    weight = (ahead < n).to(x.dtype) / (n - lag[:, None]).to(x.dtype)
+    index = ahead.clamp(max=n - 1)[:, None, None, :].expand_as(x)
+    later = torch.gather(x, -1, index) * weight[:, None, None, :]
+    return torch.einsum("bpit,bpjt->bpij", x, later)
+
+
+@functools.cache
+def _shift_kernel(lags: tuple[int, ...]) -> torch.Tensor:
+    """``(len(lags), 1, max(lags) + 1)``: one-hot convolution kernels that read a signal L samples ahead. Built in
+    numpy, so an exported graph holds it as a constant."""
+    kernel = np.zeros((len(lags), 1, max(lags) + 1), dtype=np.float32)
+    kernel[np.arange(len(lags)), 0, list(lags)] = 1.0
+    return torch.from_numpy(kernel)
 
 
 def _lagged(a: torch.Tensor, b: torch.Tensor, lags: Sequence[int]) -> torch.Tensor:
-    """Symmetrised lagged products ½·mean(a_t b_t+L + b_t a_t+L) over time, ``(..., T)`` → ``(..., len(lags))``.
+    """Symmetrised lagged products ½·mean(a_t b_t+L + b_t a_t+L) over time, ``(B, T)`` → ``(B, len(lags))``.
 
-    All lags at once: one gather of the signals shifted by every lag, weighted by 1 / (T − L) where t + L < T and 0
-    elsewhere. The same sums as one slice per lag, in a handful of graph nodes instead of several per lag: the
-    exported graph of a per-lag loop spent about 3 ms per onnxruntime call on its nodes alone."""
-    n = a.shape[-1]
-    shift = torch.tensor(list(lags), dtype=torch.long, device=a.device)
-    t = torch.arange(n, device=a.device)
-    ahead = t[None, :] + shift[:, None]  # (L, T)
-    weight = (ahead < n).to(a.dtype) / (n - shift[:, None]).to(a.dtype)
-    index = ahead.clamp(max=n - 1)  # (L, T): a gather with a 2-D index gives (..., L, T) without a reshape
-    a_later, b_later = a[..., index], b[..., index]
-    return 0.5 * ((a[..., None, :] * b_later + b[..., None, :] * a_later) * weight).sum(-1)
+    All lags at once: a convolution with one-hot kernels shifts each signal by every lag (zeros past its end, where
+    no product is taken), and the mean divides by the T − L products there are. One slice per lag exported as
+    several graph nodes per lag (about 3 ms per onnxruntime call on its nodes alone); a gather of the signals
+    shifted by every lag moved them one number at a time (a fifth of the functional axes' cost)."""
+    n, kernel = a.shape[-1], _shift_kernel(tuple(lags)).to(a)
+    counts = n - torch.tensor(list(lags), dtype=a.dtype, device=a.device)
+
+    def ahead(x: torch.Tensor) -> torch.Tensor:  # (B, T) → (B, lags, T): x_t+L, 0 past the end
+        return nn.functional.conv1d(nn.functional.pad(x[:, None, :], (0, kernel.shape[-1] - 1)), kernel)
+
+    a_later = ahead(a)
+    if b is a:
+        return (a[:, None, :] * a_later).sum(-1) / counts
+    return 0.5 * (a[:, None, :] * ahead(b) + b[:, None, :] * a_later).sum(-1) / counts
 
 
 class FunctionalAxes(nn.Module):
@@ -363,67 +443,56 @@ class FunctionalAxes(nn.Module):
             raise ValueError(f"pelvis_half_turn needs Pelvis among the segments and τ ≥ 0; got {pelvis_half_turn}")
         self.pelvis_half_turn = pelvis_half_turn
 
-    @staticmethod
-    def _axes(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Rows of R(q) (v_segment = R · v_imu): the predicted segment x, y, z axes in sensor coordinates."""
-        w, x, y, z = q.unbind(-1)
-        return (
-            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        )
-
-    def _flexion_turn(self, q: torch.Tensor, gyr: torch.Tensor) -> torch.Tensor:
-        x_axis, y_axis, _ = self._axes(q)
-        u = torch.einsum("btk,bsk->bst", gyr, x_axis)  # (B, 7, T) rates about the predicted x and y
-        v = torch.einsum("btk,bsk->bst", gyr, y_axis)
-        sxx, syy, sxy = (u * u).mean(-1), (v * v).mean(-1), (u * v).mean(-1)
+    def _flexion_turn(self, R: torch.Tensor, gyr: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The turn of each hypothesis ``R`` ``(B, 7, 3, 3)`` as (w, z) ``(B, 7)`` each; (1, 0) where none."""
+        uv = torch.einsum("btk,bsjk->bsjt", gyr, R[:, :, :2])  # (B, 7, 2, T) rates about the predicted x and y
+        moments = (uv[:, :, :, None] * uv[:, :, None]).mean(-1)  # (B, 7, 2, 2)
+        sxx, syy, sxy = moments[..., 0, 0], moments[..., 1, 1], moments[..., 0, 1]
         r = torch.sqrt((syy - sxx) ** 2 + 4 * sxy * sxy + 1e-12)
-        turn = _turn_about_z((syy - sxx) / r, 2 * sxy / r)  # ψ from y towards the principal direction
+        w, z = _turn_about_z((syy - sxx) / r, 2 * sxy / r)  # ψ from y towards the principal direction
         clear = (syy > sxx) & (r >= self.min_anisotropy * (sxx + syy)) & (sxx + syy >= self.min_rate_rads**2)
-        return torch.where((clear & self.flexion_mask)[..., None], turn, turn.new_tensor([1.0, 0.0, 0.0, 0.0]))
+        clear = clear & self.flexion_mask
+        return torch.where(clear, w, 1.0), torch.where(clear, z, 0.0)
 
-    def _pelvis_turn(self, q: torch.Tensor, imu: torch.Tensor) -> torch.Tensor:
-        axes = self._axes(q)  # q (B, 4): the pelvis hypothesis
-        acc, gyr = imu[..., :3], imu[..., 3:]
-        ax, ay, az = (torch.einsum("btk,bk->bt", acc, a) for a in axes)
-        gx, gy = (torch.einsum("btk,bk->bt", gyr, a) for a in axes[:2])
-        ax, ay, az, gx, gy = (s - s.mean(-1, keepdim=True) for s in (ax, ay, az, gx, gy))
+    def _pelvis_turn(self, R: torch.Tensor, imu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The turn of the pelvis hypothesis ``R`` ``(B, 3, 3)`` as (w, z) ``(B,)`` each; (1, 0) where none."""
+        acc = torch.einsum("btk,bjk->bjt", imu[..., :3], R)  # (B, 3, T): along the predicted x, y, z
+        rate = torch.einsum("btk,bjk->bjt", imu[..., 3:], R[:, :2])  # (B, 2, T): about the predicted x, y
+        acc, rate = acc - acc.mean(-1, keepdim=True), rate - rate.mean(-1, keepdim=True)
+        az = acc[:, 2]
         vertical = _lagged(az, az, self.STEP_LAGS)  # (B, lags)
         periodic = vertical.max(-1).values >= self.min_periodicity * (az * az).mean(-1)
         step = vertical.argmax(-1) + self.STEP_LAGS[0]  # (B,) samples; the lags are consecutive
-
-        def contrast(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-            """(Sxx − Syy, 2 Sxy) at the step lag over the in-plane power: the doubled principal direction."""
-            sxx, syy, sxy = (_lagged_at(m, n, step) for m, n in ((a, a), (b, b), (a, b)))
-            power = (a * a + b * b).mean(-1) + 1e-12
-            return torch.stack([sxx - syy, 2 * sxy], -1) / power[:, None]
-
-        d = contrast(ax, ay) - contrast(gx, gy)  # forward: acceleration in step, rate out of step
+        # (Sxx − Syy, 2 Sxy) at the step lag over the in-plane power, the doubled principal direction, for the
+        # acceleration and the rate at once: forward is acceleration in step, rate out of step.
+        pairs = torch.stack([acc[:, :2], rate], 1)  # (B, 2, 2, T)
+        S = _lagged_matrix_at(pairs, step)  # (B, 2, 2, 2)
+        power = (pairs * pairs).sum(-2).mean(-1) + 1e-12  # (B, 2)
+        contrast = torch.stack([S[..., 0, 0] - S[..., 1, 1], S[..., 0, 1] + S[..., 1, 0]], -1) / power[..., None]
+        d = contrast[:, 0] - contrast[:, 1]
         norm = torch.sqrt((d * d).sum(-1) + 1e-12)
-        turn = _turn_about_z(d[:, 0] / norm, -d[:, 1] / norm)  # ψ = minus the principal direction's angle
+        w, z = _turn_about_z(d[:, 0] / norm, -d[:, 1] / norm)  # ψ = minus the principal direction's angle
         clear = periodic & (norm >= self.min_contrast) & (d[:, 0] > 0)
-        turn = torch.where(clear[:, None], turn, turn.new_tensor([1.0, 0.0, 0.0, 0.0]))
+        w, z = torch.where(clear, w, 1.0), torch.where(clear, z, 0.0)
         if self.pelvis_half_turn is None:
-            return turn
-        # The forward acceleration in the turned frame: R_z(ψ) · R puts x at cos ψ · x − sin ψ · y (turn = (cos ψ/2,
-        # 0, 0, sin ψ/2)).
-        cos, sin = 1 - 2 * turn[:, 3] ** 2, 2 * turn[:, 0] * turn[:, 3]
-        forward = cos[:, None] * ax - sin[:, None] * ay
+            return w, z
+        # The forward acceleration in the turned frame: R_z(ψ) · R puts x at cos ψ · x − sin ψ · y.
+        cos, sin = 1 - 2 * z * z, 2 * w * z
+        forward = cos[:, None] * acc[:, 0] - sin[:, None] * acc[:, 1]
         lag = self.REVERSAL_LAG
         lead = (forward[:, :-lag] * az[:, lag:]).mean(-1) - (forward[:, lag:] * az[:, :-lag]).mean(-1)
         spread = torch.sqrt((forward * forward).mean(-1) * (az * az).mean(-1) + 1e-12)
         backwards = periodic & (lead <= -self.pelvis_half_turn * spread)
-        half = torch.stack([-turn[:, 3], -turn[:, 2], turn[:, 1], turn[:, 0]], -1)  # R_z(180°) ⊗ turn
-        return torch.where(backwards[:, None], half, turn)
+        return torch.where(backwards, -z, w), torch.where(backwards, w, z)  # R_z(180°) ⊗ turn: (w, z) → (−z, w)
 
     def forward(self, q: torch.Tensor, imu: torch.Tensor) -> torch.Tensor:
-        turn = self._flexion_turn(q, imu[..., 3:])
+        R = rotation_matrix(q)  # (B, 7, 3, 3): each hypothesis' predicted axes in sensor coordinates
+        w, z = self._flexion_turn(R, imu[..., 3:])
         if self.pelvis is not None:
-            pelvis = self._pelvis_turn(q[:, self.pelvis], imu)[:, None]
-            is_pelvis = torch.arange(len(SEGMENTS), device=q.device)[None, :, None] == self.pelvis
-            turn = torch.where(is_pelvis, pelvis, turn)
-        out = quat_multiply(turn, q)  # R_new = R_z(ψ) · R: each frame turned about its own z
+            pelvis_w, pelvis_z = self._pelvis_turn(R[:, self.pelvis], imu)
+            is_pelvis = torch.arange(len(SEGMENTS), device=q.device)[None, :] == self.pelvis
+            w, z = torch.where(is_pelvis, pelvis_w[:, None], w), torch.where(is_pelvis, pelvis_z[:, None], z)
+        out = w[..., None] * q + z[..., None] * (q @ _Z_LEFT.to(q))  # R_new = R_z(ψ) · R: turned about its own z
         return out * torch.where(out[..., :1] < 0, -1.0, 1.0)
 
 

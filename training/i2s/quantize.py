@@ -108,6 +108,13 @@ def input_convolutions(onnx_path: Path) -> list[str]:
     ]
 
 
+def geometry_convolutions(onnx_path: Path) -> list[str]:
+    """Names of the convolutions of the functional axes: one-hot kernels that shift a signal by whole samples
+    (``training.i2s.models._lagged``). They are arithmetic on the window, not learnt features, and stay float32."""
+    graph = onnx.load(str(onnx_path)).graph
+    return [n.name for n in graph.node if n.op_type == "Conv" and "/functional_axes/" in n.name]
+
+
 def quantize_onnx(
     src: Path, dst: Path, calibration: np.ndarray, rnn: bool, float_first_conv: bool = False, calibrated_on: str = ""
 ) -> str:
@@ -117,7 +124,7 @@ def quantize_onnx(
         pre = Path(tmp) / "pre.onnx"
         quant_pre_process(str(src), str(pre))
         conv = Path(tmp) / "conv.onnx"
-        excluded = input_convolutions(pre) if float_first_conv else []
+        excluded = (input_convolutions(pre) if float_first_conv else []) + geometry_convolutions(pre)
         quantize_static(
             str(pre),
             str(conv),
@@ -131,8 +138,8 @@ def quantize_onnx(
         )
         text = f"int8 static QDQ Conv (per-channel weights, uint8 activations, {len(calibration)} calibration windows"
         text += f", {calibrated_on})" if calibrated_on else ")"
-        if excluded:
-            text += f"; float32 input convolutions {excluded}"
+        if float_first_conv:
+            text += f"; float32 input convolutions {input_convolutions(pre)}"
         if rnn:
             quantize_dynamic(str(conv), str(dst), op_types_to_quantize=["LSTM"], weight_type=QuantType.QInt8)
             text += " + dynamic int8 LSTM weights"

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
@@ -268,32 +269,67 @@ def test_the_pelvis_is_turned_round_where_its_walk_says_it_faces_backwards(walk_
 
 
 def test_lagged_products_of_all_lags_at_once_equal_one_slice_per_lag() -> None:
-    """The step search's lagged products (one gather for every lag) are the per-lag means they replace."""
+    """The step search's lagged products (one shifting convolution for every lag) are the per-lag means they
+    replace, for two signals and for one signal with itself."""
     from training.i2s.models import FunctionalAxes, _lagged
 
-    a, b = torch.randn(3, 7, 128, dtype=torch.float64), torch.randn(3, 7, 128, dtype=torch.float64)
+    a, b = torch.randn(21, 128, dtype=torch.float64), torch.randn(21, 128, dtype=torch.float64)
     for k_index, k in enumerate(FunctionalAxes.STEP_LAGS):
         expected = 0.5 * (a[..., :-k] * b[..., k:] + b[..., :-k] * a[..., k:]).mean(-1)
         torch.testing.assert_close(_lagged(a, b, FunctionalAxes.STEP_LAGS)[..., k_index], expected)
+        itself = (a[..., :-k] * a[..., k:]).mean(-1)
+        torch.testing.assert_close(_lagged(a, a, FunctionalAxes.STEP_LAGS)[..., k_index], itself)
 
 
 def test_the_step_lags_products_at_one_lag_per_window_are_that_lags_column() -> None:
-    """The pelvis contrasts read the lagged products at each window's step lag only (one gather of (B, T));
-    they equal that lag's column of the all-lags products, whichever lag each window picks."""
-    from training.i2s.models import FunctionalAxes, _lagged, _lagged_at
+    """The pelvis contrasts read the lagged products at each window's step lag only (one gather for all the
+    signals); their symmetric part equals that lag's column of the all-lags products, whichever lag each window
+    picks."""
+    from training.i2s.models import FunctionalAxes, _lagged, _lagged_matrix_at
 
-    a, b = torch.randn(5, 128, dtype=torch.float64), torch.randn(5, 128, dtype=torch.float64)
+    x = torch.randn(5, 2, 2, 128, dtype=torch.float64)  # two groups of two signals per window
     lags = FunctionalAxes.STEP_LAGS
     assert lags == tuple(range(lags[0], lags[0] + len(lags)))  # the step is argmax + the first lag
     pick = torch.tensor([0, 3, 17, 29, len(lags) - 1])
-    expected = _lagged(a, b, lags)[torch.arange(5), pick]
-    torch.testing.assert_close(_lagged_at(a, b, pick + lags[0]), expected)
+    S = _lagged_matrix_at(x, pick + lags[0])
+    for g in range(2):
+        for i in range(2):
+            for j in range(2):
+                expected = _lagged(x[:, g, i], x[:, g, j], lags)[torch.arange(5), pick]
+                torch.testing.assert_close(0.5 * (S[:, g, i, j] + S[:, g, j, i]), expected)
+
+
+def test_quaternion_and_vector_products_by_tables_match_scipy() -> None:
+    """The geometry's products written as constant tables: the Hamilton product composes rotations, R(q) is the
+    rotation matrix, and the cross product is torch's."""
+    from training.i2s.models import _cross, quat_multiply, rotation_matrix
+
+    r1, r2 = Rotation.random(200, random_state=1), Rotation.random(200, random_state=2)
+    q1, q2 = (torch.tensor(r.as_quat(scalar_first=True)) for r in (r1, r2))
+    torch.testing.assert_close(rotation_matrix(q1), torch.tensor(r1.as_matrix()))
+    torch.testing.assert_close(rotation_matrix(quat_multiply(q1, q2)), torch.tensor((r1 * r2).as_matrix()))
+    a, b = torch.randn(50, 3, dtype=torch.float64), torch.randn(50, 3, dtype=torch.float64)
+    torch.testing.assert_close(_cross(a, b), torch.linalg.cross(a, b))
+
+
+def test_the_alignment_geometry_exports_as_few_nodes(tmp_path: Path) -> None:
+    """onnxruntime pays for each small node about as much as for its arithmetic, so the canonical frame, the
+    quaternions and the functional axes around the network are written as few, larger operations: about 350
+    nodes beside the network (the graph that wrote them out term by term had about 710)."""
+    net = AlignmentNet(canonical=True, functional_axes=SEGMENTS, pelvis_half_turn=0.3).eval()
+    path = export_onnx(net, "alignment", tmp_path / "model.onnx")
+    network = ("/cnn/", "/rnn/", "/head/")
+    geometry = [
+        n for n in onnx.load(str(path)).graph.node if n.op_type != "Constant" and not n.name.startswith(network)
+    ]
+    assert len(geometry) <= 400
 
 
 def test_the_lstm_can_take_pooled_steps_with_the_same_weights(tmp_path: Path) -> None:
     """rnn_stride averages the CNN features over runs of samples before the LSTM: the weights keep their shapes
     (a stride-1 network warm-starts it), the output does change, and the graph exports with parity."""
     kwargs = dict(hidden=16, channels=8, kernel=4, canonical=True, functional_axes=SEGMENTS)
+    torch.manual_seed(1)  # random weights: small networks answer nearly alike, so the weights are fixed
     plain, pooled = AlignmentNet(**kwargs).eval(), AlignmentNet(**kwargs, rnn_stride=4).eval()
     pooled.load_state_dict(plain.state_dict())
     imu = _moving_windows(8, seed=5)
