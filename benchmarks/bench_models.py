@@ -23,7 +23,7 @@ from service.inference.registry import load_model
 
 RESULTS = REPO / "benchmarks" / "results"
 ROOTS = (REPO / "onnx_models", REPO / "mlflow_snapshot" / "models")
-DEFAULT = ["i2s_alignment/3.9.0", "i2s_alignment/3.11.0", "i2s_assignment/1.10.2"]
+DEFAULT = ["i2s_alignment/3.11.0", "i2s_alignment/3.17.0", "i2s_assignment/1.12.0"]
 
 
 def find(name_version: str) -> Path:

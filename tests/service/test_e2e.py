@@ -22,8 +22,8 @@ from service.core.segments import BODY_PART, SEGMENTS
 from service.core.windowing import sliding_windows
 
 # A dynamic-int8 LSTM quantises its inputs per call, so a window's alignment moves with its batch: up to 0.8–1.05°
-# with 2.1.0 and 3.6° with such a 3.x file. The served 3.11.0 (as 3.9.0, 3.5.0, 3.3.0 and 3.1.0) keeps its LSTM in
-# float32.
+# with 2.1.0 and 3.6° with such a 3.x file. The served 3.17.0 (as 3.11.0, 3.9.0, 3.5.0, 3.3.0 and 3.1.0) keeps its
+# LSTM in float32.
 MAX_BATCHING_ANGLE_DEG = 2.0
 
 

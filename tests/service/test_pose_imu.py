@@ -485,7 +485,8 @@ def test_rest_calibration_by_the_walk_spreads_its_windows_within_the_limit_and_n
                 )
                 assert np.degrees(err.magnitude()) < 10.0, (limit, s, np.degrees(err.magnitude()))
     shutil.copytree(newest_version_dir(MODELS, "pose_lower3"), tmp_path / "pose_lower3" / "3.0.0")
-    shutil.copytree(newest_version_dir(MODELS, "i2s_alignment"), tmp_path / "i2s_alignment" / "3.11.0")
+    alignment = newest_version_dir(MODELS, "i2s_alignment")
+    shutil.copytree(alignment, tmp_path / "i2s_alignment" / alignment.name)
     with TestClient(create_app(Settings(models_dir=tmp_path))) as client:
         r = client.post("/v1/pose/imu", json=body)
     assert r.status_code == 503 and "i2s_assignment" in r.text, r.text
