@@ -138,7 +138,8 @@ def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def rotation_matrix(q: torch.Tensor) -> torch.Tensor:
     """R(q) ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` (w, x, y, z): v' = R v, so R's rows are the rotated
-    frame's axes in the original coordinates."""
+    frame's axes in the original coordinates. q must be unit: the form is homogeneous (w² + x² − y² − z², not
+    1 − 2(y² + z²)), so another norm scales R by |q|²."""
     return _bilinear(q, q, _ROTATION)
 
 
@@ -357,12 +358,13 @@ def _lagged_matrix_at(x: torch.Tensor, lag: torch.Tensor) -> torch.Tensor:
 
 
 @functools.cache
-def _shift_kernel(lags: tuple[int, ...]) -> torch.Tensor:
-    """``(len(lags), 1, max(lags) + 1)``: one-hot convolution kernels that read a signal L samples ahead. Built in
-    numpy, so an exported graph holds it as a constant."""
+def _shift_kernel(lags: tuple[int, ...]) -> np.ndarray:
+    """``(len(lags), 1, max(lags) + 1)``: one-hot convolution kernels that read a signal L samples ahead. In numpy,
+    so an exported graph holds it as a constant, and a tensor is made per call (a cached tensor made under
+    ``torch.inference_mode`` could not be used in training afterwards)."""
     kernel = np.zeros((len(lags), 1, max(lags) + 1), dtype=np.float32)
     kernel[np.arange(len(lags)), 0, list(lags)] = 1.0
-    return torch.from_numpy(kernel)
+    return kernel
 
 
 def _lagged(a: torch.Tensor, b: torch.Tensor, lags: Sequence[int]) -> torch.Tensor:
@@ -372,7 +374,7 @@ def _lagged(a: torch.Tensor, b: torch.Tensor, lags: Sequence[int]) -> torch.Tens
     no product is taken), and the mean divides by the T − L products there are. One slice per lag exported as
     several graph nodes per lag (about 3 ms per onnxruntime call on its nodes alone); a gather of the signals
     shifted by every lag moved them one number at a time (a fifth of the functional axes' cost)."""
-    n, kernel = a.shape[-1], _shift_kernel(tuple(lags)).to(a)
+    n, kernel = a.shape[-1], torch.from_numpy(_shift_kernel(tuple(lags))).to(a)
     counts = n - torch.tensor(list(lags), dtype=a.dtype, device=a.device)
 
     def ahead(x: torch.Tensor) -> torch.Tensor:  # (B, T) → (B, lags, T): x_t+L, 0 past the end

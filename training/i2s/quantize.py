@@ -140,6 +140,8 @@ def quantize_onnx(
         text += f", {calibrated_on})" if calibrated_on else ")"
         if float_first_conv:
             text += f"; float32 input convolutions {input_convolutions(pre)}"
+        if geometry := geometry_convolutions(pre):
+            text += f"; float32 geometry convolutions {geometry}"
         if rnn:
             quantize_dynamic(str(conv), str(dst), op_types_to_quantize=["LSTM"], weight_type=QuantType.QInt8)
             text += " + dynamic int8 LSTM weights"

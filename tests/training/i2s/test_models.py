@@ -281,6 +281,19 @@ def test_lagged_products_of_all_lags_at_once_equal_one_slice_per_lag() -> None:
         torch.testing.assert_close(_lagged(a, a, FunctionalAxes.STEP_LAGS)[..., k_index], itself)
 
 
+def test_the_lagged_products_train_after_an_inference_call() -> None:
+    """The shifting kernels are cached: a first call under ``torch.inference_mode`` (evaluation) must not leave a
+    tensor behind that a later training step cannot use for its gradients."""
+    from training.i2s.models import _lagged
+
+    lags = (3, 4, 5)  # lags of no other test, so the cache starts empty here
+    with torch.inference_mode():
+        _lagged(torch.randn(2, 32), torch.randn(2, 32), lags)
+    a = torch.randn(2, 32, requires_grad=True)
+    _lagged(a, a, lags).sum().backward()
+    assert a.grad is not None and a.grad.abs().sum() > 0
+
+
 def test_the_step_lags_products_at_one_lag_per_window_are_that_lags_column() -> None:
     """The pelvis contrasts read the lagged products at each window's step lag only (one gather for all the
     signals); their symmetric part equals that lag's column of the all-lags products, whichever lag each window

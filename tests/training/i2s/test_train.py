@@ -222,7 +222,8 @@ def test_a_distilled_networks_manifest_names_its_teacher() -> None:
 
 
 def alignment_teacher_dir() -> Path:
-    """The float32 file of the alignment the service has served since 2026-12-05 (3.10.0), where it lies now."""
+    """The float32 file of the alignment the service served from 2026-12-05 to 2026-12-08 (3.10.0; archived since),
+    where it lies now: the teacher of training/configs/i2s_alignment_distilled.yaml."""
     for root in ("onnx_models", "mlflow_snapshot/models"):
         if (ROOT / root / "i2s_alignment/3.10.0/model.onnx").exists():
             return ROOT / root / "i2s_alignment/3.10.0"
