@@ -367,6 +367,12 @@ def _shift_kernel(lags: tuple[int, ...]) -> np.ndarray:
     return kernel
 
 
+def is_geometry_convolution(node_name: str) -> bool:
+    """Whether a Conv node of an exported alignment graph is one of ``_lagged``'s shifting convolutions: arithmetic
+    on the window, with no learnt weights (warm starts skip them, quantisation keeps them float32)."""
+    return "/functional_axes/" in node_name
+
+
 def _lagged(a: torch.Tensor, b: torch.Tensor, lags: Sequence[int]) -> torch.Tensor:
     """Symmetrised lagged products ½·mean(a_t b_t+L + b_t a_t+L) over time, ``(B, T)`` → ``(B, len(lags))``.
 

@@ -38,6 +38,7 @@ from service.core.recordings import RealRecording, read_all_real, read_recording
 from service.core.windowing import sliding_windows
 from training.i2s.config import ExperimentConfig
 from training.i2s.data.windows import WindowSampler
+from training.i2s.models import is_geometry_convolution
 from training.run_labels import record_shipped
 from training.snapshot import local_run_id
 
@@ -109,10 +110,10 @@ def input_convolutions(onnx_path: Path) -> list[str]:
 
 
 def geometry_convolutions(onnx_path: Path) -> list[str]:
-    """Names of the convolutions of the functional axes: one-hot kernels that shift a signal by whole samples
-    (``training.i2s.models._lagged``). They are arithmetic on the window, not learnt features, and stay float32."""
+    """Names of the convolutions of the functional axes (``is_geometry_convolution``): one-hot kernels that shift a
+    signal by whole samples. They are arithmetic on the window, not learnt features, and stay float32."""
     graph = onnx.load(str(onnx_path)).graph
-    return [n.name for n in graph.node if n.op_type == "Conv" and "/functional_axes/" in n.name]
+    return [n.name for n in graph.node if n.op_type == "Conv" and is_geometry_convolution(n.name)]
 
 
 def quantize_onnx(

@@ -19,7 +19,7 @@ from onnx import numpy_helper
 from torch import nn
 
 from service.core.manifest import read_manifest
-from training.i2s.models import AlignmentNet, AssignmentEnsemble, AssignmentNet
+from training.i2s.models import AlignmentNet, AssignmentEnsemble, AssignmentNet, is_geometry_convolution
 from training.onnx_weights import GRU_GATES, LSTM_GATES, recurrent_state
 
 
@@ -29,7 +29,7 @@ def state_from_onnx(onnx_path: Path, net: AssignmentNet | AlignmentNet) -> dict[
     golden check covers), or an alignment graph (one ONNX LSTM node per layer of the 2-layer LSTM)."""
     model = onnx.load(str(onnx_path))
     inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
-    convs = [n for n in model.graph.node if n.op_type == "Conv"]
+    convs = [n for n in model.graph.node if n.op_type == "Conv" and not is_geometry_convolution(n.name)]
     state = {k: v.clone() for k, v in net.state_dict().items()}
     conv_layers = [k for k in state if k.startswith("cnn.net.") and k.endswith(".weight") and state[k].dim() == 3]
     if not convs or len(convs) % len(conv_layers):
