@@ -17,7 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.bench_models import find
+from service.core.manifest import read_manifest
 from service.core.recordings import read_all_real
+from service.core.rotations import geodesic_angle_deg
 from service.core.windowing import sliding_windows
 from service.inference.registry import load_model
 from training.data.catalog import resolve_data_dir
@@ -31,10 +33,8 @@ def answers(model_dir: Path, windows: np.ndarray) -> np.ndarray:
 
 
 def alignment_parity(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
-    """Angles between unit quaternions ``(n, 7, 4)``, from the chord |a ∓ b| (well conditioned near 0, where the
-    arccos of a dot product in float32 reads 0.05° for identical rotations)."""
-    sign = np.where((a * b).sum(-1, keepdims=True) < 0, -1.0, 1.0)
-    deg = np.degrees(4 * np.arcsin(np.clip(np.linalg.norm(a - sign * b, axis=-1) / 2, 0, 1)))
+    """Angles between the unit quaternions ``(n, 7, 4)`` of the two files."""
+    deg = geodesic_angle_deg(a.reshape(-1, 4), b.reshape(-1, 4))
     return {
         "answers": int(deg.size),
         "max_deg": float(deg.max()),
@@ -59,7 +59,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     dirs = [find(m) for m in args.models]
-    tasks = {json.loads((d / "manifest.json").read_text())["task"] for d in dirs}
+    tasks = {read_manifest(d / "manifest.json").task for d in dirs}
     if len(tasks) != 1 or not tasks <= {"i2s_alignment", "i2s_assignment"}:
         raise SystemExit(f"two files of one I2S task, got {sorted(tasks)}")
     recordings = read_all_real(resolve_data_dir(args.data_dir))

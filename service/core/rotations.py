@@ -110,7 +110,7 @@ def _quadratic_forms() -> np.ndarray:
     return A
 
 
-_A = _quadratic_forms()
+QUADRATIC_FORMS = _quadratic_forms()  # (3, 3, 4, 4); also the alignment graph's R(q) (training.i2s.models)
 
 
 def matrix_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
@@ -121,7 +121,7 @@ def matrix_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
     """
     q = np.asarray(q_wxyz, dtype=np.float64)
     outer = q[..., :, None] * q[..., None, :]
-    return np.tensordot(outer, _A, axes=([-2, -1], [2, 3])) / (q * q).sum(axis=-1)[..., None, None]
+    return np.tensordot(outer, QUADRATIC_FORMS, axes=([-2, -1], [2, 3])) / (q * q).sum(axis=-1)[..., None, None]
 
 
 def stereographic_to_quat(p: np.ndarray) -> np.ndarray:

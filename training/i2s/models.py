@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from service.core.rotations import QUADRATIC_FORMS
 from service.core.segments import SEGMENTS
 from service.core.units import GRAVITY_MPS2
 
@@ -75,19 +76,6 @@ def _cross_terms(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim=-1)
 
 
-def _rotation_terms(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-    """The symmetric bilinear form whose value at (q, q) is R(q) of a unit quaternion q = (w, x, y, z) (v' = R v),
-    written out: the definition ``_ROTATION`` is read from."""
-    pw, px, py, pz = p.unbind(-1)
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        [pw * w + px * x - py * y - pz * z, px * y + py * x - pw * z - pz * w, px * z + pz * x + pw * y + py * w],
-        [px * y + py * x + pw * z + pz * w, pw * w - px * x + py * y - pz * z, py * z + pz * y - pw * x - px * w],
-        [px * z + pz * x - pw * y - py * w, py * z + pz * y + pw * x + px * w, pw * w - px * x - py * y + pz * z],
-    ]
-    return torch.stack([torch.stack(row, -1) for row in rows], -2)
-
-
 def _shepperd_terms(R: torch.Tensor) -> torch.Tensor:
     """4 q qᵀ of the unit quaternion q of a rotation matrix R, which is affine in R (Shepperd 1978), written out:
     the definition ``_SHEPPERD`` is read from."""
@@ -111,7 +99,8 @@ def _bilinear_table(terms: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
 
 _HAMILTON = _bilinear_table(_hamilton_terms, 4, 4)  # (4, 4, 4)
 _LEVI_CIVITA = _bilinear_table(_cross_terms, 3, 3)  # (3, 3, 3)
-_ROTATION = _bilinear_table(_rotation_terms, 4, 4)  # (4, 4, 3, 3)
+# R(q)_ab = Σ_ij q_i q_j _ROTATION[i, j, a, b] for unit q: the service's quadratic forms (service.core.rotations)
+_ROTATION = torch.from_numpy(QUADRATIC_FORMS).permute(2, 3, 0, 1).float()  # (4, 4, 3, 3)
 # 4 q qᵀ = I + Σ_ab R_ab · _SHEPPERD[a, b]: the terms at each basis matrix, less those at R = 0 (the identity)
 _SHEPPERD = (
     (_shepperd_terms(torch.eye(9, dtype=torch.float64).reshape(9, 3, 3)) - _shepperd_terms(torch.zeros(3, 3)))
@@ -138,8 +127,8 @@ def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def rotation_matrix(q: torch.Tensor) -> torch.Tensor:
     """R(q) ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` (w, x, y, z): v' = R v, so R's rows are the rotated
-    frame's axes in the original coordinates. q must be unit: the form is homogeneous (w² + x² − y² − z², not
-    1 − 2(y² + z²)), so another norm scales R by |q|²."""
+    frame's axes in the original coordinates. q must be unit: the forms are homogeneous (w² + x² − y² − z², not
+    1 − 2(y² + z²)), so another norm scales R by |q|² (``matrix_from_quat`` divides by it; the graph's q is unit)."""
     return _bilinear(q, q, _ROTATION)
 
 
